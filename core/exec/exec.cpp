@@ -1,0 +1,89 @@
+// Backends of the exec layer. The only file of the project with OpenMP pragmas and TBB calls.
+#include "core/exec/exec.hpp"
+
+#include <omp.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <cctype>
+#include <stdexcept>
+#include <thread>
+
+namespace amalgam::exec {
+
+namespace detail {
+struct BackendState {
+  Backend backend;
+  int threads;
+  std::unique_ptr<tbb::task_arena> arena;  // TBB only: fixes the concurrency to `threads`
+};
+
+void run_chunks(const BackendState& s, Index nchunks, ChunkFn fn, void* ctx) {
+  if (nchunks == 1 || s.threads == 1 || s.backend == Backend::Serial) {
+    for (Index c = 0; c < nchunks; ++c) fn(ctx, c);
+    return;
+  }
+  switch (s.backend) {
+    case Backend::Serial:
+      for (Index c = 0; c < nchunks; ++c) fn(ctx, c);
+      break;
+    case Backend::OpenMP: {
+#pragma omp parallel for schedule(dynamic, 1) num_threads(s.threads)
+      for (Index c = 0; c < nchunks; ++c) fn(ctx, c);
+      break;
+    }
+    case Backend::TBB:
+      s.arena->execute([&] {
+        tbb::parallel_for(
+            tbb::blocked_range<Index>(0, nchunks, 1),
+            [&](const tbb::blocked_range<Index>& r) {
+              for (Index c = r.begin(); c != r.end(); ++c) fn(ctx, c);
+            },
+            tbb::simple_partitioner());
+      });
+      break;
+  }
+}
+}  // namespace detail
+
+const char* backend_name(Backend b) {
+  switch (b) {
+    case Backend::Serial: return "serial";
+    case Backend::OpenMP: return "openmp";
+    case Backend::TBB: return "tbb";
+  }
+  return "?";
+}
+
+Backend parse_backend(const std::string& name) {
+  std::string s = name;
+  std::transform(s.begin(), s.end(), s.begin(), [](unsigned char c) { return std::tolower(c); });
+  if (s == "serial") return Backend::Serial;
+  if (s == "openmp" || s == "omp") return Backend::OpenMP;
+  if (s == "tbb") return Backend::TBB;
+  throw std::invalid_argument("unknown backend '" + name + "' (expected serial, openmp or tbb)");
+}
+
+std::vector<Backend> available_backends() { return {Backend::Serial, Backend::OpenMP, Backend::TBB}; }
+
+int hardware_threads() {
+  const unsigned n = std::thread::hardware_concurrency();
+  return n == 0 ? 1 : static_cast<int>(n);
+}
+
+Space::Space(Backend backend, int threads, Profiler* profiler)
+    : backend_(backend), threads_(backend == Backend::Serial ? 1 : threads), profiler_(profiler) {
+  if (threads < 1) throw std::invalid_argument("thread count must be >= 1, got " + std::to_string(threads));
+  state_ = std::make_shared<detail::BackendState>();
+  state_->backend = backend_;
+  state_->threads = threads_;
+  if (backend_ == Backend::TBB) state_->arena = std::make_unique<tbb::task_arena>(threads_);
+}
+
+std::string Space::describe() const {
+  return std::string(backend_name(backend_)) + " x" + std::to_string(threads_);
+}
+
+}  // namespace amalgam::exec

@@ -1,0 +1,182 @@
+// Data-parallel execution layer: parallel_for / parallel_reduce / parallel_scan with labels,
+// dispatched at run time to the Serial, OpenMP or TBB backend with a chosen thread count.
+// Every labelled region is timed by the Space's profiler (when one is attached).
+//
+// Determinism contract: the work of parallel_for(n) is split into chunks whose boundaries
+// depend only on n and the grain, never on the thread count; parallel_reduce combines one
+// partial per chunk in chunk order; parallel_scan uses the same fixed chunking. Results are
+// therefore bitwise identical on every backend and thread count.
+//
+// This header holds no OpenMP pragma and no TBB call: backends live in exec.cpp, behind one
+// indirect call per chunk.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/exec/profiler.hpp"
+
+namespace amalgam::exec {
+
+using Index = std::int64_t;
+
+enum class Backend { Serial, OpenMP, TBB };
+
+const char* backend_name(Backend b);
+// Parses "serial", "openmp", "tbb" (case-insensitive); throws std::invalid_argument otherwise.
+Backend parse_backend(const std::string& name);
+// Backends compiled into this build, in a fixed order.
+std::vector<Backend> available_backends();
+int hardware_threads();
+
+namespace detail {
+struct BackendState;
+// Type-erased "call body(chunk) for every chunk in [0, nchunks)", one indirect call per chunk.
+using ChunkFn = void (*)(void* ctx, Index chunk);
+void run_chunks(const BackendState& s, Index nchunks, ChunkFn fn, void* ctx);
+}  // namespace detail
+
+// An execution space: a backend, a thread count and an optional profiler. Cheap to copy.
+class Space {
+ public:
+  explicit Space(Backend backend = Backend::Serial, int threads = 1, Profiler* profiler = nullptr);
+  Backend backend() const { return backend_; }
+  int threads() const { return threads_; }
+  Profiler* profiler() const { return profiler_; }
+  void set_profiler(Profiler* p) { profiler_ = p; }
+  std::string describe() const;
+  const detail::BackendState& state() const { return *state_; }
+
+ private:
+  Backend backend_;
+  int threads_;
+  Profiler* profiler_;
+  std::shared_ptr<detail::BackendState> state_;
+};
+
+// Chunk size used by parallel_for for n items and a requested grain (0 = automatic). Depends
+// only on n and grain, never on threads.
+inline Index chunk_size(Index n, Index grain) {
+  if (grain > 0) return grain;
+  const Index target_chunks = 256;
+  Index c = (n + target_chunks - 1) / target_chunks;
+  return c < 1 ? 1 : c;
+}
+
+// body(i) for i in [0, n). Items must write disjoint memory.
+template <class Body>
+void parallel_for(const Space& space, const char* label, Index n, Body&& body, Index grain = 0) {
+  if (n <= 0) return;
+  ScopedRegion region(space.profiler(), label);
+  const Index cs = chunk_size(n, grain);
+  const Index nchunks = (n + cs - 1) / cs;
+  struct Ctx {
+    Body* body;
+    Index n, cs;
+  } ctx{&body, n, cs};
+  detail::run_chunks(
+      space.state(), nchunks,
+      [](void* p, Index c) {
+        auto& k = *static_cast<Ctx*>(p);
+        const Index b = c * k.cs, e = (b + k.cs < k.n) ? b + k.cs : k.n;
+        for (Index i = b; i < e; ++i) (*k.body)(i);
+      },
+      &ctx);
+}
+
+// body(begin, end) for fixed chunks of [0, n): for kernels that want a whole range at once.
+template <class Body>
+void parallel_for_chunks(const Space& space, const char* label, Index n, Index chunk, Body&& body) {
+  if (n <= 0) return;
+  ScopedRegion region(space.profiler(), label);
+  const Index cs = chunk < 1 ? 1 : chunk;
+  const Index nchunks = (n + cs - 1) / cs;
+  struct Ctx {
+    Body* body;
+    Index n, cs;
+  } ctx{&body, n, cs};
+  detail::run_chunks(
+      space.state(), nchunks,
+      [](void* p, Index c) {
+        auto& k = *static_cast<Ctx*>(p);
+        const Index b = c * k.cs, e = (b + k.cs < k.n) ? b + k.cs : k.n;
+        (*k.body)(b, e);
+      },
+      &ctx);
+}
+
+// Deterministic reduction: result = join(...join(join(init, chunk0), chunk1)...), where each
+// chunk's partial starts at `init` and folds body(i, acc) in index order.
+template <class T, class Body, class Join>
+T parallel_reduce(const Space& space, const char* label, Index n, T init, Body&& body, Join&& join,
+                  Index grain = 0) {
+  if (n <= 0) return init;
+  ScopedRegion region(space.profiler(), label);
+  const Index cs = chunk_size(n, grain);
+  const Index nchunks = (n + cs - 1) / cs;
+  std::vector<T> partial(static_cast<size_t>(nchunks), init);
+  struct Ctx {
+    Body* body;
+    T* partial;
+    Index n, cs;
+  } ctx{&body, partial.data(), n, cs};
+  detail::run_chunks(
+      space.state(), nchunks,
+      [](void* p, Index c) {
+        auto& k = *static_cast<Ctx*>(p);
+        const Index b = c * k.cs, e = (b + k.cs < k.n) ? b + k.cs : k.n;
+        T acc = k.partial[c];
+        for (Index i = b; i < e; ++i) (*k.body)(i, acc);
+        k.partial[c] = acc;
+      },
+      &ctx);
+  T result = init;
+  for (Index c = 0; c < nchunks; ++c) result = join(result, partial[static_cast<size_t>(c)]);
+  return result;
+}
+
+// Exclusive prefix sum: out[i] = sum_{j<i} value(j); returns the total. out may alias nothing.
+template <class T, class ValueFn>
+T parallel_scan(const Space& space, const char* label, Index n, ValueFn&& value, T* out) {
+  if (n <= 0) return T(0);
+  ScopedRegion region(space.profiler(), label);
+  const Index cs = chunk_size(n, 0);
+  const Index nchunks = (n + cs - 1) / cs;
+  std::vector<T> sums(static_cast<size_t>(nchunks) + 1, T(0));
+  struct Ctx {
+    ValueFn* value;
+    T* out;
+    T* sums;
+    Index n, cs;
+  } ctx{&value, out, sums.data(), n, cs};
+  // pass 1: per-chunk totals
+  detail::run_chunks(
+      space.state(), nchunks,
+      [](void* p, Index c) {
+        auto& k = *static_cast<Ctx*>(p);
+        const Index b = c * k.cs, e = (b + k.cs < k.n) ? b + k.cs : k.n;
+        T s(0);
+        for (Index i = b; i < e; ++i) s += (*k.value)(i);
+        k.sums[c + 1] = s;
+      },
+      &ctx);
+  for (Index c = 0; c < nchunks; ++c) sums[c + 1] += sums[c];
+  // pass 2: local scans with chunk offsets
+  detail::run_chunks(
+      space.state(), nchunks,
+      [](void* p, Index c) {
+        auto& k = *static_cast<Ctx*>(p);
+        const Index b = c * k.cs, e = (b + k.cs < k.n) ? b + k.cs : k.n;
+        T s = k.sums[c];
+        for (Index i = b; i < e; ++i) {
+          k.out[i] = s;
+          s += (*k.value)(i);
+        }
+      },
+      &ctx);
+  return sums[static_cast<size_t>(nchunks)];
+}
+
+}  // namespace amalgam::exec

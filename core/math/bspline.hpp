@@ -1,0 +1,88 @@
+// Quadratic and cubic B-spline interpolation stencils of MPM (course report, "inter_weight").
+// Node i sits at x_i = i dx. A particle's stencil covers nodes base .. base + Order per axis:
+//   quadratic (Order 2): base = floor(x/dx - 1/2), 3 nodes, D_p^{-1} = 4/dx^2 (APIC/MLS)
+//   cubic     (Order 3): base = floor(x/dx) - 1,   4 nodes, D_p^{-1} = 3/dx^2
+// Both keep the stencil inside the particle's leaf and its +1 neighbours (base & 7 <= 7, base+3
+// <= 10 < 16), which is what the 8-leaf block scatter relies on.
+#pragma once
+
+#include <cmath>
+
+#include "core/math/types.hpp"
+
+namespace amalgam {
+
+template <int Order>
+struct BSpline;
+
+template <>
+struct BSpline<2> {
+  static constexpr int kNodes = 3;
+  static constexpr Real kDinvScale = 4;  // D_p^{-1} = 4 / dx^2
+  static int base(Real xs) { return int(std::floor(xs - Real(0.5))); }
+  // fx = x/dx - base in [0.5, 1.5); weights and d w / d(x/dx).
+  static void eval(Real fx, Real* w, Real* dw) {
+    const Real a = Real(1.5) - fx, b = fx - 1, c = fx - Real(0.5);
+    w[0] = Real(0.5) * a * a;
+    w[1] = Real(0.75) - b * b;
+    w[2] = Real(0.5) * c * c;
+    dw[0] = -a;
+    dw[1] = -2 * b;
+    dw[2] = c;
+  }
+};
+
+template <>
+struct BSpline<3> {
+  static constexpr int kNodes = 4;
+  static constexpr Real kDinvScale = 3;  // D_p^{-1} = 3 / dx^2
+  static int base(Real xs) { return int(std::floor(xs)) - 1; }
+  // fx = x/dx - base in [1, 2).
+  static void eval(Real fx, Real* w, Real* dw) {
+    const Real d0 = 2 - fx;  // distance-complement for node 0: |d| in [1,2)
+    const Real d1 = fx - 1;  // node 1: |d| in [0,1)
+    const Real d2 = 2 - fx;  // node 2: |d| in (0,1]
+    const Real d3 = fx - 1;  // node 3: 2 - |d| in [0,1)
+    w[0] = d0 * d0 * d0 / 6;
+    w[1] = Real(0.5) * d1 * d1 * d1 - d1 * d1 + Real(2) / 3;
+    w[2] = Real(0.5) * d2 * d2 * d2 - d2 * d2 + Real(2) / 3;
+    w[3] = d3 * d3 * d3 / 6;
+    dw[0] = Real(-0.5) * d0 * d0;
+    dw[1] = Real(1.5) * d1 * d1 - 2 * d1;
+    dw[2] = -(Real(1.5) * d2 * d2 - 2 * d2);
+    dw[3] = Real(0.5) * d3 * d3;
+  }
+};
+
+// Tensor-product stencil of one particle: per-axis weights w[axis][k] and derivatives
+// dw[axis][k] (already divided by dx, i.e. d/dx of the 1D weight).
+template <int Order>
+struct Stencil {
+  static constexpr int kN = BSpline<Order>::kNodes;
+  Vec3i base;
+  Vec3 fx;  // x/dx - base
+  Real w[3][kN];
+  Real dw[3][kN];
+
+  static Stencil at(const Vec3& x, Real inv_dx) {
+    Stencil s;
+    for (int a = 0; a < 3; ++a) {
+      const Real xs = x[a] * inv_dx;
+      s.base[a] = BSpline<Order>::base(xs);
+      s.fx[a] = xs - Real(s.base[a]);
+      BSpline<Order>::eval(s.fx[a], s.w[a], s.dw[a]);
+      for (int k = 0; k < kN; ++k) s.dw[a][k] *= inv_dx;
+    }
+    return s;
+  }
+  Real weight(int i, int j, int k) const { return w[0][i] * w[1][j] * w[2][k]; }
+  Vec3 gradient(int i, int j, int k) const {
+    return Vec3(dw[0][i] * w[1][j] * w[2][k], w[0][i] * dw[1][j] * w[2][k], w[0][i] * w[1][j] * dw[2][k]);
+  }
+  // x_i - x_p for stencil node (i, j, k), in world units.
+  Vec3 offset(int i, int j, int k, Real dx) const {
+    return Vec3((Real(i) - fx[0]) * dx, (Real(j) - fx[1]) * dx, (Real(k) - fx[2]) * dx);
+  }
+};
+
+}  // namespace amalgam

@@ -1,0 +1,128 @@
+// Robust 3x3 singular value decomposition and polar decomposition.
+//
+// F = U diag(sigma) V^T with U, V proper rotations (det = +1). sigma is sorted by magnitude,
+// sigma0 >= sigma1 >= |sigma2|, and sigma2 < 0 exactly when det F < 0 (inverted element): this is
+// the sign convention of the course report's "polar SVD" (flip the last column of U or V when its
+// determinant is negative, and the matching singular value with it), which keeps R = U V^T a
+// rotation for inverted F.
+//
+// Method (McAdams et al. 2011 structure, exact rotations): cyclic Jacobi on S = F^T F gives V,
+// columns sorted by eigenvalue; B = F V is then orthogonalised by Givens QR, B = U R, so U is a
+// rotation even when columns of B vanish (singular F); sigma = diag(R). Computed in the
+// precision T (float or double).
+#pragma once
+
+#include <Eigen/Core>
+#include <cmath>
+
+namespace amalgam {
+
+template <class T>
+struct Svd3 {
+  Eigen::Matrix<T, 3, 3> U, V;
+  Eigen::Matrix<T, 3, 1> sigma;
+};
+
+namespace detail {
+
+// One Jacobi rotation zeroing S(p,q) of symmetric S, accumulated into V.
+template <class T>
+inline void jacobi_rotate(Eigen::Matrix<T, 3, 3>& S, Eigen::Matrix<T, 3, 3>& V, int p, int q) {
+  const T apq = S(p, q);
+  if (apq == T(0)) return;
+  const T tau = (S(q, q) - S(p, p)) / (T(2) * apq);
+  const T t = (tau >= T(0) ? T(1) : T(-1)) / (std::abs(tau) + std::sqrt(T(1) + tau * tau));
+  const T c = T(1) / std::sqrt(T(1) + t * t);
+  const T s = t * c;
+  // S <- J^T S J with J the Givens rotation in the (p,q) plane.
+  for (int k = 0; k < 3; ++k) {
+    const T skp = S(k, p), skq = S(k, q);
+    S(k, p) = c * skp - s * skq;
+    S(k, q) = s * skp + c * skq;
+  }
+  for (int k = 0; k < 3; ++k) {
+    const T spk = S(p, k), sqk = S(q, k);
+    S(p, k) = c * spk - s * sqk;
+    S(q, k) = s * spk + c * sqk;
+  }
+  for (int k = 0; k < 3; ++k) {
+    const T vkp = V(k, p), vkq = V(k, q);
+    V(k, p) = c * vkp - s * vkq;
+    V(k, q) = s * vkp + c * vkq;
+  }
+}
+
+// Givens rotation acting on rows (i, j) of B, zeroing B(j, col); accumulates Q so that the
+// original B equals Q * B_now.
+template <class T>
+inline void givens_zero(Eigen::Matrix<T, 3, 3>& B, Eigen::Matrix<T, 3, 3>& Q, int i, int j, int col) {
+  const T a = B(i, col), b = B(j, col);
+  const T r = std::sqrt(a * a + b * b);
+  if (r == T(0)) return;
+  const T c = a / r, s = b / r;
+  for (int k = 0; k < 3; ++k) {
+    const T bi = B(i, k), bj = B(j, k);
+    B(i, k) = c * bi + s * bj;
+    B(j, k) = -s * bi + c * bj;
+  }
+  for (int k = 0; k < 3; ++k) {
+    const T qi = Q(k, i), qj = Q(k, j);
+    Q(k, i) = c * qi + s * qj;
+    Q(k, j) = -s * qi + c * qj;
+  }
+}
+
+template <class T>
+inline void swap_columns_keep_rotation(Eigen::Matrix<T, 3, 3>& V, Eigen::Matrix<T, 1, 3>& lambda, int a,
+                                       int b) {
+  std::swap(lambda(a), lambda(b));
+  for (int k = 0; k < 3; ++k) {
+    const T t = V(k, a);
+    V(k, a) = V(k, b);
+    V(k, b) = -t;  // a swap flips det; negating one column restores det = +1
+  }
+}
+
+}  // namespace detail
+
+template <class T>
+inline Svd3<T> svd3(const Eigen::Matrix<T, 3, 3>& F) {
+  using M = Eigen::Matrix<T, 3, 3>;
+  Svd3<T> out;
+  M S = F.transpose() * F;
+  M V = M::Identity();
+  const T scale = S.diagonal().sum();
+  const T tol = std::numeric_limits<T>::epsilon() * std::numeric_limits<T>::epsilon() * scale * scale;
+  for (int sweep = 0; sweep < 12; ++sweep) {
+    const T off = S(0, 1) * S(0, 1) + S(0, 2) * S(0, 2) + S(1, 2) * S(1, 2);
+    if (!(off > tol)) break;  // also stops on NaN
+    detail::jacobi_rotate(S, V, 0, 1);
+    detail::jacobi_rotate(S, V, 0, 2);
+    detail::jacobi_rotate(S, V, 1, 2);
+  }
+  // Sort eigenvalues of F^T F in decreasing order, keeping V a rotation.
+  Eigen::Matrix<T, 1, 3> lambda(S(0, 0), S(1, 1), S(2, 2));
+  if (lambda(0) < lambda(1)) detail::swap_columns_keep_rotation(V, lambda, 0, 1);
+  if (lambda(0) < lambda(2)) detail::swap_columns_keep_rotation(V, lambda, 0, 2);
+  if (lambda(1) < lambda(2)) detail::swap_columns_keep_rotation(V, lambda, 1, 2);
+  // QR of B = F V by Givens rotations: B = U R, U a rotation, R (nearly) diagonal.
+  M B = F * V;
+  M U = M::Identity();
+  detail::givens_zero(B, U, 0, 1, 0);
+  detail::givens_zero(B, U, 0, 2, 0);
+  detail::givens_zero(B, U, 1, 2, 1);
+  out.U = U;
+  out.V = V;
+  out.sigma = Eigen::Matrix<T, 3, 1>(B(0, 0), B(1, 1), B(2, 2));
+  return out;
+}
+
+// Polar decomposition F = R S with R = U V^T a rotation (also for inverted F) and
+// S = V diag(sigma) V^T symmetric.
+template <class T>
+inline Eigen::Matrix<T, 3, 3> polar_rotation(const Eigen::Matrix<T, 3, 3>& F) {
+  const Svd3<T> d = svd3(F);
+  return d.U * d.V.transpose();
+}
+
+}  // namespace amalgam

@@ -1,0 +1,87 @@
+#include "core/particles/particle_set.hpp"
+
+#include <cstring>
+#include <stdexcept>
+
+namespace amalgam {
+
+int ParticleSet::Attr::words() const {
+  const int scalar_words = (type == AttrType::Real) ? int(sizeof(Real) / 4) : 1;
+  return width * scalar_words;
+}
+
+ParticleSet::Id ParticleSet::add(const std::string& name, AttrType type, int width) {
+  if (find(name) >= 0) throw std::invalid_argument("particle attribute '" + name + "' already exists");
+  if (width < 1) throw std::invalid_argument("particle attribute '" + name + "' needs width >= 1");
+  Attr a{name, type, width, {}, {}};
+  a.front.assign(n_ * size_t(a.words()), 0u);
+  a.back.assign(n_ * size_t(a.words()), 0u);
+  attrs_.push_back(std::move(a));
+  return Id(attrs_.size() - 1);
+}
+
+ParticleSet::Id ParticleSet::find(const std::string& name) const {
+  for (size_t i = 0; i < attrs_.size(); ++i)
+    if (attrs_[i].name == name) return Id(i);
+  return -1;
+}
+
+ParticleSet::Id ParticleSet::id(const std::string& name) const {
+  const Id a = find(name);
+  if (a < 0) throw std::out_of_range("particle attribute '" + name + "' does not exist");
+  return a;
+}
+
+void ParticleSet::resize(std::size_t n) {
+  for (auto& a : attrs_) {
+    a.front.resize(n * size_t(a.words()), 0u);
+    a.back.resize(n * size_t(a.words()), 0u);
+  }
+  n_ = n;
+}
+
+std::size_t ParticleSet::bytes_per_particle() const {
+  size_t b = 0;
+  for (const auto& a : attrs_) b += 2 * 4 * size_t(a.words());
+  return b;
+}
+
+void ParticleSet::permute(const exec::Space& space, const std::uint32_t* perm) {
+  for (auto& a : attrs_) {
+    const int w = a.words();
+    const std::uint32_t* src = a.front.data();
+    std::uint32_t* dst = a.back.data();
+    exec::parallel_for(space, "particles.permute", exec::Index(n_), [=](exec::Index i) {
+      const std::uint32_t* s = src + size_t(perm[i]) * size_t(w);
+      std::uint32_t* d = dst + size_t(i) * size_t(w);
+      for (int k = 0; k < w; ++k) d[k] = s[k];
+    });
+    a.front.swap(a.back);
+  }
+}
+
+MpmAttributes MpmAttributes::add_to(ParticleSet& ps) {
+  MpmAttributes m;
+  m.x = ps.add("x", AttrType::Real, 3);
+  m.v = ps.add("v", AttrType::Real, 3);
+  m.C = ps.add("C", AttrType::Real, 9);
+  m.F = ps.add("F", AttrType::Real, 9);
+  m.mass = ps.add("mass", AttrType::Real, 1);
+  m.volume0 = ps.add("volume0", AttrType::Real, 1);
+  m.material = ps.add("material", AttrType::Int32, 1);
+  return m;
+}
+
+MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
+  MpmAttributes m;
+  m.x = ps.id("x");
+  m.v = ps.id("v");
+  m.C = ps.id("C");
+  m.F = ps.id("F");
+  m.mass = ps.id("mass");
+  m.volume0 = ps.id("volume0");
+  m.material = ps.id("material");
+  return m;
+}
+
+}  // namespace amalgam

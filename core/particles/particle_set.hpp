@@ -1,0 +1,72 @@
+// Structure-of-arrays particle storage with named attributes.
+//
+// Each attribute is one contiguous array of `width` scalars per particle (Real or int32), so a
+// kernel receives plain pointers (`vec3("x")` is a Vec3*, `mat3("F")` a Mat3*). Every attribute
+// has a back buffer of the same size: `permute` gathers all attributes through a permutation into
+// the back buffers and swaps, so sorting never allocates once capacity is reached.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "core/exec/exec.hpp"
+#include "core/math/types.hpp"
+
+namespace amalgam {
+
+enum class AttrType { Real, Int32 };
+
+class ParticleSet {
+ public:
+  using Id = int;
+
+  // Adds an attribute (zero-filled) and returns its id; throws if the name exists.
+  Id add(const std::string& name, AttrType type, int width);
+  // Id of `name`, or -1.
+  Id find(const std::string& name) const;
+  // Id of `name`; throws std::out_of_range naming the attribute if absent.
+  Id id(const std::string& name) const;
+
+  std::size_t size() const { return n_; }
+  void resize(std::size_t n);  // new entries are zero
+  int attribute_count() const { return static_cast<int>(attrs_.size()); }
+  const std::string& name(Id a) const { return attrs_[a].name; }
+  AttrType type(Id a) const { return attrs_[a].type; }
+  int width(Id a) const { return attrs_[a].width; }
+  std::size_t bytes_per_particle() const;  // front + back buffers
+
+  Real* real(Id a) { return reinterpret_cast<Real*>(attrs_[a].front.data()); }
+  const Real* real(Id a) const { return reinterpret_cast<const Real*>(attrs_[a].front.data()); }
+  std::int32_t* int32(Id a) { return reinterpret_cast<std::int32_t*>(attrs_[a].front.data()); }
+  const std::int32_t* int32(Id a) const {
+    return reinterpret_cast<const std::int32_t*>(attrs_[a].front.data());
+  }
+  Vec3* vec3(Id a) { return reinterpret_cast<Vec3*>(real(a)); }
+  const Vec3* vec3(Id a) const { return reinterpret_cast<const Vec3*>(real(a)); }
+  Mat3* mat3(Id a) { return reinterpret_cast<Mat3*>(real(a)); }
+  const Mat3* mat3(Id a) const { return reinterpret_cast<const Mat3*>(real(a)); }
+
+  // For every attribute: front[i] = old_front[perm[i]] for i < size().
+  void permute(const exec::Space& space, const std::uint32_t* perm);
+
+ private:
+  struct Attr {
+    std::string name;
+    AttrType type;
+    int width;
+    std::vector<std::uint32_t> front, back;  // 4-byte words: Real=float uses 1 word, double 2
+    int words() const;
+  };
+  std::vector<Attr> attrs_;
+  std::size_t n_ = 0;
+};
+
+// The attributes every MPM particle carries, looked up once.
+struct MpmAttributes {
+  ParticleSet::Id x, v, C, F, mass, volume0, material;
+  static MpmAttributes add_to(ParticleSet& ps);
+  static MpmAttributes find_in(const ParticleSet& ps);
+};
+
+}  // namespace amalgam

@@ -1,0 +1,296 @@
+#include "kernels/mpm_transfers.hpp"
+
+#include <cstring>
+
+#include "core/math/bspline.hpp"
+#include "sparse_grid/sparse_grid.hpp"
+
+namespace amalgam {
+
+const char* transfer_name(Transfer t) {
+  switch (t) {
+    case Transfer::PicFlip: return "pic_flip";
+    case Transfer::Apic: return "apic";
+    case Transfer::Mls: return "mls";
+  }
+  return "?";
+}
+
+namespace {
+
+// Private scatter/gather block: (8 + Order)^3 nodes x CH channels, node (i,j,k) relative to the
+// bin's leaf origin at ((i * B) + j) * B + k.
+template <int Order, int CH>
+struct Block {
+  static constexpr int B = kLeafDim + Order;
+  static constexpr int kSize = B * B * B * CH;
+  alignas(64) Real data[kSize];
+  static int at(int i, int j, int k) { return ((i * B + j) * B + k) * CH; }
+};
+
+constexpr int channels_of(Transfer t) { return t == Transfer::PicFlip ? 8 : 4; }
+
+// Per-particle P2G contribution into a block whose node (0,0,0) is `origin` (pure: no grid).
+template <int Order, Transfer T, int CH>
+inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3& x, const Vec3& v, const Mat3& C,
+                         const Mat3& F, Real m, Real V0, const MaterialParams& mat, Real dx, Real inv_dx, Real dt) {
+  const Stencil<Order> st = Stencil<Order>::at(x, inv_dx);
+  const Vec3i l = st.base - origin;
+  const Mat3 tau = mat.kirchhoff(F);  // P F^T
+  constexpr int N = Stencil<Order>::kN;
+  if constexpr (T == Transfer::Mls) {
+    const Real Dinv = BSpline<Order>::kDinvScale * inv_dx * inv_dx;
+    const Mat3 A = m * C - (dt * V0 * Dinv) * tau;
+    const Vec3 mv = m * v;
+    for (int i = 0; i < N; ++i)
+      for (int j = 0; j < N; ++j)
+        for (int k = 0; k < N; ++k) {
+          const Real w = st.weight(i, j, k);
+          const Vec3 p = w * (mv + A * st.offset(i, j, k, dx));
+          Real* n = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2] + k);
+          n[0] += w * m;
+          n[1] += p[0];
+          n[2] += p[1];
+          n[3] += p[2];
+        }
+  } else if constexpr (T == Transfer::Apic) {
+    const Mat3 mC = m * C;
+    const Vec3 mv = m * v;
+    const Mat3 dtVtau = (dt * V0) * tau;
+    for (int i = 0; i < N; ++i)
+      for (int j = 0; j < N; ++j)
+        for (int k = 0; k < N; ++k) {
+          const Real w = st.weight(i, j, k);
+          const Vec3 p = w * (mv + mC * st.offset(i, j, k, dx)) - dtVtau * st.gradient(i, j, k);
+          Real* n = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2] + k);
+          n[0] += w * m;
+          n[1] += p[0];
+          n[2] += p[1];
+          n[3] += p[2];
+        }
+  } else {  // PicFlip: momentum and force kept apart, FLIP needs v_old = p/m
+    const Vec3 mv = m * v;
+    const Mat3 Vtau = V0 * tau;
+    for (int i = 0; i < N; ++i)
+      for (int j = 0; j < N; ++j)
+        for (int k = 0; k < N; ++k) {
+          const Real w = st.weight(i, j, k);
+          const Vec3 p = w * mv;
+          const Vec3 f = -(Vtau * st.gradient(i, j, k));
+          Real* n = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2] + k);
+          n[0] += w * m;
+          n[1] += p[0];
+          n[2] += p[1];
+          n[3] += p[2];
+          n[5] += f[0];
+          n[6] += f[1];
+          n[7] += f[2];
+        }
+  }
+}
+
+template <int Order, Transfer T>
+void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+  constexpr int CH = channels_of(T);
+  using Blk = Block<Order, CH>;
+  constexpr int B = Blk::B;
+  const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
+  for (int c = 0; c < 8; ++c) {
+    const std::uint32_t c0 = g.colour_start[c], c1 = g.colour_start[c + 1];
+    exec::parallel_for(space, "mpm.p2g", exec::Index(c1 - c0), [&](exec::Index ci) {
+      const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
+      Blk blk;
+      std::memset(blk.data, 0, sizeof(blk.data));
+      const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+      for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
+        p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], p.F[q], p.mass[q], p.volume0[q],
+                                   prm.materials[p.material[q]], dx, inv_dx, dt);
+      // Flush into the 8 target leaves: leaf t covers block nodes [8 tx, 8 tx + 8) per axis.
+      for (int t = 0; t < 8; ++t) {
+        const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
+        const std::size_t leaf = std::size_t(g.nbr8[b][size_t(t)]);
+        Real* la = g.a + leaf * kLeafNodes * 4;
+        Real* lb = (CH == 8) ? g.b + leaf * kLeafNodes * 4 : nullptr;
+        const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
+                  nk = tz ? B - kLeafDim : kLeafDim;
+        for (int i = 0; i < ni; ++i)
+          for (int j = 0; j < nj; ++j)
+            for (int k = 0; k < nk; ++k) {
+              const Real* s = blk.data + Blk::at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k);
+              Real* d = la + leaf_offset(i, j, k) * 4;
+              d[0] += s[0];
+              d[1] += s[1];
+              d[2] += s[2];
+              d[3] += s[3];
+              if constexpr (CH == 8) {
+                Real* e = lb + leaf_offset(i, j, k) * 4;
+                e[1] += s[5];
+                e[2] += s[6];
+                e[3] += s[7];
+              }
+            }
+      }
+    }, 1);
+  }
+}
+
+// Per-particle G2P (pure: reads a block of node velocities, updates the particle).
+template <int Order, Transfer T, int CH>
+inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3& x, Vec3& v, Mat3& C, Mat3& F,
+                         Real dx, Real inv_dx, Real dt, Real alpha) {
+  const Stencil<Order> st = Stencil<Order>::at(x, inv_dx);
+  const Vec3i l = st.base - origin;
+  constexpr int N = Stencil<Order>::kN;
+  Vec3 v_pic = Vec3::Zero(), dv = Vec3::Zero();
+  Mat3 Bm = Mat3::Zero(), grad_v = Mat3::Zero();
+  for (int i = 0; i < N; ++i)
+    for (int j = 0; j < N; ++j)
+      for (int k = 0; k < N; ++k) {
+        const Real w = st.weight(i, j, k);
+        const Real* n = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2] + k);
+        const Vec3 vi(n[0], n[1], n[2]);
+        v_pic += w * vi;
+        if constexpr (T == Transfer::Mls || T == Transfer::Apic) Bm += (w * vi) * st.offset(i, j, k, dx).transpose();
+        if constexpr (T == Transfer::PicFlip || T == Transfer::Apic) grad_v += vi * st.gradient(i, j, k).transpose();
+        if constexpr (T == Transfer::PicFlip) dv += w * Vec3(n[3], n[4], n[5]);
+      }
+  if constexpr (T == Transfer::PicFlip) {
+    v = alpha * (v + dv) + (1 - alpha) * v_pic;
+  } else {
+    C = (BSpline<Order>::kDinvScale * inv_dx * inv_dx) * Bm;
+    if constexpr (T == Transfer::Mls) grad_v = C;
+    v = v_pic;
+  }
+  F = (Mat3::Identity() + dt * grad_v) * F;
+  x += dt * v_pic;
+}
+
+template <int Order, Transfer T>
+void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+  constexpr int CH = (T == Transfer::PicFlip) ? 6 : 3;  // v_new (+ dv)
+  using Blk = Block<Order, CH>;
+  constexpr int B = Blk::B;
+  const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
+  exec::parallel_for(space, "mpm.g2p", exec::Index(g.nbins), [&](exec::Index bi) {
+    const std::size_t b = std::size_t(bi);
+    Blk blk;
+    for (int t = 0; t < 8; ++t) {
+      const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
+      const std::size_t leaf = std::size_t(g.nbr8[b][size_t(t)]);
+      const Real* la = g.a + leaf * kLeafNodes * 4;
+      const Real* lb = (CH == 6) ? g.b + leaf * kLeafNodes * 4 : nullptr;
+      const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
+                nk = tz ? B - kLeafDim : kLeafDim;
+      for (int i = 0; i < ni; ++i)
+        for (int j = 0; j < nj; ++j)
+          for (int k = 0; k < nk; ++k) {
+            Real* d = blk.data + Blk::at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k);
+            const Real* s = la + leaf_offset(i, j, k) * 4;
+            d[0] = s[1];
+            d[1] = s[2];
+            d[2] = s[3];
+            if constexpr (CH == 6) {
+              const Real* e = lb + leaf_offset(i, j, k) * 4;
+              d[3] = e[1];
+              d[4] = e[2];
+              d[5] = e[3];
+            }
+          }
+    }
+    const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+    for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
+      g2p_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], p.F[q], dx, inv_dx, dt, alpha);
+  }, 1);
+}
+
+template <template <int, Transfer> class Fn, class... Args>
+void dispatch(int order, Transfer t, Args&&... args) {
+  if (order == 3) {
+    switch (t) {
+      case Transfer::PicFlip: return Fn<3, Transfer::PicFlip>::run(args...);
+      case Transfer::Apic: return Fn<3, Transfer::Apic>::run(args...);
+      case Transfer::Mls: return Fn<3, Transfer::Mls>::run(args...);
+    }
+  } else {
+    switch (t) {
+      case Transfer::PicFlip: return Fn<2, Transfer::PicFlip>::run(args...);
+      case Transfer::Apic: return Fn<2, Transfer::Apic>::run(args...);
+      case Transfer::Mls: return Fn<2, Transfer::Mls>::run(args...);
+    }
+  }
+}
+
+template <int O, Transfer T>
+struct P2G {
+  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+    p2g_impl<O, T>(s, p, g, prm);
+  }
+};
+template <int O, Transfer T>
+struct G2P {
+  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+    g2p_impl<O, T>(s, p, g, prm);
+  }
+};
+
+}  // namespace
+
+void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
+  const bool two = prm.transfer == Transfer::PicFlip;
+  exec::parallel_for(space, "mpm.grid_clear", exec::Index(g.nactive), [&](exec::Index i) {
+    const std::size_t leaf = std::size_t(g.active_leaves[i]);
+    std::memset(g.a + leaf * kLeafNodes * 4, 0, kLeafNodes * 4 * sizeof(Real));
+    if (two) std::memset(g.b + leaf * kLeafNodes * 4, 0, kLeafNodes * 4 * sizeof(Real));
+  });
+}
+
+void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+  dispatch<P2G>(prm.order, prm.transfer, space, p, g, prm);
+}
+
+void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+  dispatch<G2P>(prm.order, prm.transfer, space, p, g, prm);
+}
+
+void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
+  const bool flip = prm.transfer == Transfer::PicFlip;
+  const Real dt = prm.dt, dx = prm.dx;
+  const Vec3 dv_gravity = dt * prm.gravity;
+  const Real t_end = prm.time + prm.dt;
+  exec::parallel_for(space, "mpm.grid_update", exec::Index(g.nactive), [&](exec::Index li) {
+    const std::size_t leaf = std::size_t(g.active_leaves[li]);
+    const Vec3i node0 = g.leaf_coord[leaf] * kLeafDim;
+    Real* la = g.a + leaf * kLeafNodes * 4;
+    Real* lb = flip ? g.b + leaf * kLeafNodes * 4 : nullptr;
+    for (int i = 0; i < kLeafDim; ++i)
+      for (int j = 0; j < kLeafDim; ++j)
+        for (int k = 0; k < kLeafDim; ++k) {
+          const int o = leaf_offset(i, j, k) * 4;
+          Real* n = la + o;
+          const Real m = n[0];
+          if (m <= 0) {
+            n[1] = n[2] = n[3] = 0;
+            if (flip) lb[o + 1] = lb[o + 2] = lb[o + 3] = 0;
+            continue;
+          }
+          const Real inv_m = Real(1) / m;
+          const Vec3 v_old(n[1] * inv_m, n[2] * inv_m, n[3] * inv_m);
+          Vec3 v = v_old + dv_gravity;
+          if (flip) v += (dt * inv_m) * Vec3(lb[o + 1], lb[o + 2], lb[o + 3]);
+          if (prm.ncolliders > 0) {
+            const Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
+            for (int c = 0; c < prm.ncolliders; ++c) prm.colliders[c].project(xi, t_end, v);
+          }
+          n[1] = v[0];
+          n[2] = v[1];
+          n[3] = v[2];
+          if (flip) {
+            lb[o + 1] = v[0] - v_old[0];
+            lb[o + 2] = v[1] - v_old[1];
+            lb[o + 3] = v[2] - v_old[2];
+          }
+        }
+  });
+}
+
+}  // namespace amalgam

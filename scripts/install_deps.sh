@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# Installs every build/test dependency of Amalgam from Debian packages.
+# Safe to run any number of times: apt-get skips what is already installed.
+set -euo pipefail
+
+PKGS=(
+  build-essential cmake ninja-build pkg-config
+  libopenvdb-dev libboost-iostreams-dev libtbb-dev libimath-dev libblosc-dev zlib1g-dev
+  libeigen3-dev nlohmann-json3-dev
+  libgtest-dev libgmock-dev libbenchmark-dev
+)
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then
+  command -v sudo >/dev/null 2>&1 && SUDO="sudo" || { echo "install_deps.sh: need root or sudo to run apt-get" >&2; exit 1; }
+fi
+
+missing=()
+for p in "${PKGS[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+
+if [ ${#missing[@]} -eq 0 ]; then
+  echo "install_deps.sh: all ${#PKGS[@]} packages already installed"
+  exit 0
+fi
+
+echo "install_deps.sh: installing ${missing[*]}"
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -q
+$SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
+echo "install_deps.sh: done"

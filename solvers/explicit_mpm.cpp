@@ -1,0 +1,204 @@
+#include "solvers/explicit_mpm.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "core/errors.hpp"
+
+namespace amalgam {
+
+ExplicitMpm::ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams> materials,
+                         std::vector<Collider> colliders)
+    : settings_(settings), materials_(std::move(materials)), colliders_(std::move(colliders)) {
+  if (!(settings_.dx > 0)) throw InputError("MPM grid spacing dx must be positive");
+  if (settings_.order != 2 && settings_.order != 3) throw InputError("B-spline order must be 2 or 3");
+  attr_ = MpmAttributes::add_to(particles_);
+  grid_.set_node4_channels(settings_.transfer == Transfer::PicFlip ? 2 : 1);
+  for (const auto& m : materials_) max_wave_speed_ = std::max(max_wave_speed_, m.wave_speed());
+}
+
+void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
+                                int material, Real volume_per_particle) {
+  if (material < 0 || size_t(material) >= materials_.size()) throw InputError("material index out of range");
+  const size_t n0 = particles_.size();
+  particles_.resize(n0 + x.size());
+  Vec3* px = particles_.vec3(attr_.x);
+  Vec3* pv = particles_.vec3(attr_.v);
+  Mat3* pC = particles_.mat3(attr_.C);
+  Mat3* pF = particles_.mat3(attr_.F);
+  Real* pm = particles_.real(attr_.mass);
+  Real* pV = particles_.real(attr_.volume0);
+  std::int32_t* pmat = particles_.int32(attr_.material);
+  Mat3 W;  // velocity gradient of the rigid rotation: v = omega x r  =>  grad v = [omega]_x
+  W << 0, -omega[2], omega[1], omega[2], 0, -omega[0], -omega[1], omega[0], 0;
+  const Real mass = materials_[size_t(material)].density * volume_per_particle;
+  for (size_t i = 0; i < x.size(); ++i) {
+    const size_t p = n0 + i;
+    px[p] = x[i];
+    pv[p] = v0 + omega.cross(x[i] - centre);
+    pC[p] = W;
+    pF[p] = Mat3::Identity();
+    pm[p] = mass;
+    pV[p] = volume_per_particle;
+    pmat[p] = material;
+  }
+}
+
+MpmParticleView ExplicitMpm::particle_view() {
+  return {particles_.vec3(attr_.x),    particles_.vec3(attr_.v),       particles_.mat3(attr_.C),
+          particles_.mat3(attr_.F),    particles_.real(attr_.mass),    particles_.real(attr_.volume0),
+          particles_.int32(attr_.material), particles_.size()};
+}
+
+MpmGridView ExplicitMpm::grid_view() {
+  MpmGridView g;
+  g.a = grid_.node4(0);
+  g.b = settings_.transfer == Transfer::PicFlip ? grid_.node4(1) : nullptr;
+  g.nbr8 = grid_.nbr8().data();
+  g.bin_start = bins_.start.data();
+  g.bin_leaf = bins_.leaf.data();
+  g.nbins = bins_.count();
+  g.colour_bins = grid_.colour_bins().data();
+  g.colour_start = grid_.colour_start().data();
+  g.active_leaves = grid_.active_leaves().data();
+  g.nactive = grid_.active_leaves().size();
+  g.leaf_coord = grid_.leaf_coords().data();
+  return g;
+}
+
+MpmStepParams ExplicitMpm::step_params(Real dt) const {
+  MpmStepParams p;
+  p.transfer = settings_.transfer;
+  p.order = settings_.order;
+  p.dx = settings_.dx;
+  p.dt = dt;
+  p.flip_alpha = settings_.flip_alpha;
+  p.gravity = settings_.gravity;
+  p.time = Real(time_);
+  p.materials = materials_.data();
+  p.colliders = colliders_.data();
+  p.ncolliders = int(colliders_.size());
+  return p;
+}
+
+void ExplicitMpm::sort_particles(const exec::Space& space) {
+  binning_.sort_and_bin(space, particles_, attr_.x, settings_.dx, settings_.order, bins_);
+}
+void ExplicitMpm::update_grid(const exec::Space& space) { grid_.update_topology(space, bins_); }
+void ExplicitMpm::particle_to_grid(const exec::Space& space, Real dt) {
+  const MpmGridView g = grid_view();
+  const MpmStepParams prm = step_params(dt);
+  grid_clear(space, g, prm);
+  p2g(space, particle_view(), g, prm);
+}
+void ExplicitMpm::update_grid_velocities(const exec::Space& space, Real dt) {
+  grid_update(space, grid_view(), step_params(dt));
+}
+void ExplicitMpm::grid_to_particle(const exec::Space& space, Real dt) {
+  g2p(space, particle_view(), grid_view(), step_params(dt));
+}
+
+void ExplicitMpm::step(const exec::Space& space, Real dt) {
+  if (!(dt > 0) || !std::isfinite(dt)) {
+    std::ostringstream os;
+    os << "step " << steps_ << ": time step must be positive and finite, got " << dt;
+    throw SimulationError(os.str());
+  }
+  sort_particles(space);
+  update_grid(space);
+  particle_to_grid(space, dt);
+  update_grid_velocities(space, dt);
+  grid_to_particle(space, dt);
+  time_ += double(dt);
+  ++steps_;
+}
+
+namespace {
+struct SpeedCheck {
+  Real max_speed = 0;
+  exec::Index bad = -1;  // first particle with a non-finite v or F, or a runaway speed
+  int what = 0;          // 1 velocity, 2 deformation gradient, 3 runaway speed
+};
+}  // namespace
+
+Real ExplicitMpm::stable_dt(const exec::Space& space) const {
+  const Vec3* v = particles_.vec3(attr_.v);
+  const Mat3* F = particles_.mat3(attr_.F);
+  const Real limit = settings_.max_speed;
+  const SpeedCheck chk = exec::parallel_reduce(
+      space, "mpm.cfl_check", exec::Index(particles_.size()), SpeedCheck{},
+      [=](exec::Index i, SpeedCheck& acc) {
+        const Real s = v[i].norm();
+        int what = 0;
+        if (!std::isfinite(s)) what = 1;
+        else if (!F[i].allFinite()) what = 2;
+        else if (s > limit) what = 3;
+        if (what && acc.bad < 0) {
+          acc.bad = i;
+          acc.what = what;
+        }
+        if (s > acc.max_speed) acc.max_speed = s;
+      },
+      [](SpeedCheck a, const SpeedCheck& b) {
+        if (a.bad < 0 && b.bad >= 0) {
+          a.bad = b.bad;
+          a.what = b.what;
+        }
+        a.max_speed = std::max(a.max_speed, b.max_speed);
+        return a;
+      });
+  if (chk.bad >= 0) {
+    std::ostringstream os;
+    os << "step " << steps_ << " (t = " << time_ << " s): particle " << chk.bad << " ";
+    const Vec3 vb = v[chk.bad];
+    if (chk.what == 1) os << "has a non-finite velocity (" << vb.transpose() << ")";
+    else if (chk.what == 2) os << "has a non-finite deformation gradient F";
+    else os << "moves at " << vb.norm() << " m/s, above the stability limit max_speed = " << limit << " m/s";
+    os << "; the simulation blew up (reduce cfl or max_dt, or check material stiffness)";
+    throw SimulationError(os.str());
+  }
+  const Real denom = chk.max_speed + max_wave_speed_;
+  const Real dt = denom > 0 ? settings_.cfl * settings_.dx / denom : settings_.max_dt;
+  return std::min(dt, settings_.max_dt);
+}
+
+MpmDiagnostics ExplicitMpm::diagnostics(const exec::Space& space) const {
+  struct Acc {
+    double ke = 0, ee = 0, m = 0, vmax = 0;
+    Vec3d p = Vec3d::Zero();
+  };
+  const Vec3* v = particles_.vec3(attr_.v);
+  const Mat3* F = particles_.mat3(attr_.F);
+  const Real* m = particles_.real(attr_.mass);
+  const Real* V0 = particles_.real(attr_.volume0);
+  const std::int32_t* mat = particles_.int32(attr_.material);
+  const MaterialParams* mats = materials_.data();
+  const Acc a = exec::parallel_reduce(
+      space, "mpm.diagnostics", exec::Index(particles_.size()), Acc{},
+      [=](exec::Index i, Acc& acc) {
+        const Vec3d vi = v[i].cast<double>();
+        acc.ke += 0.5 * double(m[i]) * vi.squaredNorm();
+        acc.ee += double(V0[i]) * double(mats[mat[i]].energy(F[i]));
+        acc.p += double(m[i]) * vi;
+        acc.m += double(m[i]);
+        acc.vmax = std::max(acc.vmax, vi.norm());
+      },
+      [](Acc x, const Acc& y) {
+        x.ke += y.ke;
+        x.ee += y.ee;
+        x.p += y.p;
+        x.m += y.m;
+        x.vmax = std::max(x.vmax, y.vmax);
+        return x;
+      });
+  MpmDiagnostics d;
+  d.kinetic = a.ke;
+  d.elastic = a.ee;
+  d.momentum = a.p;
+  d.max_speed = a.vmax;
+  d.mass = a.m;
+  return d;
+}
+
+}  // namespace amalgam

@@ -1,0 +1,93 @@
+// Explicit MPM solver (course report Sec. 3.2; MLS-MPM as in A-ULMPM Sec. 5.8). One substep is
+// five named phases:
+//   sort_particles   stable radix sort by grid leaf, bins           (sparse_grid/binning)
+//   update_grid      activate leaves, tables, colours                (sparse_grid)
+//   particle_to_grid mass, momentum, stress forces                   (kernels p2g)
+//   update_grid_velocities  p/m, gravity, forces, colliders          (kernels grid_update)
+//   grid_to_particle v, C, F update, advection                       (kernels g2p)
+// The time step comes from a CFL condition on particle speed plus the elastic wave speed.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "core/exec/exec.hpp"
+#include "core/materials/elastic.hpp"
+#include "core/particles/particle_set.hpp"
+#include "kernels/colliders.hpp"
+#include "kernels/mpm_transfers.hpp"
+#include "sparse_grid/binning.hpp"
+#include "sparse_grid/sparse_grid.hpp"
+
+namespace amalgam {
+
+struct MpmSettings {
+  Real dx = Real(0.01);
+  int order = 2;
+  Transfer transfer = Transfer::Mls;
+  Real flip_alpha = Real(0.95);
+  Vec3 gravity = Vec3(0, Real(-9.81), 0);
+  Real cfl = Real(0.5);      // dt <= cfl dx / (max |v_p| + c_max)
+  Real max_dt = Real(1e-2);  // upper bound on a substep
+  Real max_speed = Real(1e4);  // stability guard: a faster particle is a blow-up (m/s)
+};
+
+struct MpmDiagnostics {
+  double kinetic = 0, elastic = 0;
+  Vec3d momentum = Vec3d::Zero();
+  double max_speed = 0;
+  double mass = 0;
+};
+
+class ExplicitMpm {
+ public:
+  ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams> materials, std::vector<Collider> colliders);
+
+  ParticleSet& particles() { return particles_; }
+  const ParticleSet& particles() const { return particles_; }
+  const MpmAttributes& attributes() const { return attr_; }
+  const MpmSettings& settings() const { return settings_; }
+  const std::vector<MaterialParams>& materials() const { return materials_; }
+  const SparseGrid& grid() const { return grid_; }
+  const BinTable& bins() const { return bins_; }
+  double time() const { return time_; }
+  std::uint64_t step_count() const { return steps_; }
+
+  // Appends particles at `x` with velocity v0 + omega x (x - centre), material index, and mass
+  // and volume per particle; F = I, C = affine part of the rigid rotation.
+  void add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
+                     int material, Real volume_per_particle);
+
+  // Largest stable substep (CFL). Also the stability guard: throws SimulationError naming the
+  // step, particle and quantity if any velocity or F is not finite or a speed exceeds max_speed.
+  Real stable_dt(const exec::Space& space) const;
+  // One explicit substep of length dt.
+  void step(const exec::Space& space, Real dt);
+  MpmDiagnostics diagnostics(const exec::Space& space) const;
+
+  // Phases of step(), public so tests and benchmarks can drive them one by one.
+  void sort_particles(const exec::Space& space);
+  void update_grid(const exec::Space& space);
+  void particle_to_grid(const exec::Space& space, Real dt);
+  void update_grid_velocities(const exec::Space& space, Real dt);
+  void grid_to_particle(const exec::Space& space, Real dt);
+
+  MpmParticleView particle_view();
+  MpmGridView grid_view();
+  MpmStepParams step_params(Real dt) const;
+
+ private:
+  MpmSettings settings_;
+  std::vector<MaterialParams> materials_;
+  std::vector<Collider> colliders_;
+  Real max_wave_speed_ = 0;
+  ParticleSet particles_;
+  MpmAttributes attr_;
+  ParticleBinning binning_;
+  BinTable bins_;
+  SparseGrid grid_;
+  double time_ = 0;
+  std::uint64_t steps_ = 0;
+};
+
+}  // namespace amalgam

@@ -1,0 +1,173 @@
+#include "sparse_grid/binning.hpp"
+
+#include <algorithm>
+#include <climits>
+#include <cmath>
+#include <string>
+
+#include "core/errors.hpp"
+#include "core/math/bspline.hpp"
+
+namespace amalgam {
+namespace {
+
+constexpr int kDigitBits = 11;
+constexpr std::uint32_t kRadix = 1u << kDigitBits;
+constexpr exec::Index kSortChunks = 64;  // fixed: the permutation must not depend on threads
+
+struct LeafBox {
+  int lo[3] = {INT_MAX, INT_MAX, INT_MAX};
+  int hi[3] = {INT_MIN, INT_MIN, INT_MIN};
+  exec::Index first_bad = -1;  // first particle with a non-finite or out-of-range position
+};
+
+LeafBox join(LeafBox a, const LeafBox& b) {
+  for (int k = 0; k < 3; ++k) {
+    a.lo[k] = std::min(a.lo[k], b.lo[k]);
+    a.hi[k] = std::max(a.hi[k], b.hi[k]);
+  }
+  if (a.first_bad < 0 || (b.first_bad >= 0 && b.first_bad < a.first_bad)) a.first_bad = b.first_bad;
+  return a;
+}
+
+template <int Order>
+inline Vec3i leaf_of(const Vec3& x, Real inv_dx) {
+  Vec3i l;
+  for (int a = 0; a < 3; ++a) l[a] = BSpline<Order>::base(x[a] * inv_dx) >> 3;
+  return l;
+}
+
+template <int Order>
+LeafBox leaf_box(const exec::Space& space, const Vec3* x, exec::Index n, Real inv_dx) {
+  // Positions beyond +-2^28 cells would overflow the leaf arithmetic: treat as runaway.
+  const Real limit = Real(1 << 28);
+  return exec::parallel_reduce(
+      space, "bin.leaf_box", n, LeafBox{},
+      [=](exec::Index i, LeafBox& acc) {
+        const Vec3 xs = x[i] * inv_dx;
+        if (!(std::abs(xs[0]) < limit && std::abs(xs[1]) < limit && std::abs(xs[2]) < limit)) {
+          if (acc.first_bad < 0) acc.first_bad = i;
+          return;
+        }
+        const Vec3i l = leaf_of<Order>(x[i], inv_dx);
+        for (int k = 0; k < 3; ++k) {
+          acc.lo[k] = std::min(acc.lo[k], l[k]);
+          acc.hi[k] = std::max(acc.hi[k], l[k]);
+        }
+      },
+      join);
+}
+
+}  // namespace
+
+void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, ParticleSet::Id x_id,
+                                   Real dx, int order, BinTable& bins) {
+  const exec::Index n = exec::Index(ps.size());
+  bins.start.assign(1, 0u);
+  bins.leaf.clear();
+  if (n == 0) return;
+  const Real inv_dx = Real(1) / dx;
+  const Vec3* x = ps.vec3(x_id);
+
+  const LeafBox box = order == 3 ? leaf_box<3>(space, x, n, inv_dx) : leaf_box<2>(space, x, n, inv_dx);
+  if (box.first_bad >= 0) {
+    const Vec3 xb = x[box.first_bad];
+    throw SimulationError("particle " + std::to_string(box.first_bad) + " has a non-finite or runaway position (" +
+                          std::to_string(double(xb[0])) + ", " + std::to_string(double(xb[1])) + ", " +
+                          std::to_string(double(xb[2])) + ")");
+  }
+  const std::int64_t ext[3] = {box.hi[0] - box.lo[0] + 1, box.hi[1] - box.lo[1] + 1, box.hi[2] - box.lo[2] + 1};
+  const std::int64_t nkeys = ext[0] * ext[1] * ext[2];
+  if (nkeys > (std::int64_t(1) << 32) - 1)
+    throw SimulationError("particles span " + std::to_string(ext[0]) + "x" + std::to_string(ext[1]) + "x" +
+                          std::to_string(ext[2]) + " leaves, more than a 32-bit key can address");
+
+  keys_.resize(size_t(n));
+  keys_tmp_.resize(size_t(n));
+  perm_.resize(size_t(n));
+  perm_tmp_.resize(size_t(n));
+  {
+    std::uint32_t* keys = keys_.data();
+    std::uint32_t* perm = perm_.data();
+    const int lo0 = box.lo[0], lo1 = box.lo[1], lo2 = box.lo[2];
+    const std::int64_t e1 = ext[1], e2 = ext[2];
+    auto key_pass = [&](auto order_tag) {
+      constexpr int O = decltype(order_tag)::value;
+      exec::parallel_for(space, "bin.keys", n, [=](exec::Index i) {
+        const Vec3i l = leaf_of<O>(x[i], inv_dx);
+        keys[i] = std::uint32_t(((std::int64_t(l[0] - lo0) * e1) + (l[1] - lo1)) * e2 + (l[2] - lo2));
+        perm[i] = std::uint32_t(i);
+      });
+    };
+    if (order == 3) key_pass(std::integral_constant<int, 3>{});
+    else key_pass(std::integral_constant<int, 2>{});
+  }
+
+  // Stable LSD radix sort of (key, index) with a fixed number of chunks.
+  int bits = 0;
+  while ((std::int64_t(1) << bits) < nkeys) ++bits;
+  const int passes = (bits + kDigitBits - 1) / kDigitBits;
+  const exec::Index chunk = (n + kSortChunks - 1) / kSortChunks;
+  const exec::Index nchunks = (n + chunk - 1) / chunk;
+  hist_.resize(size_t(nchunks) * kRadix);
+  for (int pass = 0; pass < passes; ++pass) {
+    const int shift = pass * kDigitBits;
+    std::uint32_t* hist = hist_.data();
+    const std::uint32_t* kin = keys_.data();
+    const std::uint32_t* pin = perm_.data();
+    std::uint32_t* kout = keys_tmp_.data();
+    std::uint32_t* pout = perm_tmp_.data();
+    exec::parallel_for(space, "bin.radix_hist", nchunks, [=](exec::Index c) {
+      std::uint32_t* h = hist + size_t(c) * kRadix;
+      std::fill(h, h + kRadix, 0u);
+      const exec::Index e = std::min(n, (c + 1) * chunk);
+      for (exec::Index i = c * chunk; i < e; ++i) ++h[(kin[i] >> shift) & (kRadix - 1)];
+    }, 1);
+    // Exclusive offsets in (digit, chunk) order: stable.
+    std::uint32_t running = 0;
+    for (std::uint32_t d = 0; d < kRadix; ++d)
+      for (exec::Index c = 0; c < nchunks; ++c) {
+        std::uint32_t& h = hist[size_t(c) * kRadix + d];
+        const std::uint32_t cnt = h;
+        h = running;
+        running += cnt;
+      }
+    exec::parallel_for(space, "bin.radix_scatter", nchunks, [=](exec::Index c) {
+      std::uint32_t* h = hist + size_t(c) * kRadix;
+      const exec::Index e = std::min(n, (c + 1) * chunk);
+      for (exec::Index i = c * chunk; i < e; ++i) {
+        const std::uint32_t dst = h[(kin[i] >> shift) & (kRadix - 1)]++;
+        kout[dst] = kin[i];
+        pout[dst] = pin[i];
+      }
+    }, 1);
+    keys_.swap(keys_tmp_);
+    perm_.swap(perm_tmp_);
+  }
+
+  ps.permute(space, perm_.data());
+
+  // Bins: runs of equal keys.
+  flags_.resize(size_t(n));
+  const std::uint32_t* keys = keys_.data();
+  std::uint32_t* flags = flags_.data();
+  const std::uint32_t nbins = exec::parallel_scan<std::uint32_t>(
+      space, "bin.find_runs", n, [=](exec::Index i) { return (i == 0 || keys[i] != keys[i - 1]) ? 1u : 0u; },
+      flags);
+  bins.start.resize(size_t(nbins) + 1);
+  bins.leaf.resize(nbins);
+  std::uint32_t* start = bins.start.data();
+  Vec3i* leaf = bins.leaf.data();
+  const int lo0 = box.lo[0], lo1 = box.lo[1], lo2 = box.lo[2];
+  const std::uint32_t e1 = std::uint32_t(ext[1]), e2 = std::uint32_t(ext[2]);
+  exec::parallel_for(space, "bin.find_runs", n, [=](exec::Index i) {
+    if (i == 0 || keys[i] != keys[i - 1]) {
+      const std::uint32_t b = flags[i], k = keys[i];
+      start[b] = std::uint32_t(i);
+      leaf[b] = Vec3i(int(k / (e1 * e2)) + lo0, int((k / e2) % e1) + lo1, int(k % e2) + lo2);
+    }
+  });
+  start[nbins] = std::uint32_t(n);
+}
+
+}  // namespace amalgam

@@ -1,0 +1,37 @@
+// Stable binning of particles by grid leaf (8^3 nodes), rebuilt every substep.
+//
+// key(p) = leaf coordinate of the particle's stencil base node, base >> 3, linearised over the
+// bounding box of occupied leaves into 32 bits. Particles are stably LSD-radix-sorted by key
+// (11-bit digits, a fixed chunk count, so the permutation never depends on the thread count),
+// then every attribute of the ParticleSet is permuted. Bins are the runs of equal key.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "core/exec/exec.hpp"
+#include "core/math/types.hpp"
+#include "core/particles/particle_set.hpp"
+
+namespace amalgam {
+
+struct BinTable {
+  std::vector<std::uint32_t> start;  // nbins + 1 offsets into the sorted particle array
+  std::vector<Vec3i> leaf;           // leaf coordinate (node index >> 3) of each bin
+  std::size_t count() const { return leaf.size(); }
+};
+
+class ParticleBinning {
+ public:
+  // `order` is the B-spline order (2 or 3) whose stencil base defines the key.
+  // Sorts `ps` in place by leaf key (attribute `x_id` holds positions), fills `bins`.
+  // Throws SimulationError naming the first particle whose position is not finite.
+  void sort_and_bin(const exec::Space& space, ParticleSet& ps, ParticleSet::Id x_id, Real dx, int order,
+                    BinTable& bins);
+
+ private:
+  std::vector<std::uint32_t> keys_, keys_tmp_, perm_, perm_tmp_, flags_;
+  std::vector<std::uint32_t> hist_;
+};
+
+}  // namespace amalgam

@@ -1,0 +1,123 @@
+// The only grid translation unit that sees OpenVDB.
+#include "sparse_grid/sparse_grid.hpp"
+
+#include <openvdb/openvdb.h>
+
+#include <algorithm>
+
+namespace amalgam {
+
+struct SparseGrid::Tree {
+  openvdb::Int32Tree tree{-1};
+  openvdb::tree::ValueAccessor<openvdb::Int32Tree> acc{tree};
+};
+
+SparseGrid::SparseGrid() : tree_(std::make_unique<Tree>()) {
+  node4_.resize(1);
+}
+SparseGrid::~SparseGrid() = default;
+
+void SparseGrid::set_node4_channels(int count) {
+  node4_.resize(size_t(count));
+  grow_channels();
+}
+void SparseGrid::set_scalar_channels(int count) {
+  scalar_.resize(size_t(count));
+  grow_channels();
+}
+
+std::size_t SparseGrid::bytes_per_leaf() const {
+  // channel data + OpenVDB index leaf (512 int32 + masks) + tables
+  return (node4_.size() * 4 + scalar_.size()) * kLeafNodes * sizeof(Real) + kLeafNodes * 4 + 128 +
+         27 * 4 + sizeof(Vec3i);
+}
+
+void SparseGrid::grow_channels() {
+  const size_t need = leaf_coord_.size() * kLeafNodes;
+  for (auto& c : node4_)
+    if (c.size() < need * 4) c.resize(std::max(need * 4, c.size() * 3 / 2));
+  for (auto& c : scalar_)
+    if (c.size() < need) c.resize(std::max(need, c.size() * 3 / 2));
+}
+
+std::int32_t SparseGrid::touch_leaf(const Vec3i& lc) {
+  const openvdb::Coord origin(lc[0] * kLeafDim, lc[1] * kLeafDim, lc[2] * kLeafDim);
+  if (const auto* leaf = tree_->acc.probeConstLeaf(origin)) return leaf->getFirstValue();
+  const std::int32_t idx = std::int32_t(leaf_coord_.size());
+  auto* leaf = tree_->acc.touchLeaf(origin);
+  leaf->fill(idx, true);
+  leaf_coord_.push_back(lc);
+  leaf_used_.push_back(0);
+  nbr27_stale_ = true;
+  return idx;
+}
+
+std::int32_t SparseGrid::find_leaf(const Vec3i& node) const {
+  const openvdb::Coord ijk(node[0], node[1], node[2]);
+  const auto* leaf = tree_->tree.probeConstLeaf(ijk);
+  return leaf ? leaf->getFirstValue() : -1;
+}
+
+void SparseGrid::clear_topology() {
+  tree_->acc.clear();
+  tree_->tree.clear();
+  leaf_coord_.clear();
+  leaf_used_.clear();
+  nbr27_stale_ = true;
+  ++rebuilds_;
+}
+
+void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins) {
+  exec::ScopedRegion region(space.profiler(), "grid.topology");
+  const size_t nb = bins.count();
+  auto build = [&] {
+    nbr8_.resize(nb);
+    std::fill(leaf_used_.begin(), leaf_used_.end(), 0);
+    for (size_t b = 0; b < nb; ++b) {
+      const Vec3i l = bins.leaf[b];
+      for (int t = 0; t < 8; ++t) {
+        const std::int32_t li = touch_leaf(l + Vec3i((t >> 2) & 1, (t >> 1) & 1, t & 1));
+        nbr8_[b][size_t(t)] = li;
+        leaf_used_[size_t(li)] = 1;
+      }
+    }
+  };
+  build();
+  size_t used = 0;
+  for (auto u : leaf_used_) used += u;
+  if (used * 2 < leaf_coord_.size()) {  // compact: rebuild indices in bin order
+    clear_topology();
+    build();
+  }
+  grow_channels();
+
+  active_.clear();
+  for (size_t i = 0; i < leaf_used_.size(); ++i)
+    if (leaf_used_[i]) active_.push_back(std::int32_t(i));
+
+  // Colour lists: parity of the bin's leaf coordinate, bins in key order within a colour.
+  std::array<std::uint32_t, 9> count{};
+  auto colour = [](const Vec3i& l) { return ((l[0] & 1) << 2) | ((l[1] & 1) << 1) | (l[2] & 1); };
+  for (size_t b = 0; b < nb; ++b) ++count[size_t(colour(bins.leaf[b])) + 1];
+  for (int c = 0; c < 8; ++c) count[size_t(c) + 1] += count[size_t(c)];
+  colour_start_ = count;
+  colour_bins_.resize(nb);
+  for (size_t b = 0; b < nb; ++b) colour_bins_[count[size_t(colour(bins.leaf[b]))]++] = std::uint32_t(b);
+
+  if (nbr27_stale_) {
+    nbr27_.resize(leaf_coord_.size());
+    for (size_t li = 0; li < leaf_coord_.size(); ++li) {
+      int t = 0;
+      for (int dx = -1; dx <= 1; ++dx)
+        for (int dy = -1; dy <= 1; ++dy)
+          for (int dz = -1; dz <= 1; ++dz, ++t) {
+            const Vec3i n = (leaf_coord_[li] + Vec3i(dx, dy, dz)) * kLeafDim;
+            const auto* leaf = tree_->acc.probeConstLeaf(openvdb::Coord(n[0], n[1], n[2]));
+            nbr27_[li][size_t(t)] = leaf ? leaf->getFirstValue() : -1;
+          }
+    }
+    nbr27_stale_ = false;
+  }
+}
+
+}  // namespace amalgam

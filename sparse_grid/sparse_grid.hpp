@@ -1,0 +1,85 @@
+// Block-sparse MPM grid backed by a persistent OpenVDB tree (DESIGN.md, "Sparse grid").
+//
+// Blocks are OpenVDB leaves of 8^3 nodes; node (i,j,k) lives in leaf (i>>3, j>>3, k>>3) at offset
+// ((i&7)<<6) | ((j&7)<<3) | (k&7) (z fastest, as OpenVDB). The tree is an index grid: every voxel
+// of a leaf stores that leaf's index in the flat leaf table, so kernels never touch the tree and
+// node data lives in leaf-indexed side arrays:
+//   node4(a)   [leaf][512][4]  AoS channels for transfers (mass + momentum, later velocity)
+//   scalar(c)  [leaf][512]     SoA channels for solver vectors
+// Topology per substep: for each bin, its leaf and the +x/+y/+z neighbours (the stencil reaches
+// at most base+3 <= 10 < 16). Only new leaves are created (serially), existing leaf indices stay
+// put; when fewer than half of the leaves are in use the table is rebuilt compactly in bin order.
+// Tables: nbr8[bin][8] (the 8 leaves a bin scatters to), nbr27[leaf][27] (grid stencils, -1 for
+// absent), active leaves (those some bin touches), and bins grouped by the parity colour of their
+// leaf coordinate: same-colour bins' 8-leaf footprints never overlap, so each colour's bins can
+// scatter in parallel without atomics, deterministically.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "core/exec/exec.hpp"
+#include "core/math/types.hpp"
+#include "sparse_grid/binning.hpp"
+
+namespace amalgam {
+
+constexpr int kLeafDim = 8;
+constexpr int kLeafNodes = 512;
+
+inline int leaf_offset(int i, int j, int k) { return (i << 6) | (j << 3) | k; }
+
+class SparseGrid {
+ public:
+  SparseGrid();
+  ~SparseGrid();
+  SparseGrid(const SparseGrid&) = delete;
+  SparseGrid& operator=(const SparseGrid&) = delete;
+
+  // Number of AoS node4 channel sets to maintain (each 4 Reals per node).
+  void set_node4_channels(int count);
+  void set_scalar_channels(int count);
+
+  // Activates the leaves the bins' stencils reach and rebuilds tables. Serial by design
+  // (OpenVDB topology edits are not thread-safe); only new leaves are created.
+  void update_topology(const exec::Space& space, const BinTable& bins);
+
+  std::size_t leaf_count() const { return leaf_coord_.size(); }
+  const std::vector<Vec3i>& leaf_coords() const { return leaf_coord_; }
+  const std::vector<std::int32_t>& active_leaves() const { return active_; }
+  const std::vector<std::array<std::int32_t, 8>>& nbr8() const { return nbr8_; }
+  const std::vector<std::array<std::int32_t, 27>>& nbr27() const { return nbr27_; }
+  // Bins of colour c are colour_bins()[colour_start()[c] .. colour_start()[c+1]).
+  const std::vector<std::uint32_t>& colour_bins() const { return colour_bins_; }
+  const std::array<std::uint32_t, 9>& colour_start() const { return colour_start_; }
+  // Leaf index containing node (i,j,k), or -1 (tree lookup: for tests and setup, not kernels).
+  std::int32_t find_leaf(const Vec3i& node) const;
+
+  Real* node4(int set) { return node4_[size_t(set)].data(); }
+  const Real* node4(int set) const { return node4_[size_t(set)].data(); }
+  Real* scalar(int c) { return scalar_[size_t(c)].data(); }
+  std::size_t bytes_per_leaf() const;
+  std::uint64_t topology_rebuilds() const { return rebuilds_; }
+
+ private:
+  struct Tree;  // OpenVDB tree and accessor, only seen by sparse_grid.cpp
+  std::unique_ptr<Tree> tree_;
+  std::vector<Vec3i> leaf_coord_;
+  std::vector<std::int32_t> active_;
+  std::vector<std::uint8_t> leaf_used_;
+  std::vector<std::array<std::int32_t, 8>> nbr8_;
+  std::vector<std::array<std::int32_t, 27>> nbr27_;
+  std::vector<std::uint32_t> colour_bins_;
+  std::array<std::uint32_t, 9> colour_start_{};
+  std::vector<std::vector<Real>> node4_, scalar_;
+  std::uint64_t rebuilds_ = 0;
+  bool nbr27_stale_ = true;
+
+  std::int32_t touch_leaf(const Vec3i& lc);
+  void clear_topology();
+  void grow_channels();
+};
+
+}  // namespace amalgam
