@@ -16,6 +16,8 @@ SparseGrid::SparseGrid() : tree_(std::make_unique<Tree>()) {
   node4_.resize(1);
 }
 SparseGrid::~SparseGrid() = default;
+SparseGrid::SparseGrid(SparseGrid&&) noexcept = default;
+SparseGrid& SparseGrid::operator=(SparseGrid&&) noexcept = default;
 
 void SparseGrid::set_node4_channels(int count) {
   node4_.resize(size_t(count));

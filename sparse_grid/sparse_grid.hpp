@@ -37,6 +37,8 @@ class SparseGrid {
   ~SparseGrid();
   SparseGrid(const SparseGrid&) = delete;
   SparseGrid& operator=(const SparseGrid&) = delete;
+  SparseGrid(SparseGrid&&) noexcept;
+  SparseGrid& operator=(SparseGrid&&) noexcept;
 
   // Number of AoS node4 channel sets to maintain (each 4 Reals per node).
   void set_node4_channels(int count);

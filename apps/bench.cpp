@@ -1,0 +1,113 @@
+// `amalgam bench`: the 1e6-particle sphere on each backend and thread count; one line per run.
+#include <algorithm>
+#include <chrono>
+#include <cstdio>
+#include <iostream>
+#include <sstream>
+
+#include "apps/commands.hpp"
+#include "core/exec/exec.hpp"
+#include "io/bench_scene.hpp"
+
+namespace amalgam::cli {
+
+namespace {
+const char* kBenchHelp =
+    "usage: amalgam bench [--particles N] [--steps S] [--reps R] [--threads LIST] [--backends LIST]\n"
+    "                     [--transfer mls|apic|flip|pic]\n"
+    "Runs the standard sphere scene (N particles, default 1e6, dx = 1/128, MLS, fixed corotated)\n"
+    "for S timed substeps (default 10) after 2 warm-up substeps, R times (default 3), on each\n"
+    "backend (default serial,openmp,tbb) and thread count (default 1,2), and prints one line per\n"
+    "run with the median (min, max) particle-substeps per second and per-kernel ns per particle.\n";
+
+std::vector<std::string> split(const std::string& s) {
+  std::vector<std::string> out;
+  std::stringstream ss(s);
+  std::string item;
+  while (std::getline(ss, item, ',')) out.push_back(item);
+  return out;
+}
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
+}
+}  // namespace
+
+int bench_command(const std::vector<std::string>& args) {
+  BenchSceneOptions so;
+  int steps = 10, reps = 3;
+  std::vector<int> threads = {1, 2};
+  std::vector<exec::Backend> backends = exec::available_backends();
+  try {
+    const Options o = parse_options(args, {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer"},
+                                    {"--help"});
+    if (o.flag("--help")) {
+      std::cout << kBenchHelp;
+      return kOk;
+    }
+    if (!o.positional.empty()) throw std::invalid_argument("unexpected argument " + o.positional[0]);
+    if (auto* v = o.get("--particles")) so.particles = size_t(parse_int("--particles", *v, 1000, 200000000));
+    if (auto* v = o.get("--steps")) steps = parse_int("--steps", *v, 1, 100000);
+    if (auto* v = o.get("--reps")) reps = parse_int("--reps", *v, 1, 1000);
+    if (auto* v = o.get("--threads")) {
+      threads.clear();
+      for (const auto& t : split(*v)) threads.push_back(parse_int("--threads", t, 1, 4096));
+    }
+    if (auto* v = o.get("--backends")) {
+      backends.clear();
+      for (const auto& b : split(*v)) backends.push_back(exec::parse_backend(b));
+    }
+    if (auto* v = o.get("--transfer")) {
+      if (*v == "mls") so.transfer = Transfer::Mls;
+      else if (*v == "apic") so.transfer = Transfer::Apic;
+      else if (*v == "flip" || *v == "pic") so.transfer = Transfer::PicFlip;
+      else throw std::invalid_argument("--transfer expects mls, apic, flip or pic, got '" + *v + "'");
+    }
+  } catch (const std::invalid_argument& e) {
+    std::cerr << "amalgam bench: " << e.what() << "\n" << kBenchHelp;
+    return kUsage;
+  }
+  std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/" << int(std::lround(1 / so.dx))
+            << ", transfer=" << transfer_name(so.transfer) << ", precision=" << real_name() << ", " << steps
+            << " substeps x " << reps << " reps (median, [min, max])\n";
+  const Real dt = Real(1e-4);
+  for (const auto backend : backends) {
+    for (const int t : threads) {
+      if (backend == exec::Backend::Serial && t != 1) continue;
+      std::vector<double> rate;
+      exec::Profiler prof;
+      for (int r = 0; r < reps; ++r) {
+        ExplicitMpm solver = make_bench_sphere(so);
+        exec::Space warm(backend, t);
+        for (int s = 0; s < 2; ++s) solver.step(warm, dt);
+        exec::Profiler run_prof;
+        exec::Space space(backend, t, &run_prof);
+        const auto t0 = std::chrono::steady_clock::now();
+        for (int s = 0; s < steps; ++s) solver.step(space, dt);
+        const double sec = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        rate.push_back(double(so.particles) * steps / sec);
+        if (r == reps / 2) prof = run_prof;
+      }
+      const double per = 1e9 / (double(so.particles) * steps);
+      auto ns = [&](std::initializer_list<const char*> labels) {
+        double s = 0;
+        for (auto* l : labels) s += prof.seconds(l);
+        return s * per;
+      };
+      char line[512];
+      std::snprintf(line, sizeof line,
+                    "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
+                    "p2g_ns=%.1f g2p_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f",
+                    exec::backend_name(backend), t, so.particles, median(rate),
+                    *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()),
+                    ns({"mpm.p2g"}), ns({"mpm.g2p"}),
+                    ns({"bin.leaf_box", "bin.keys", "bin.radix_hist", "bin.radix_scatter", "particles.permute",
+                        "bin.find_runs"}),
+                    ns({"grid.topology"}), ns({"mpm.grid_clear", "mpm.grid_update"}));
+      std::cout << line << std::endl;
+    }
+  }
+  return kOk;
+}
+
+}  // namespace amalgam::cli

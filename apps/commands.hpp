@@ -1,0 +1,28 @@
+// Subcommands of the amalgam CLI. Each returns the process exit code (see README, "Exit codes").
+#pragma once
+
+#include <string>
+#include <vector>
+
+namespace amalgam::cli {
+
+enum ExitCode { kOk = 0, kSimulationFailed = 1, kUsage = 2, kBadInput = 3 };
+
+int run_command(const std::vector<std::string>& args);
+int validate_command(const std::vector<std::string>& args);
+int info_command(const std::vector<std::string>& args);
+int bench_command(const std::vector<std::string>& args);
+
+// Shared option parsing: "--key value" pairs and flags; throws std::invalid_argument.
+struct Options {
+  std::vector<std::string> positional;
+  std::vector<std::pair<std::string, std::string>> values;
+  std::vector<std::string> flags;
+  const std::string* get(const std::string& key) const;
+  bool flag(const std::string& key) const;
+};
+Options parse_options(const std::vector<std::string>& args, const std::vector<std::string>& value_keys,
+                      const std::vector<std::string>& flag_keys);
+int parse_int(const std::string& key, const std::string& value, int lo, int hi);
+
+}  // namespace amalgam::cli

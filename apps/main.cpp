@@ -1,0 +1,53 @@
+// amalgam: command-line entry point (run, validate, info, bench).
+#include <Eigen/Core>
+#include <iostream>
+#include <string>
+#include <tbb/version.h>
+#include <vector>
+
+#include "apps/commands.hpp"
+#include "core/exec/exec.hpp"
+#include "core/math/types.hpp"
+
+namespace amalgam::cli {
+
+int info_command(const std::vector<std::string>&) {
+  std::cout << "amalgam " << AMALGAM_VERSION << "\n"
+            << "precision: " << real_name() << "\n"
+            << "backends: ";
+  for (auto b : exec::available_backends()) std::cout << exec::backend_name(b) << " ";
+  std::cout << "\nhardware threads: " << exec::hardware_threads() << "\n"
+            << "Eigen " << EIGEN_WORLD_VERSION << "." << EIGEN_MAJOR_VERSION << "." << EIGEN_MINOR_VERSION
+            << ", oneTBB " << TBB_VERSION_MAJOR << "." << TBB_VERSION_MINOR << ", OpenVDB " << AMALGAM_OPENVDB_VERSION
+            << "\n";
+  return kOk;
+}
+
+}  // namespace amalgam::cli
+
+int main(int argc, char** argv) {
+  using namespace amalgam::cli;
+  const char* usage =
+      "usage: amalgam <command> [options]\n"
+      "commands:\n"
+      "  run SCENE.json   simulate a scene, writing PLY frames and diagnostics (run --help)\n"
+      "  validate SCENE   check a scene file without running it\n"
+      "  bench            standard benchmark across backends and thread counts (bench --help)\n"
+      "  info             version, backends, precision, dependency versions\n";
+  if (argc < 2) {
+    std::cerr << usage;
+    return kUsage;
+  }
+  const std::string cmd = argv[1];
+  const std::vector<std::string> args(argv + 2, argv + argc);
+  if (cmd == "run") return run_command(args);
+  if (cmd == "validate") return validate_command(args);
+  if (cmd == "bench") return bench_command(args);
+  if (cmd == "info") return info_command(args);
+  if (cmd == "--help" || cmd == "-h" || cmd == "help") {
+    std::cout << usage;
+    return kOk;
+  }
+  std::cerr << "amalgam: unknown command '" << cmd << "'\n" << usage;
+  return kUsage;
+}

@@ -1,0 +1,68 @@
+#include <stdexcept>
+
+#include "apps/commands.hpp"
+
+namespace amalgam::cli {
+
+const std::string* Options::get(const std::string& key) const {
+  for (const auto& kv : values)
+    if (kv.first == key) return &kv.second;
+  return nullptr;
+}
+
+bool Options::flag(const std::string& key) const {
+  for (const auto& f : flags)
+    if (f == key) return true;
+  return false;
+}
+
+Options parse_options(const std::vector<std::string>& args, const std::vector<std::string>& value_keys,
+                      const std::vector<std::string>& flag_keys) {
+  Options o;
+  for (size_t i = 0; i < args.size(); ++i) {
+    const std::string& a = args[i];
+    if (a.rfind("--", 0) != 0) {
+      o.positional.push_back(a);
+      continue;
+    }
+    std::string key = a, value;
+    const size_t eq = a.find('=');
+    bool has_value = false;
+    if (eq != std::string::npos) {
+      key = a.substr(0, eq);
+      value = a.substr(eq + 1);
+      has_value = true;
+    }
+    bool is_value = false, is_flag = false;
+    for (const auto& k : value_keys) is_value |= (k == key);
+    for (const auto& k : flag_keys) is_flag |= (k == key);
+    if (is_flag && !has_value) {
+      o.flags.push_back(key);
+    } else if (is_value) {
+      if (!has_value) {
+        if (i + 1 >= args.size()) throw std::invalid_argument("option " + key + " needs a value");
+        value = args[++i];
+      }
+      o.values.emplace_back(key, value);
+    } else {
+      throw std::invalid_argument("unknown option " + key);
+    }
+  }
+  return o;
+}
+
+int parse_int(const std::string& key, const std::string& value, int lo, int hi) {
+  size_t pos = 0;
+  long v = 0;
+  try {
+    v = std::stol(value, &pos);
+  } catch (...) {
+    pos = 0;
+  }
+  if (pos != value.size() || value.empty() || v < lo || v > hi)
+    throw std::invalid_argument(key + " expects an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) +
+                                "], got '" + value + "'");
+  return int(v);
+}
+
+}  // namespace amalgam::cli

@@ -1,0 +1,37 @@
+#include "io/bench_scene.hpp"
+
+#include <cmath>
+#include <random>
+
+namespace amalgam {
+
+ExplicitMpm make_bench_sphere(const BenchSceneOptions& o) {
+  MpmSettings s;
+  s.dx = o.dx;
+  s.order = o.order;
+  s.transfer = o.transfer;
+  MaterialParams m;
+  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  m.mu = l.mu;
+  m.lambda = l.lambda;
+  m.density = 1000;
+  Collider floor;
+  floor.origin = Vec3(0, Real(0.15), 0);
+  floor.normal = Vec3::UnitY();
+  floor.friction = Real(0.2);
+  ExplicitMpm solver(s, {m}, {floor});
+  std::mt19937_64 rng(12345);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::vector<Vec3> x;
+  x.reserve(o.particles);
+  const double r = 0.3;
+  while (x.size() < o.particles) {
+    const Vec3d p(u(rng), u(rng), u(rng));
+    if (p.squaredNorm() <= 1.0) x.push_back((Vec3d::Constant(0.5) + r * p).cast<Real>());
+  }
+  const Real vol = Real(4.0 / 3.0 * M_PI * r * r * r / double(o.particles));
+  solver.add_particles(x, Vec3(0, Real(-1), 0), Vec3(0, Real(2), Real(1)), Vec3::Constant(Real(0.5)), 0, vol);
+  return solver;
+}
+
+}  // namespace amalgam

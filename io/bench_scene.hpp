@@ -1,0 +1,19 @@
+// The standard benchmark scene of issue 2: N particles uniform in a sphere (centre 0.5, radius
+// 0.3, dx = 1/128 gives ~4.2 particles per cell at N = 1e6), fixed-corotated jelly, spinning
+// slowly above a floor, explicit MLS-MPM with quadratic B-splines. Seeded and reproducible.
+#pragma once
+
+#include "solvers/explicit_mpm.hpp"
+
+namespace amalgam {
+
+struct BenchSceneOptions {
+  std::size_t particles = 1000000;
+  Real dx = Real(1.0 / 128.0);
+  Transfer transfer = Transfer::Mls;
+  int order = 2;
+};
+
+ExplicitMpm make_bench_sphere(const BenchSceneOptions& o);
+
+}  // namespace amalgam

@@ -1,0 +1,136 @@
+#include "io/json_reader.hpp"
+
+#include <cmath>
+#include <sstream>
+
+namespace amalgam::detail {
+
+namespace {
+std::string type_name(const nlohmann::json& v) { return v.type_name(); }
+std::string show(const nlohmann::json& v) {
+  std::string s = v.dump();
+  return s.size() > 60 ? s.substr(0, 57) + "..." : s;
+}
+std::string fmt(double x) {
+  std::ostringstream os;
+  os << x;
+  return os.str();
+}
+}  // namespace
+
+JsonObject::JsonObject(const nlohmann::json& j, std::string file, std::string path)
+    : j_(j), file_(std::move(file)), path_(std::move(path)) {
+  if (!j_.is_object())
+    throw InputError(file_ + ": " + (path_.empty() ? "/" : path_) + ": expected an object, got " + type_name(j_));
+}
+
+void JsonObject::fail(const std::string& key, const std::string& what) const {
+  throw InputError(where(key) + ": " + what);
+}
+
+const nlohmann::json& JsonObject::at(const std::string& key) {
+  used_.insert(key);
+  return j_.at(key);
+}
+
+double JsonObject::check_number(const std::string& key, const nlohmann::json& v, double lo, double hi, bool lo_open) {
+  const std::string range = std::string("a number in ") + (lo_open ? "(" : "[") + fmt(lo) + ", " + fmt(hi) + "]";
+  if (!v.is_number()) fail(key, "expected " + range + ", got " + type_name(v) + " " + show(v));
+  const double x = v.get<double>();
+  if (!std::isfinite(x)) fail(key, "expected a finite number, got " + show(v));
+  if (x < lo || x > hi || (lo_open && x == lo)) fail(key, "expected " + range + ", got " + fmt(x));
+  return x;
+}
+
+double JsonObject::number(const std::string& key, double def, double lo, double hi, bool lo_open) {
+  if (!has(key)) return def;
+  return check_number(key, at(key), lo, hi, lo_open);
+}
+
+double JsonObject::required_number(const std::string& key, double lo, double hi, bool lo_open) {
+  if (!has(key)) fail(key, "missing required number");
+  return check_number(key, at(key), lo, hi, lo_open);
+}
+
+long long JsonObject::integer(const std::string& key, long long def, long long lo, long long hi) {
+  if (!has(key)) return def;
+  const auto& v = at(key);
+  if (!v.is_number_integer())
+    fail(key, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got " + show(v));
+  const long long x = v.get<long long>();
+  if (x < lo || x > hi)
+    fail(key, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got " + std::to_string(x));
+  return x;
+}
+
+bool JsonObject::boolean(const std::string& key, bool def) {
+  if (!has(key)) return def;
+  const auto& v = at(key);
+  if (!v.is_boolean()) fail(key, "expected true or false, got " + show(v));
+  return v.get<bool>();
+}
+
+std::string JsonObject::string(const std::string& key, const std::string& def) {
+  if (!has(key)) return def;
+  const auto& v = at(key);
+  if (!v.is_string()) fail(key, "expected a string, got " + type_name(v) + " " + show(v));
+  return v.get<std::string>();
+}
+
+std::string JsonObject::choice(const std::string& key, const std::string& def, const std::vector<std::string>& allowed) {
+  const std::string s = string(key, def);
+  for (const auto& a : allowed)
+    if (a == s) return s;
+  std::string list;
+  for (size_t i = 0; i < allowed.size(); ++i) list += (i ? ", " : "") + allowed[i];
+  fail(key, "unknown value \"" + s + "\" (expected one of: " + list + ")");
+}
+
+Vec3 JsonObject::vec3(const std::string& key, const Vec3& def) {
+  if (!has(key)) return def;
+  return required_vec3(key);
+}
+
+Vec3 JsonObject::required_vec3(const std::string& key) {
+  if (!has(key)) fail(key, "missing required [x, y, z] array");
+  const auto& v = at(key);
+  if (!v.is_array() || v.size() != 3) fail(key, "expected an array of 3 numbers, got " + show(v));
+  Vec3 r;
+  for (int a = 0; a < 3; ++a) {
+    if (!v[size_t(a)].is_number()) fail(key + "/" + std::to_string(a), "expected a number, got " + show(v[size_t(a)]));
+    const double x = v[size_t(a)].get<double>();
+    if (!std::isfinite(x)) fail(key + "/" + std::to_string(a), "expected a finite number, got " + show(v[size_t(a)]));
+    r[a] = Real(x);
+  }
+  return r;
+}
+
+JsonObject JsonObject::object(const std::string& key) {
+  static const nlohmann::json empty = nlohmann::json::object();
+  if (!has(key)) return JsonObject(empty, file_, path_ + "/" + key);
+  const auto& v = at(key);
+  if (!v.is_object()) fail(key, "expected an object, got " + type_name(v));
+  return JsonObject(v, file_, path_ + "/" + key);
+}
+
+std::vector<JsonObject> JsonObject::objects(const std::string& key) {
+  std::vector<JsonObject> out;
+  if (!has(key)) return out;
+  const auto& v = at(key);
+  if (!v.is_array()) fail(key, "expected an array of objects, got " + type_name(v));
+  for (size_t i = 0; i < v.size(); ++i) out.emplace_back(v[i], file_, path_ + "/" + key + "/" + std::to_string(i));
+  return out;
+}
+
+std::vector<std::string> JsonObject::keys() const {
+  std::vector<std::string> k;
+  for (auto it = j_.begin(); it != j_.end(); ++it) k.push_back(it.key());
+  return k;
+}
+
+void JsonObject::finish() const {
+  for (auto it = j_.begin(); it != j_.end(); ++it)
+    if (!used_.count(it.key())) fail(it.key(), "unknown key (check the spelling against docs/scenes.md)");
+}
+
+}  // namespace amalgam::detail

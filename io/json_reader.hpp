@@ -1,0 +1,45 @@
+// Strict reader over an nlohmann::json object that knows its file and JSON path: typed getters
+// with defaults and ranges, and finish() rejecting unknown keys. Internal to io/.
+#pragma once
+
+#include <nlohmann/json.hpp>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "core/errors.hpp"
+#include "core/math/types.hpp"
+
+namespace amalgam::detail {
+
+class JsonObject {
+ public:
+  JsonObject(const nlohmann::json& j, std::string file, std::string path);
+
+  bool has(const std::string& key) const { return j_.contains(key); }
+  double number(const std::string& key, double def, double lo, double hi, bool lo_open = false);
+  double required_number(const std::string& key, double lo, double hi, bool lo_open = false);
+  long long integer(const std::string& key, long long def, long long lo, long long hi);
+  bool boolean(const std::string& key, bool def);
+  std::string string(const std::string& key, const std::string& def);
+  std::string choice(const std::string& key, const std::string& def, const std::vector<std::string>& allowed);
+  Vec3 vec3(const std::string& key, const Vec3& def);
+  Vec3 required_vec3(const std::string& key);
+  JsonObject object(const std::string& key);
+  std::vector<JsonObject> objects(const std::string& key);  // array of objects; empty if absent
+  std::vector<std::string> keys() const;
+  // Throws if the object has keys no getter asked for.
+  void finish() const;
+
+  [[noreturn]] void fail(const std::string& key, const std::string& what) const;
+  std::string where(const std::string& key) const { return file_ + ": " + path_ + "/" + key; }
+
+ private:
+  const nlohmann::json& j_;
+  std::string file_, path_;
+  std::set<std::string> used_;
+  const nlohmann::json& at(const std::string& key);
+  double check_number(const std::string& key, const nlohmann::json& v, double lo, double hi, bool lo_open);
+};
+
+}  // namespace amalgam::detail

@@ -1,0 +1,29 @@
+// Frame and diagnostics writers. Every file is written under a temporary name and renamed into
+// place, so an interrupted run never leaves a half-written frame.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "core/particles/particle_set.hpp"
+#include "solvers/explicit_mpm.hpp"
+
+namespace amalgam {
+
+// Binary little-endian PLY point cloud with x y z, vx vy vz, J (= det F) and material, readable by
+// Houdini, Blender and ParaView.
+void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a);
+
+// Writes `content` to `path` atomically (temporary file, then rename). Throws InputError.
+void write_file_atomic(const std::string& path, const std::string& content);
+
+struct DiagnosticsRow {
+  int frame;
+  double time, dt, wall_seconds;
+  long long substeps;
+  MpmDiagnostics d;
+  std::size_t particles;
+};
+std::string diagnostics_csv(const std::vector<DiagnosticsRow>& rows);
+
+}  // namespace amalgam
