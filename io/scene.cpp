@@ -96,7 +96,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   nlohmann::json root;
   try {
     root = nlohmann::json::parse(text);
-  } catch (const nlohmann::json::parse_error& e) {
+  } catch (const nlohmann::json::exception& e) {  // parse_error, out_of_range (1e999), ...
     throw InputError(file + ": not valid JSON: " + e.what());
   }
   Scene s;

@@ -22,30 +22,34 @@ struct Lame {
 // Fixed corotated (Stomakhin et al. 2012): Psi = mu |F - R|^2 + lambda/2 (J - 1)^2,
 // P = 2 mu (F - R) + lambda (J - 1) J F^{-T} (course report), R from the polar decomposition with
 // rotations U, V, so it stays a rotation (and P well defined) for inverted F.
-struct FixedCorotated {
-  Real mu, lambda;
+// Templated on the scalar so tests and implicit solvers can evaluate it in double.
+template <class T>
+struct FixedCorotatedT {
+  using M3 = Eigen::Matrix<T, 3, 3>;
+  using V3 = Eigen::Matrix<T, 3, 1>;
+  T mu, lambda;
 
-  Real energy(const Mat3& F) const {
-    const Svd3<Real> d = svd3(F);
-    const Real J = d.sigma.prod();
-    return mu * (d.sigma - Vec3::Ones()).squaredNorm() + Real(0.5) * lambda * (J - 1) * (J - 1);
+  T energy(const M3& F) const {
+    const Svd3<T> d = svd3(F);
+    const T J = d.sigma.prod();
+    return mu * (d.sigma - V3::Ones()).squaredNorm() + T(0.5) * lambda * (J - 1) * (J - 1);
   }
-  Mat3 first_piola(const Mat3& F) const {
-    const Svd3<Real> d = svd3(F);
-    const Mat3 R = d.U * d.V.transpose();
-    const Real J = d.sigma.prod();
+  M3 first_piola(const M3& F) const {
+    const Svd3<T> d = svd3(F);
+    const M3 R = d.U * d.V.transpose();
+    const T J = d.sigma.prod();
     // (J - 1) J F^{-T} = (J - 1) cof(F), written through the cofactor so it is finite at J = 0.
-    return Real(2) * mu * (F - R) + lambda * (J - 1) * cofactor(F);
+    return T(2) * mu * (F - R) + lambda * (J - 1) * cofactor(F);
   }
   // tau = P F^T = 2 mu (F - R) F^T + lambda (J - 1) J I.
-  Mat3 kirchhoff(const Mat3& F) const {
-    const Svd3<Real> d = svd3(F);
-    const Mat3 R = d.U * d.V.transpose();
-    const Real J = d.sigma.prod();
-    return Real(2) * mu * (F - R) * F.transpose() + (lambda * (J - 1) * J) * Mat3::Identity();
+  M3 kirchhoff(const M3& F) const {
+    const Svd3<T> d = svd3(F);
+    const M3 R = d.U * d.V.transpose();
+    const T J = d.sigma.prod();
+    return T(2) * mu * (F - R) * F.transpose() + (lambda * (J - 1) * J) * M3::Identity();
   }
-  static Mat3 cofactor(const Mat3& F) {
-    Mat3 c;
+  static M3 cofactor(const M3& F) {
+    M3 c;
     c(0, 0) = F(1, 1) * F(2, 2) - F(1, 2) * F(2, 1);
     c(0, 1) = F(1, 2) * F(2, 0) - F(1, 0) * F(2, 2);
     c(0, 2) = F(1, 0) * F(2, 1) - F(1, 1) * F(2, 0);
@@ -61,27 +65,32 @@ struct FixedCorotated {
 
 // Compressible neo-Hookean (Bonet & Wood): Psi = mu/2 (tr(F^T F) - 3) - mu log J + lambda/2 log^2 J,
 // P = mu (F - F^{-T}) + lambda log(J) F^{-T}, tau = mu (F F^T - I) + lambda log(J) I.
-// Defined for J > 0 only; J is clamped to `kMinJ` so an inverted particle is pushed back instead
-// of producing NaN (the stability guard reports such states).
-struct NeoHookean {
-  Real mu, lambda;
-  static constexpr Real kMinJ = Real(1e-4);
+// Defined for J > 0 only; J is clamped to kMinJ so an inverted particle is pushed back instead
+// of producing NaN.
+template <class T>
+struct NeoHookeanT {
+  using M3 = Eigen::Matrix<T, 3, 3>;
+  T mu, lambda;
+  static constexpr T kMinJ = T(1e-4);
 
-  Real energy(const Mat3& F) const {
-    const Real J = std::max(F.determinant(), kMinJ);
-    const Real lj = std::log(J);
-    return Real(0.5) * mu * ((F.transpose() * F).trace() - 3) - mu * lj + Real(0.5) * lambda * lj * lj;
+  T energy(const M3& F) const {
+    const T J = std::max(F.determinant(), kMinJ);
+    const T lj = std::log(J);
+    return T(0.5) * mu * ((F.transpose() * F).trace() - 3) - mu * lj + T(0.5) * lambda * lj * lj;
   }
-  Mat3 first_piola(const Mat3& F) const {
-    const Real J = std::max(F.determinant(), kMinJ);
-    const Mat3 FinvT = FixedCorotated::cofactor(F) / J;
+  M3 first_piola(const M3& F) const {
+    const T J = std::max(F.determinant(), kMinJ);
+    const M3 FinvT = FixedCorotatedT<T>::cofactor(F) / J;
     return mu * (F - FinvT) + lambda * std::log(J) * FinvT;
   }
-  Mat3 kirchhoff(const Mat3& F) const {
-    const Real J = std::max(F.determinant(), kMinJ);
-    return mu * (F * F.transpose() - Mat3::Identity()) + (lambda * std::log(J)) * Mat3::Identity();
+  M3 kirchhoff(const M3& F) const {
+    const T J = std::max(F.determinant(), kMinJ);
+    return mu * (F * F.transpose() - M3::Identity()) + (lambda * std::log(J)) * M3::Identity();
   }
 };
+
+using FixedCorotated = FixedCorotatedT<Real>;
+using NeoHookean = NeoHookeanT<Real>;
 
 enum class ElasticModel : std::int32_t { FixedCorotated = 0, NeoHookean = 1 };
 

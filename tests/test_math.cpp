@@ -1,0 +1,108 @@
+// Maths invariants: B-spline partition of unity and linear reproduction; 3x3 SVD / polar of
+// random, near-singular and inverted matrices reconstruct F with proper rotations.
+#include <gtest/gtest.h>
+
+#include <random>
+
+#include "core/math/bspline.hpp"
+#include "core/math/svd3.hpp"
+
+using namespace amalgam;
+
+template <int Order>
+void check_weights() {
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(-3.0, 3.0);
+  const Real dx = Real(0.1), inv_dx = Real(10);
+  const Real tol = std::is_same<Real, float>::value ? Real(2e-5) : Real(1e-12);
+  for (int t = 0; t < 2000; ++t) {
+    const Vec3 xp(Real(u(rng)), Real(u(rng)), Real(u(rng)));
+    const auto st = Stencil<Order>::at(xp, inv_dx);
+    Real sum_w = 0;
+    Vec3 sum_wx = Vec3::Zero(), sum_grad = Vec3::Zero();
+    Mat3 sum_x_grad = Mat3::Zero(), sum_wrr = Mat3::Zero();
+    for (int i = 0; i < Stencil<Order>::kN; ++i)
+      for (int j = 0; j < Stencil<Order>::kN; ++j)
+        for (int k = 0; k < Stencil<Order>::kN; ++k) {
+          const Real w = st.weight(i, j, k);
+          ASSERT_GE(w, Real(0));
+          const Vec3 xi = (st.base + Vec3i(i, j, k)).template cast<Real>() * dx;
+          sum_w += w;
+          sum_wx += w * xi;
+          sum_grad += st.gradient(i, j, k);
+          sum_x_grad += xi * st.gradient(i, j, k).transpose();
+          const Vec3 r = st.offset(i, j, k, dx);
+          sum_wrr += w * r * r.transpose();
+          ASSERT_LT((r - (xi - xp)).norm(), 1e-4);
+        }
+    EXPECT_NEAR(sum_w, 1, tol);                                   // partition of unity
+    EXPECT_LT((sum_wx - xp).norm(), tol * 40);                    // linear reproduction
+    EXPECT_LT(sum_grad.norm(), tol * 100);                        // gradient of unity
+    EXPECT_LT((sum_x_grad - Mat3::Identity()).norm(), tol * 100); // gradient of x is I
+    // D_p = sum w r r^T = (dx^2 / Dinv_scale) I: the APIC/MLS inertia tensor.
+    const Mat3 D = Mat3::Identity() * (dx * dx / BSpline<Order>::kDinvScale);
+    EXPECT_LT((sum_wrr - D).norm(), tol * 1e-2) << "order " << Order;
+  }
+}
+
+TEST(BSpline, QuadraticPartitionOfUnityAndLinearReproduction) { check_weights<2>(); }
+TEST(BSpline, CubicPartitionOfUnityAndLinearReproduction) { check_weights<3>(); }
+
+namespace {
+void expect_rotation(const Mat3& R, double tol) {
+  EXPECT_LT(double((R.transpose() * R - Mat3::Identity()).norm()), tol);
+  EXPECT_NEAR(double(R.determinant()), 1.0, tol);
+}
+void check_svd(const Mat3& F, double tol) {
+  const Svd3<Real> d = svd3(F);
+  expect_rotation(d.U, tol);
+  expect_rotation(d.V, tol);
+  const Mat3 rec = d.U * d.sigma.asDiagonal() * d.V.transpose();
+  EXPECT_LT(double((rec - F).norm()), tol * std::max(1.0, double(F.norm()))) << F;
+  EXPECT_GE(d.sigma[0], d.sigma[1]);
+  EXPECT_GE(d.sigma[1], std::abs(d.sigma[2]) - Real(tol));
+  if (F.determinant() < -tol) EXPECT_LT(d.sigma[2], 0) << "inverted F keeps the negative singular value";
+}
+}  // namespace
+
+TEST(Svd3, RandomMatricesReconstruct) {
+  std::mt19937 rng(1);
+  std::uniform_real_distribution<double> u(-2.0, 2.0);
+  const double tol = sizeof(Real) == 4 ? 2e-5 : 1e-12;
+  for (int t = 0; t < 5000; ++t) {
+    Mat3 F;
+    for (int i = 0; i < 9; ++i) F(i) = Real(u(rng));
+    check_svd(F, tol * 10);
+  }
+}
+
+TEST(Svd3, NearSingularInvertedAndDegenerate) {
+  std::mt19937 rng(2);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const double tol = sizeof(Real) == 4 ? 5e-5 : 1e-11;
+  std::vector<Mat3> cases;
+  cases.push_back(Mat3::Identity());
+  cases.push_back(Mat3::Zero());
+  cases.push_back(Vec3(1, 1, -1).asDiagonal());   // reflection: inverted
+  cases.push_back(Vec3(2, 2, 2).asDiagonal());    // repeated singular values
+  cases.push_back(Vec3(1, 1e-7, 0).asDiagonal()); // rank 1
+  for (int t = 0; t < 2000; ++t) {
+    // F = R1 diag(s) R2 with one tiny or negative stretch: flattened and inverted elements.
+    Mat3 A, B;
+    for (int i = 0; i < 9; ++i) A(i) = Real(u(rng)), B(i) = Real(u(rng));
+    const Mat3 R1 = polar_rotation(A), R2 = polar_rotation(B);
+    const Real small = Real(std::pow(10.0, -6.0 * std::abs(u(rng))));
+    Vec3 s(Real(1 + u(rng) * 0.5), Real(0.5 + std::abs(u(rng))), small * (t % 2 ? 1 : -1));
+    cases.push_back(R1 * s.asDiagonal() * R2);
+  }
+  for (const Mat3& F : cases) check_svd(F, tol);
+}
+
+TEST(Svd3, PolarRotationOfInvertedMatrixIsProperRotation) {
+  Mat3 F = Vec3(Real(1.2), Real(0.9), Real(-0.3)).asDiagonal();
+  const Mat3 R = polar_rotation(F);
+  expect_rotation(R, 1e-5);
+  // S = R^T F must be symmetric.
+  const Mat3 S = R.transpose() * F;
+  EXPECT_LT(double((S - S.transpose()).norm()), 1e-5);
+}
