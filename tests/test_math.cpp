@@ -106,3 +106,23 @@ TEST(Svd3, PolarRotationOfInvertedMatrixIsProperRotation) {
   const Mat3 S = R.transpose() * F;
   EXPECT_LT(double((S - S.transpose()).norm()), 1e-5);
 }
+
+TEST(Polar, FastRotationMatchesSvdIncludingFallbacks) {
+  std::mt19937 rng(8);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const double tol = sizeof(Real) == 4 ? 1e-4 : 1e-10;
+  int fast = 0;
+  for (int t = 0; t < 5000; ++t) {
+    Mat3 F = Mat3::Identity();
+    const double scale = (t % 3 == 0) ? 0.1 : (t % 3 == 1 ? 0.6 : 3.0);
+    for (int i = 0; i < 9; ++i) F(i) += Real(scale * u(rng));
+    if (t % 10 == 0) F.col(1) *= Real(1e-5);  // nearly flat: the SVD fallback
+    const Mat3 Rf = polar_rotation_fast(F);
+    const Mat3 Rs = polar_rotation(F);
+    expect_rotation(Rf, tol);
+    const double kappa = double(svd3(F).sigma[0] / std::max(std::abs(svd3(F).sigma[2]), Real(1e-30)));
+    if (kappa < 1e3) EXPECT_LT(double((Rf - Rs).norm()), tol * kappa) << F;
+    fast += F.determinant() > 0;
+  }
+  EXPECT_GT(fast, 1000);
+}

@@ -41,26 +41,14 @@ struct FixedCorotatedT {
     // (J - 1) J F^{-T} = (J - 1) cof(F), written through the cofactor so it is finite at J = 0.
     return T(2) * mu * (F - R) + lambda * (J - 1) * cofactor(F);
   }
-  // tau = P F^T = 2 mu (F - R) F^T + lambda (J - 1) J I.
+  // tau = P F^T = 2 mu (F - R) F^T + lambda (J - 1) J I. The hot path of P2G: R by the fast
+  // polar iteration (SVD only for inverted or flattened F).
   M3 kirchhoff(const M3& F) const {
-    const Svd3<T> d = svd3(F);
-    const M3 R = d.U * d.V.transpose();
-    const T J = d.sigma.prod();
+    const M3 R = polar_rotation_fast(F);
+    const T J = F.determinant();
     return T(2) * mu * (F - R) * F.transpose() + (lambda * (J - 1) * J) * M3::Identity();
   }
-  static M3 cofactor(const M3& F) {
-    M3 c;
-    c(0, 0) = F(1, 1) * F(2, 2) - F(1, 2) * F(2, 1);
-    c(0, 1) = F(1, 2) * F(2, 0) - F(1, 0) * F(2, 2);
-    c(0, 2) = F(1, 0) * F(2, 1) - F(1, 1) * F(2, 0);
-    c(1, 0) = F(0, 2) * F(2, 1) - F(0, 1) * F(2, 2);
-    c(1, 1) = F(0, 0) * F(2, 2) - F(0, 2) * F(2, 0);
-    c(1, 2) = F(0, 1) * F(2, 0) - F(0, 0) * F(2, 1);
-    c(2, 0) = F(0, 1) * F(1, 2) - F(0, 2) * F(1, 1);
-    c(2, 1) = F(0, 2) * F(1, 0) - F(0, 0) * F(1, 2);
-    c(2, 2) = F(0, 0) * F(1, 1) - F(0, 1) * F(1, 0);
-    return c;
-  }
+  static M3 cofactor(const M3& F) { return detail::cofactor3(F); }
 };
 
 // Compressible neo-Hookean (Bonet & Wood): Psi = mu/2 (tr(F^T F) - 3) - mu log J + lambda/2 log^2 J,
