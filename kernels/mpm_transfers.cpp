@@ -159,29 +159,30 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3&
   if constexpr (T == Transfer::Mls) {
     // Hierarchical sums: S = sum w v, S_a = sum w v idx_a; then
     // B.col(a) = sum w v o_a = dx (S_a - fx_a S) with o_a = (idx_a - fx_a) dx.
-    Real S[3] = {0, 0, 0}, Si[3] = {0, 0, 0}, Sj[3] = {0, 0, 0}, Sk[3] = {0, 0, 0};
+    // 4 lanes per node (velocity + a zero pad lane) so the sums vectorise.
+    Real S[4] = {0, 0, 0, 0}, Si[4] = {0, 0, 0, 0}, Sj[4] = {0, 0, 0, 0}, Sk[4] = {0, 0, 0, 0};
     for (int i = 0; i < N; ++i) {
-      Real Ti[3] = {0, 0, 0}, Tj[3] = {0, 0, 0}, Tk[3] = {0, 0, 0};
+      Real Ti[4] = {0, 0, 0, 0}, Tj[4] = {0, 0, 0, 0}, Tk[4] = {0, 0, 0, 0};
       for (int j = 0; j < N; ++j) {
-        Real U[3] = {0, 0, 0}, Uk[3] = {0, 0, 0};
+        Real U[4] = {0, 0, 0, 0}, Uk[4] = {0, 0, 0, 0};
         const Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
         for (int k = 0; k < N; ++k)
-          for (int c = 0; c < 3; ++c) {
+          for (int c = 0; c < 4; ++c) {
             const Real wv = st.w[2][k] * row[k * CH + c];
             U[c] += wv;
             Uk[c] += Real(k) * wv;
           }
-        const Real wy = st.w[1][j];
-        for (int c = 0; c < 3; ++c) {
+        const Real wy = st.w[1][j], jwy = Real(j) * wy;
+        for (int c = 0; c < 4; ++c) {
           Ti[c] += wy * U[c];
-          Tj[c] += (Real(j) * wy) * U[c];
+          Tj[c] += jwy * U[c];
           Tk[c] += wy * Uk[c];
         }
       }
-      const Real wx = st.w[0][i];
-      for (int c = 0; c < 3; ++c) {
+      const Real wx = st.w[0][i], iwx = Real(i) * wx;
+      for (int c = 0; c < 4; ++c) {
         S[c] += wx * Ti[c];
-        Si[c] += (Real(i) * wx) * Ti[c];
+        Si[c] += iwx * Ti[c];
         Sj[c] += wx * Tj[c];
         Sk[c] += wx * Tk[c];
       }
@@ -202,7 +203,7 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3&
           v_pic += w * vi;
           if constexpr (T == Transfer::Apic) Bm += (w * vi) * st.offset(i, j, k, dx).transpose();
           grad_v += vi * st.gradient(i, j, k).transpose();
-          if constexpr (T == Transfer::PicFlip) dv += w * Vec3(n[3], n[4], n[5]);
+          if constexpr (T == Transfer::PicFlip) dv += w * Vec3(n[4], n[5], n[6]);
         }
   }
   if constexpr (T == Transfer::PicFlip) {
@@ -218,7 +219,7 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3&
 
 template <int Order, Transfer T>
 void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
-  constexpr int CH = (T == Transfer::PicFlip) ? 6 : 3;  // v_new (+ dv)
+  constexpr int CH = (T == Transfer::PicFlip) ? 8 : 4;  // (v_new, 0) (+ (dv, 0)): 4-lane rows
   using Blk = Block<Order, CH>;
   constexpr int B = Blk::B;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
@@ -229,7 +230,7 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
       const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
       const std::size_t leaf = std::size_t(g.nbr8[b][size_t(t)]);
       const Real* la = g.a + leaf * kLeafNodes * 4;
-      const Real* lb = (CH == 6) ? g.b + leaf * kLeafNodes * 4 : nullptr;
+      const Real* lb = (CH == 8) ? g.b + leaf * kLeafNodes * 4 : nullptr;
       const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
                 nk = tz ? B - kLeafDim : kLeafDim;
       for (int i = 0; i < ni; ++i)
@@ -240,11 +241,13 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
             d[0] = s[1];
             d[1] = s[2];
             d[2] = s[3];
-            if constexpr (CH == 6) {
+            d[3] = 0;
+            if constexpr (CH == 8) {
               const Real* e = lb + leaf_offset(i, j, k) * 4;
-              d[3] = e[1];
-              d[4] = e[2];
-              d[5] = e[3];
+              d[4] = e[1];
+              d[5] = e[2];
+              d[6] = e[3];
+              d[7] = 0;
             }
           }
     }
