@@ -66,39 +66,47 @@ inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3&
         }
       }
     }
-  } else if constexpr (T == Transfer::Apic) {
-    const Mat3 mC = m * C;
-    const Vec3 mv = m * v;
-    const Mat3 dtVtau = (dt * V0) * tau;
-    for (int i = 0; i < N; ++i)
-      for (int j = 0; j < N; ++j)
+  } else {
+    // APIC: p_i = w m (v + C o) - dt V0 tau grad w;  PIC/FLIP: p_i = w m v, f_i = -V0 tau grad w.
+    // grad w_ijk = (dwx_i wy_j wz_k, wx_i dwy_j wz_k, wx_i wy_j dwz_k), so for G = (dt) V0 tau,
+    // G grad w = wz_k g0_ij + dwz_k g1_ij with g0_ij = G.col(0) dwx_i wy_j + G.col(1) wx_i dwy_j
+    // and g1_ij = G.col(2) wx_i wy_j: two 4-lane multiply-adds per node.
+    constexpr bool kApic = (T == Transfer::Apic);
+    const Mat3 A = kApic ? Mat3(m * C) : Mat3::Zero();
+    const Mat3 G = (kApic ? dt * V0 : V0) * tau;
+    Real zk[N][4];  // (m, A.col(2) o2[k])
+    for (int k = 0; k < N; ++k) {
+      const Real o = (Real(k) - st.fx[2]) * dx;
+      zk[k][0] = m;
+      zk[k][1] = A(0, 2) * o;
+      zk[k][2] = A(1, 2) * o;
+      zk[k][3] = A(2, 2) * o;
+    }
+    for (int i = 0; i < N; ++i) {
+      const Real oi = (Real(i) - st.fx[0]) * dx;
+      const Vec3 ai = m * v + A.col(0) * oi;
+      for (int j = 0; j < N; ++j) {
+        const Real oj = (Real(j) - st.fx[1]) * dx;
+        const Real aij[4] = {0, ai[0] + A(0, 1) * oj, ai[1] + A(1, 1) * oj, ai[2] + A(2, 1) * oj};
+        const Real wx = st.w[0][i], wy = st.w[1][j], dwx = st.dw[0][i], dwy = st.dw[1][j];
+        const Vec3 g0v = G.col(0) * (dwx * wy) + G.col(1) * (wx * dwy);
+        const Vec3 g1v = G.col(2) * (wx * wy);
+        const Real g0[4] = {0, g0v[0], g0v[1], g0v[2]}, g1[4] = {0, g1v[0], g1v[1], g1v[2]};
+        const Real wij = wx * wy;
+        Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
         for (int k = 0; k < N; ++k) {
-          const Real w = st.weight(i, j, k);
-          const Vec3 p = w * (mv + mC * st.offset(i, j, k, dx)) - dtVtau * st.gradient(i, j, k);
-          Real* n = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2] + k);
-          n[0] += w * m;
-          n[1] += p[0];
-          n[2] += p[1];
-          n[3] += p[2];
+          const Real w = wij * st.w[2][k], wz = st.w[2][k], dwz = st.dw[2][k];
+          if constexpr (kApic) {
+            for (int c = 0; c < 4; ++c) row[k * CH + c] += w * (aij[c] + zk[k][c]) - (wz * g0[c] + dwz * g1[c]);
+          } else {
+            for (int c = 0; c < 4; ++c) {
+              row[k * CH + c] += w * (aij[c] + zk[k][c]);
+              row[k * CH + 4 + c] -= wz * g0[c] + dwz * g1[c];
+            }
+          }
         }
-  } else {  // PicFlip: momentum and force kept apart, FLIP needs v_old = p/m
-    const Vec3 mv = m * v;
-    const Mat3 Vtau = V0 * tau;
-    for (int i = 0; i < N; ++i)
-      for (int j = 0; j < N; ++j)
-        for (int k = 0; k < N; ++k) {
-          const Real w = st.weight(i, j, k);
-          const Vec3 p = w * mv;
-          const Vec3 f = -(Vtau * st.gradient(i, j, k));
-          Real* n = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2] + k);
-          n[0] += w * m;
-          n[1] += p[0];
-          n[2] += p[1];
-          n[3] += p[2];
-          n[5] += f[0];
-          n[6] += f[1];
-          n[7] += f[2];
-        }
+      }
+    }
   }
 }
 
@@ -154,63 +162,71 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3&
   const Stencil<Order> st = Stencil<Order>::at(x, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
-  Vec3 v_pic = Vec3::Zero(), dv = Vec3::Zero();
-  Mat3 Bm = Mat3::Zero(), grad_v = Mat3::Zero();
-  if constexpr (T == Transfer::Mls) {
-    // Hierarchical sums: S = sum w v, S_a = sum w v idx_a; then
-    // B.col(a) = sum w v o_a = dx (S_a - fx_a S) with o_a = (idx_a - fx_a) dx.
-    // 4 lanes per node (velocity + a zero pad lane) so the sums vectorise.
-    Real S[4] = {0, 0, 0, 0}, Si[4] = {0, 0, 0, 0}, Sj[4] = {0, 0, 0, 0}, Sk[4] = {0, 0, 0, 0};
-    for (int i = 0; i < N; ++i) {
-      Real Ti[4] = {0, 0, 0, 0}, Tj[4] = {0, 0, 0, 0}, Tk[4] = {0, 0, 0, 0};
-      for (int j = 0; j < N; ++j) {
-        Real U[4] = {0, 0, 0, 0}, Uk[4] = {0, 0, 0, 0};
-        const Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
-        for (int k = 0; k < N; ++k)
-          for (int c = 0; c < 4; ++c) {
-            const Real wv = st.w[2][k] * row[k * CH + c];
-            U[c] += wv;
-            Uk[c] += Real(k) * wv;
-          }
-        const Real wy = st.w[1][j], jwy = Real(j) * wy;
+  // Hierarchical sums over k, then j, then i (4 lanes per node: velocity + zero pad):
+  //   S = sum w v;  S_a = sum w v idx_a  ->  B.col(a) = sum w v o_a = dx (S_a - fx_a S)  (MLS, APIC)
+  //   D_a = sum v dw/dx_a                ->  grad v = [D_0 D_1 D_2]                  (APIC, PIC/FLIP)
+  //   dV = sum w dv                                                                  (FLIP)
+  constexpr bool kB = (T != Transfer::PicFlip), kGrad = (T != Transfer::Mls), kFlip = (T == Transfer::PicFlip);
+  Real S[4] = {}, Si[4] = {}, Sj[4] = {}, Sk[4] = {}, D0[4] = {}, D1[4] = {}, D2[4] = {}, dV[4] = {};
+  for (int i = 0; i < N; ++i) {
+    Real Ti[4] = {}, Tj[4] = {}, Tk[4] = {}, Tdy[4] = {}, Tdz[4] = {}, TdV[4] = {};
+    for (int j = 0; j < N; ++j) {
+      Real U[4] = {}, Uk[4] = {}, Ud[4] = {}, UdV[4] = {};
+      const Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
+      for (int k = 0; k < N; ++k)
         for (int c = 0; c < 4; ++c) {
-          Ti[c] += wy * U[c];
+          const Real vk = row[k * CH + c];
+          U[c] += st.w[2][k] * vk;
+          if constexpr (kB) Uk[c] += (Real(k) * st.w[2][k]) * vk;
+          if constexpr (kGrad) Ud[c] += st.dw[2][k] * vk;
+          if constexpr (kFlip) UdV[c] += st.w[2][k] * row[k * CH + 4 + c];
+        }
+      const Real wy = st.w[1][j], jwy = Real(j) * wy, dwy = st.dw[1][j];
+      for (int c = 0; c < 4; ++c) {
+        Ti[c] += wy * U[c];
+        if constexpr (kB) {
           Tj[c] += jwy * U[c];
           Tk[c] += wy * Uk[c];
         }
+        if constexpr (kGrad) {
+          Tdy[c] += dwy * U[c];
+          Tdz[c] += wy * Ud[c];
+        }
+        if constexpr (kFlip) TdV[c] += wy * UdV[c];
       }
-      const Real wx = st.w[0][i], iwx = Real(i) * wx;
-      for (int c = 0; c < 4; ++c) {
-        S[c] += wx * Ti[c];
+    }
+    const Real wx = st.w[0][i], iwx = Real(i) * wx, dwx = st.dw[0][i];
+    for (int c = 0; c < 4; ++c) {
+      S[c] += wx * Ti[c];
+      if constexpr (kB) {
         Si[c] += iwx * Ti[c];
         Sj[c] += wx * Tj[c];
         Sk[c] += wx * Tk[c];
       }
+      if constexpr (kGrad) {
+        D0[c] += dwx * Ti[c];
+        D1[c] += wx * Tdy[c];
+        D2[c] += wx * Tdz[c];
+      }
+      if constexpr (kFlip) dV[c] += wx * TdV[c];
     }
-    v_pic = Vec3(S[0], S[1], S[2]);
-    for (int c = 0; c < 3; ++c) {
-      Bm(c, 0) = dx * (Si[c] - st.fx[0] * S[c]);
-      Bm(c, 1) = dx * (Sj[c] - st.fx[1] * S[c]);
-      Bm(c, 2) = dx * (Sk[c] - st.fx[2] * S[c]);
-    }
-  } else {
-    for (int i = 0; i < N; ++i)
-      for (int j = 0; j < N; ++j)
-        for (int k = 0; k < N; ++k) {
-          const Real w = st.weight(i, j, k);
-          const Real* n = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2] + k);
-          const Vec3 vi(n[0], n[1], n[2]);
-          v_pic += w * vi;
-          if constexpr (T == Transfer::Apic) Bm += (w * vi) * st.offset(i, j, k, dx).transpose();
-          grad_v += vi * st.gradient(i, j, k).transpose();
-          if constexpr (T == Transfer::PicFlip) dv += w * Vec3(n[4], n[5], n[6]);
-        }
+  }
+  const Vec3 v_pic(S[0], S[1], S[2]);
+  const Vec3 dv(dV[0], dV[1], dV[2]);
+  Mat3 Bm, grad_v;
+  for (int c = 0; c < 3; ++c) {
+    Bm(c, 0) = dx * (Si[c] - st.fx[0] * S[c]);
+    Bm(c, 1) = dx * (Sj[c] - st.fx[1] * S[c]);
+    Bm(c, 2) = dx * (Sk[c] - st.fx[2] * S[c]);
+    grad_v(c, 0) = D0[c];
+    grad_v(c, 1) = D1[c];
+    grad_v(c, 2) = D2[c];
   }
   if constexpr (T == Transfer::PicFlip) {
     v = alpha * (v + dv) + (1 - alpha) * v_pic;
   } else {
     C = (BSpline<Order>::kDinvScale * inv_dx * inv_dx) * Bm;
-    if constexpr (T == Transfer::Mls) grad_v = C;
+    if constexpr (T == Transfer::Mls) grad_v = C;  // A-ULMPM Sec. 5.8: grad v_p = C_p
     v = v_pic;
   }
   F = (Mat3::Identity() + dt * grad_v) * F;

@@ -52,6 +52,8 @@ class ExplicitMpm {
   const BinTable& bins() const { return bins_; }
   double time() const { return time_; }
   std::uint64_t step_count() const { return steps_; }
+  // Sort scratch (keys, permutation, run flags) per particle.
+  static constexpr std::size_t binning_bytes_per_particle() { return ParticleBinning::kScratchBytesPerParticle; }
 
   // Appends particles at `x` with velocity v0 + omega x (x - centre), material index, and mass
   // and volume per particle; F = I, C = affine part of the rigid rotation.
