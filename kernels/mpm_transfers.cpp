@@ -38,71 +38,61 @@ inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3&
   const Vec3i l = st.base - origin;
   const Mat3 tau = mat.kirchhoff(F);  // P F^T
   constexpr int N = Stencil<Order>::kN;
+  // One separable form for the three transfers, per node (i, j, k) with o = x_i - x_p:
+  //   (m, p)_i += w (m, m v + A o) - (0, G grad w)      and, PIC/FLIP only, f_i = -G grad w
+  //   MLS:      A = m C - dt V0 D^{-1} tau, G = 0   (stress folded into the affine term)
+  //   APIC:     A = m C,                   G = dt V0 tau
+  //   PIC/FLIP: A = 0,                     G = V0 tau (force kept apart: FLIP needs v_old)
+  // A o = A.col(0) o0[i] + A.col(1) o1[j] + A.col(2) o2[k], and with
+  // grad w_ijk = (dwx_i wy_j wz_k, wx_i dwy_j wz_k, wx_i wy_j dwz_k),
+  // G grad w = wz_k g0_ij + dwz_k g1_ij, g0_ij = G.col(0) dwx_i wy_j + G.col(1) wx_i dwy_j,
+  // g1_ij = G.col(2) wx_i wy_j: a few 4-lane multiply-adds per node, no 3x3 product.
+  constexpr bool kGrad = (T != Transfer::Mls);
+  Mat3 A, G;
   if constexpr (T == Transfer::Mls) {
-    // p_i = w (m v + A (x_i - x_p)), A = m C - dt V0 D^{-1} tau. The offset separates by axis,
-    // A o = A.col(0) o0[i] + A.col(1) o1[j] + A.col(2) o2[k], so each node costs one 4-lane
-    // multiply-add on (m, p) instead of a 3x3 product.
     const Real Dinv = BSpline<Order>::kDinvScale * inv_dx * inv_dx;
-    const Mat3 A = m * C - (dt * V0 * Dinv) * tau;
-    Real zk[N][4];  // (m, A.col(2) o2[k])
-    for (int k = 0; k < N; ++k) {
-      const Real o = (Real(k) - st.fx[2]) * dx;
-      zk[k][0] = m;
-      zk[k][1] = A(0, 2) * o;
-      zk[k][2] = A(1, 2) * o;
-      zk[k][3] = A(2, 2) * o;
-    }
-    for (int i = 0; i < N; ++i) {
-      const Real oi = (Real(i) - st.fx[0]) * dx;
-      const Vec3 ai = m * v + A.col(0) * oi;
-      for (int j = 0; j < N; ++j) {
-        const Real oj = (Real(j) - st.fx[1]) * dx;
-        const Real aij[4] = {0, ai[0] + A(0, 1) * oj, ai[1] + A(1, 1) * oj, ai[2] + A(2, 1) * oj};
-        const Real wij = st.w[0][i] * st.w[1][j];
-        Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
-        for (int k = 0; k < N; ++k) {
-          const Real w = wij * st.w[2][k];
-          for (int c = 0; c < 4; ++c) row[k * CH + c] += w * (aij[c] + zk[k][c]);
-        }
-      }
-    }
+    A = m * C - (dt * V0 * Dinv) * tau;
+    G.setZero();
+  } else if constexpr (T == Transfer::Apic) {
+    A = m * C;
+    G = (dt * V0) * tau;
   } else {
-    // APIC: p_i = w m (v + C o) - dt V0 tau grad w;  PIC/FLIP: p_i = w m v, f_i = -V0 tau grad w.
-    // grad w_ijk = (dwx_i wy_j wz_k, wx_i dwy_j wz_k, wx_i wy_j dwz_k), so for G = (dt) V0 tau,
-    // G grad w = wz_k g0_ij + dwz_k g1_ij with g0_ij = G.col(0) dwx_i wy_j + G.col(1) wx_i dwy_j
-    // and g1_ij = G.col(2) wx_i wy_j: two 4-lane multiply-adds per node.
-    constexpr bool kApic = (T == Transfer::Apic);
-    const Mat3 A = kApic ? Mat3(m * C) : Mat3::Zero();
-    const Mat3 G = (kApic ? dt * V0 : V0) * tau;
-    Real zk[N][4];  // (m, A.col(2) o2[k])
-    for (int k = 0; k < N; ++k) {
-      const Real o = (Real(k) - st.fx[2]) * dx;
-      zk[k][0] = m;
-      zk[k][1] = A(0, 2) * o;
-      zk[k][2] = A(1, 2) * o;
-      zk[k][3] = A(2, 2) * o;
-    }
-    for (int i = 0; i < N; ++i) {
-      const Real oi = (Real(i) - st.fx[0]) * dx;
-      const Vec3 ai = m * v + A.col(0) * oi;
-      for (int j = 0; j < N; ++j) {
-        const Real oj = (Real(j) - st.fx[1]) * dx;
-        const Real aij[4] = {0, ai[0] + A(0, 1) * oj, ai[1] + A(1, 1) * oj, ai[2] + A(2, 1) * oj};
-        const Real wx = st.w[0][i], wy = st.w[1][j], dwx = st.dw[0][i], dwy = st.dw[1][j];
-        const Vec3 g0v = G.col(0) * (dwx * wy) + G.col(1) * (wx * dwy);
-        const Vec3 g1v = G.col(2) * (wx * wy);
-        const Real g0[4] = {0, g0v[0], g0v[1], g0v[2]}, g1[4] = {0, g1v[0], g1v[1], g1v[2]};
-        const Real wij = wx * wy;
-        Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
-        for (int k = 0; k < N; ++k) {
-          const Real w = wij * st.w[2][k], wz = st.w[2][k], dwz = st.dw[2][k];
-          if constexpr (kApic) {
-            for (int c = 0; c < 4; ++c) row[k * CH + c] += w * (aij[c] + zk[k][c]) - (wz * g0[c] + dwz * g1[c]);
+    A.setZero();
+    G = V0 * tau;
+  }
+  Real zk[N][4];  // (m, A.col(2) o2[k])
+  for (int k = 0; k < N; ++k) {
+    const Real o = (Real(k) - st.fx[2]) * dx;
+    zk[k][0] = m;
+    zk[k][1] = A(0, 2) * o;
+    zk[k][2] = A(1, 2) * o;
+    zk[k][3] = A(2, 2) * o;
+  }
+  for (int i = 0; i < N; ++i) {
+    const Real oi = (Real(i) - st.fx[0]) * dx;
+    const Vec3 ai = m * v + A.col(0) * oi;
+    for (int j = 0; j < N; ++j) {
+      const Real oj = (Real(j) - st.fx[1]) * dx;
+      const Real aij[4] = {0, ai[0] + A(0, 1) * oj, ai[1] + A(1, 1) * oj, ai[2] + A(2, 1) * oj};
+      const Real wx = st.w[0][i], wy = st.w[1][j], wij = wx * wy;
+      Real g0[4] = {}, g1[4] = {};
+      if constexpr (kGrad) {
+        const Vec3 g0v = G.col(0) * (st.dw[0][i] * wy) + G.col(1) * (wx * st.dw[1][j]);
+        const Vec3 g1v = G.col(2) * wij;
+        for (int c = 0; c < 3; ++c) g0[c + 1] = g0v[c], g1[c + 1] = g1v[c];
+      }
+      Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
+      for (int k = 0; k < N; ++k) {
+        const Real w = wij * st.w[2][k], wz = st.w[2][k], dwz = st.dw[2][k];
+        for (int c = 0; c < 4; ++c) {
+          const Real mom = w * (aij[c] + zk[k][c]);
+          if constexpr (T == Transfer::Mls) {
+            row[k * CH + c] += mom;
+          } else if constexpr (T == Transfer::Apic) {
+            row[k * CH + c] += mom - (wz * g0[c] + dwz * g1[c]);
           } else {
-            for (int c = 0; c < 4; ++c) {
-              row[k * CH + c] += w * (aij[c] + zk[k][c]);
-              row[k * CH + 4 + c] -= wz * g0[c] + dwz * g1[c];
-            }
+            row[k * CH + c] += mom;
+            row[k * CH + 4 + c] -= wz * g0[c] + dwz * g1[c];
           }
         }
       }

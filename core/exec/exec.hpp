@@ -65,28 +65,8 @@ inline Index chunk_size(Index n, Index grain) {
   return c < 1 ? 1 : c;
 }
 
-// body(i) for i in [0, n). Items must write disjoint memory.
-template <class Body>
-void parallel_for(const Space& space, const char* label, Index n, Body&& body, Index grain = 0) {
-  if (n <= 0) return;
-  ScopedRegion region(space.profiler(), label);
-  const Index cs = chunk_size(n, grain);
-  const Index nchunks = (n + cs - 1) / cs;
-  struct Ctx {
-    Body* body;
-    Index n, cs;
-  } ctx{&body, n, cs};
-  detail::run_chunks(
-      space.state(), nchunks,
-      [](void* p, Index c) {
-        auto& k = *static_cast<Ctx*>(p);
-        const Index b = c * k.cs, e = (b + k.cs < k.n) ? b + k.cs : k.n;
-        for (Index i = b; i < e; ++i) (*k.body)(i);
-      },
-      &ctx);
-}
-
-// body(begin, end) for fixed chunks of [0, n): for kernels that want a whole range at once.
+// body(begin, end) for the fixed chunks [c * chunk, min(n, (c + 1) * chunk)): for kernels that
+// want a whole range at once. Chunks must write disjoint memory.
 template <class Body>
 void parallel_for_chunks(const Space& space, const char* label, Index n, Index chunk, Body&& body) {
   if (n <= 0) return;
@@ -105,6 +85,14 @@ void parallel_for_chunks(const Space& space, const char* label, Index n, Index c
         (*k.body)(b, e);
       },
       &ctx);
+}
+
+// body(i) for i in [0, n), in chunks of chunk_size(n, grain). Items must write disjoint memory.
+template <class Body>
+void parallel_for(const Space& space, const char* label, Index n, Body&& body, Index grain = 0) {
+  parallel_for_chunks(space, label, n, chunk_size(n, grain), [&body](Index b, Index e) {
+    for (Index i = b; i < e; ++i) body(i);
+  });
 }
 
 // Deterministic reduction: result = join(...join(join(init, chunk0), chunk1)...), where each
