@@ -46,16 +46,39 @@ std::size_t ParticleSet::bytes_per_particle() const {
   return b;
 }
 
+namespace {
+// dst[i] = src[perm[i]] for records of W 32-bit words; W known at compile time so the copy is
+// a few vector moves instead of a run-time-length loop.
+template <int W>
+void gather_records(const exec::Space& space, std::size_t n, const std::uint32_t* perm, const std::uint32_t* src,
+                    std::uint32_t* dst) {
+  exec::parallel_for(space, "particles.permute", exec::Index(n), [=](exec::Index i) {
+    const std::uint32_t* s = src + size_t(perm[i]) * W;
+    std::uint32_t* d = dst + size_t(i) * W;
+    for (int k = 0; k < W; ++k) d[k] = s[k];
+  });
+}
+}  // namespace
+
 void ParticleSet::permute(const exec::Space& space, const std::uint32_t* perm) {
   for (auto& a : attrs_) {
     const int w = a.words();
     const std::uint32_t* src = a.front.data();
     std::uint32_t* dst = a.back.data();
-    exec::parallel_for(space, "particles.permute", exec::Index(n_), [=](exec::Index i) {
-      const std::uint32_t* s = src + size_t(perm[i]) * size_t(w);
-      std::uint32_t* d = dst + size_t(i) * size_t(w);
-      for (int k = 0; k < w; ++k) d[k] = s[k];
-    });
+    switch (w) {  // the widths of scalars, Vec3 and Mat3 in float and double
+      case 1: gather_records<1>(space, n_, perm, src, dst); break;
+      case 2: gather_records<2>(space, n_, perm, src, dst); break;
+      case 3: gather_records<3>(space, n_, perm, src, dst); break;
+      case 6: gather_records<6>(space, n_, perm, src, dst); break;
+      case 9: gather_records<9>(space, n_, perm, src, dst); break;
+      case 18: gather_records<18>(space, n_, perm, src, dst); break;
+      default:
+        exec::parallel_for(space, "particles.permute", exec::Index(n_), [=](exec::Index i) {
+          const std::uint32_t* s = src + size_t(perm[i]) * size_t(w);
+          std::uint32_t* d = dst + size_t(i) * size_t(w);
+          for (int k = 0; k < w; ++k) d[k] = s[k];
+        });
+    }
     a.front.swap(a.back);
   }
 }
