@@ -2,6 +2,9 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <csignal>
+#include <cstdlib>
+#include <fstream>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -11,6 +14,7 @@
 #include "apps/commands.hpp"
 #include "core/errors.hpp"
 #include "core/exec/exec.hpp"
+#include "io/checkpoint.hpp"
 #include "io/scene.hpp"
 #include "io/writers.hpp"
 
@@ -20,11 +24,30 @@ namespace {
 
 const char* kRunHelp =
     "usage: amalgam run SCENE.json [--backend serial|openmp|tbb] [--threads N] [--out DIR]\n"
-    "                  [--frames N] [--quiet]\n"
-    "Simulates SCENE and writes DIR/frame_NNNN.ply (particles: position, velocity, J, material)\n"
-    "and DIR/diagnostics.csv (energies, momentum, max speed, substeps per frame).\n"
+    "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--quiet]\n"
+    "Simulates SCENE and writes DIR/frame_NNNN.ply (particles: position, velocity, J, material, id),\n"
+    "DIR/diagnostics.csv (energies, momentum, max speed, substeps per frame) and\n"
+    "DIR/checkpoint.amck (every N frames, at the last frame, and on SIGINT/SIGTERM).\n"
+    "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
+    "uninterrupted run (frames may be raised to extend it).\n"
     "Defaults: --backend openmp, --threads = all cores, --out = the scene's output.directory,\n"
-    "--frames = the scene's simulation.frames.\n";
+    "--frames = the scene's simulation.frames, --checkpoint-every = output.checkpoint_every.\n";
+
+volatile std::sig_atomic_t g_signal = 0;
+extern "C" void on_signal(int sig) { g_signal = sig; }
+
+// Rows of an existing diagnostics.csv for frames before `first_frame` (kept on resume).
+std::vector<std::string> earlier_rows(const std::string& csv, int first_frame) {
+  std::vector<std::string> rows;
+  std::ifstream in(csv);
+  std::string line;
+  std::getline(in, line);  // header
+  while (std::getline(in, line)) {
+    const int f = std::atoi(line.c_str());
+    if (f >= 1 && f < first_frame) rows.push_back(line + "\n");
+  }
+  return rows;
+}
 
 std::string format_seconds(double s) {
   char buf[64];
@@ -48,7 +71,8 @@ exec::Space make_space(const Options& o, exec::Profiler* prof) {
 int run_command(const std::vector<std::string>& args) {
   Options o;
   try {
-    o = parse_options(args, {"--backend", "--threads", "--out", "--frames"}, {"--quiet", "--help"});
+    o = parse_options(args, {"--backend", "--threads", "--out", "--frames", "--checkpoint-every", "--resume"},
+                      {"--quiet", "--help"});
     if (o.flag("--help")) {
       std::cout << kRunHelp;
       return kOk;
@@ -69,7 +93,18 @@ int run_command(const std::vector<std::string>& args) {
     std::filesystem::create_directories(out_dir, ec);
     if (ec) throw InputError(out_dir + ": cannot create output directory: " + ec.message());
 
+    int checkpoint_every = scene.output.checkpoint_every;
+    if (const auto* c = o.get("--checkpoint-every")) checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
+    const std::string checkpoint_path = out_dir + "/checkpoint.amck";
+
     ExplicitMpm solver = build_solver(scene);
+    int first_frame = 1;
+    if (const auto* r = o.get("--resume")) {
+      first_frame = read_checkpoint(*r, solver, scene.fingerprint).next_frame;
+      if (!quiet)
+        std::cout << "amalgam: resumed from " << *r << " at t = " << solver.time() << " s, substep "
+                  << solver.step_count() << ", frame " << first_frame << "\n";
+    }
     const size_t np = solver.particles().size();
     if (!quiet)
       std::cout << "amalgam: scene '" << scene.name << "': " << np << " particles, dx = " << scene.mpm.dx
@@ -81,13 +116,19 @@ int run_command(const std::vector<std::string>& args) {
       std::snprintf(name, sizeof name, "/frame_%04d.ply", f);
       return out_dir + name;
     };
-    if (scene.output.ply) write_ply_points(frame_path(0), solver.particles(), solver.attributes());
+    if (scene.output.ply && first_frame == 1) write_ply_points(frame_path(0), solver.particles(), solver.attributes());
+
+    const std::string csv_path = out_dir + "/diagnostics.csv";
+    std::vector<std::string> csv_rows;
+    if (first_frame > 1) csv_rows = earlier_rows(csv_path, first_frame);
+    g_signal = 0;
+    std::signal(SIGINT, on_signal);
+    std::signal(SIGTERM, on_signal);
 
     const bool tty = isatty(fileno(stdout));
-    std::vector<DiagnosticsRow> rows;
     const auto t_start = std::chrono::steady_clock::now();
     long long total_substeps = 0;
-    for (int f = 1; f <= scene.frames; ++f) {
+    for (int f = first_frame; f <= scene.frames; ++f) {
       const double t_frame_end = double(f) / scene.fps;
       long long substeps = 0;
       Real dt = 0;
@@ -99,15 +140,31 @@ int run_command(const std::vector<std::string>& args) {
         dt = Real(remaining / std::max(1.0, n_left));
         solver.step(space, dt);
         ++substeps;
+        if (g_signal) {  // interrupted: save the exact state mid-frame and stop
+          const int sig = g_signal;
+          write_checkpoint(checkpoint_path, solver, f, scene.fingerprint);
+          if (tty && !quiet) std::cout << "\n";
+          std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM") << " received: checkpoint written to "
+                    << checkpoint_path << " (t = " << solver.time() << " s, frame " << f
+                    << " in progress); continue with --resume " << checkpoint_path << "\n";
+          return 128 + sig;
+        }
       }
       total_substeps += substeps;
       const MpmDiagnostics d = solver.diagnostics(space);
       if (scene.output.ply) write_ply_points(frame_path(f), solver.particles(), solver.attributes());
       const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
-      rows.push_back({f, solver.time(), double(dt), wall, substeps, d, np});
-      if (scene.output.diagnostics_csv) write_file_atomic(out_dir + "/diagnostics.csv", diagnostics_csv(rows));
+      csv_rows.push_back(diagnostics_csv_line({f, solver.time(), double(dt), wall, substeps, d, np}));
+      if (scene.output.diagnostics_csv) {
+        std::string csv = diagnostics_csv_header();
+        for (const auto& r : csv_rows) csv += r;
+        write_file_atomic(csv_path, csv);
+      }
+      if ((checkpoint_every > 0 && f % checkpoint_every == 0) || f == scene.frames)
+        write_checkpoint(checkpoint_path, solver, f + 1, scene.fingerprint);
       if (!quiet) {
-        const double eta = wall / f * (scene.frames - f);
+        const int done = f - first_frame + 1;
+        const double eta = wall / done * (scene.frames - f);
         const double rate = double(np) * double(total_substeps) / std::max(wall, 1e-9);
         char line[256];
         std::snprintf(line, sizeof line,
@@ -122,7 +179,7 @@ int run_command(const std::vector<std::string>& args) {
     const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
     if (!quiet) {
       if (tty) std::cout << "\n";
-      std::cout << "amalgam: done: " << scene.frames << " frames, " << total_substeps << " substeps in "
+      std::cout << "amalgam: done: " << scene.frames - first_frame + 1 << " frames, " << total_substeps << " substeps in "
                 << format_seconds(wall) << " (" << wall << " s), "
                 << double(np) * double(total_substeps) / wall * 1e-6 << "M particle-substeps/s\n"
                 << "amalgam: per-kernel time:\n"
@@ -136,7 +193,8 @@ int run_command(const std::vector<std::string>& args) {
     std::cerr << "amalgam run: " << e.what() << "\n";
     return kUsage;
   } catch (const SimulationError& e) {
-    std::cerr << "amalgam: simulation failed: " << e.what() << "\n";
+    std::cerr << "amalgam: simulation failed: " << e.what() << "\n"
+              << "amalgam: the last good checkpoint (if any was written) is in the output directory\n";
     return kSimulationFailed;
   }
 }

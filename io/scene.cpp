@@ -6,6 +6,7 @@
 #include <sstream>
 
 #include "core/errors.hpp"
+#include "io/checkpoint.hpp"
 #include "io/json_reader.hpp"
 
 namespace amalgam {
@@ -140,8 +141,15 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.output.directory = out.string("directory", "out");
   s.output.ply = out.boolean("ply", true);
   s.output.diagnostics_csv = out.boolean("diagnostics_csv", true);
+  s.output.checkpoint_every = int(out.integer("checkpoint_every", 10, 0, 1000000));
   out.finish();
   top.finish();
+
+  nlohmann::json physics = root;
+  for (const char* k : {"output", "name", "description"}) physics.erase(k);
+  physics["simulation"].erase("frames");
+  const std::string canon = physics.dump();
+  s.fingerprint = fnv1a64(canon.data(), canon.size());
   return s;
 }
 

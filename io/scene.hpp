@@ -31,6 +31,7 @@ struct OutputSpec {
   std::string directory = "out";
   bool ply = true;
   bool diagnostics_csv = true;
+  int checkpoint_every = 10;  // frames; 0 = only on SIGINT/SIGTERM
 };
 
 struct Scene {
@@ -44,6 +45,9 @@ struct Scene {
   std::vector<ObjectSpec> objects;
   std::vector<Collider> colliders;
   OutputSpec output;
+  // Hash of everything that determines the simulated state (not output, frames, name,
+  // description): a checkpoint only resumes a scene with the same fingerprint.
+  std::uint64_t fingerprint = 0;
 };
 
 // Reads and validates a scene file. Throws InputError.

@@ -37,35 +37,39 @@ void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmA
     << "element vertex " << n << "\n"
     << "property float x\nproperty float y\nproperty float z\n"
     << "property float vx\nproperty float vy\nproperty float vz\n"
-    << "property float J\nproperty int material\nend_header\n";
+    << "property float J\nproperty int material\nproperty int id\nend_header\n";
   std::string buf = h.str();
   const size_t header = buf.size();
-  constexpr size_t kRecord = 7 * 4 + 4;
+  constexpr size_t kRecord = 7 * 4 + 4 + 4;
   buf.resize(header + n * kRecord);
   const Vec3* x = ps.vec3(a.x);
   const Vec3* v = ps.vec3(a.v);
   const Mat3* F = ps.mat3(a.F);
   const std::int32_t* mat = ps.int32(a.material);
+  const std::int32_t* id = ps.int32(a.id);
   char* dst = buf.data() + header;
   for (size_t i = 0; i < n; ++i) {
     const float rec[7] = {float(x[i][0]), float(x[i][1]), float(x[i][2]), float(v[i][0]),
                           float(v[i][1]), float(v[i][2]), float(F[i].determinant())};
     std::memcpy(dst, rec, sizeof rec);
     std::memcpy(dst + sizeof rec, &mat[i], 4);
+    std::memcpy(dst + sizeof rec + 4, &id[i], 4);
     dst += kRecord;
   }
   write_file_atomic(path, buf);
 }
 
-std::string diagnostics_csv(const std::vector<DiagnosticsRow>& rows) {
+std::string diagnostics_csv_header() {
+  return "frame,time_s,last_dt_s,substeps,kinetic_J,elastic_J,momentum_x,momentum_y,momentum_z,max_speed_m_s,"
+         "particles,wall_s\n";
+}
+
+std::string diagnostics_csv_line(const DiagnosticsRow& r) {
   std::ostringstream os;
-  os << "frame,time_s,last_dt_s,substeps,kinetic_J,elastic_J,momentum_x,momentum_y,momentum_z,max_speed_m_s,"
-        "particles,wall_s\n";
   os.precision(9);
-  for (const auto& r : rows)
-    os << r.frame << ',' << r.time << ',' << r.dt << ',' << r.substeps << ',' << r.d.kinetic << ',' << r.d.elastic
-       << ',' << r.d.momentum[0] << ',' << r.d.momentum[1] << ',' << r.d.momentum[2] << ',' << r.d.max_speed << ','
-       << r.particles << ',' << r.wall_seconds << '\n';
+  os << r.frame << ',' << r.time << ',' << r.dt << ',' << r.substeps << ',' << r.d.kinetic << ',' << r.d.elastic << ','
+     << r.d.momentum[0] << ',' << r.d.momentum[1] << ',' << r.d.momentum[2] << ',' << r.d.max_speed << ','
+     << r.particles << ',' << r.wall_seconds << '\n';
   return os.str();
 }
 

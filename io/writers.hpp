@@ -10,7 +10,7 @@
 
 namespace amalgam {
 
-// Binary little-endian PLY point cloud with x y z, vx vy vz, J (= det F) and material, readable by
+// Binary little-endian PLY point cloud with x y z, vx vy vz, J (= det F), material and id, readable by
 // Houdini, Blender and ParaView.
 void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a);
 
@@ -24,6 +24,7 @@ struct DiagnosticsRow {
   MpmDiagnostics d;
   std::size_t particles;
 };
-std::string diagnostics_csv(const std::vector<DiagnosticsRow>& rows);
+std::string diagnostics_csv_header();
+std::string diagnostics_csv_line(const DiagnosticsRow& r);
 
 }  // namespace amalgam

@@ -1,6 +1,7 @@
 #include "solvers/explicit_mpm.hpp"
 
 #include <algorithm>
+#include <climits>
 #include <cmath>
 #include <sstream>
 
@@ -21,6 +22,7 @@ ExplicitMpm::ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams
 void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
                                 int material, Real volume_per_particle) {
   if (material < 0 || size_t(material) >= materials_.size()) throw InputError("material index out of range");
+  if (particles_.size() + x.size() > size_t(INT32_MAX)) throw InputError("more than 2^31 particles");
   const size_t n0 = particles_.size();
   particles_.resize(n0 + x.size());
   Vec3* px = particles_.vec3(attr_.x);
@@ -30,6 +32,7 @@ void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, cons
   Real* pm = particles_.real(attr_.mass);
   Real* pV = particles_.real(attr_.volume0);
   std::int32_t* pmat = particles_.int32(attr_.material);
+  std::int32_t* pid = particles_.int32(attr_.id);
   Mat3 W;  // velocity gradient of the rigid rotation: v = omega x r  =>  grad v = [omega]_x
   W << 0, -omega[2], omega[1], omega[2], 0, -omega[0], -omega[1], omega[0], 0;
   const Real mass = materials_[size_t(material)].density * volume_per_particle;
@@ -42,6 +45,7 @@ void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, cons
     pm[p] = mass;
     pV[p] = volume_per_particle;
     pmat[p] = material;
+    pid[p] = std::int32_t(p);
   }
 }
 

@@ -74,6 +74,12 @@ class ExplicitMpm {
   void update_grid_velocities(const exec::Space& space, Real dt);
   void grid_to_particle(const exec::Space& space, Real dt);
 
+  // Restores the clock after particles were loaded from a checkpoint.
+  void restore_clock(double time, std::uint64_t steps) {
+    time_ = time;
+    steps_ = steps;
+  }
+
   MpmParticleView particle_view();
   MpmGridView grid_view();
   MpmStepParams step_params(Real dt) const;

@@ -92,6 +92,7 @@ MpmAttributes MpmAttributes::add_to(ParticleSet& ps) {
   m.mass = ps.add("mass", AttrType::Real, 1);
   m.volume0 = ps.add("volume0", AttrType::Real, 1);
   m.material = ps.add("material", AttrType::Int32, 1);
+  m.id = ps.add("id", AttrType::Int32, 1);
   return m;
 }
 
@@ -104,6 +105,7 @@ MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
   m.mass = ps.id("mass");
   m.volume0 = ps.id("volume0");
   m.material = ps.id("material");
+  m.id = ps.id("id");
   return m;
 }
 

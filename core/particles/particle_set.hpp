@@ -47,6 +47,11 @@ class ParticleSet {
   Mat3* mat3(Id a) { return reinterpret_cast<Mat3*>(real(a)); }
   const Mat3* mat3(Id a) const { return reinterpret_cast<const Mat3*>(real(a)); }
 
+  // Raw storage of an attribute: words_per_particle(a) 32-bit words per particle (for I/O).
+  int words_per_particle(Id a) const { return attrs_[a].words(); }
+  std::uint32_t* words(Id a) { return attrs_[a].front.data(); }
+  const std::uint32_t* words(Id a) const { return attrs_[a].front.data(); }
+
   // For every attribute: front[i] = old_front[perm[i]] for i < size().
   void permute(const exec::Space& space, const std::uint32_t* perm);
 
@@ -64,7 +69,7 @@ class ParticleSet {
 
 // The attributes every MPM particle carries, looked up once.
 struct MpmAttributes {
-  ParticleSet::Id x, v, C, F, mass, volume0, material;
+  ParticleSet::Id x, v, C, F, mass, volume0, material, id;  // id: stable particle number
   static MpmAttributes add_to(ParticleSet& ps);
   static MpmAttributes find_in(const ParticleSet& ps);
 };

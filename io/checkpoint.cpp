@@ -1,0 +1,147 @@
+#include "io/checkpoint.hpp"
+
+#include <cstring>
+#include <fstream>
+#include <sstream>
+
+#include "core/errors.hpp"
+#include "io/writers.hpp"
+
+namespace amalgam {
+
+namespace {
+constexpr char kMagic[] = "AMALGAM-CKPT\n";
+constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
+constexpr std::uint32_t kVersion = 1;
+
+template <class T>
+void put(std::string& b, const T& v) {
+  b.append(reinterpret_cast<const char*>(&v), sizeof(T));
+}
+
+class Reader {
+ public:
+  Reader(const std::string& data, const std::string& path) : d_(data), path_(path) {}
+  template <class T>
+  T get(const char* what) {
+    T v;
+    need(sizeof(T), what);
+    std::memcpy(&v, d_.data() + pos_, sizeof(T));
+    pos_ += sizeof(T);
+    return v;
+  }
+  const char* take(std::size_t n, const char* what) {
+    need(n, what);
+    const char* p = d_.data() + pos_;
+    pos_ += n;
+    return p;
+  }
+  std::size_t pos() const { return pos_; }
+
+ private:
+  void need(std::size_t n, const char* what) {
+    if (d_.size() - pos_ < n)
+      throw InputError(path_ + ": checkpoint is truncated (ends inside " + what + " at byte " + std::to_string(pos_) +
+                       " of " + std::to_string(d_.size()) + ")");
+  }
+  const std::string& d_;
+  const std::string& path_;
+  std::size_t pos_ = 0;
+};
+}  // namespace
+
+std::uint64_t fnv1a64(const void* data, std::size_t n, std::uint64_t h) {
+  const unsigned char* p = static_cast<const unsigned char*>(data);
+  for (std::size_t i = 0; i < n; ++i) {
+    h ^= p[i];
+    h *= 0x100000001b3ULL;
+  }
+  return h;
+}
+
+void write_checkpoint(const std::string& path, const ExplicitMpm& solver, int next_frame,
+                      std::uint64_t scene_fingerprint) {
+  const ParticleSet& ps = solver.particles();
+  std::string b;
+  std::size_t total = 128;
+  for (int a = 0; a < ps.attribute_count(); ++a) total += 64 + ps.size() * 4 * size_t(ps.words_per_particle(a));
+  b.reserve(total);
+  b.append(kMagic, kMagicLen);
+  put(b, kVersion);
+  put(b, std::uint32_t(sizeof(Real)));
+  put(b, scene_fingerprint);
+  put(b, solver.time());
+  put(b, std::uint64_t(solver.step_count()));
+  put(b, std::int32_t(next_frame));
+  put(b, std::uint64_t(ps.size()));
+  put(b, std::uint32_t(ps.attribute_count()));
+  for (int a = 0; a < ps.attribute_count(); ++a) {
+    const std::string& name = ps.name(a);
+    put(b, std::uint32_t(name.size()));
+    b.append(name);
+    put(b, std::uint32_t(ps.type(a)));
+    put(b, std::uint32_t(ps.width(a)));
+    put(b, std::uint32_t(ps.words_per_particle(a)));
+    b.append(reinterpret_cast<const char*>(ps.words(a)), ps.size() * 4 * size_t(ps.words_per_particle(a)));
+  }
+  put(b, fnv1a64(b.data(), b.size()));
+  write_file_atomic(path, b);
+}
+
+CheckpointState read_checkpoint(const std::string& path, ExplicitMpm& solver, std::uint64_t scene_fingerprint) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw InputError(path + ": cannot open checkpoint");
+  std::ostringstream ss;
+  ss << in.rdbuf();
+  const std::string d = ss.str();
+  if (d.size() < kMagicLen || std::memcmp(d.data(), kMagic, kMagicLen) != 0)
+    throw InputError(path + ": not an Amalgam checkpoint (bad magic)");
+  if (d.size() < kMagicLen + 8) throw InputError(path + ": checkpoint is truncated (no checksum)");
+  std::uint64_t stored = 0;
+  std::memcpy(&stored, d.data() + d.size() - 8, 8);
+  if (fnv1a64(d.data(), d.size() - 8) != stored)
+    throw InputError(path + ": checkpoint is corrupt or truncated (checksum mismatch)");
+  Reader r(d, path);
+  r.take(kMagicLen, "magic");
+  const auto version = r.get<std::uint32_t>("version");
+  if (version != kVersion)
+    throw InputError(path + ": checkpoint format version " + std::to_string(version) + ", this build reads " +
+                     std::to_string(kVersion));
+  const auto real_size = r.get<std::uint32_t>("precision");
+  if (real_size != sizeof(Real))
+    throw InputError(path + ": checkpoint was written by a " + (real_size == 8 ? "double" : "float") +
+                     " build, this build is " + real_name());
+  const auto fp = r.get<std::uint64_t>("scene fingerprint");
+  if (fp != scene_fingerprint)
+    throw InputError(path + ": checkpoint was written for a different scene (or the scene file changed since)");
+  CheckpointState st;
+  st.time = r.get<double>("time");
+  st.steps = r.get<std::uint64_t>("step count");
+  st.next_frame = r.get<std::int32_t>("frame");
+  const auto n = r.get<std::uint64_t>("particle count");
+  const auto nattr = r.get<std::uint32_t>("attribute count");
+  ParticleSet& ps = solver.particles();
+  if (nattr != std::uint32_t(ps.attribute_count()))
+    throw InputError(path + ": checkpoint has " + std::to_string(nattr) + " particle attributes, expected " +
+                     std::to_string(ps.attribute_count()));
+  ps.resize(size_t(n));
+  for (std::uint32_t i = 0; i < nattr; ++i) {
+    const auto len = r.get<std::uint32_t>("attribute name length");
+    if (len > 256) throw InputError(path + ": checkpoint attribute name too long (corrupt file)");
+    const std::string name(r.take(len, "attribute name"), len);
+    const int a = ps.find(name);
+    const auto type = r.get<std::uint32_t>("attribute type");
+    const auto width = r.get<std::uint32_t>("attribute width");
+    const auto words = r.get<std::uint32_t>("attribute words");
+    if (a < 0 || type != std::uint32_t(ps.type(a)) || width != std::uint32_t(ps.width(a)) ||
+        words != std::uint32_t(ps.words_per_particle(a)))
+      throw InputError(path + ": checkpoint attribute '" + name + "' does not match this solver's layout");
+    const std::size_t bytes = size_t(n) * 4 * words;
+    std::memcpy(ps.words(a), r.take(bytes, "attribute data"), bytes);
+  }
+  if (r.pos() != d.size() - 8) throw InputError(path + ": checkpoint has trailing bytes (corrupt file)");
+  solver.restore_clock(st.time, st.steps);
+  return st;
+}
+
+}  // namespace amalgam

@@ -1,0 +1,35 @@
+// Checkpoints: the complete state needed to continue a run bitwise-identically.
+//
+// The grid is rebuilt from the particles every substep and no node value depends on the leaf
+// table's history, so the state is the particle attributes plus the clock (time, substep count)
+// and the frame being computed. Format (little-endian), version 1:
+//   "AMALGAM-CKPT\n" (13 bytes) | u32 version | u32 sizeof(Real) | u64 scene fingerprint
+//   | f64 time | u64 steps | i32 next_frame | u64 particles | u32 attributes
+//   | per attribute: u32 name length, name, u32 type, u32 width, u32 words/particle, words
+//   | u64 FNV-1a checksum of every byte before it
+// Written to a temporary name and renamed. Reading checks magic, version, precision, scene,
+// attribute layout, sizes and checksum, each failure an InputError naming the file.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "solvers/explicit_mpm.hpp"
+
+namespace amalgam {
+
+struct CheckpointState {
+  double time = 0;
+  std::uint64_t steps = 0;
+  int next_frame = 1;  // the frame the run continues with
+};
+
+// 64-bit FNV-1a of a byte range (the checksum and the scene fingerprint).
+std::uint64_t fnv1a64(const void* data, std::size_t n, std::uint64_t h = 0xcbf29ce484222325ULL);
+
+void write_checkpoint(const std::string& path, const ExplicitMpm& solver, int next_frame,
+                      std::uint64_t scene_fingerprint);
+// Loads particles and clock into `solver` (built from the same scene); returns the state.
+CheckpointState read_checkpoint(const std::string& path, ExplicitMpm& solver, std::uint64_t scene_fingerprint);
+
+}  // namespace amalgam
