@@ -16,6 +16,7 @@
 #include "core/exec/exec.hpp"
 #include "io/checkpoint.hpp"
 #include "io/scene.hpp"
+#include "io/vdb_points.hpp"
 #include "io/writers.hpp"
 
 namespace amalgam::cli {
@@ -25,7 +26,8 @@ namespace {
 const char* kRunHelp =
     "usage: amalgam run SCENE.json [--backend serial|openmp|tbb] [--threads N] [--out DIR]\n"
     "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--quiet]\n"
-    "Simulates SCENE and writes DIR/frame_NNNN.ply (particles: position, velocity, J, material, id),\n"
+    "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
+    "position, velocity, J, material and id per particle,\n"
     "DIR/diagnostics.csv (energies, momentum, max speed, substeps per frame) and\n"
     "DIR/checkpoint.amck (every N frames, at the last frame, and on SIGINT/SIGTERM).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
@@ -111,12 +113,17 @@ int run_command(const std::vector<std::string>& args) {
                 << ", transfer " << transfer_name(scene.mpm.transfer) << ", " << scene.frames << " frames at "
                 << scene.fps << " fps, backend " << space.describe() << ", precision " << real_name() << "\n"
                 << "amalgam: writing to " << out_dir << "/\n";
-    auto frame_path = [&](int f) {
+    auto frame_path = [&](int f, const char* ext) {
       char name[64];
-      std::snprintf(name, sizeof name, "/frame_%04d.ply", f);
+      std::snprintf(name, sizeof name, "/frame_%04d.%s", f, ext);
       return out_dir + name;
     };
-    if (scene.output.ply && first_frame == 1) write_ply_points(frame_path(0), solver.particles(), solver.attributes());
+    auto write_frame = [&](int f) {
+      if (scene.output.ply) write_ply_points(frame_path(f, "ply"), solver.particles(), solver.attributes());
+      if (scene.output.vdb_points)
+        write_vdb_points(frame_path(f, "vdb"), solver.particles(), solver.attributes(), double(scene.mpm.dx));
+    };
+    if (first_frame == 1) write_frame(0);
 
     const std::string csv_path = out_dir + "/diagnostics.csv";
     std::vector<std::string> csv_rows;
@@ -152,7 +159,7 @@ int run_command(const std::vector<std::string>& args) {
       }
       total_substeps += substeps;
       const MpmDiagnostics d = solver.diagnostics(space);
-      if (scene.output.ply) write_ply_points(frame_path(f), solver.particles(), solver.attributes());
+      write_frame(f);
       const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
       csv_rows.push_back(diagnostics_csv_line({f, solver.time(), double(dt), wall, substeps, d, np}));
       if (scene.output.diagnostics_csv) {

@@ -140,6 +140,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   JsonObject out = top.object("output");
   s.output.directory = out.string("directory", "out");
   s.output.ply = out.boolean("ply", true);
+  s.output.vdb_points = out.boolean("vdb_points", true);
   s.output.diagnostics_csv = out.boolean("diagnostics_csv", true);
   s.output.checkpoint_every = int(out.integer("checkpoint_every", 10, 0, 1000000));
   out.finish();

@@ -30,6 +30,7 @@ struct ObjectSpec {
 struct OutputSpec {
   std::string directory = "out";
   bool ply = true;
+  bool vdb_points = true;
   bool diagnostics_csv = true;
   int checkpoint_every = 10;  // frames; 0 = only on SIGINT/SIGTERM
 };

@@ -5,7 +5,7 @@ execute_process(COMMAND ${AMALGAM} run ${SCENE} --frames 2 --threads 2 --out ${O
 if(NOT rc EQUAL 0)
   message(FATAL_ERROR "default scene failed (${rc}):\n${out}${err}")
 endif()
-foreach(f frame_0000.ply frame_0001.ply frame_0002.ply diagnostics.csv)
+foreach(f frame_0000.ply frame_0001.ply frame_0002.ply frame_0002.vdb diagnostics.csv checkpoint.amck)
   if(NOT EXISTS ${OUT}/${f})
     message(FATAL_ERROR "missing output ${OUT}/${f}")
   endif()

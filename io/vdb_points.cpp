@@ -1,0 +1,74 @@
+// Sees OpenVDB's points headers (slow to compile): keep it the only io file that does.
+#include "io/vdb_points.hpp"
+
+#include <openvdb/openvdb.h>
+#include <openvdb/points/PointConversion.h>
+#include <openvdb/points/PointDataGrid.h>
+#include <openvdb/tools/PointIndexGrid.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <mutex>
+
+#include "core/errors.hpp"
+
+namespace amalgam {
+
+namespace {
+template <class T>
+void add_attribute(openvdb::points::PointDataGrid& grid, const openvdb::tools::PointIndexGrid& index,
+                   const std::string& name, const std::vector<T>& values) {
+  using namespace openvdb::points;
+  appendAttribute<T>(grid.tree(), name);
+  populateAttribute<PointDataTree, openvdb::tools::PointIndexTree, PointAttributeVector<T>>(
+      grid.tree(), index.tree(), name, PointAttributeVector<T>(values));
+}
+}  // namespace
+
+void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a, double voxel_size) {
+  static std::once_flag init;
+  std::call_once(init, [] { openvdb::initialize(); });
+  const size_t n = ps.size();
+  std::vector<openvdb::Vec3R> P(n);
+  std::vector<openvdb::Vec3s> v(n);
+  std::vector<float> J(n);
+  std::vector<openvdb::Int32> material(n), id(n);
+  const Vec3* x = ps.vec3(a.x);
+  const Vec3* pv = ps.vec3(a.v);
+  const Mat3* F = ps.mat3(a.F);
+  for (size_t i = 0; i < n; ++i) {
+    P[i] = openvdb::Vec3R(double(x[i][0]), double(x[i][1]), double(x[i][2]));
+    v[i] = openvdb::Vec3s(float(pv[i][0]), float(pv[i][1]), float(pv[i][2]));
+    J[i] = float(F[i].determinant());
+    material[i] = ps.int32(a.material)[i];
+    id[i] = ps.int32(a.id)[i];
+  }
+  const openvdb::math::Transform::Ptr xform = openvdb::math::Transform::createLinearTransform(voxel_size);
+  const openvdb::points::PointAttributeVector<openvdb::Vec3R> positions(P);
+  const auto index = openvdb::tools::createPointIndexGrid<openvdb::tools::PointIndexGrid>(positions, *xform);
+  auto grid = openvdb::points::createPointDataGrid<openvdb::points::NullCodec, openvdb::points::PointDataGrid>(
+      *index, positions, *xform);
+  add_attribute(*grid, *index, "v", v);
+  add_attribute(*grid, *index, "J", J);
+  add_attribute(*grid, *index, "material", material);
+  add_attribute(*grid, *index, "id", id);
+  grid->setName("points");
+
+  const std::string tmp = path + ".tmp";
+  try {
+    openvdb::io::File file(tmp);
+    file.write(openvdb::GridCPtrVec{grid});
+    file.close();
+  } catch (const std::exception& e) {
+    std::remove(tmp.c_str());
+    throw InputError(path + ": cannot write VDB points: " + e.what());
+  }
+  std::error_code ec;
+  std::filesystem::rename(tmp, path, ec);
+  if (ec) {
+    std::remove(tmp.c_str());
+    throw InputError(path + ": cannot rename temporary file: " + ec.message());
+  }
+}
+
+}  // namespace amalgam

@@ -1,0 +1,16 @@
+// OpenVDB point output: one PointDataGrid named "points" per frame with P (full precision), and
+// point attributes v (Vec3s), J (float, det F), material (int32) and id (int32, stable across the
+// run). Houdini reads it with a File SOP (and "Convert VDB Points"); Blender 3.x+ and any
+// OpenVDB build read it too. Written under a temporary name and renamed.
+#pragma once
+
+#include <string>
+
+#include "core/particles/particle_set.hpp"
+
+namespace amalgam {
+
+// `voxel_size` sets the point grid's voxel (the simulation dx is a good choice).
+void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a, double voxel_size);
+
+}  // namespace amalgam

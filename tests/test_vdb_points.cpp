@@ -1,0 +1,66 @@
+// VDB point output read back with OpenVDB's own reader and compared field by field.
+#include <gtest/gtest.h>
+
+#include <openvdb/openvdb.h>
+#include <openvdb/points/AttributeArray.h>
+#include <openvdb/points/PointDataGrid.h>
+
+#include <filesystem>
+
+#include "io/scene.hpp"
+#include "io/vdb_points.hpp"
+
+using namespace amalgam;
+
+TEST(VdbPoints, ReadBackFieldByField) {
+  const Scene scene = parse_scene(R"({
+    "simulation": {"dx": 0.04, "frames": 1},
+    "materials": {"a": {"density": 1000, "youngs_modulus": 1e4}, "b": {"density": 500, "youngs_modulus": 1e4}},
+    "objects": [{"shape": "box", "min": [0.2,0.2,0.2], "max": [0.5,0.4,0.5], "material": "a", "velocity": [1,2,3]},
+                {"shape": "sphere", "center": [0.7,0.7,0.7], "radius": 0.1, "material": "b", "angular_velocity": [0,5,0]}]
+  })", "s.json");
+  ExplicitMpm solver = build_solver(scene);
+  const exec::Space space(exec::Backend::TBB, 2);
+  for (int i = 0; i < 5; ++i) solver.step(space, solver.stable_dt(space));  // sorted: index != id
+  const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_points.vdb").string();
+  write_vdb_points(path, solver.particles(), solver.attributes(), double(scene.mpm.dx));
+
+  openvdb::initialize();
+  openvdb::io::File file(path);
+  file.open();
+  const auto grid = openvdb::gridPtrCast<openvdb::points::PointDataGrid>(file.readGrid("points"));
+  file.close();
+  ASSERT_TRUE(grid);
+
+  const ParticleSet& ps = solver.particles();
+  const auto& at = solver.attributes();
+  std::vector<int> row_of_id(ps.size(), -1);
+  for (size_t i = 0; i < ps.size(); ++i) row_of_id[size_t(ps.int32(at.id)[i])] = int(i);
+  size_t seen = 0;
+  for (auto leaf = grid->tree().cbeginLeaf(); leaf; ++leaf) {
+    openvdb::points::AttributeHandle<openvdb::Vec3f> P(leaf->constAttributeArray("P"));
+    openvdb::points::AttributeHandle<openvdb::Vec3f> v(leaf->constAttributeArray("v"));
+    openvdb::points::AttributeHandle<float> J(leaf->constAttributeArray("J"));
+    openvdb::points::AttributeHandle<openvdb::Int32> mat(leaf->constAttributeArray("material"));
+    openvdb::points::AttributeHandle<openvdb::Int32> id(leaf->constAttributeArray("id"));
+    for (auto it = leaf->beginIndexOn(); it; ++it) {
+      const int pid = id.get(*it);
+      ASSERT_GE(pid, 0);
+      ASSERT_LT(size_t(pid), ps.size());
+      const int r = row_of_id[size_t(pid)];
+      ASSERT_GE(r, 0) << "id " << pid << " appears twice";
+      row_of_id[size_t(pid)] = -1;
+      const openvdb::Vec3d world = grid->transform().indexToWorld(it.getCoord().asVec3d() + P.get(*it));
+      const Vec3 x = ps.vec3(at.x)[size_t(r)];
+      for (int a = 0; a < 3; ++a) {
+        EXPECT_NEAR(world[a], double(x[a]), 1e-6);
+        EXPECT_EQ(v.get(*it)[a], float(ps.vec3(at.v)[size_t(r)][a]));
+      }
+      EXPECT_EQ(J.get(*it), float(ps.mat3(at.F)[size_t(r)].determinant()));
+      EXPECT_EQ(mat.get(*it), ps.int32(at.material)[size_t(r)]);
+      ++seen;
+    }
+  }
+  EXPECT_EQ(seen, ps.size());
+  std::filesystem::remove(path);
+}
