@@ -1,7 +1,7 @@
 // OpenVDB point output: one PointDataGrid named "points" per frame with P (full precision), and
 // point attributes v (Vec3s), J (float, det F), material (int32) and id (int32, stable across the
-// run). Houdini reads it with a File SOP (and "Convert VDB Points"); Blender 3.x+ and any
-// OpenVDB build read it too. Written under a temporary name and renamed.
+// run). Houdini reads it with a File SOP (and "Convert VDB Points"), as does any OpenVDB-based
+// tool; Blender users take the PLY frames. Written under a temporary name and renamed.
 #pragma once
 
 #include <string>
