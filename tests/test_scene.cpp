@@ -2,6 +2,8 @@
 #include <gtest/gtest.h>
 
 #include <cstring>
+#include <filesystem>
+#include <fstream>
 
 #include "core/errors.hpp"
 #include "io/scene.hpp"
@@ -102,4 +104,35 @@ TEST(Solver, StabilityGuardNamesParticleAndQuantity) {
     EXPECT_NE(m.find("particle 123"), std::string::npos) << m;
     EXPECT_NE(m.find("non-finite velocity"), std::string::npos) << m;
   }
+}
+
+// Every scene in tests/data/malformed is rejected with exactly the message in its .expected file
+// (or starting with its .expected_prefix), the file named relative to that folder.
+TEST(Scene, MalformedScenesGiveExactMessages) {
+  namespace fs = std::filesystem;
+  const fs::path dir = fs::path(AMALGAM_SOURCE_DIR) / "tests" / "data" / "malformed";
+  int count = 0;
+  for (const auto& entry : fs::directory_iterator(dir)) {
+    if (entry.path().extension() != ".json") continue;
+    ++count;
+    std::string message;
+    try {
+      load_scene(entry.path().string());
+    } catch (const InputError& e) {
+      message = e.what();
+    }
+    const std::string prefix = dir.string() + "/";
+    ASSERT_EQ(message.rfind(prefix, 0), 0u) << entry.path() << " gave: " << message;
+    message = message.substr(prefix.size());
+    fs::path exact = entry.path(), start = entry.path();
+    exact.replace_extension(".expected");
+    start.replace_extension(".expected_prefix");
+    auto read = [](const fs::path& p) {
+      std::ifstream in(p);
+      return std::string(std::istreambuf_iterator<char>(in), {});
+    };
+    if (fs::exists(exact)) EXPECT_EQ(message, read(exact)) << entry.path();
+    else EXPECT_EQ(message.rfind(read(start), 0), 0u) << entry.path() << " gave: " << message;
+  }
+  EXPECT_GE(count, 20);
 }
