@@ -50,15 +50,6 @@ class Reader {
 };
 }  // namespace
 
-std::uint64_t fnv1a64(const void* data, std::size_t n, std::uint64_t h) {
-  const unsigned char* p = static_cast<const unsigned char*>(data);
-  for (std::size_t i = 0; i < n; ++i) {
-    h ^= p[i];
-    h *= 0x100000001b3ULL;
-  }
-  return h;
-}
-
 void write_checkpoint(const std::string& path, const ExplicitMpm& solver, int next_frame,
                       std::uint64_t scene_fingerprint) {
   const ParticleSet& ps = solver.particles();

@@ -14,6 +14,7 @@
 #include <cstdint>
 #include <string>
 
+#include "core/hash.hpp"
 #include "solvers/explicit_mpm.hpp"
 
 namespace amalgam {
@@ -23,9 +24,6 @@ struct CheckpointState {
   std::uint64_t steps = 0;
   int next_frame = 1;  // the frame the run continues with
 };
-
-// 64-bit FNV-1a of a byte range (the checksum and the scene fingerprint).
-std::uint64_t fnv1a64(const void* data, std::size_t n, std::uint64_t h = 0xcbf29ce484222325ULL);
 
 void write_checkpoint(const std::string& path, const ExplicitMpm& solver, int next_frame,
                       std::uint64_t scene_fingerprint);

@@ -6,7 +6,7 @@
 #include <sstream>
 
 #include "core/errors.hpp"
-#include "io/checkpoint.hpp"
+#include "core/hash.hpp"
 #include "io/json_reader.hpp"
 
 namespace amalgam {
