@@ -1,6 +1,8 @@
 #include "io/scene.hpp"
 
 #include <cmath>
+#include <filesystem>
+#include <iostream>
 #include <fstream>
 #include <map>
 #include <sstream>
@@ -31,10 +33,48 @@ MaterialParams read_material(JsonObject o) {
   return m;
 }
 
-ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials, Real dx) {
+std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::string& scene_file) {
+  const std::string file = o.string("file", "");
+  if (!o.has("file") || file.empty()) o.fail("file", "missing required mesh file (.obj, .off or .ply)");
+  const std::filesystem::path p = std::filesystem::path(file).is_absolute()
+                                      ? std::filesystem::path(file)
+                                      : std::filesystem::path(scene_file).parent_path() / file;
+  auto mesh = std::make_shared<TriangleMesh>();
+  try {
+    *mesh = load_mesh(p.string());
+  } catch (const InputError& e) {
+    // Name the mesh as the scene writes it: "mesh file "x.off": cannot open ..." / "...":12: ...
+    std::string msg = e.what();
+    if (msg.rfind(p.string(), 0) == 0) msg = msg.substr(p.string().size());
+    o.fail("file", "mesh file \"" + file + "\"" + msg);
+  }
+  const double scale = o.number("scale", 1.0, 0, 1e30, true);
+  const Vec3 t = o.vec3("translate", Vec3::Zero());
+  for (auto& v : mesh->vertices) v = v * scale + t.cast<double>();
+  const bool allow_open = o.boolean("allow_open", false);
+  const MeshCheck c = check_mesh(*mesh);
+  if (!c.watertight()) {
+    const std::string what = "mesh file \"" + file + "\" is not watertight (" + std::to_string(c.boundary_edges) +
+                             " boundary edges, " + std::to_string(c.nonmanifold_edges) +
+                             " non-manifold edges): inside and outside may be wrong";
+    if (!allow_open) o.fail("file", what + "; repair the mesh or set \"allow_open\": true");
+    std::cerr << "amalgam: warning: " << o.where("file") << ": " << what << "\n";
+  }
+  return mesh;
+}
+
+ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials, const std::string& scene_file) {
   ObjectSpec s;
-  const std::string shape = o.choice("shape", "", {"box", "sphere"});
-  if (shape == "box") {
+  const std::string shape = o.choice("shape", "", {"box", "sphere", "mesh"});
+  if (shape == "mesh") {
+    s.shape = ObjectShape::Mesh;
+    s.mesh = read_mesh_object(o, scene_file);
+    Vec3d lo = s.mesh->vertices[0], hi = lo;
+    for (const auto& v : s.mesh->vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+    s.min = lo.cast<Real>();
+    s.max = hi.cast<Real>();
+    s.center = o.vec3("center", Real(0.5) * (s.min + s.max));
+  } else if (shape == "box") {
     s.shape = ObjectShape::Box;
     s.min = o.required_vec3("min");
     s.max = o.required_vec3("max");
@@ -133,7 +173,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   mats.finish();
 
   if (!top.has("objects")) top.fail("objects", "missing required array of objects");
-  for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, s.mpm.dx));
+  for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file));
   if (s.objects.empty()) top.fail("objects", "define at least one object");
   for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c));
 
@@ -176,7 +216,7 @@ inline Real unit(std::uint64_t h) { return Real(double(h >> 11) * (1.0 / 9007199
 std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per_particle) {
   const double h = double(dx) / std::cbrt(double(obj.particles_per_cell));
   volume_per_particle = Real(h * h * h);
-  Vec3 lo = obj.min, hi = obj.max;
+  Vec3 lo = obj.min, hi = obj.max;  // box, and the mesh's bounding box
   if (obj.shape == ObjectShape::Sphere) {
     lo = obj.center - Vec3::Constant(obj.radius);
     hi = obj.center + Vec3::Constant(obj.radius);
@@ -185,6 +225,7 @@ std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per
   for (int a = 0; a < 3; ++a) n[a] = std::max(1LL, (long long)std::floor((double(hi[a]) - double(lo[a])) / h));
   if (double(n[0]) * double(n[1]) * double(n[2]) > 2e9)
     throw InputError("object would be sampled with more than 2e9 particles; increase dx or lower particles_per_cell");
+  if (obj.shape == ObjectShape::Mesh) return sample_mesh(*obj.mesh, h, double(obj.jitter), obj.seed);
   std::vector<Vec3> pts;
   const double r2 = double(obj.radius) * double(obj.radius);
   for (long long i = 0; i < n[0]; ++i)

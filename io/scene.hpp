@@ -6,16 +6,20 @@
 #include <string>
 #include <vector>
 
+#include <memory>
+
 #include "core/materials/elastic.hpp"
+#include "io/mesh.hpp"
 #include "kernels/colliders.hpp"
 #include "solvers/explicit_mpm.hpp"
 
 namespace amalgam {
 
-enum class ObjectShape { Box, Sphere };
+enum class ObjectShape { Box, Sphere, Mesh };
 
 struct ObjectSpec {
   ObjectShape shape = ObjectShape::Box;
+  std::shared_ptr<const TriangleMesh> mesh;  // Mesh: loaded, scaled and translated
   Vec3 min = Vec3::Zero(), max = Vec3::Ones();  // box
   Vec3 center = Vec3::Zero();                   // sphere (and rotation centre of both)
   Real radius = 1;
@@ -51,9 +55,10 @@ struct Scene {
   std::uint64_t fingerprint = 0;
 };
 
-// Reads and validates a scene file. Throws InputError.
+// Reads and validates a scene file (meshes are loaded and checked too). Throws InputError.
+// Warnings (e.g. an open mesh allowed with allow_open) go to std::cerr.
 Scene load_scene(const std::string& path);
-// Same, from JSON text (`file` is used in messages).
+// Same, from JSON text (`file` is used in messages and to resolve relative mesh paths).
 Scene parse_scene(const std::string& text, const std::string& file);
 
 // Samples an object's particles on a jittered lattice of spacing dx / cbrt(ppc), seeded and
