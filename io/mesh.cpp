@@ -13,6 +13,7 @@
 #include <unordered_map>
 
 #include "core/errors.hpp"
+#include "io/lattice.hpp"
 
 namespace amalgam {
 
@@ -251,26 +252,13 @@ std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, st
     lo = lo.cwiseMin(v);
     hi = hi.cwiseMax(v);
   }
-  auto mix = [](std::uint64_t z) {
-    z += 0x9e3779b97f4a7c15ULL;
-    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
-    z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
-    return z ^ (z >> 31);
-  };
-  auto unit = [](std::uint64_t z) { return double(z >> 11) * (1.0 / 9007199254740992.0) - 0.5; };
   const auto acc = sdf->getConstAccessor();
   openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler> sampler(acc, *xform);
-  std::vector<Vec3> out;
-  long n[3];
-  for (int a = 0; a < 3; ++a) n[a] = long(std::ceil((hi[a] - lo[a]) / h));
-  for (long i = 0; i < n[0]; ++i)
-    for (long j = 0; j < n[1]; ++j)
-      for (long k = 0; k < n[2]; ++k) {
-        const std::uint64_t id = mix(seed ^ mix(std::uint64_t(i) * 0x1000003ULL ^ std::uint64_t(j) * 0x10007ULL ^ std::uint64_t(k)));
-        Vec3d p = lo + Vec3d((double(i) + 0.5) * h, (double(j) + 0.5) * h, (double(k) + 0.5) * h);
-        p += jitter * h * Vec3d(unit(mix(id + 1)), unit(mix(id + 2)), unit(mix(id + 3)));
-        if (sampler.wsSample(openvdb::Vec3d(p[0], p[1], p[2])) < 0) out.push_back(p.cast<Real>());
-      }
+  long long n[3];
+  for (int a = 0; a < 3; ++a) n[a] = (long long)std::ceil((hi[a] - lo[a]) / h);
+  const std::vector<Vec3> out = sample_lattice(lo, n, h, jitter, seed, [&](const Vec3d& p) {
+    return sampler.wsSample(openvdb::Vec3d(p[0], p[1], p[2])) < 0;
+  });
   return out;
 }
 

@@ -10,6 +10,7 @@
 #include "core/errors.hpp"
 #include "core/hash.hpp"
 #include "io/json_reader.hpp"
+#include "io/lattice.hpp"
 
 namespace amalgam {
 
@@ -49,8 +50,14 @@ std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::s
     o.fail("file", "mesh file \"" + file + "\"" + msg);
   }
   const double scale = o.number("scale", 1.0, 0, 1e30, true);
+  const Vec3d deg = o.vec3("rotate_degrees", Vec3::Zero()).cast<double>();
   const Vec3 t = o.vec3("translate", Vec3::Zero());
-  for (auto& v : mesh->vertices) v = v * scale + t.cast<double>();
+  // x' = Rz Ry Rx (scale x) + translate
+  const double k = M_PI / 180.0;
+  const Mat3d R = (Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) * Eigen::AngleAxisd(deg[1] * k, Vec3d::UnitY()) *
+                   Eigen::AngleAxisd(deg[0] * k, Vec3d::UnitX()))
+                      .toRotationMatrix();
+  for (auto& v : mesh->vertices) v = R * (v * scale) + t.cast<double>();
   const bool allow_open = o.boolean("allow_open", false);
   const MeshCheck c = check_mesh(*mesh);
   if (!c.watertight()) {
@@ -65,7 +72,7 @@ std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::s
 
 ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials, const std::string& scene_file) {
   ObjectSpec s;
-  const std::string shape = o.choice("shape", "", {"box", "sphere", "mesh"});
+  const std::string shape = o.choice("shape", "", {"box", "sphere", "cylinder", "torus", "mesh"});
   if (shape == "mesh") {
     s.shape = ObjectShape::Mesh;
     s.mesh = read_mesh_object(o, scene_file);
@@ -81,10 +88,32 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
     for (int a = 0; a < 3; ++a)
       if (!(s.max[a] > s.min[a])) o.fail("max", "every component must exceed the matching one of \"min\"");
     s.center = o.vec3("center", Real(0.5) * (s.min + s.max));
-  } else {
+  } else if (shape == "sphere") {
     s.shape = ObjectShape::Sphere;
     s.center = o.required_vec3("center");
     s.radius = Real(o.required_number("radius", 0, kHuge, true));
+    s.min = s.center - Vec3::Constant(s.radius);
+    s.max = s.center + Vec3::Constant(s.radius);
+  } else {  // cylinder or torus about an axis through the centre
+    s.shape = shape == "cylinder" ? ObjectShape::Cylinder : ObjectShape::Torus;
+    s.center = o.required_vec3("center");
+    const std::string axis = o.choice("axis", "y", {"x", "y", "z"});
+    s.axis = axis == "x" ? 0 : axis == "y" ? 1 : 2;
+    Vec3 half;
+    if (s.shape == ObjectShape::Cylinder) {
+      s.radius = Real(o.required_number("radius", 0, kHuge, true));
+      s.height = Real(o.required_number("height", 0, kHuge, true));
+      half = Vec3::Constant(s.radius);
+      half[s.axis] = s.height / 2;
+    } else {
+      s.radius = Real(o.required_number("major_radius", 0, kHuge, true));
+      s.minor_radius = Real(o.required_number("minor_radius", 0, kHuge, true));
+      if (!(s.minor_radius < s.radius)) o.fail("minor_radius", "must be smaller than major_radius");
+      half = Vec3::Constant(s.radius + s.minor_radius);
+      half[s.axis] = s.minor_radius;
+    }
+    s.min = s.center - half;
+    s.max = s.center + half;
   }
   const std::string mat = o.string("material", "");
   if (!o.has("material")) o.fail("material", "missing required material name");
@@ -202,46 +231,39 @@ Scene load_scene(const std::string& path) {
   return parse_scene(ss.str(), path);
 }
 
-namespace {
-// splitmix64: a reproducible hash for per-lattice-point jitter (independent of threads/platform).
-inline std::uint64_t splitmix(std::uint64_t z) {
-  z += 0x9e3779b97f4a7c15ULL;
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
-  return z ^ (z >> 31);
-}
-inline Real unit(std::uint64_t h) { return Real(double(h >> 11) * (1.0 / 9007199254740992.0)); }
-}  // namespace
-
 std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per_particle) {
   const double h = double(dx) / std::cbrt(double(obj.particles_per_cell));
   volume_per_particle = Real(h * h * h);
-  Vec3 lo = obj.min, hi = obj.max;  // box, and the mesh's bounding box
-  if (obj.shape == ObjectShape::Sphere) {
-    lo = obj.center - Vec3::Constant(obj.radius);
-    hi = obj.center + Vec3::Constant(obj.radius);
-  }
+  const Vec3 lo = obj.min, hi = obj.max;  // every shape's bounding box
   long long n[3];
-  for (int a = 0; a < 3; ++a) n[a] = std::max(1LL, (long long)std::floor((double(hi[a]) - double(lo[a])) / h));
+  // A box is filled exactly by whole lattice cells (round); curved shapes need the whole bounding
+  // box covered (ceil) and are cut by their inside test.
+  for (int a = 0; a < 3; ++a) {
+    const double cells = (double(hi[a]) - double(lo[a])) / h;
+    n[a] = std::max(1LL, (long long)(obj.shape == ObjectShape::Box ? std::llround(cells) : std::ceil(cells)));
+  }
   if (double(n[0]) * double(n[1]) * double(n[2]) > 2e9)
     throw InputError("object would be sampled with more than 2e9 particles; increase dx or lower particles_per_cell");
   if (obj.shape == ObjectShape::Mesh) return sample_mesh(*obj.mesh, h, double(obj.jitter), obj.seed);
-  std::vector<Vec3> pts;
+  const Vec3d c = obj.center.cast<double>();
   const double r2 = double(obj.radius) * double(obj.radius);
-  for (long long i = 0; i < n[0]; ++i)
-    for (long long j = 0; j < n[1]; ++j)
-      for (long long k = 0; k < n[2]; ++k) {
-        const std::uint64_t id = splitmix(obj.seed ^ splitmix(std::uint64_t(i) * 0x1000003ULL ^ std::uint64_t(j) * 0x10007ULL ^ std::uint64_t(k)));
-        Vec3d p(double(lo[0]) + (double(i) + 0.5) * h, double(lo[1]) + (double(j) + 0.5) * h,
-                double(lo[2]) + (double(k) + 0.5) * h);
-        const double jx = double(obj.jitter) * h;
-        p[0] += jx * (double(unit(splitmix(id + 1))) - 0.5);
-        p[1] += jx * (double(unit(splitmix(id + 2))) - 0.5);
-        p[2] += jx * (double(unit(splitmix(id + 3))) - 0.5);
-        if (obj.shape == ObjectShape::Sphere && (p - obj.center.cast<double>()).squaredNorm() > r2) continue;
-        pts.push_back(p.cast<Real>());
+  const int ax = obj.axis;
+  const double half_h = 0.5 * double(obj.height), R = double(obj.radius), r = double(obj.minor_radius);
+  return sample_lattice(lo.cast<double>(), n, h, double(obj.jitter), obj.seed, [&](const Vec3d& p) {
+    const Vec3d d = p - c;
+    const double along = d[ax], across2 = d.squaredNorm() - along * along;
+    switch (obj.shape) {
+      case ObjectShape::Box: return true;
+      case ObjectShape::Sphere: return d.squaredNorm() <= r2;
+      case ObjectShape::Cylinder: return std::abs(along) <= half_h && across2 <= r2;
+      case ObjectShape::Torus: {
+        const double ring = std::sqrt(across2) - R;
+        return ring * ring + along * along <= r * r;
       }
-  return pts;
+      case ObjectShape::Mesh: break;
+    }
+    return false;
+  });
 }
 
 ExplicitMpm build_solver(const Scene& scene) {

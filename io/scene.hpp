@@ -15,14 +15,17 @@
 
 namespace amalgam {
 
-enum class ObjectShape { Box, Sphere, Mesh };
+enum class ObjectShape { Box, Sphere, Cylinder, Torus, Mesh };
 
 struct ObjectSpec {
   ObjectShape shape = ObjectShape::Box;
   std::shared_ptr<const TriangleMesh> mesh;  // Mesh: loaded, scaled and translated
   Vec3 min = Vec3::Zero(), max = Vec3::Ones();  // box
   Vec3 center = Vec3::Zero();                   // sphere (and rotation centre of both)
-  Real radius = 1;
+  Real radius = 1;        // sphere, cylinder; torus: major radius
+  Real height = 1;        // cylinder
+  Real minor_radius = 0;  // torus: tube radius
+  int axis = 1;           // cylinder and torus axis: 0 x, 1 y, 2 z
   int material = 0;
   Vec3 velocity = Vec3::Zero();
   Vec3 angular_velocity = Vec3::Zero();

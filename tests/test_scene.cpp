@@ -6,6 +6,7 @@
 #include <fstream>
 
 #include "core/errors.hpp"
+#include "io/mesh.hpp"
 #include "io/scene.hpp"
 
 using namespace amalgam;
@@ -135,4 +136,48 @@ TEST(Scene, MalformedScenesGiveExactMessages) {
     else EXPECT_EQ(message.rfind(read(start), 0), 0u) << entry.path() << " gave: " << message;
   }
   EXPECT_GE(count, 20);
+}
+
+TEST(Scene, PrimitiveVolumesMatchClosedForms) {
+  const std::string text = R"({
+    "simulation": {"dx": 0.02, "frames": 1},
+    "materials": {"m": {"density": 1000, "youngs_modulus": 1e4}},
+    "objects": [
+      {"shape": "cylinder", "center": [0.5,0.5,0.5], "radius": 0.2, "height": 0.3, "axis": "z", "material": "m"},
+      {"shape": "torus", "center": [0.5,0.5,0.5], "major_radius": 0.25, "minor_radius": 0.08, "material": "m"},
+      {"shape": "sphere", "center": [0.5,0.5,0.5], "radius": 0.2, "material": "m"}]
+  })";
+  const Scene s = parse_scene(text, "p.json");
+  const double expected[3] = {M_PI * 0.04 * 0.3, 2 * M_PI * M_PI * 0.25 * 0.08 * 0.08, 4.0 / 3.0 * M_PI * 0.008};
+  for (int i = 0; i < 3; ++i) {
+    Real vol = 0;
+    const auto x = sample_object(s.objects[size_t(i)], s.mpm.dx, vol);
+    EXPECT_NEAR(double(x.size()) * double(vol) / expected[i], 1.0, 0.02) << "object " << i;
+  }
+  // Torus particles all lie inside the tube.
+  Real vol = 0;
+  for (const Vec3& p : sample_object(s.objects[1], s.mpm.dx, vol)) {
+    const Vec3d d = p.cast<double>() - Vec3d(0.5, 0.5, 0.5);
+    const double ring = std::hypot(d[0], d[2]) - 0.25;
+    EXPECT_LE(ring * ring + d[1] * d[1], 0.08 * 0.08 * 1.2);
+  }
+}
+
+TEST(Scene, MeshScaleRotateTranslate) {
+  const std::string off = (std::filesystem::temp_directory_path() / "amalgam_test_unit_cube.off").string();
+  std::ofstream(off) << "OFF\n8 6 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n1 0 1\n1 1 1\n0 1 1\n"
+                        "4 0 3 2 1\n4 4 5 6 7\n4 0 1 5 4\n4 2 3 7 6\n4 1 2 6 5\n4 0 4 7 3\n";
+  const Scene s = parse_scene(R"({
+    "simulation": {"dx": 0.02, "frames": 1},
+    "materials": {"m": {"density": 1000, "youngs_modulus": 1e4}},
+    "objects": [{"shape": "mesh", "file": ")" + off + R"(", "scale": 0.2, "rotate_degrees": [0, 0, 45],
+                 "translate": [0.5, 0.5, 0.5], "material": "m"}]
+  })", "m.json");
+  const ObjectSpec& o = s.objects[0];
+  EXPECT_NEAR(enclosed_volume(*o.mesh), 0.008, 1e-12);
+  EXPECT_NEAR(double(o.max[0] - o.min[0]), 0.2 * std::sqrt(2.0), 1e-6);  // 45 degrees about z
+  EXPECT_NEAR(double(o.max[2] - o.min[2]), 0.2, 1e-6);
+  Real vol = 0;
+  const auto x = sample_object(o, s.mpm.dx, vol);
+  EXPECT_NEAR(double(x.size()) * double(vol) / 0.008, 1.0, 0.03);
 }
