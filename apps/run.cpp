@@ -1,6 +1,7 @@
 // `amalgam run` and `amalgam validate`.
 #include <unistd.h>
 
+#include <array>
 #include <chrono>
 #include <csignal>
 #include <cstdlib>
@@ -37,6 +38,19 @@ const char* kRunHelp =
 
 volatile std::sig_atomic_t g_signal = 0;
 extern "C" void on_signal(int sig) { g_signal = sig; }
+
+// Profiler seconds so far in the groups of the CSV columns: p2g, g2p, sort, grid.
+std::array<double, 4> kernel_groups(const exec::Profiler& p) {
+  std::array<double, 4> g{};
+  for (const auto& r : p.regions()) {
+    if (r.label == "mpm.p2g") g[0] += r.seconds;
+    else if (r.label == "mpm.g2p") g[1] += r.seconds;
+    else if (r.label.rfind("bin.", 0) == 0 || r.label == "particles.permute") g[2] += r.seconds;
+    else if (r.label.rfind("grid.", 0) == 0 || r.label == "mpm.grid_clear" || r.label == "mpm.grid_update")
+      g[3] += r.seconds;
+  }
+  return g;
+}
 
 // Rows of an existing diagnostics.csv for frames before `first_frame` (kept on resume).
 std::vector<std::string> earlier_rows(const std::string& csv, int first_frame) {
@@ -135,6 +149,8 @@ int run_command(const std::vector<std::string>& args) {
     const bool tty = isatty(fileno(stdout));
     const auto t_start = std::chrono::steady_clock::now();
     long long total_substeps = 0;
+    std::array<double, 4> groups_before = kernel_groups(profiler);
+    double wall_before = 0;
     for (int f = first_frame; f <= scene.frames; ++f) {
       const double t_frame_end = double(f) / scene.fps;
       long long substeps = 0;
@@ -161,7 +177,16 @@ int run_command(const std::vector<std::string>& args) {
       const MpmDiagnostics d = solver.diagnostics(space);
       write_frame(f);
       const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
-      csv_rows.push_back(diagnostics_csv_line({f, solver.time(), double(dt), wall, substeps, d, np}));
+      DiagnosticsRow row{f, solver.time(), double(dt), wall, substeps, d, np};
+      const std::array<double, 4> groups = kernel_groups(profiler);
+      row.p2g_s = groups[0] - groups_before[0];
+      row.g2p_s = groups[1] - groups_before[1];
+      row.sort_s = groups[2] - groups_before[2];
+      row.grid_s = groups[3] - groups_before[3];
+      row.other_s = std::max(0.0, (wall - wall_before) - row.p2g_s - row.g2p_s - row.sort_s - row.grid_s);
+      groups_before = groups;
+      wall_before = wall;
+      csv_rows.push_back(diagnostics_csv_line(row));
       if (scene.output.diagnostics_csv) {
         std::string csv = diagnostics_csv_header();
         for (const auto& r : csv_rows) csv += r;

@@ -61,7 +61,7 @@ void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmA
 
 std::string diagnostics_csv_header() {
   return "frame,time_s,last_dt_s,substeps,kinetic_J,elastic_J,momentum_x,momentum_y,momentum_z,max_speed_m_s,"
-         "particles,wall_s\n";
+         "particles,wall_s,p2g_s,g2p_s,sort_s,grid_s,other_s\n";
 }
 
 std::string diagnostics_csv_line(const DiagnosticsRow& r) {
@@ -69,7 +69,8 @@ std::string diagnostics_csv_line(const DiagnosticsRow& r) {
   os.precision(9);
   os << r.frame << ',' << r.time << ',' << r.dt << ',' << r.substeps << ',' << r.d.kinetic << ',' << r.d.elastic << ','
      << r.d.momentum[0] << ',' << r.d.momentum[1] << ',' << r.d.momentum[2] << ',' << r.d.max_speed << ','
-     << r.particles << ',' << r.wall_seconds << '\n';
+     << r.particles << ',' << r.wall_seconds << ',' << r.p2g_s << ',' << r.g2p_s << ',' << r.sort_s << ','
+     << r.grid_s << ',' << r.other_s << '\n';
   return os.str();
 }
 

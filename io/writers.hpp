@@ -23,6 +23,9 @@ struct DiagnosticsRow {
   long long substeps;
   MpmDiagnostics d;
   std::size_t particles;
+  // Seconds spent this frame in P2G, G2P, sorting (keys, radix sort, permutation, bins),
+  // grid (topology, clear, update) and everything else (CFL check, diagnostics, output).
+  double p2g_s = 0, g2p_s = 0, sort_s = 0, grid_s = 0, other_s = 0;
 };
 std::string diagnostics_csv_header();
 std::string diagnostics_csv_line(const DiagnosticsRow& r);
