@@ -7,7 +7,13 @@ rm -rf "$out"
 "$amalgam" run "$scene" --frames $frames --threads 2 --out "$out/ref" --quiet || { echo "reference run failed"; exit 1; }
 "$amalgam" run "$scene" --frames $frames --threads 2 --out "$out/int" --quiet &
 pid=$!
-sleep 1.5
+# Signal only once the simulation loop runs (frame 1 written): before that there is no state to
+# save and a fixed sleep would race with scene setup on a loaded machine.
+for _ in $(seq 1 600); do
+  [ -f "$out/int/frame_0001.ply" ] && break
+  kill -0 $pid 2>/dev/null || break
+  sleep 0.1
+done
 kill -INT $pid
 wait $pid
 rc=$?
