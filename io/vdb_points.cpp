@@ -7,10 +7,10 @@
 #include <openvdb/tools/PointIndexGrid.h>
 
 #include <cstdio>
-#include <filesystem>
 #include <mutex>
 
 #include "core/errors.hpp"
+#include "io/writers.hpp"
 
 namespace amalgam {
 
@@ -63,12 +63,7 @@ void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmA
     std::remove(tmp.c_str());
     throw InputError(path + ": cannot write VDB points: " + e.what());
   }
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::remove(tmp.c_str());
-    throw InputError(path + ": cannot rename temporary file: " + ec.message());
-  }
+  commit_temporary(tmp, path);
 }
 
 }  // namespace amalgam

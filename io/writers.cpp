@@ -22,6 +22,10 @@ void write_file_atomic(const std::string& path, const std::string& content) {
       throw InputError(path + ": write failed (disk full?)");
     }
   }
+  commit_temporary(tmp, path);
+}
+
+void commit_temporary(const std::string& tmp, const std::string& path) {
   std::error_code ec;
   std::filesystem::rename(tmp, path, ec);
   if (ec) {

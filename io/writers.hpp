@@ -16,6 +16,8 @@ void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmA
 
 // Writes `content` to `path` atomically (temporary file, then rename). Throws InputError.
 void write_file_atomic(const std::string& path, const std::string& content);
+// Renames a finished temporary file onto `path` (removing it on failure). Throws InputError.
+void commit_temporary(const std::string& tmp, const std::string& path);
 
 struct DiagnosticsRow {
   int frame;
