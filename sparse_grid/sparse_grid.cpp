@@ -23,14 +23,10 @@ void SparseGrid::set_node4_channels(int count) {
   node4_.resize(size_t(count));
   grow_channels();
 }
-void SparseGrid::set_scalar_channels(int count) {
-  scalar_.resize(size_t(count));
-  grow_channels();
-}
 
 std::size_t SparseGrid::bytes_per_leaf() const {
   // channel data + OpenVDB index leaf (512 int32 + masks) + tables
-  return (node4_.size() * 4 + scalar_.size()) * kLeafNodes * sizeof(Real) + kLeafNodes * 4 + 128 +
+  return node4_.size() * 4 * kLeafNodes * sizeof(Real) + kLeafNodes * 4 + 128 +
          27 * 4 + sizeof(Vec3i);
 }
 
@@ -38,8 +34,6 @@ void SparseGrid::grow_channels() {
   const size_t need = leaf_coord_.size() * kLeafNodes;
   for (auto& c : node4_)
     if (c.size() < need * 4) c.resize(std::max(need * 4, c.size() * 3 / 2));
-  for (auto& c : scalar_)
-    if (c.size() < need) c.resize(std::max(need, c.size() * 3 / 2));
 }
 
 std::int32_t SparseGrid::touch_leaf(const Vec3i& lc) {

@@ -5,7 +5,7 @@
 // of a leaf stores that leaf's index in the flat leaf table, so kernels never touch the tree and
 // node data lives in leaf-indexed side arrays:
 //   node4(a)   [leaf][512][4]  AoS channels for transfers (mass + momentum, later velocity)
-//   scalar(c)  [leaf][512]     SoA channels for solver vectors
+// (SoA [leaf][512] channels for implicit-solver vectors belong here too, added with their solver.)
 // Topology per substep: for each bin, its leaf and the +x/+y/+z neighbours (the stencil reaches
 // at most base+3 <= 10 < 16). Only new leaves are created (serially), existing leaf indices stay
 // put; when fewer than half of the leaves are in use the table is rebuilt compactly in bin order.
@@ -42,7 +42,6 @@ class SparseGrid {
 
   // Number of AoS node4 channel sets to maintain (each 4 Reals per node).
   void set_node4_channels(int count);
-  void set_scalar_channels(int count);
 
   // Activates the leaves the bins' stencils reach and rebuilds tables. Serial by design
   // (OpenVDB topology edits are not thread-safe); only new leaves are created.
@@ -61,7 +60,6 @@ class SparseGrid {
 
   Real* node4(int set) { return node4_[size_t(set)].data(); }
   const Real* node4(int set) const { return node4_[size_t(set)].data(); }
-  Real* scalar(int c) { return scalar_[size_t(c)].data(); }
   std::size_t bytes_per_leaf() const;
   std::uint64_t topology_rebuilds() const { return rebuilds_; }
 
@@ -75,7 +73,7 @@ class SparseGrid {
   std::vector<std::array<std::int32_t, 27>> nbr27_;
   std::vector<std::uint32_t> colour_bins_;
   std::array<std::uint32_t, 9> colour_start_{};
-  std::vector<std::vector<Real>> node4_, scalar_;
+  std::vector<std::vector<Real>> node4_;
   std::uint64_t rebuilds_ = 0;
   bool nbr27_stale_ = true;
 

@@ -38,8 +38,6 @@ TEST(Binning, SortsStablyAndBinsMatchBruteForce) {
     std::map<std::tuple<int, int, int>, std::vector<int>> expect;
     for (size_t i = 0; i < ps.size(); ++i) {
       Vec3i l;
-      for (int a = 0; a < 3; ++a)
-        l[a] = (order == 2 ? BSpline<2>::base(ps.vec3(x)[i][a] / dx) : BSpline<3>::base(ps.vec3(x)[i][a] / dx)) >> 3;
       // The kernels compute x * (1/dx): use the same arithmetic.
       for (int a = 0; a < 3; ++a) {
         const Real xs = ps.vec3(x)[i][a] * (Real(1) / dx);
