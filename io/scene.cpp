@@ -20,16 +20,60 @@ namespace {
 
 constexpr double kHuge = 1e30;
 
-MaterialParams read_material(JsonObject o) {
-  MaterialParams m;
-  const std::string model = o.choice("model", "fixed_corotated", {"fixed_corotated", "neo_hookean"});
-  m.model = model == "neo_hookean" ? ElasticModel::NeoHookean : ElasticModel::FixedCorotated;
-  m.density = Real(o.required_number("density", 0, kHuge, true));
+// Elastic constants: Young's modulus and Poisson ratio, or the Lame parameters (not both).
+void read_elasticity(JsonObject& o, MaterialParams& m) {
+  if (o.has("lame_mu") || o.has("lame_lambda")) {
+    if (o.has("youngs_modulus")) o.fail("youngs_modulus", "give either youngs_modulus/poisson_ratio or lame_mu/lame_lambda");
+    if (o.has("poisson_ratio")) o.fail("poisson_ratio", "give either youngs_modulus/poisson_ratio or lame_mu/lame_lambda");
+    m.mu = Real(o.required_number("lame_mu", 0, kHuge, true));
+    m.lambda = Real(o.required_number("lame_lambda", 0, kHuge));
+    return;
+  }
   const double E = o.required_number("youngs_modulus", 0, kHuge, true);
   const double nu = o.number("poisson_ratio", 0.3, -0.999, 0.499);
   const Lame l = Lame::from_young_poisson(E, nu);
   m.mu = l.mu;
   m.lambda = l.lambda;
+}
+
+MaterialParams read_material(JsonObject o) {
+  MaterialParams m;
+  const std::string model = o.choice("model", "fixed_corotated",
+                                     {"fixed_corotated", "neo_hookean", "stvk_hencky", "snow", "drucker_prager",
+                                      "von_mises", "fluid"});
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
+    if (model == material_model_name(MaterialModel(k))) m.model = MaterialModel(k);
+  m.density = Real(o.required_number("density", 0, kHuge, true));
+  if (m.model == MaterialModel::Fluid) {
+    m.bulk = Real(o.required_number("bulk_modulus", 0, kHuge, true));
+    m.gamma = Real(o.number("gamma", 7, 1, 20));
+    m.viscosity = Real(o.number("viscosity", 0, 0, kHuge));
+  } else {
+    read_elasticity(o, m);
+  }
+  if (m.model == MaterialModel::Snow) {
+    m.theta_c = Real(o.number("critical_compression", 2.5e-2, 0, 1, true));
+    if (!(m.theta_c < 1)) o.fail("critical_compression", "must be below 1");
+    m.theta_s = Real(o.number("critical_stretch", 7.5e-3, 0, 10, true));
+    m.hardening = Real(o.number("hardening", 10, 0, 100));
+  } else if (m.model == MaterialModel::DruckerPrager) {
+    const double phi = o.number("friction_angle", 30, 0, 80, true) * M_PI / 180.0;
+    const double c = o.number("cohesion", 0, 0, kHuge);
+    m.friction_alpha = Real(DruckerPragerT<double>::friction_alpha(phi));
+    m.apex_trace = Real(DruckerPragerT<double>::apex_trace(m.mu, m.lambda, phi, c));
+    m.volume_correction = o.boolean("volume_correction", true);
+  } else if (m.model == MaterialModel::VonMises) {
+    m.yield_stress = Real(o.required_number("yield_stress", 0, kHuge, true));
+    m.hardening_modulus = Real(o.number("hardening_modulus", 0, 0, kHuge));
+  }
+  if (o.has("melting")) {
+    JsonObject melt = o.object("melting");
+    m.melting = true;
+    m.melting_point = Real(melt.required_number("temperature", 0, kHuge, true));
+    m.liquid_bulk = Real(melt.required_number("bulk_modulus", 0, kHuge, true));
+    m.liquid_viscosity = Real(melt.number("viscosity", 0, 0, kHuge));
+    melt.finish();
+  }
   o.finish();
   return m;
 }
@@ -129,11 +173,13 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
   s.particles_per_cell = int(o.integer("particles_per_cell", 8, 1, 64));
   s.jitter = Real(o.number("jitter", 0.5, 0, 1));
   s.seed = std::uint64_t(o.integer("seed", 1, 0, (1LL << 62)));
+  s.temperature = Real(o.number("temperature", 293.15, 0, kHuge));
   o.finish();
   return s;
 }
 
-Collider read_collider(JsonObject o) {
+// Geometry and motion shared by colliders and heat sources.
+Collider read_region(JsonObject& o) {
   Collider c;
   const std::string type = o.choice("type", "", {"half_space", "box", "sphere"});
   if (type == "half_space") {
@@ -152,12 +198,26 @@ Collider read_collider(JsonObject o) {
     c.origin = o.required_vec3("center");
     c.radius = Real(o.required_number("radius", 0, kHuge, true));
   }
+  c.velocity = o.vec3("velocity", Vec3::Zero());
+  return c;
+}
+
+Collider read_collider(JsonObject o) {
+  Collider c = read_region(o);
   const std::string b = o.choice("boundary", "separate", {"sticky", "slip", "separate"});
   c.boundary = b == "sticky" ? BoundaryType::Sticky : b == "slip" ? BoundaryType::Slip : BoundaryType::Separate;
   c.friction = Real(o.number("friction", 0, 0, 100));
-  c.velocity = o.vec3("velocity", Vec3::Zero());
   o.finish();
   return c;
+}
+
+HeatSource read_heat_source(JsonObject o) {
+  HeatSource h;
+  h.region = read_region(o);
+  h.temperature = Real(o.required_number("temperature", 0, kHuge));
+  h.rate = Real(o.required_number("rate", 0, kHuge, true));
+  o.finish();
+  return h;
 }
 
 }  // namespace
@@ -205,6 +265,12 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file));
   if (s.objects.empty()) top.fail("objects", "define at least one object");
   for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c));
+  for (auto& h : top.objects("heat_sources")) s.heat_sources.push_back(read_heat_source(h));
+  if (!s.heat_sources.empty()) {
+    bool melts = false;
+    for (const auto& m : s.materials) melts |= m.melting;
+    if (!melts) top.fail("heat_sources", "no material has a \"melting\" block, so heat sources would do nothing");
+  }
 
   JsonObject out = top.object("output");
   s.output.directory = out.string("directory", "out");
@@ -267,11 +333,11 @@ std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per
 }
 
 ExplicitMpm build_solver(const Scene& scene) {
-  ExplicitMpm solver(scene.mpm, scene.materials, scene.colliders);
+  ExplicitMpm solver(scene.mpm, scene.materials, scene.colliders, scene.heat_sources);
   for (const auto& obj : scene.objects) {
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol);
-    solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);
+    solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol, obj.temperature);
   }
   return solver;
 }

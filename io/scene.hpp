@@ -8,7 +8,7 @@
 
 #include <memory>
 
-#include "core/materials/elastic.hpp"
+#include "core/materials/material.hpp"
 #include "io/mesh.hpp"
 #include "kernels/colliders.hpp"
 #include "solvers/explicit_mpm.hpp"
@@ -32,6 +32,7 @@ struct ObjectSpec {
   int particles_per_cell = 8;
   Real jitter = Real(0.5);  // fraction of the lattice spacing
   std::uint64_t seed = 1;
+  Real temperature = Real(293.15);  // K, initial (used by melting materials)
 };
 
 struct OutputSpec {
@@ -52,6 +53,7 @@ struct Scene {
   std::vector<MaterialParams> materials;
   std::vector<ObjectSpec> objects;
   std::vector<Collider> colliders;
+  std::vector<HeatSource> heat_sources;
   OutputSpec output;
   // Hash of everything that determines the simulated state (not output, frames, name,
   // description): a checkpoint only resumes a scene with the same fingerprint.

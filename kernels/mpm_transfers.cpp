@@ -33,10 +33,9 @@ constexpr int channels_of(Transfer t) { return t == Transfer::PicFlip ? 8 : 4; }
 // Per-particle P2G contribution into a block whose node (0,0,0) is `origin` (pure: no grid).
 template <int Order, Transfer T, int CH>
 inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3& x, const Vec3& v, const Mat3& C,
-                         const Mat3& F, Real m, Real V0, const MaterialParams& mat, Real dx, Real inv_dx, Real dt) {
+                         const Mat3& tau, Real m, Real V0, Real dx, Real inv_dx, Real dt) {
   const Stencil<Order> st = Stencil<Order>::at(x, inv_dx);
   const Vec3i l = st.base - origin;
-  const Mat3 tau = mat.kirchhoff(F);  // P F^T
   constexpr int N = Stencil<Order>::kN;
   // One separable form for the three transfers, per node (i, j, k) with o = x_i - x_p:
   //   (m, p)_i += w (m, m v + A o) - (0, G grad w)      and, PIC/FLIP only, f_i = -G grad w
@@ -113,9 +112,13 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
       Blk blk;
       std::memset(blk.data, 0, sizeof(blk.data));
       const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-      for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
-        p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], p.F[q], p.mass[q], p.volume0[q],
-                                   prm.materials[p.material[q]], dx, inv_dx, dt);
+      for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
+        const Real plastic = p.plastic ? p.plastic[q] : Real(0);
+        const Real temperature = p.temperature ? p.temperature[q] : Real(0);
+        const Mat3 tau = prm.materials[p.material[q]].kirchhoff(p.F[q], p.C[q], plastic, temperature);  // P F^T
+        p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau, p.mass[q], p.volume0[q], dx, inv_dx,
+                                   dt);
+      }
       // Flush into the 8 target leaves: leaf t covers block nodes [8 tx, 8 tx + 8) per axis.
       for (int t = 0; t < 8; ++t) {
         const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
@@ -214,6 +217,7 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3&
   }
   if constexpr (T == Transfer::PicFlip) {
     v = alpha * (v + dv) + (1 - alpha) * v_pic;
+    C = grad_v;  // kept for velocity-dependent stress (viscosity); A = 0 in the PIC/FLIP P2G
   } else {
     C = (BSpline<Order>::kDinvScale * inv_dx * inv_dx) * Bm;
     if constexpr (T == Transfer::Mls) grad_v = C;  // A-ULMPM Sec. 5.8: grad v_p = C_p

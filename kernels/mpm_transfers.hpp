@@ -7,6 +7,8 @@
 //   Mls     : p_i += w (m_p v_p + (m_p C_p - dt V_p^0 D_p^{-1} P_p F_p^T)(x_i - x_p))
 //             (Hu et al. 2018, MLS-MPM; A-ULMPM Sec. 5.8: grad v_p = C_p)
 // Forces (PicFlip, Apic): f_i = -sum_p V_p^0 P_p F_p^T grad w_ip (course report).
+// The stress P_p F_p^T = tau_p is the material's Kirchhoff stress (core/materials/material.hpp),
+// which may depend on grad v_p = C_p (viscosity): G2P stores grad v_p in C_p for every transfer.
 // F update: F_p <- (I + dt grad v_p) F_p.  (The course report's code multiplies on the right,
 // F (I + dt grad v); the left product is the correct push-forward and what we implement.)
 //
@@ -19,7 +21,7 @@
 #include <cstdint>
 
 #include "core/exec/exec.hpp"
-#include "core/materials/elastic.hpp"
+#include "core/materials/material.hpp"
 #include "core/math/types.hpp"
 #include "kernels/colliders.hpp"
 #include "sparse_grid/binning.hpp"
@@ -39,6 +41,8 @@ struct MpmParticleView {
   const Real* volume0;
   const std::int32_t* material;
   std::size_t n;
+  Real* plastic = nullptr;      // per-particle plastic scalar, if any material has one
+  Real* temperature = nullptr;  // per-particle temperature (K), if any material melts
 };
 
 // What they use of the grid: channel sets and tables from SparseGrid + BinTable.

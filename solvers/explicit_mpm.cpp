@@ -10,17 +10,29 @@
 namespace amalgam {
 
 ExplicitMpm::ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams> materials,
-                         std::vector<Collider> colliders)
-    : settings_(settings), materials_(std::move(materials)), colliders_(std::move(colliders)) {
+                         std::vector<Collider> colliders, std::vector<HeatSource> heat_sources)
+    : settings_(settings),
+      materials_(std::move(materials)),
+      colliders_(std::move(colliders)),
+      heat_sources_(std::move(heat_sources)) {
   if (!(settings_.dx > 0)) throw InputError("MPM grid spacing dx must be positive");
   if (settings_.order != 2 && settings_.order != 3) throw InputError("B-spline order must be 2 or 3");
-  attr_ = MpmAttributes::add_to(particles_);
+  bool plastic = false, melting = false;
+  for (const auto& m : materials_) {
+    max_wave_speed_ = std::max(max_wave_speed_, m.wave_speed());
+    max_kinematic_viscosity_ = std::max(max_kinematic_viscosity_, m.kinematic_viscosity());
+    plastic |= m.has_plastic_state();
+    melting |= m.melting;
+    hardening_ |= m.model == MaterialModel::Snow;
+    material_update_ |= m.needs_state_update();
+  }
+  material_update_ |= melting && !heat_sources_.empty();
+  attr_ = MpmAttributes::add_to(particles_, plastic, melting);
   grid_.set_node4_channels(settings_.transfer == Transfer::PicFlip ? 2 : 1);
-  for (const auto& m : materials_) max_wave_speed_ = std::max(max_wave_speed_, m.wave_speed());
 }
 
 void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
-                                int material, Real volume_per_particle) {
+                                int material, Real volume_per_particle, Real temperature) {
   if (material < 0 || size_t(material) >= materials_.size()) throw InputError("material index out of range");
   if (particles_.size() + x.size() > size_t(INT32_MAX)) throw InputError("more than 2^31 particles");
   const size_t n0 = particles_.size();
@@ -35,7 +47,10 @@ void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, cons
   std::int32_t* pid = particles_.int32(attr_.id);
   Mat3 W;  // velocity gradient of the rigid rotation: v = omega x r  =>  grad v = [omega]_x
   W << 0, -omega[2], omega[1], omega[2], 0, -omega[0], -omega[1], omega[0], 0;
-  const Real mass = materials_[size_t(material)].density * volume_per_particle;
+  const MaterialParams& mat = materials_[size_t(material)];
+  const Real mass = mat.density * volume_per_particle;
+  Real* pplastic = attr_.plastic >= 0 ? particles_.real(attr_.plastic) : nullptr;
+  Real* ptemp = attr_.temperature >= 0 ? particles_.real(attr_.temperature) : nullptr;
   for (size_t i = 0; i < x.size(); ++i) {
     const size_t p = n0 + i;
     px[p] = x[i];
@@ -46,13 +61,18 @@ void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, cons
     pV[p] = volume_per_particle;
     pmat[p] = material;
     pid[p] = std::int32_t(p);
+    if (pplastic) pplastic[p] = mat.initial_plastic();
+    if (ptemp) ptemp[p] = temperature;
   }
 }
 
 MpmParticleView ExplicitMpm::particle_view() {
-  return {particles_.vec3(attr_.x),    particles_.vec3(attr_.v),       particles_.mat3(attr_.C),
-          particles_.mat3(attr_.F),    particles_.real(attr_.mass),    particles_.real(attr_.volume0),
-          particles_.int32(attr_.material), particles_.size()};
+  MpmParticleView v{particles_.vec3(attr_.x),    particles_.vec3(attr_.v),       particles_.mat3(attr_.C),
+                    particles_.mat3(attr_.F),    particles_.real(attr_.mass),    particles_.real(attr_.volume0),
+                    particles_.int32(attr_.material), particles_.size()};
+  if (attr_.plastic >= 0) v.plastic = particles_.real(attr_.plastic);
+  if (attr_.temperature >= 0) v.temperature = particles_.real(attr_.temperature);
+  return v;
 }
 
 MpmGridView ExplicitMpm::grid_view() {
@@ -103,6 +123,16 @@ void ExplicitMpm::grid_to_particle(const exec::Space& space, Real dt) {
   g2p(space, particle_view(), grid_view(), step_params(dt));
 }
 
+void ExplicitMpm::update_materials(const exec::Space& space, Real dt) {
+  MaterialUpdateParams prm;
+  prm.materials = materials_.data();
+  prm.sources = heat_sources_.data();
+  prm.nsources = int(heat_sources_.size());
+  prm.dt = dt;
+  prm.time = Real(time_ + double(dt));
+  update_material_state(space, particle_view(), prm);
+}
+
 void ExplicitMpm::step(const exec::Space& space, Real dt) {
   if (!(dt > 0) || !std::isfinite(dt)) {
     std::ostringstream os;
@@ -114,6 +144,7 @@ void ExplicitMpm::step(const exec::Space& space, Real dt) {
   particle_to_grid(space, dt);
   update_grid_velocities(space, dt);
   grid_to_particle(space, dt);
+  if (material_update_) update_materials(space, dt);
   time_ += double(dt);
   ++steps_;
 }
@@ -121,6 +152,7 @@ void ExplicitMpm::step(const exec::Space& space, Real dt) {
 namespace {
 struct SpeedCheck {
   Real max_speed = 0;
+  Real max_wave = 0;  // largest particle wave speed when it depends on the plastic state
   exec::Index bad = -1;  // first particle with a non-finite v or F, or a runaway speed
   int what = 0;          // 1 velocity, 2 deformation gradient, 3 runaway speed
 };
@@ -130,6 +162,9 @@ Real ExplicitMpm::stable_dt(const exec::Space& space) const {
   const Vec3* v = particles_.vec3(attr_.v);
   const Mat3* F = particles_.mat3(attr_.F);
   const Real limit = settings_.max_speed;
+  const Real* plastic = hardening_ ? particles_.real(attr_.plastic) : nullptr;
+  const std::int32_t* mat = particles_.int32(attr_.material);
+  const MaterialParams* mats = materials_.data();
   const SpeedCheck chk = exec::parallel_reduce(
       space, "mpm.cfl_check", exec::Index(particles_.size()), SpeedCheck{},
       [=](exec::Index i, SpeedCheck& acc) {
@@ -143,6 +178,10 @@ Real ExplicitMpm::stable_dt(const exec::Space& space) const {
           acc.what = what;
         }
         if (s > acc.max_speed) acc.max_speed = s;
+        if (plastic) {
+          const MaterialParams& m = mats[mat[i]];
+          acc.max_wave = std::max(acc.max_wave, m.wave_speed() * m.wave_speed_factor(plastic[i]));
+        }
       },
       [](SpeedCheck a, const SpeedCheck& b) {
         if (a.bad < 0 && b.bad >= 0) {
@@ -150,6 +189,7 @@ Real ExplicitMpm::stable_dt(const exec::Space& space) const {
           a.what = b.what;
         }
         a.max_speed = std::max(a.max_speed, b.max_speed);
+        a.max_wave = std::max(a.max_wave, b.max_wave);
         return a;
       });
   if (chk.bad >= 0) {
@@ -162,8 +202,11 @@ Real ExplicitMpm::stable_dt(const exec::Space& space) const {
     os << "; the simulation blew up (reduce cfl or max_dt, or check material stiffness)";
     throw SimulationError(os.str());
   }
-  const Real denom = chk.max_speed + max_wave_speed_;
-  const Real dt = denom > 0 ? settings_.cfl * settings_.dx / denom : settings_.max_dt;
+  const Real denom = chk.max_speed + std::max(max_wave_speed_, chk.max_wave);
+  Real dt = denom > 0 ? settings_.cfl * settings_.dx / denom : settings_.max_dt;
+  // Explicit viscosity: the diffusion number nu dt / dx^2 must stay below 1/(2 d) = 1/6.
+  if (max_kinematic_viscosity_ > 0)
+    dt = std::min(dt, settings_.cfl * settings_.dx * settings_.dx / (3 * max_kinematic_viscosity_));
   return std::min(dt, settings_.max_dt);
 }
 
@@ -178,12 +221,15 @@ MpmDiagnostics ExplicitMpm::diagnostics(const exec::Space& space) const {
   const Real* V0 = particles_.real(attr_.volume0);
   const std::int32_t* mat = particles_.int32(attr_.material);
   const MaterialParams* mats = materials_.data();
+  const Real* plastic = attr_.plastic >= 0 ? particles_.real(attr_.plastic) : nullptr;
+  const Real* temp = attr_.temperature >= 0 ? particles_.real(attr_.temperature) : nullptr;
   const Acc a = exec::parallel_reduce(
       space, "mpm.diagnostics", exec::Index(particles_.size()), Acc{},
       [=](exec::Index i, Acc& acc) {
         const Vec3d vi = v[i].cast<double>();
         acc.ke += 0.5 * double(m[i]) * vi.squaredNorm();
-        acc.ee += double(V0[i]) * double(mats[mat[i]].energy(F[i]));
+        acc.ee += double(V0[i]) * double(mats[mat[i]].energy(F[i], plastic ? plastic[i] : Real(0),
+                                                              temp ? temp[i] : Real(0)));
         acc.p += double(m[i]) * vi;
         acc.m += double(m[i]);
         acc.vmax = std::max(acc.vmax, vi.norm());

@@ -1,20 +1,23 @@
 // Explicit MPM solver (course report Sec. 3.2; MLS-MPM as in A-ULMPM Sec. 5.8). One substep is
-// five named phases:
+// five named phases, plus a sixth when a material has state (plasticity, fluid, phase change):
 //   sort_particles   stable radix sort by grid leaf, bins           (sparse_grid/binning)
 //   update_grid      activate leaves, tables, colours                (sparse_grid)
 //   particle_to_grid mass, momentum, stress forces                   (kernels p2g)
 //   update_grid_velocities  p/m, gravity, forces, colliders          (kernels grid_update)
 //   grid_to_particle v, C, F update, advection                       (kernels g2p)
-// The time step comes from a CFL condition on particle speed plus the elastic wave speed.
+//   update_materials heat sources, return mapping / F reset          (kernels material_update)
+// The time step comes from a CFL condition on particle speed plus the elastic wave speed, and
+// the explicit viscosity limit dx^2 / (6 nu) when a material is viscous.
 #pragma once
 
 #include <cstdint>
 #include <vector>
 
 #include "core/exec/exec.hpp"
-#include "core/materials/elastic.hpp"
+#include "core/materials/material.hpp"
 #include "core/particles/particle_set.hpp"
 #include "kernels/colliders.hpp"
+#include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"
 #include "sparse_grid/binning.hpp"
 #include "sparse_grid/sparse_grid.hpp"
@@ -41,7 +44,8 @@ struct MpmDiagnostics {
 
 class ExplicitMpm {
  public:
-  ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams> materials, std::vector<Collider> colliders);
+  ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams> materials, std::vector<Collider> colliders,
+              std::vector<HeatSource> heat_sources = {});
 
   ParticleSet& particles() { return particles_; }
   const ParticleSet& particles() const { return particles_; }
@@ -56,9 +60,10 @@ class ExplicitMpm {
   static constexpr std::size_t binning_bytes_per_particle() { return ParticleBinning::kScratchBytesPerParticle; }
 
   // Appends particles at `x` with velocity v0 + omega x (x - centre), material index, and mass
-  // and volume per particle; F = I, C = affine part of the rigid rotation.
+  // and volume per particle; F = I, C = affine part of the rigid rotation, plastic state at
+  // rest, and the given temperature (K; stored only if a material melts).
   void add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
-                     int material, Real volume_per_particle);
+                     int material, Real volume_per_particle, Real temperature = 0);
 
   // Largest stable substep (CFL). Also the stability guard: throws SimulationError naming the
   // step, particle and quantity if any velocity or F is not finite or a speed exceeds max_speed.
@@ -73,6 +78,9 @@ class ExplicitMpm {
   void particle_to_grid(const exec::Space& space, Real dt);
   void update_grid_velocities(const exec::Space& space, Real dt);
   void grid_to_particle(const exec::Space& space, Real dt);
+  void update_materials(const exec::Space& space, Real dt);
+  // Whether update_materials has anything to do (plastic, fluid or melting material, heat source).
+  bool has_material_update() const { return material_update_; }
 
   // Restores the clock after particles were loaded from a checkpoint.
   void restore_clock(double time, std::uint64_t steps) {
@@ -88,7 +96,11 @@ class ExplicitMpm {
   MpmSettings settings_;
   std::vector<MaterialParams> materials_;
   std::vector<Collider> colliders_;
+  std::vector<HeatSource> heat_sources_;
   Real max_wave_speed_ = 0;
+  Real max_kinematic_viscosity_ = 0;
+  bool hardening_ = false;        // some material's wave speed depends on its plastic state
+  bool material_update_ = false;
   ParticleSet particles_;
   MpmAttributes attr_;
   ParticleBinning binning_;

@@ -1,10 +1,11 @@
-// Constitutive models: zero stress at rest, rotation invariance of the energy, P = dPsi/dF by
-// finite differences (in double), tau = P F^T, and finite stress for inverted F.
+// Constitutive models: zero stress at rest, rotation invariance of the energy, P = dPsi/dF and
+// dP = d(P)[dF] by finite differences (in double), objectivity, tau = P F^T, finite stress for
+// inverted F; return mappings land on their yield surface, are idempotent and objective.
 #include <gtest/gtest.h>
 
 #include <random>
 
-#include "core/materials/elastic.hpp"
+#include "core/materials/material.hpp"
 
 using namespace amalgam;
 
@@ -40,7 +41,7 @@ void check_model(const M& m) {
 
 // P = dPsi/dF by five-point central differences, in double whatever the build's Real.
 template <class M>
-void check_gradient(const M& m) {
+void check_gradient(const M& m, double min_det = -1e9) {
   std::mt19937 rng(6);
   std::uniform_real_distribution<double> u(-0.3, 0.3);
   for (int t = 0; t < 200; ++t) {
@@ -48,6 +49,7 @@ void check_gradient(const M& m) {
     for (int i = 0; i < 9; ++i) F(i) += u(rng);
     if (t % 4 == 0) F.col(2) *= -0.2;  // inverted (fixed corotated) / clamped region check below
     if (F.determinant() <= 0.05 && std::is_same<M, NeoHookeanT<double>>::value) continue;
+    if (F.determinant() <= min_det) continue;
     const Mat3d P = m.first_piola(F);
     const double h = 1e-4;
     for (int i = 0; i < 9; ++i) {
@@ -61,18 +63,124 @@ void check_gradient(const M& m) {
     }
   }
 }
+
+// dP(F)[dF] = d/ds P(F + s dF) by five-point central differences, random F and dF, in double.
+// `min_det` skips F outside a model's smooth domain (neo-Hookean's clamp at small J).
+template <class M>
+void check_dP(const M& m, double min_det = -1e9) {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  int checked = 0;
+  for (int t = 0; t < 200; ++t) {
+    Mat3d F = Mat3d::Identity(), dF;
+    for (int i = 0; i < 9; ++i) F(i) += u(rng), dF(i) = u(rng);
+    if (t % 4 == 0) F.col(2) *= -0.2;
+    if (F.determinant() <= min_det) continue;
+    const double h = 1e-5;
+    auto P = [&](double s) { return Mat3d(m.first_piola(F + s * h * dF)); };
+    const Mat3d fd = (P(-2) - 8 * P(-1) + 8 * P(1) - P(2)) / (12.0 * h);
+    const Mat3d an = m.dP(F, dF);
+    EXPECT_LT((fd - an).norm(), 1e-6 * (1 + an.norm())) << "t=" << t << "\nfd=\n" << fd << "\nan=\n" << an;
+    ++checked;
+  }
+  EXPECT_GT(checked, 100);
+}
+
+// The action dP at F = diag with repeated singular values (the a = (p_i - p_j)/(s_i - s_j) limit).
+template <class M>
+void check_dP_repeated(const M& m) {
+  std::mt19937 rng(8);
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (const Mat3d& F : {Mat3d(Mat3d::Identity()), Mat3d(Vec3d(1.2, 1.2, 0.9).asDiagonal())}) {
+    Mat3d dF;
+    for (int i = 0; i < 9; ++i) dF(i) = u(rng);
+    const double h = 1e-5;
+    auto P = [&](double s) { return Mat3d(m.first_piola(F + s * h * dF)); };
+    const Mat3d fd = (P(-2) - 8 * P(-1) + 8 * P(1) - P(2)) / (12.0 * h);
+    EXPECT_LT((fd - m.dP(F, dF)).norm(), 1e-5 * (1 + fd.norm()));
+  }
+}
+
+// Objectivity and zero stress at rest in double (for models without a Real-typed check_model).
+template <class M>
+void check_objective_double(const M& m) {
+  std::mt19937 rng(9);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  EXPECT_LT(m.first_piola(Mat3d::Identity()).norm(), 1e-12);
+  EXPECT_NEAR(m.energy(Mat3d::Identity()), 0.0, 1e-12);
+  for (int t = 0; t < 100; ++t) {
+    Mat3d F = Mat3d::Identity(), A;
+    for (int i = 0; i < 9; ++i) F(i) += u(rng), A(i) = u(rng);
+    const Mat3d R = polar_rotation(A);
+    EXPECT_LT((m.first_piola(R * F) - R * m.first_piola(F)).norm(), 1e-9 * (1 + m.first_piola(F).norm()));
+    EXPECT_NEAR(m.energy(R * F), m.energy(F), 1e-9 * (1 + std::abs(m.energy(F))));
+  }
+}
 }  // namespace
 
 TEST(Materials, FixedCorotated) {
   const Lame l = Lame::from_young_poisson(1e3, 0.3);
   check_model(FixedCorotated{l.mu, l.lambda});
-  check_gradient(FixedCorotatedT<double>{double(l.mu), double(l.lambda)});
+  const FixedCorotatedT<double> md{double(l.mu), double(l.lambda)};
+  check_gradient(md);
+  check_dP(md);
+  check_dP_repeated(md);
 }
 
 TEST(Materials, NeoHookean) {
   const Lame l = Lame::from_young_poisson(1e3, 0.3);
   check_model(NeoHookean{l.mu, l.lambda});
-  check_gradient(NeoHookeanT<double>{double(l.mu), double(l.lambda)});
+  const NeoHookeanT<double> md{double(l.mu), double(l.lambda)};
+  check_gradient(md);
+  check_dP(md, 0.05);
+  check_dP_repeated(md);
+}
+
+TEST(Materials, StvkHencky) {
+  const Lame l = Lame::from_young_poisson(1e3, 0.3);
+  check_model(StvkHencky{l.mu, l.lambda});
+  const StvkHenckyT<double> md{double(l.mu), double(l.lambda)};
+  check_gradient(md);
+  check_dP(md);
+  check_dP_repeated(md);
+  check_objective_double(md);
+}
+
+TEST(Materials, WeaklyCompressibleFluid) {
+  const WeaklyCompressibleT<double> w{1e4, 7, 0};
+  check_gradient(w, 0.05);
+  check_dP(w, 0.05);
+  check_objective_double(w);
+  // tau = -J p(J) I, p = K/gamma (J^-gamma - 1): compressed water pushes out.
+  const Mat3d F = Vec3d(0.9, 1.0, 1.0).asDiagonal();
+  const double p = 1e4 / 7 * (std::pow(0.9, -7.0) - 1);
+  EXPECT_NEAR(w.pressure(0.9), p, 1e-9 * p);
+  EXPECT_LT((w.kirchhoff(F, Mat3d::Zero()) + 0.9 * p * Mat3d::Identity()).norm(), 1e-9 * p);
+  // Newtonian viscosity: simple shear L = [[0, g, 0], 0, 0] at J = 1 gives tau_xy = eta g,
+  // traceless; the F reset keeps J and drops the shear.
+  const WeaklyCompressibleT<double> visc{1e4, 7, 2.0};
+  Mat3d L = Mat3d::Zero();
+  L(0, 1) = 3.0;
+  const Mat3d tau = visc.kirchhoff(Mat3d::Identity(), L);
+  EXPECT_NEAR(tau(0, 1), 6.0, 1e-12);
+  EXPECT_NEAR(tau(1, 0), 6.0, 1e-12);
+  EXPECT_NEAR(tau.trace(), 0.0, 1e-12);
+  Mat3d G = Mat3d::Identity();
+  G(0, 1) = 0.4;
+  G(2, 2) = 0.8;
+  WeaklyCompressibleT<double>::reset(G);
+  EXPECT_LT((G - std::cbrt(0.8) * Mat3d::Identity()).norm(), 1e-12);
+}
+
+TEST(Materials, SnowHardenedElasticity) {
+  const SnowT<double> s{400, 600, 0.025, 0.0075, 10};
+  EXPECT_DOUBLE_EQ(s.hardening_factor(1.0), 1.0);
+  EXPECT_NEAR(s.hardening_factor(0.9), std::exp(1.0), 1e-12);  // exp(xi (1 - J_P))
+  const FixedCorotatedT<double> e = s.elastic(0.95);
+  EXPECT_NEAR(e.mu, 400 * std::exp(0.5), 1e-9);
+  EXPECT_NEAR(e.lambda, 600 * std::exp(0.5), 1e-9);
+  check_gradient(e);
+  check_dP(e);
 }
 
 TEST(Materials, FixedCorotatedFiniteAndRestoringWhenInverted) {
@@ -91,4 +199,186 @@ TEST(Materials, LameFromYoungPoisson) {
   const Lame l = Lame::from_young_poisson(2.0, 0.25);
   EXPECT_NEAR(double(l.mu), 0.8, 1e-6);
   EXPECT_NEAR(double(l.lambda), 0.8, 1e-6);
+}
+
+namespace {
+Mat3d random_trial_F(std::mt19937& rng, double amp) {
+  std::uniform_real_distribution<double> u(-amp, amp);
+  Mat3d F = Mat3d::Identity();
+  for (int i = 0; i < 9; ++i) F(i) += u(rng);
+  return F;
+}
+Mat3d random_rotation_d(std::mt19937& rng) {
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  Mat3d A;
+  for (int i = 0; i < 9; ++i) A(i) = u(rng);
+  return polar_rotation(A);
+}
+// A projection is idempotent: projecting its result again changes neither F nor the state.
+template <class Model>
+void check_idempotent_and_objective(const Model& m, double init_state, double amp, int* projected_count) {
+  std::mt19937 rng(11);
+  for (int t = 0; t < 300; ++t) {
+    Mat3d F = random_trial_F(rng, amp);
+    double st = init_state;
+    const Mat3d R = random_rotation_d(rng);
+    Mat3d RF = R * F;
+    double st_r = init_state;
+    const bool changed = m.project(F, st);
+    m.project(RF, st_r);
+    if (changed) ++*projected_count;
+    // objective: project(R F) = R project(F), same state
+    EXPECT_LT((RF - R * F).norm(), 1e-9) << "t=" << t;
+    EXPECT_NEAR(st_r, st, 1e-9);
+    const Mat3d F1 = F;
+    const double s1 = st;
+    m.project(F, st);
+    EXPECT_LT((F - F1).norm(), 1e-9) << "not idempotent, t=" << t;
+    EXPECT_NEAR(st, s1, 1e-9);
+  }
+}
+Vec3d log_sigma(const Mat3d& F) {
+  const Vec3d s = svd3(F).sigma;
+  return Vec3d(std::log(s[0]), std::log(s[1]), std::log(s[2]));
+}
+}  // namespace
+
+TEST(Plasticity, SnowClampsSingularValuesAndConservesTotalVolume) {
+  const SnowT<double> s{400, 600, 0.025, 0.0075, 10};
+  int projected = 0;
+  check_idempotent_and_objective(s, 1.0, 0.1, &projected);
+  EXPECT_GT(projected, 200);
+  std::mt19937 rng(12);
+  for (int t = 0; t < 200; ++t) {
+    Mat3d F = random_trial_F(rng, 0.1);
+    const double J0 = F.determinant();
+    double JP = 1.0;
+    if (!s.project(F, JP)) continue;
+    const Vec3d sig = svd3(F).sigma;
+    bool on_bound = false;
+    for (int i = 0; i < 3; ++i) {
+      EXPECT_GE(sig[i], 1 - 0.025 - 1e-12);
+      EXPECT_LE(sig[i], 1 + 0.0075 + 1e-12);
+      on_bound |= std::abs(sig[i] - (1 - 0.025)) < 1e-12 || std::abs(sig[i] - (1 + 0.0075)) < 1e-12;
+    }
+    EXPECT_TRUE(on_bound);  // lands on the yield surface (a clamp bound)
+    EXPECT_NEAR(F.determinant() * JP, J0, 1e-12);  // J_E J_P = J
+  }
+}
+
+TEST(Plasticity, DruckerPragerLandsOnConeAndIsIdempotent) {
+  const Lame l = Lame::from_young_poisson(3.5e5, 0.3);
+  for (const double cohesion : {0.0, 200.0}) {
+    const double phi = 30 * M_PI / 180;
+    DruckerPragerT<double> dp{double(l.mu), double(l.lambda), DruckerPragerT<double>::friction_alpha(phi),
+                              DruckerPragerT<double>::apex_trace(l.mu, l.lambda, phi, cohesion)};
+    int projected = 0;
+    check_idempotent_and_objective(dp, 0.0, 0.05, &projected);
+    EXPECT_GT(projected, 100);
+    std::mt19937 rng(13);
+    int sheared = 0, apex = 0;
+    for (int t = 0; t < 500; ++t) {
+      Mat3d F = random_trial_F(rng, 0.05);
+      const Vec3d e0 = log_sigma(F);
+      double vc = 0;
+      const bool changed = dp.project(F, vc);
+      const Vec3d e = log_sigma(F);
+      EXPECT_LE(dp.yield(e), 1e-9);  // inside or on the cone
+      if (!changed) continue;
+      if (e0.sum() >= dp.trace_c) {  // case II: cone apex, volume gain recorded
+        ++apex;
+        EXPECT_NEAR(e.sum(), dp.trace_c, 1e-9);
+        EXPECT_NEAR(vc, e0.sum() - dp.trace_c, 1e-9);
+        EXPECT_LT((e - Vec3d::Constant(dp.trace_c / 3)).norm(), 1e-9);
+      } else {  // case III: on the cone, volume unchanged
+        ++sheared;
+        EXPECT_NEAR(dp.yield(e), 0.0, 1e-9);
+        EXPECT_NEAR(e.sum(), e0.sum(), 1e-9);
+        EXPECT_NEAR(vc, 0.0, 1e-12);
+      }
+    }
+    EXPECT_GT(sheared, 20);
+    EXPECT_GT(apex, 20);
+  }
+}
+
+TEST(Plasticity, DruckerPragerVolumeCorrectionGivesBackGainedVolume) {
+  const Lame l = Lame::from_young_poisson(3.5e5, 0.3);
+  const DruckerPragerT<double> dp{double(l.mu), double(l.lambda), DruckerPragerT<double>::friction_alpha(0.5), 0};
+  // Expanded by 3 % in volume: projected to the apex (stress free), v_c records log 1.03.
+  Mat3d F = std::cbrt(1.03) * Mat3d::Identity();
+  double vc = 0;
+  EXPECT_TRUE(dp.project(F, vc));
+  EXPECT_LT((F - Mat3d::Identity()).norm(), 1e-12);
+  EXPECT_NEAR(vc, std::log(1.03), 1e-12);
+  // Compressing by 1 % consumes 1 % of the gain and stays stress free (apex again).
+  F = std::cbrt(0.99) * Mat3d::Identity();
+  EXPECT_TRUE(dp.project(F, vc));
+  EXPECT_LT((F - Mat3d::Identity()).norm(), 1e-12);
+  EXPECT_NEAR(vc, std::log(1.03) + std::log(0.99), 1e-12);
+  // Without volume correction the same compression is resisted elastically.
+  DruckerPragerT<double> plain = dp;
+  plain.volume_correction = false;
+  Mat3d G = std::cbrt(0.99) * Mat3d::Identity();
+  double v2 = 0;
+  EXPECT_FALSE(plain.project(G, v2));
+  EXPECT_NEAR(G.determinant(), 0.99, 1e-12);
+}
+
+TEST(Plasticity, VonMisesRadialReturnWithHardening) {
+  const Lame l = Lame::from_young_poisson(2e6, 0.3);
+  const VonMisesT<double> vm{double(l.mu), double(l.lambda), 1e4, 5e4};
+  int projected = 0;
+  check_idempotent_and_objective(vm, 0.0, 0.05, &projected);
+  EXPECT_GT(projected, 100);
+  std::mt19937 rng(14);
+  for (int t = 0; t < 300; ++t) {
+    Mat3d F = random_trial_F(rng, 0.05);
+    const double J0 = F.determinant();
+    const double a0 = 0.01 * (t % 3);
+    double a = a0;
+    if (!vm.project(F, a)) continue;
+    EXPECT_NEAR(vm.yield(log_sigma(F), a), 0.0, 1e-6);  // on the (hardened) yield surface
+    EXPECT_GT(a, a0);                                   // plastic strain accumulates
+    EXPECT_NEAR(F.determinant(), J0, 1e-9 * J0);        // plastic flow is isochoric
+  }
+}
+
+TEST(Materials, EveryModelIsStressFreeAtRest) {
+  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k) {
+    MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
+    m.bulk = Real(1e5);
+    m.viscosity = Real(0.1);
+    m.friction_alpha = Real(0.4);
+    m.yield_stress = Real(1e3);
+    Real plastic = m.initial_plastic();
+    EXPECT_LT(double(m.kirchhoff(Mat3::Identity(), Mat3::Zero(), plastic, 0).norm()), 1e-6) << material_model_name(m.model);
+    EXPECT_NEAR(double(m.energy(Mat3::Identity(), plastic, 0)), 0.0, 1e-6) << material_model_name(m.model);
+    Mat3 F = Mat3::Identity();
+    m.project(F, plastic, 0);
+    EXPECT_LT(double((F - Mat3::Identity()).norm()), 1e-6) << material_model_name(m.model);
+    EXPECT_EQ(plastic, m.initial_plastic());
+  }
+}
+
+TEST(Materials, MeltingSwitchesToViscousLiquid) {
+  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  MaterialParams m{MaterialModel::NeoHookean, l.mu, l.lambda, 1000};
+  m.melting = true;
+  m.melting_point = 300;
+  m.liquid_bulk = Real(1e4);
+  m.liquid_viscosity = 5;
+  Mat3 F = Mat3::Identity();
+  F(0, 1) = Real(0.2);  // sheared solid
+  Real plastic = 0;
+  EXPECT_GT(double(m.kirchhoff(F, Mat3::Zero(), plastic, 290).norm()), 1e3);  // elastic shear stress
+  EXPECT_FALSE(m.project(F, plastic, 290));                                    // solid keeps its shear
+  EXPECT_TRUE(m.project(F, plastic, 310));                                     // melted: F reset
+  EXPECT_LT(double((F - Mat3::Identity()).norm()), 1e-6);
+  Mat3 L = Mat3::Zero();
+  L(0, 1) = 1;
+  EXPECT_NEAR(double(m.kirchhoff(F, L, plastic, 310)(0, 1)), 5.0, 1e-4);  // eta * shear rate
+  EXPECT_GT(m.wave_speed(), Real(0));
+  EXPECT_NEAR(double(m.kinematic_viscosity()), 5e-3, 1e-9);
 }

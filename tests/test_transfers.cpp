@@ -20,7 +20,7 @@ ExplicitMpm make_blob(Transfer t, int order, Real dt_stress_scale = 1) {
   s.transfer = t;
   s.gravity = Vec3::Zero();
   const Lame l = Lame::from_young_poisson(1e4, 0.3);
-  MaterialParams m{ElasticModel::FixedCorotated, l.mu, l.lambda, 1000};
+  MaterialParams m{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
   ExplicitMpm solver(s, {m}, {});
   std::mt19937 rng(17);
   std::uniform_real_distribution<double> u(-1.0, 1.0);

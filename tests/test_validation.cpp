@@ -31,7 +31,7 @@ BarResult run_bar(Transfer transfer, int order) {
   s.order = order;
   s.transfer = transfer;
   s.gravity = Vec3::Zero();
-  MaterialParams m{ElasticModel::FixedCorotated, Real(E / 2), Real(0), Real(rho)};  // nu = 0
+  MaterialParams m{MaterialModel::FixedCorotated, Real(E / 2), Real(0), Real(rho)};  // nu = 0
   Collider wall;
   wall.shape = ColliderShape::HalfSpace;
   wall.boundary = BoundaryType::Sticky;

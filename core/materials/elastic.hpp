@@ -1,11 +1,18 @@
-// Hyperelastic constitutive models as small pure structs: energy density Psi(F), first
-// Piola-Kirchhoff stress P(F) = dPsi/dF, and the Kirchhoff stress tau = P F^T that the MPM force
-// f_i = -sum_p V_p^0 P_p F_p^T grad w_ip needs (course report, "Kirchoff corotation").
+// Hyperelastic constitutive models as small pure structs, templated on the scalar so tests and
+// implicit solvers can evaluate them in double. Each has
+//   energy(F)          strain energy density Psi (J/m^3, per reference volume)
+//   first_piola(F)     P = dPsi/dF
+//   dP(F, dF)          the action of dP/dF on dF (isotropic_dP, core/materials/isotropic.hpp)
+//   kirchhoff(F)       tau = P F^T, what the MPM force f_i = -sum_p V_p^0 tau_p grad w_ip needs
+//                      (course report, "Kirchoff corotation")
+//   sigma_stress / sigma_hessian: p_i = dpsi/dsigma_i and H_ij = dp_i/dsigma_j for the SVD frame.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 
+#include "core/materials/isotropic.hpp"
 #include "core/math/svd3.hpp"
 #include "core/math/types.hpp"
 
@@ -22,7 +29,6 @@ struct Lame {
 // Fixed corotated (Stomakhin et al. 2012): Psi = mu |F - R|^2 + lambda/2 (J - 1)^2,
 // P = 2 mu (F - R) + lambda (J - 1) J F^{-T} (course report), R from the polar decomposition with
 // rotations U, V, so it stays a rotation (and P well defined) for inverted F.
-// Templated on the scalar so tests and implicit solvers can evaluate it in double.
 template <class T>
 struct FixedCorotatedT {
   using M3 = Eigen::Matrix<T, 3, 3>;
@@ -41,6 +47,25 @@ struct FixedCorotatedT {
     // (J - 1) J F^{-T} = (J - 1) cof(F), written through the cofactor so it is finite at J = 0.
     return T(2) * mu * (F - R) + lambda * (J - 1) * cofactor(F);
   }
+  // p_i = 2 mu (s_i - 1) + lambda (J - 1) c_i with c_i = prod_{k != i} s_k (no division).
+  V3 sigma_stress(const V3& s) const {
+    const T J = s.prod();
+    const V3 c(s[1] * s[2], s[0] * s[2], s[0] * s[1]);
+    return T(2) * mu * (s - V3::Ones()) + lambda * (J - 1) * c;
+  }
+  M3 sigma_hessian(const V3& s) const {
+    const T J = s.prod();
+    const V3 c(s[1] * s[2], s[0] * s[2], s[0] * s[1]);
+    M3 H;
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j)
+        H(i, j) = i == j ? T(2) * mu + lambda * c[i] * c[i] : lambda * (c[i] * c[j] + (J - 1) * s[3 - i - j]);
+    return H;
+  }
+  M3 dP(const M3& F, const M3& dF) const {
+    const Svd3<T> d = svd3(F);
+    return isotropic_dP(d, sigma_stress(d.sigma), sigma_hessian(d.sigma), dF);
+  }
   // tau = P F^T = 2 mu (F - R) F^T + lambda (J - 1) J I. The hot path of P2G: R by the fast
   // polar iteration (SVD only for inverted or flattened F).
   M3 kirchhoff(const M3& F) const {
@@ -54,10 +79,11 @@ struct FixedCorotatedT {
 // Compressible neo-Hookean (Bonet & Wood): Psi = mu/2 (tr(F^T F) - 3) - mu log J + lambda/2 log^2 J,
 // P = mu (F - F^{-T}) + lambda log(J) F^{-T}, tau = mu (F F^T - I) + lambda log(J) I.
 // Defined for J > 0 only; J is clamped to kMinJ so an inverted particle is pushed back instead
-// of producing NaN.
+// of producing NaN (dP is exact for J > kMinJ).
 template <class T>
 struct NeoHookeanT {
   using M3 = Eigen::Matrix<T, 3, 3>;
+  using V3 = Eigen::Matrix<T, 3, 1>;
   T mu, lambda;
   static constexpr T kMinJ = T(1e-4);
 
@@ -68,8 +94,15 @@ struct NeoHookeanT {
   }
   M3 first_piola(const M3& F) const {
     const T J = std::max(F.determinant(), kMinJ);
-    const M3 FinvT = FixedCorotatedT<T>::cofactor(F) / J;
+    const M3 FinvT = detail::cofactor3(F) / J;
     return mu * (F - FinvT) + lambda * std::log(J) * FinvT;
+  }
+  // dP = mu dF + (mu - lambda log J) F^{-T} dF^T F^{-T} + lambda tr(F^{-1} dF) F^{-T}.
+  M3 dP(const M3& F, const M3& dF) const {
+    const T J = std::max(F.determinant(), kMinJ);
+    const M3 FinvT = detail::cofactor3(F) / J;
+    const T lj = std::log(J);
+    return mu * dF + (mu - lambda * lj) * FinvT * dF.transpose() * FinvT + lambda * (FinvT.cwiseProduct(dF)).sum() * FinvT;
   }
   M3 kirchhoff(const M3& F) const {
     const T J = std::max(F.determinant(), kMinJ);
@@ -77,26 +110,71 @@ struct NeoHookeanT {
   }
 };
 
+// St. Venant-Kirchhoff with Hencky strain (Klar et al. 2016, Sec. 5): with eps = log(sigma),
+// Psi = mu tr(eps^2) + lambda/2 tr(eps)^2, p_i = (2 mu eps_i + lambda tr eps) / sigma_i and
+// tau = U diag(2 mu eps + lambda tr eps) U^T. The elasticity under the Drucker-Prager and von
+// Mises return mappings, which act on eps. log|sigma| with |sigma| >= kMinSigma keeps it
+// finite for inverted or flattened F.
+template <class T>
+struct StvkHenckyT {
+  using M3 = Eigen::Matrix<T, 3, 3>;
+  using V3 = Eigen::Matrix<T, 3, 1>;
+  T mu, lambda;
+  static constexpr T kMinSigma = T(1e-4);
+
+  static V3 log_strain(const V3& s) {
+    return V3(std::log(std::max(std::abs(s[0]), kMinSigma)), std::log(std::max(std::abs(s[1]), kMinSigma)),
+              std::log(std::max(std::abs(s[2]), kMinSigma)));
+  }
+  static T safe(T s) { return std::abs(s) >= kMinSigma ? s : std::copysign(kMinSigma, s); }
+  T energy(const M3& F) const {
+    const V3 e = log_strain(svd3(F).sigma);
+    const T tr = e.sum();
+    return mu * e.squaredNorm() + T(0.5) * lambda * tr * tr;
+  }
+  V3 sigma_stress(const V3& s) const {
+    const V3 e = log_strain(s);
+    const T tr = e.sum();
+    V3 p;
+    for (int i = 0; i < 3; ++i) p[i] = (T(2) * mu * e[i] + lambda * tr) / safe(s[i]);
+    return p;
+  }
+  M3 sigma_hessian(const V3& s) const {
+    const V3 e = log_strain(s);
+    const T tr = e.sum();
+    M3 H;
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j)
+        H(i, j) = i == j ? (T(2) * mu + lambda - T(2) * mu * e[i] - lambda * tr) / (safe(s[i]) * safe(s[i]))
+                         : lambda / (safe(s[i]) * safe(s[j]));
+    return H;
+  }
+  M3 first_piola(const M3& F) const {
+    const Svd3<T> d = svd3(F);
+    return d.U * sigma_stress(d.sigma).asDiagonal() * d.V.transpose();
+  }
+  M3 dP(const M3& F, const M3& dF) const {
+    const Svd3<T> d = svd3(F);
+    return isotropic_dP(d, sigma_stress(d.sigma), sigma_hessian(d.sigma), dF);
+  }
+  // Kirchhoff stress from the singular values alone: tau = U diag(tau_hat) U^T.
+  V3 kirchhoff_sigma(const V3& s) const {
+    const V3 e = log_strain(s);
+    return T(2) * mu * e + V3::Constant(lambda * e.sum());
+  }
+  M3 kirchhoff(const M3& F) const {
+    const Svd3<T> d = svd3(F);
+    V3 t = kirchhoff_sigma(d.sigma);
+    // sign of sigma_i (inverted F): tau = P F^T = U diag(p_i sigma_i) U^T, p_i sigma_i = tau_hat_i
+    // exactly when |sigma_i| >= kMinSigma.
+    for (int i = 0; i < 3; ++i)
+      if (std::abs(d.sigma[i]) < kMinSigma) t[i] *= std::abs(d.sigma[i]) / kMinSigma;
+    return d.U * t.asDiagonal() * d.U.transpose();
+  }
+};
+
 using FixedCorotated = FixedCorotatedT<Real>;
 using NeoHookean = NeoHookeanT<Real>;
-
-enum class ElasticModel : std::int32_t { FixedCorotated = 0, NeoHookean = 1 };
-
-// One material of a scene as the kernels see it: plain values, no virtual calls.
-struct MaterialParams {
-  ElasticModel model = ElasticModel::FixedCorotated;
-  Real mu = 0, lambda = 0, density = 1000;
-
-  Mat3 kirchhoff(const Mat3& F) const {
-    return model == ElasticModel::NeoHookean ? NeoHookean{mu, lambda}.kirchhoff(F)
-                                             : FixedCorotated{mu, lambda}.kirchhoff(F);
-  }
-  Real energy(const Mat3& F) const {
-    return model == ElasticModel::NeoHookean ? NeoHookean{mu, lambda}.energy(F)
-                                             : FixedCorotated{mu, lambda}.energy(F);
-  }
-  // P-wave (dilatational) speed sqrt((lambda + 2 mu) / rho): the CFL bound's material speed.
-  Real wave_speed() const { return std::sqrt((lambda + 2 * mu) / density); }
-};
+using StvkHencky = StvkHenckyT<Real>;
 
 }  // namespace amalgam

@@ -83,7 +83,7 @@ void ParticleSet::permute(const exec::Space& space, const std::uint32_t* perm) {
   }
 }
 
-MpmAttributes MpmAttributes::add_to(ParticleSet& ps) {
+MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperature) {
   MpmAttributes m;
   m.x = ps.add("x", AttrType::Real, 3);
   m.v = ps.add("v", AttrType::Real, 3);
@@ -93,6 +93,8 @@ MpmAttributes MpmAttributes::add_to(ParticleSet& ps) {
   m.volume0 = ps.add("volume0", AttrType::Real, 1);
   m.material = ps.add("material", AttrType::Int32, 1);
   m.id = ps.add("id", AttrType::Int32, 1);
+  if (plastic) m.plastic = ps.add("plastic", AttrType::Real, 1);
+  if (temperature) m.temperature = ps.add("temperature", AttrType::Real, 1);
   return m;
 }
 
@@ -106,6 +108,8 @@ MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
   m.volume0 = ps.id("volume0");
   m.material = ps.id("material");
   m.id = ps.id("id");
+  m.plastic = ps.find("plastic");
+  m.temperature = ps.find("temperature");
   return m;
 }
 

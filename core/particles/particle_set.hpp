@@ -67,10 +67,13 @@ class ParticleSet {
   std::size_t n_ = 0;
 };
 
-// The attributes every MPM particle carries, looked up once.
+// The attributes every MPM particle carries, looked up once; `plastic` and `temperature` only
+// exist (id >= 0) when a material of the scene needs them (else -1), so elastic scenes do not
+// sort or store them.
 struct MpmAttributes {
   ParticleSet::Id x, v, C, F, mass, volume0, material, id;  // id: stable particle number
-  static MpmAttributes add_to(ParticleSet& ps);
+  ParticleSet::Id plastic = -1, temperature = -1;
+  static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false);
   static MpmAttributes find_in(const ParticleSet& ps);
 };
 

@@ -1,0 +1,140 @@
+// One material of a scene as the kernels see it: plain values and a switch, no virtual calls.
+// It dispatches to the model structs (elastic.hpp, plasticity.hpp, fluid.hpp) and adds phase
+// change: a material with a melting point behaves as its solid model below it and as a viscous
+// weakly compressible liquid at or above it (per-particle temperature; the melting bunny of the
+// enriched-MPM paper, Fig. 11, after Stomakhin et al. 2014 without incompressibility).
+//
+// Per particle, besides F, a material may use one plastic scalar (`plastic`, meaning per model:
+// snow J_P, sand v_c, von Mises equivalent plastic strain) and a temperature.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+
+#include "core/materials/elastic.hpp"
+#include "core/materials/fluid.hpp"
+#include "core/materials/plasticity.hpp"
+#include "core/math/types.hpp"
+
+namespace amalgam {
+
+enum class MaterialModel : std::int32_t {
+  FixedCorotated = 0,
+  NeoHookean = 1,
+  StvkHencky = 2,
+  Snow = 3,
+  DruckerPrager = 4,
+  VonMises = 5,
+  Fluid = 6,
+};
+const char* material_model_name(MaterialModel m);
+
+struct MaterialParams {
+  MaterialModel model = MaterialModel::FixedCorotated;
+  Real mu = 0, lambda = 0, density = 1000;
+  // Snow (Stomakhin et al. 2013)
+  Real theta_c = Real(2.5e-2), theta_s = Real(7.5e-3), hardening = 10;
+  // Drucker-Prager (Klar et al. 2016): alpha from the friction angle, apex from the cohesion
+  Real friction_alpha = 0, apex_trace = 0;
+  bool volume_correction = true;
+  // Von Mises
+  Real yield_stress = 0, hardening_modulus = 0;
+  // Fluid (Tait EOS) and Newtonian viscosity
+  Real bulk = 0, gamma = 7, viscosity = 0;
+  // Phase change: melting point (K) and the liquid it becomes; melting = false disables it
+  bool melting = false;
+  Real melting_point = 0, liquid_bulk = 0, liquid_viscosity = 0;
+
+  bool melted(Real temperature) const { return melting && temperature >= melting_point; }
+  // Whether particles of this material carry a plastic scalar, and its value at rest.
+  bool has_plastic_state() const {
+    return model == MaterialModel::Snow || model == MaterialModel::DruckerPrager || model == MaterialModel::VonMises;
+  }
+  Real initial_plastic() const { return model == MaterialModel::Snow ? Real(1) : Real(0); }
+  // Whether the per-particle state update (return mapping, F reset) has anything to do.
+  bool needs_state_update() const { return has_plastic_state() || model == MaterialModel::Fluid || melting; }
+
+  WeaklyCompressibleT<Real> liquid() const { return {liquid_bulk, gamma, liquid_viscosity}; }
+  WeaklyCompressibleT<Real> fluid() const { return {bulk, gamma, viscosity}; }
+
+  // Kirchhoff stress tau = P F^T (+ viscous stress) given F, the velocity gradient L and the
+  // particle's plastic scalar and temperature.
+  Mat3 kirchhoff(const Mat3& F, const Mat3& L, Real plastic, Real temperature) const {
+    if (melting && temperature >= melting_point) return liquid().kirchhoff(F, L);
+    switch (model) {
+      case MaterialModel::FixedCorotated: return FixedCorotated{mu, lambda}.kirchhoff(F);
+      case MaterialModel::NeoHookean: return NeoHookean{mu, lambda}.kirchhoff(F);
+      case MaterialModel::StvkHencky:
+      case MaterialModel::DruckerPrager:
+      case MaterialModel::VonMises: return StvkHencky{mu, lambda}.kirchhoff(F);
+      case MaterialModel::Snow: return snow().elastic(plastic).kirchhoff(F);
+      case MaterialModel::Fluid: return fluid().kirchhoff(F, L);
+    }
+    return Mat3::Zero();
+  }
+  // Elastic strain energy density per reference volume.
+  Real energy(const Mat3& F, Real plastic, Real temperature) const {
+    if (melting && temperature >= melting_point) return liquid().energy(F);
+    switch (model) {
+      case MaterialModel::FixedCorotated: return FixedCorotated{mu, lambda}.energy(F);
+      case MaterialModel::NeoHookean: return NeoHookean{mu, lambda}.energy(F);
+      case MaterialModel::StvkHencky:
+      case MaterialModel::DruckerPrager:
+      case MaterialModel::VonMises: return StvkHencky{mu, lambda}.energy(F);
+      case MaterialModel::Snow: return snow().elastic(plastic).energy(F);
+      case MaterialModel::Fluid: return fluid().energy(F);
+    }
+    return 0;
+  }
+  // Return mapping / F reset after the F update; returns whether F changed.
+  bool project(Mat3& F, Real& plastic, Real temperature) const {
+    if (melting && temperature >= melting_point) return WeaklyCompressibleT<Real>::reset(F);
+    switch (model) {
+      case MaterialModel::Snow: return snow().project(F, plastic);
+      case MaterialModel::DruckerPrager: return drucker_prager().project(F, plastic);
+      case MaterialModel::VonMises: return VonMisesT<Real>{mu, lambda, yield_stress, hardening_modulus}.project(F, plastic);
+      case MaterialModel::Fluid: return WeaklyCompressibleT<Real>::reset(F);
+      default: return false;
+    }
+  }
+  SnowT<Real> snow() const { return {mu, lambda, theta_c, theta_s, hardening}; }
+  DruckerPragerT<Real> drucker_prager() const {
+    DruckerPragerT<Real> d{mu, lambda, friction_alpha, apex_trace};
+    d.volume_correction = volume_correction;
+    return d;
+  }
+
+  // Dilatational wave speed sqrt((lambda + 2 mu) / rho) (fluid: sqrt(K / rho)) for the CFL
+  // bound, the larger of solid and liquid phase; snow's hardening scales it by
+  // sqrt(hardening_factor(J_P)) (see wave_speed_factor).
+  Real wave_speed() const {
+    Real c2 = model == MaterialModel::Fluid ? bulk / density : (lambda + 2 * mu) / density;
+    if (melting) c2 = std::max(c2, liquid_bulk / density);
+    return std::sqrt(c2);
+  }
+  Real wave_speed_factor(Real plastic) const {
+    return model == MaterialModel::Snow ? std::sqrt(snow().hardening_factor(plastic)) : Real(1);
+  }
+  // Kinematic viscosity eta / rho of the more viscous phase (explicit viscosity limits dt).
+  Real kinematic_viscosity() const {
+    Real eta = model == MaterialModel::Fluid ? viscosity : Real(0);
+    if (melting) eta = std::max(eta, liquid_viscosity);
+    return eta / density;
+  }
+};
+
+inline const char* material_model_name(MaterialModel m) {
+  switch (m) {
+    case MaterialModel::FixedCorotated: return "fixed_corotated";
+    case MaterialModel::NeoHookean: return "neo_hookean";
+    case MaterialModel::StvkHencky: return "stvk_hencky";
+    case MaterialModel::Snow: return "snow";
+    case MaterialModel::DruckerPrager: return "drucker_prager";
+    case MaterialModel::VonMises: return "von_mises";
+    case MaterialModel::Fluid: return "fluid";
+  }
+  return "?";
+}
+
+}  // namespace amalgam
