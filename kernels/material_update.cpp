@@ -20,4 +20,17 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p, c
   });
 }
 
+void collide_particles(const exec::Space& space, const MpmParticleView& p, const Collider* colliders, int n,
+                       Real time) {
+  exec::parallel_for(space, "mpm.collide_particles", exec::Index(p.n), [&](exec::Index i) {
+    for (int c = 0; c < n; ++c) {
+      const Real phi = colliders[c].phi(p.x[i], time);
+      if (phi >= 0) continue;
+      const Vec3 nrm = colliders[c].outward_normal(p.x[i], time);
+      p.x[i] -= phi * nrm;
+      colliders[c].project(p.x[i], time, p.v[i]);
+    }
+  });
+}
+
 }  // namespace amalgam

@@ -110,6 +110,7 @@ void ExplicitMpm::sort_particles(const exec::Space& space) {
   binning_.sort_and_bin(space, particles_, attr_.x, settings_.dx, settings_.order, bins_);
 }
 void ExplicitMpm::update_grid(const exec::Space& space) { grid_.update_topology(space, bins_); }
+
 void ExplicitMpm::particle_to_grid(const exec::Space& space, Real dt) {
   const MpmGridView g = grid_view();
   const MpmStepParams prm = step_params(dt);
@@ -144,6 +145,8 @@ void ExplicitMpm::step(const exec::Space& space, Real dt) {
   particle_to_grid(space, dt);
   update_grid_velocities(space, dt);
   grid_to_particle(space, dt);
+  if (!colliders_.empty()) collide_particles(space, particle_view(), colliders_.data(), int(colliders_.size()),
+                                             Real(time_ + double(dt)));
   if (material_update_) update_materials(space, dt);
   time_ += double(dt);
   ++steps_;

@@ -5,6 +5,7 @@
 //   particle_to_grid mass, momentum, stress forces                   (kernels p2g)
 //   update_grid_velocities  p/m, gravity, forces, colliders          (kernels grid_update)
 //   grid_to_particle v, C, F update, advection                       (kernels g2p)
+//   collide_particles  push particles that entered a collider back out  (kernels material_update)
 //   update_materials heat sources, return mapping / F reset          (kernels material_update)
 // The time step comes from a CFL condition on particle speed plus the elastic wave speed, and
 // the explicit viscosity limit dx^2 / (6 nu) when a material is viscous.
