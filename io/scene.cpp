@@ -56,6 +56,7 @@ MaterialParams read_material(JsonObject o) {
     if (!(m.theta_c < 1)) o.fail("critical_compression", "must be below 1");
     m.theta_s = Real(o.number("critical_stretch", 7.5e-3, 0, 10, true));
     m.hardening = Real(o.number("hardening", 10, 0, 100));
+    m.max_hardening = Real(o.number("max_hardening", 10, 1, 1e4));
   } else if (m.model == MaterialModel::DruckerPrager) {
     const double phi = o.number("friction_angle", 30, 0, 80, true) * M_PI / 180.0;
     const double c = o.number("cohesion", 0, 0, kHuge);

@@ -52,6 +52,14 @@ void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmA
   add_attribute(*grid, *index, "J", J);
   add_attribute(*grid, *index, "material", material);
   add_attribute(*grid, *index, "id", id);
+  // Method-specific state, when the scene's materials carry it.
+  for (const auto& [attr, name] : {std::pair<ParticleSet::Id, const char*>{a.plastic, "plastic"},
+                                   std::pair<ParticleSet::Id, const char*>{a.temperature, "temperature"}}) {
+    if (attr < 0) continue;
+    std::vector<float> f(n);
+    for (size_t i = 0; i < n; ++i) f[i] = float(ps.real(attr)[i]);
+    add_attribute(*grid, *index, name, f);
+  }
   grid->setName("points");
 
   const std::string tmp = path + ".tmp";

@@ -41,10 +41,16 @@ void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmA
     << "element vertex " << n << "\n"
     << "property float x\nproperty float y\nproperty float z\n"
     << "property float vx\nproperty float vy\nproperty float vz\n"
-    << "property float J\nproperty int material\nproperty int id\nend_header\n";
+    << "property float J\nproperty int material\nproperty int id\n";
+  // Method-specific state, when the scene's materials carry it.
+  const Real* extra[2] = {a.plastic >= 0 ? ps.real(a.plastic) : nullptr,
+                          a.temperature >= 0 ? ps.real(a.temperature) : nullptr};
+  if (extra[0]) h << "property float plastic\n";
+  if (extra[1]) h << "property float temperature\n";
+  h << "end_header\n";
   std::string buf = h.str();
   const size_t header = buf.size();
-  constexpr size_t kRecord = 7 * 4 + 4 + 4;
+  const size_t kRecord = 7 * 4 + 4 + 4 + 4 * size_t((extra[0] != nullptr) + (extra[1] != nullptr));
   buf.resize(header + n * kRecord);
   const Vec3* x = ps.vec3(a.x);
   const Vec3* v = ps.vec3(a.v);
@@ -58,6 +64,13 @@ void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmA
     std::memcpy(dst, rec, sizeof rec);
     std::memcpy(dst + sizeof rec, &mat[i], 4);
     std::memcpy(dst + sizeof rec + 4, &id[i], 4);
+    size_t off = sizeof rec + 8;
+    for (const Real* e : extra)
+      if (e) {
+        const float f = float(e[i]);
+        std::memcpy(dst + off, &f, 4);
+        off += 4;
+      }
     dst += kRecord;
   }
   write_file_atomic(path, buf);

@@ -169,6 +169,7 @@ TEST(MaterialValidation, SnowConfinedCompressionHardensAsModelPredicts) {
   snow.theta_c = Real(theta_c);
   snow.theta_s = Real(theta_s);
   snow.hardening = Real(xi);
+  snow.max_hardening = Real(1e4);  // the paper's model, uncapped (factor reaches 2.2 here)
   const BoundaryType slip = BoundaryType::Slip;
   Collider lid = wall(Vec3(0, Real(lo[1] + H), 0), -Vec3::UnitY(), BoundaryType::Slip);
   lid.velocity = Vec3(0, Real(-v_lid), 0);

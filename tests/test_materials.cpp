@@ -176,6 +176,10 @@ TEST(Materials, SnowHardenedElasticity) {
   const SnowT<double> s{400, 600, 0.025, 0.0075, 10};
   EXPECT_DOUBLE_EQ(s.hardening_factor(1.0), 1.0);
   EXPECT_NEAR(s.hardening_factor(0.9), std::exp(1.0), 1e-12);  // exp(xi (1 - J_P))
+  SnowT<double> capped = s;
+  capped.max_hardening = 2;
+  EXPECT_DOUBLE_EQ(capped.hardening_factor(0.9), 2.0);
+  EXPECT_NEAR(capped.hardening_factor(1.05), std::exp(-0.5), 1e-12);  // softening is not capped
   const FixedCorotatedT<double> e = s.elastic(0.95);
   EXPECT_NEAR(e.mu, 400 * std::exp(0.5), 1e-9);
   EXPECT_NEAR(e.lambda, 600 * std::exp(0.5), 1e-9);

@@ -15,9 +15,11 @@ using namespace amalgam;
 TEST(VdbPoints, ReadBackFieldByField) {
   const Scene scene = parse_scene(R"({
     "simulation": {"dx": 0.04, "frames": 1},
-    "materials": {"a": {"density": 1000, "youngs_modulus": 1e4}, "b": {"density": 500, "youngs_modulus": 1e4}},
+    "materials": {"a": {"model": "snow", "density": 400, "youngs_modulus": 1e4},
+                  "b": {"density": 500, "youngs_modulus": 1e4, "melting": {"temperature": 300, "bulk_modulus": 1e4}}},
     "objects": [{"shape": "box", "min": [0.2,0.2,0.2], "max": [0.5,0.4,0.5], "material": "a", "velocity": [1,2,3]},
-                {"shape": "sphere", "center": [0.7,0.7,0.7], "radius": 0.1, "material": "b", "angular_velocity": [0,5,0]}]
+                {"shape": "sphere", "center": [0.7,0.7,0.7], "radius": 0.1, "material": "b", "angular_velocity": [0,5,0]}],
+    "heat_sources": [{"type": "sphere", "center": [0.7,0.7,0.7], "radius": 0.05, "temperature": 350, "rate": 100}]
   })", "s.json");
   ExplicitMpm solver = build_solver(scene);
   const exec::Space space(exec::Backend::TBB, 2);
@@ -36,13 +38,15 @@ TEST(VdbPoints, ReadBackFieldByField) {
   const auto& at = solver.attributes();
   std::vector<int> row_of_id(ps.size(), -1);
   for (size_t i = 0; i < ps.size(); ++i) row_of_id[size_t(ps.int32(at.id)[i])] = int(i);
-  size_t seen = 0;
+  size_t seen = 0, heated = 0;
   for (auto leaf = grid->tree().cbeginLeaf(); leaf; ++leaf) {
     openvdb::points::AttributeHandle<openvdb::Vec3f> P(leaf->constAttributeArray("P"));
     openvdb::points::AttributeHandle<openvdb::Vec3f> v(leaf->constAttributeArray("v"));
     openvdb::points::AttributeHandle<float> J(leaf->constAttributeArray("J"));
     openvdb::points::AttributeHandle<openvdb::Int32> mat(leaf->constAttributeArray("material"));
     openvdb::points::AttributeHandle<openvdb::Int32> id(leaf->constAttributeArray("id"));
+    openvdb::points::AttributeHandle<float> plastic(leaf->constAttributeArray("plastic"));
+    openvdb::points::AttributeHandle<float> temperature(leaf->constAttributeArray("temperature"));
     for (auto it = leaf->beginIndexOn(); it; ++it) {
       const int pid = id.get(*it);
       ASSERT_GE(pid, 0);
@@ -58,9 +62,13 @@ TEST(VdbPoints, ReadBackFieldByField) {
       }
       EXPECT_EQ(J.get(*it), float(ps.mat3(at.F)[size_t(r)].determinant()));
       EXPECT_EQ(mat.get(*it), ps.int32(at.material)[size_t(r)]);
+      EXPECT_EQ(plastic.get(*it), float(ps.real(at.plastic)[size_t(r)]));
+      EXPECT_EQ(temperature.get(*it), float(ps.real(at.temperature)[size_t(r)]));
+      heated += temperature.get(*it) > 300;
       ++seen;
     }
   }
   EXPECT_EQ(seen, ps.size());
+  EXPECT_GT(heated, 0u);  // the temperature field is not trivially uniform
   std::filesystem::remove(path);
 }

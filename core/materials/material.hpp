@@ -34,7 +34,7 @@ struct MaterialParams {
   MaterialModel model = MaterialModel::FixedCorotated;
   Real mu = 0, lambda = 0, density = 1000;
   // Snow (Stomakhin et al. 2013)
-  Real theta_c = Real(2.5e-2), theta_s = Real(7.5e-3), hardening = 10;
+  Real theta_c = Real(2.5e-2), theta_s = Real(7.5e-3), hardening = 10, max_hardening = 10;
   // Drucker-Prager (Klar et al. 2016): alpha from the friction angle, apex from the cohesion
   Real friction_alpha = 0, apex_trace = 0;
   bool volume_correction = true;
@@ -98,7 +98,11 @@ struct MaterialParams {
       default: return false;
     }
   }
-  SnowT<Real> snow() const { return {mu, lambda, theta_c, theta_s, hardening}; }
+  SnowT<Real> snow() const {
+    SnowT<Real> s{mu, lambda, theta_c, theta_s, hardening};
+    s.max_hardening = max_hardening;
+    return s;
+  }
   DruckerPragerT<Real> drucker_prager() const {
     DruckerPragerT<Real> d{mu, lambda, friction_alpha, apex_trace};
     d.volume_correction = volume_correction;
