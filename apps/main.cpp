@@ -1,4 +1,4 @@
-// amalgam: command-line entry point (run, validate, info, bench).
+// amalgam: command-line entry point (run, validate, bench, plot, info).
 #include <Eigen/Core>
 #include <iostream>
 #include <string>
@@ -33,6 +33,7 @@ int main(int argc, char** argv) {
       "  run SCENE.json   simulate a scene, writing PLY frames and diagnostics (run --help)\n"
       "  validate SCENE   check a scene file without running it\n"
       "  bench            standard benchmark across backends and thread counts (bench --help)\n"
+      "  plot RUN_DIR     draw a run's diagnostics.csv to diagnostics.png (plot --help)\n"
       "  info             version, backends, precision, dependency versions\n";
   if (argc < 2) {
     std::cerr << usage;
@@ -44,6 +45,7 @@ int main(int argc, char** argv) {
   if (cmd == "validate") return validate_command(args);
   if (cmd == "bench") return bench_command(args);
   if (cmd == "info") return info_command(args);
+  if (cmd == "plot") return plot_command(args);
   if (cmd == "--help" || cmd == "-h" || cmd == "help") {
     std::cout << usage;
     return kOk;

@@ -16,6 +16,7 @@
 #include "core/errors.hpp"
 #include "core/exec/exec.hpp"
 #include "io/checkpoint.hpp"
+#include "io/preview.hpp"
 #include "io/scene.hpp"
 #include "io/vdb_points.hpp"
 #include "io/writers.hpp"
@@ -26,11 +27,13 @@ namespace {
 
 const char* kRunHelp =
     "usage: amalgam run SCENE.json [--backend serial|openmp|tbb] [--threads N] [--out DIR]\n"
-    "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--quiet]\n"
+    "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--preview] [--quiet]\n"
     "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
     "position, velocity, J, material and id per particle,\n"
     "DIR/diagnostics.csv (energies, momentum, max speed, substeps per frame) and\n"
     "DIR/checkpoint.amck (every N frames, at the last frame, and on SIGINT/SIGTERM).\n"
+    "--preview also renders DIR/preview_NNNN.png per frame (point splats; camera from the\n"
+    "scene's \"preview\" block or fitted to the objects).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
     "uninterrupted run (frames may be raised to extend it).\n"
     "Defaults: --backend openmp, --threads = all cores, --out = the scene's output.directory,\n"
@@ -88,7 +91,7 @@ int run_command(const std::vector<std::string>& args) {
   Options o;
   try {
     o = parse_options(args, {"--backend", "--threads", "--out", "--frames", "--checkpoint-every", "--resume"},
-                      {"--quiet", "--help"});
+                      {"--quiet", "--help", "--preview"});
     if (o.flag("--help")) {
       std::cout << kRunHelp;
       return kOk;
@@ -132,7 +135,14 @@ int run_command(const std::vector<std::string>& args) {
       std::snprintf(name, sizeof name, "/frame_%04d.%s", f, ext);
       return out_dir + name;
     };
+    const bool preview = o.flag("--preview");
+    const Camera camera = preview_camera(scene);
+    const double splat = preview_radius(scene), floor_y = preview_floor(scene);
     auto write_frame = [&](int f) {
+      if (preview)
+        write_png(frame_path(f, "png").replace(frame_path(f, "png").rfind("frame_"), 6, "preview_"),
+                  render_particles(solver.particles(), solver.attributes(), camera, splat, scene.preview.width,
+                                   scene.preview.height, scene.preview.color_by, floor_y));
       if (scene.output.ply) write_ply_points(frame_path(f, "ply"), solver.particles(), solver.attributes());
       if (scene.output.vdb_points)
         write_vdb_points(frame_path(f, "vdb"), solver.particles(), solver.attributes(), double(scene.mpm.dx));

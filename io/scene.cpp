@@ -1,6 +1,7 @@
 #include "io/scene.hpp"
 
 #include <cmath>
+#include <limits>
 #include <filesystem>
 #include <iostream>
 #include <fstream>
@@ -280,10 +281,32 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.output.diagnostics_csv = out.boolean("diagnostics_csv", true);
   s.output.checkpoint_every = int(out.integer("checkpoint_every", 10, 0, 1000000));
   out.finish();
+
+  if (top.has("preview")) {
+    JsonObject pv = top.object("preview");
+    s.preview.width = int(pv.integer("width", 640, 16, 8192));
+    s.preview.height = int(pv.integer("height", 480, 16, 8192));
+    const std::string c = pv.choice("color_by", "material", {"material", "speed", "temperature", "plastic"});
+    s.preview.color_by = c == "speed" ? ColorBy::Speed
+                         : c == "temperature" ? ColorBy::Temperature
+                         : c == "plastic" ? ColorBy::Plastic
+                                          : ColorBy::Material;
+    if (pv.has("camera")) {
+      JsonObject cam = pv.object("camera");
+      s.preview.camera_given = true;
+      s.preview.camera.eye = cam.required_vec3("position").cast<double>();
+      s.preview.camera.target = cam.required_vec3("look_at").cast<double>();
+      if (!((s.preview.camera.eye - s.preview.camera.target).norm() > 0))
+        cam.fail("look_at", "must differ from position");
+      s.preview.camera.fov_degrees = cam.number("fov_degrees", 35, 1, 170);
+      cam.finish();
+    }
+    pv.finish();
+  }
   top.finish();
 
   nlohmann::json physics = root;
-  for (const char* k : {"output", "name", "description"}) physics.erase(k);
+  for (const char* k : {"output", "name", "description", "preview"}) physics.erase(k);
   physics["simulation"].erase("frames");
   const std::string canon = physics.dump();
   s.fingerprint = fnv1a64(canon.data(), canon.size());
@@ -331,6 +354,38 @@ std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per
     }
     return false;
   });
+}
+
+Camera preview_camera(const Scene& scene) {
+  if (scene.preview.camera_given) return scene.preview.camera;
+  Vec3d lo = Vec3d::Constant(1e30), hi = Vec3d::Constant(-1e30);
+  for (const auto& o : scene.objects) {
+    Vec3d a = o.min.cast<double>(), b = o.max.cast<double>();
+    if (o.shape == ObjectShape::Mesh && o.mesh)
+      for (const auto& v : o.mesh->vertices) a = a.cwiseMin(v), b = b.cwiseMax(v);
+    lo = lo.cwiseMin(a), hi = hi.cwiseMax(b);
+  }
+  // Material spreads sideways and falls: widen by half the size, down to the floor.
+  const Vec3d size = hi - lo;
+  lo[0] -= 0.5 * size[0], hi[0] += 0.5 * size[0], lo[2] -= 0.5 * size[2], hi[2] += 0.5 * size[2];
+  for (const auto& c : scene.colliders)
+    if (c.shape == ColliderShape::HalfSpace && c.normal[1] > 0.9 && double(c.origin[1]) < lo[1])
+      lo[1] = double(c.origin[1]);
+  return fit_camera(lo, hi, 35, double(scene.preview.width) / double(scene.preview.height));
+}
+
+double preview_floor(const Scene& scene) {
+  double y = std::numeric_limits<double>::quiet_NaN();
+  for (const auto& c : scene.colliders)
+    if (c.shape == ColliderShape::HalfSpace && c.normal[1] > 0.9 && !(double(c.origin[1]) <= y))
+      y = double(c.origin[1]);
+  return y;
+}
+
+double preview_radius(const Scene& scene) {
+  int ppc = 1;
+  for (const auto& o : scene.objects) ppc = std::max(ppc, o.particles_per_cell);
+  return 0.6 * double(scene.mpm.dx) / std::cbrt(double(ppc));
 }
 
 ExplicitMpm build_solver(const Scene& scene) {

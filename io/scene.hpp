@@ -10,6 +10,7 @@
 
 #include "core/materials/material.hpp"
 #include "io/mesh.hpp"
+#include "io/preview.hpp"
 #include "kernels/colliders.hpp"
 #include "solvers/explicit_mpm.hpp"
 
@@ -55,6 +56,7 @@ struct Scene {
   std::vector<Collider> colliders;
   std::vector<HeatSource> heat_sources;
   OutputSpec output;
+  PreviewSpec preview;
   // Hash of everything that determines the simulated state (not output, frames, name,
   // description): a checkpoint only resumes a scene with the same fingerprint.
   std::uint64_t fingerprint = 0;
@@ -69,6 +71,14 @@ Scene parse_scene(const std::string& text, const std::string& file);
 // Samples an object's particles on a jittered lattice of spacing dx / cbrt(ppc), seeded and
 // reproducible; returns positions and sets the volume per particle.
 std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per_particle);
+
+// The preview camera: the scene's, or fitted to the objects' bounds (widened for material that
+// spreads) and the floor below them.
+Camera preview_camera(const Scene& scene);
+// Splat radius for previews: 0.6 particle spacings of the densest object.
+double preview_radius(const Scene& scene);
+// Height of the highest upward-facing half-space collider (the floor), or NaN.
+double preview_floor(const Scene& scene);
 
 // Builds a solver from a scene and fills its particles.
 ExplicitMpm build_solver(const Scene& scene);

@@ -1,11 +1,13 @@
-# Runs the default scene for 2 frames and checks the PLY frames and the diagnostics CSV.
+# Runs the default scene for 2 frames with previews, checks the PLY frames, the previews and the
+# diagnostics CSV, then draws the CSV with `amalgam plot`.
 file(REMOVE_RECURSE ${OUT})
-execute_process(COMMAND ${AMALGAM} run ${SCENE} --frames 2 --threads 2 --out ${OUT} RESULT_VARIABLE rc
+execute_process(COMMAND ${AMALGAM} run ${SCENE} --frames 2 --threads 2 --out ${OUT} --preview RESULT_VARIABLE rc
                 OUTPUT_VARIABLE out ERROR_VARIABLE err)
 if(NOT rc EQUAL 0)
   message(FATAL_ERROR "default scene failed (${rc}):\n${out}${err}")
 endif()
-foreach(f frame_0000.ply frame_0001.ply frame_0002.ply frame_0002.vdb diagnostics.csv checkpoint.amck)
+foreach(f frame_0000.ply frame_0001.ply frame_0002.ply frame_0002.vdb preview_0000.png preview_0002.png diagnostics.csv
+        checkpoint.amck)
   if(NOT EXISTS ${OUT}/${f})
     message(FATAL_ERROR "missing output ${OUT}/${f}")
   endif()
@@ -21,4 +23,12 @@ if(NOT nrows EQUAL 3)
 endif()
 if(NOT out MATCHES "per-kernel time")
   message(FATAL_ERROR "no per-kernel breakdown printed:\n${out}")
+endif()
+file(READ ${OUT}/preview_0002.png sig LIMIT 8 HEX)
+if(NOT sig STREQUAL "89504e470d0a1a0a")
+  message(FATAL_ERROR "preview_0002.png is not a PNG (signature ${sig})")
+endif()
+execute_process(COMMAND ${AMALGAM} plot ${OUT} RESULT_VARIABLE rc OUTPUT_VARIABLE out ERROR_VARIABLE err)
+if(NOT rc EQUAL 0 OR NOT EXISTS ${OUT}/diagnostics.png)
+  message(FATAL_ERROR "amalgam plot failed (${rc}):\n${out}${err}")
 endif()
