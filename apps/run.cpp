@@ -194,6 +194,9 @@ int run_command(const std::vector<std::string>& args) {
       row.sort_s = groups[2] - groups_before[2];
       row.grid_s = groups[3] - groups_before[3];
       row.other_s = std::max(0.0, (wall - wall_before) - row.p2g_s - row.g2p_s - row.sort_s - row.grid_s);
+      row.leaves = solver.grid().leaf_count();
+      row.active_leaves = solver.grid().active_leaves().size();
+      row.rss_mb = resident_mb();
       groups_before = groups;
       wall_before = wall;
       csv_rows.push_back(diagnostics_csv_line(row));

@@ -1,5 +1,7 @@
 #include "io/writers.hpp"
 
+#include <unistd.h>
+
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
@@ -78,7 +80,7 @@ void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmA
 
 std::string diagnostics_csv_header() {
   return "frame,time_s,last_dt_s,substeps,kinetic_J,elastic_J,momentum_x,momentum_y,momentum_z,max_speed_m_s,"
-         "particles,wall_s,p2g_s,g2p_s,sort_s,grid_s,other_s\n";
+         "particles,wall_s,p2g_s,g2p_s,sort_s,grid_s,other_s,leaves,active_leaves,rss_mb\n";
 }
 
 std::string diagnostics_csv_line(const DiagnosticsRow& r) {
@@ -87,8 +89,15 @@ std::string diagnostics_csv_line(const DiagnosticsRow& r) {
   os << r.frame << ',' << r.time << ',' << r.dt << ',' << r.substeps << ',' << r.d.kinetic << ',' << r.d.elastic << ','
      << r.d.momentum[0] << ',' << r.d.momentum[1] << ',' << r.d.momentum[2] << ',' << r.d.max_speed << ','
      << r.particles << ',' << r.wall_seconds << ',' << r.p2g_s << ',' << r.g2p_s << ',' << r.sort_s << ','
-     << r.grid_s << ',' << r.other_s << '\n';
+     << r.grid_s << ',' << r.other_s << ',' << r.leaves << ',' << r.active_leaves << ',' << r.rss_mb << '\n';
   return os.str();
+}
+
+double resident_mb() {
+  std::ifstream in("/proc/self/statm");
+  long long pages_total = 0, pages_resident = 0;
+  if (!(in >> pages_total >> pages_resident)) return 0;
+  return double(pages_resident) * double(sysconf(_SC_PAGESIZE)) / (1024.0 * 1024.0);
 }
 
 }  // namespace amalgam

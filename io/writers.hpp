@@ -28,7 +28,12 @@ struct DiagnosticsRow {
   // Seconds spent this frame in P2G, G2P, sorting (keys, radix sort, permutation, bins),
   // grid (topology, clear, update) and everything else (CFL check, diagnostics, output).
   double p2g_s = 0, g2p_s = 0, sort_s = 0, grid_s = 0, other_s = 0;
+  // Memory: grid leaves allocated and active this frame, resident set size of the process (MB).
+  std::size_t leaves = 0, active_leaves = 0;
+  double rss_mb = 0;
 };
+// Resident set size of this process in MB (Linux /proc/self/statm; 0 if unavailable).
+double resident_mb();
 std::string diagnostics_csv_header();
 std::string diagnostics_csv_line(const DiagnosticsRow& r);
 
