@@ -146,6 +146,8 @@ int run_command(const std::vector<std::string>& args) {
       if (scene.output.ply) write_ply_points(frame_path(f, "ply"), solver.particles(), solver.attributes());
       if (scene.output.vdb_points)
         write_vdb_points(frame_path(f, "vdb"), solver.particles(), solver.attributes(), double(scene.mpm.dx));
+      if (scene.output.grid_volumes && f > 0)  // the grid exists once a substep ran
+        write_vdb_grid_fields(frame_path(f, "grid.vdb"), solver.grid(), double(scene.mpm.dx));
     };
     if (first_frame == 1) write_frame(0);
 

@@ -279,6 +279,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.output.ply = out.boolean("ply", true);
   s.output.vdb_points = out.boolean("vdb_points", true);
   s.output.diagnostics_csv = out.boolean("diagnostics_csv", true);
+  s.output.grid_volumes = out.boolean("grid_volumes", false);
   s.output.checkpoint_every = int(out.integer("checkpoint_every", 10, 0, 1000000));
   out.finish();
 

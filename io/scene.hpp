@@ -41,6 +41,7 @@ struct OutputSpec {
   bool ply = true;
   bool vdb_points = true;
   bool diagnostics_csv = true;
+  bool grid_volumes = false;  // frame_NNNN_grid.vdb: node mass and velocity
   int checkpoint_every = 10;  // frames; 0 = only on SIGINT/SIGTERM
 };
 

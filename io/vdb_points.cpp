@@ -74,4 +74,43 @@ void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmA
   commit_temporary(tmp, path);
 }
 
+void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx) {
+  static std::once_flag init;
+  std::call_once(init, [] { openvdb::initialize(); });
+  const openvdb::math::Transform::Ptr xform = openvdb::math::Transform::createLinearTransform(dx);
+  auto mass = openvdb::FloatGrid::create(0.0f);
+  auto vel = openvdb::Vec3SGrid::create(openvdb::Vec3s(0.0f));
+  mass->setTransform(xform);
+  vel->setTransform(xform->copy());
+  mass->setName("mass");
+  vel->setName("velocity");
+  vel->setVectorType(openvdb::VEC_CONTRAVARIANT_RELATIVE);
+  auto ma = mass->getAccessor();
+  auto va = vel->getAccessor();
+  const Real* a = grid.node4(0);
+  for (const std::int32_t leaf : grid.active_leaves()) {
+    const Vec3i base = grid.leaf_coords()[size_t(leaf)] * kLeafDim;
+    const Real* n = a + size_t(leaf) * kLeafNodes * 4;
+    for (int i = 0; i < kLeafDim; ++i)
+      for (int j = 0; j < kLeafDim; ++j)
+        for (int k = 0; k < kLeafDim; ++k) {
+          const Real* node = n + leaf_offset(i, j, k) * 4;
+          if (!(node[0] > 0)) continue;
+          const openvdb::Coord c(base[0] + i, base[1] + j, base[2] + k);
+          ma.setValue(c, float(node[0]));
+          va.setValue(c, openvdb::Vec3s(float(node[1]), float(node[2]), float(node[3])));
+        }
+  }
+  const std::string tmp = path + ".tmp";
+  try {
+    openvdb::io::File file(tmp);
+    file.write(openvdb::GridCPtrVec{mass, vel});
+    file.close();
+  } catch (const std::exception& e) {
+    std::remove(tmp.c_str());
+    throw InputError(path + ": cannot write VDB grid fields: " + e.what());
+  }
+  commit_temporary(tmp, path);
+}
+
 }  // namespace amalgam

@@ -7,10 +7,16 @@
 #include <string>
 
 #include "core/particles/particle_set.hpp"
+#include "sparse_grid/sparse_grid.hpp"
 
 namespace amalgam {
 
 // `voxel_size` sets the point grid's voxel (the simulation dx is a good choice).
 void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a, double voxel_size);
+
+// Grid fields of the last substep as OpenVDB volumes: a FloatGrid "mass" (kg per node) and a
+// Vec3SGrid "velocity" (m/s, the updated grid velocity), voxel = node, voxel size dx, over the
+// active leaves (nodes with zero mass are left inactive). Houdini reads them with a File SOP.
+void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx);
 
 }  // namespace amalgam

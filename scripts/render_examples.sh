@@ -10,7 +10,7 @@ out="${AMALGAM_EXAMPLES_OUT:-$root/out/examples}"
 mkdir -p "$root/docs/images"
 scenes=("$@")
 if [ ${#scenes[@]} -eq 0 ]; then
-  for f in "$root"/scenes/*.json; do scenes+=("$(basename "$f" .json)"); done
+  for f in "$root"/scenes/*.json; do case "$(basename "$f")" in soak_*) ;; *) scenes+=("$(basename "$f" .json)") ;; esac; done
 fi
 for s in "${scenes[@]}"; do
   start=$(date +%s.%N)

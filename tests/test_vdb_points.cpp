@@ -72,3 +72,49 @@ TEST(VdbPoints, ReadBackFieldByField) {
   EXPECT_GT(heated, 0u);  // the temperature field is not trivially uniform
   std::filesystem::remove(path);
 }
+
+// Grid fields read back with OpenVDB: the node masses sum to the particles' mass (P2G conserves
+// mass), and every active voxel's velocity equals the grid's node velocity.
+TEST(VdbGridFields, ReadBackMassAndVelocity) {
+  const Scene scene = parse_scene(R"({
+    "simulation": {"dx": 0.04, "frames": 1},
+    "materials": {"a": {"density": 1000, "youngs_modulus": 1e4}},
+    "objects": [{"shape": "sphere", "center": [0.5,0.5,0.5], "radius": 0.15, "material": "a", "velocity": [1,-2,0.5]}]
+  })", "s.json");
+  ExplicitMpm solver = build_solver(scene);
+  const exec::Space space(exec::Backend::Serial, 1);
+  for (int i = 0; i < 3; ++i) solver.step(space, solver.stable_dt(space));
+  const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_grid.vdb").string();
+  write_vdb_grid_fields(path, solver.grid(), double(scene.mpm.dx));
+  openvdb::initialize();
+  openvdb::io::File file(path);
+  file.open();
+  const auto mass = openvdb::gridPtrCast<openvdb::FloatGrid>(file.readGrid("mass"));
+  const auto vel = openvdb::gridPtrCast<openvdb::Vec3SGrid>(file.readGrid("velocity"));
+  file.close();
+  ASSERT_TRUE(mass && vel);
+  EXPECT_NEAR(mass->voxelSize()[0], 0.04, 1e-7);
+  double total = 0;
+  size_t voxels = 0;
+  for (auto it = mass->cbeginValueOn(); it; ++it) total += double(*it), ++voxels;
+  double particles = 0;
+  for (size_t p = 0; p < solver.particles().size(); ++p) particles += double(solver.particles().real(solver.attributes().mass)[p]);
+  EXPECT_NEAR(total, particles, 1e-4 * particles);
+  EXPECT_EQ(vel->activeVoxelCount(), voxels);
+  // Spot-check velocities against the grid's own storage.
+  const SparseGrid& g = solver.grid();
+  auto va = vel->getConstAccessor();
+  size_t checked = 0;
+  for (const std::int32_t leaf : g.active_leaves()) {
+    const Vec3i base = g.leaf_coords()[size_t(leaf)] * kLeafDim;
+    const Real* n = g.node4(0) + size_t(leaf) * kLeafNodes * 4 + leaf_offset(3, 4, 5) * 4;
+    if (!(n[0] > 0)) continue;
+    const openvdb::Vec3s v = va.getValue(openvdb::Coord(base[0] + 3, base[1] + 4, base[2] + 5));
+    EXPECT_EQ(v[0], float(n[1]));
+    EXPECT_EQ(v[1], float(n[2]));
+    EXPECT_EQ(v[2], float(n[3]));
+    ++checked;
+  }
+  EXPECT_GT(checked, 0u);
+  std::filesystem::remove(path);
+}
