@@ -27,11 +27,14 @@ namespace {
 
 const char* kRunHelp =
     "usage: amalgam run SCENE.json [--backend serial|openmp|tbb] [--threads N] [--out DIR]\n"
-    "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--preview] [--quiet]\n"
+    "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--retries N]\n"
+    "                  [--preview] [--quiet]\n"
     "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
     "position, velocity, J, material and id per particle,\n"
     "DIR/diagnostics.csv (energies, momentum, max speed, substeps per frame) and\n"
     "DIR/checkpoint.amck (every N frames, at the last frame, and on SIGINT/SIGTERM).\n"
+    "--retries N (default 3): when the stability guard trips, the frame is restarted from its\n"
+    "beginning with the CFL number halved, up to N times, before the run stops with exit 1.\n"
     "--preview also renders DIR/preview_NNNN.png per frame (point splats; camera from the\n"
     "scene's \"preview\" block or fitted to the objects).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
@@ -90,7 +93,7 @@ exec::Space make_space(const Options& o, exec::Profiler* prof) {
 int run_command(const std::vector<std::string>& args) {
   Options o;
   try {
-    o = parse_options(args, {"--backend", "--threads", "--out", "--frames", "--checkpoint-every", "--resume"},
+    o = parse_options(args, {"--backend", "--threads", "--out", "--frames", "--checkpoint-every", "--resume", "--retries"},
                       {"--quiet", "--help", "--preview"});
     if (o.flag("--help")) {
       std::cout << kRunHelp;
@@ -158,6 +161,9 @@ int run_command(const std::vector<std::string>& args) {
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);
 
+    const int max_retries = o.get("--retries") ? parse_int("--retries", *o.get("--retries"), 0, 10) : 3;
+    const Real cfl0 = scene.mpm.cfl;
+    ParticleSet::Snapshot snapshot;
     const bool tty = isatty(fileno(stdout));
     const auto t_start = std::chrono::steady_clock::now();
     long long total_substeps = 0;
@@ -167,24 +173,45 @@ int run_command(const std::vector<std::string>& args) {
       const double t_frame_end = double(f) / scene.fps;
       long long substeps = 0;
       Real dt = 0;
-      // Tolerance covers the rounding of dt to Real; it is far below any physical substep.
-      while (solver.time() < t_frame_end - 1e-7 / scene.fps) {
-        // Split what is left of the frame evenly into CFL-stable substeps (no sliver at the end).
-        const double remaining = t_frame_end - solver.time();
-        const double n_left = std::ceil(remaining / double(solver.stable_dt(space)));
-        dt = Real(remaining / std::max(1.0, n_left));
-        solver.step(space, dt);
-        ++substeps;
-        if (g_signal) {  // interrupted: save the exact state mid-frame and stop
-          const int sig = g_signal;
-          write_checkpoint(checkpoint_path, solver, f, scene.fingerprint);
+      // Adaptive retry: the frame's starting state, restored if the stability guard trips.
+      const double t_frame_start = solver.time();
+      const std::uint64_t steps_frame_start = solver.step_count();
+      if (max_retries > 0) solver.particles().save(snapshot);
+      for (int attempt = 0;; ++attempt) {
+        try {
+          // Tolerance covers the rounding of dt to Real; it is far below any physical substep.
+          while (solver.time() < t_frame_end - 1e-7 / scene.fps) {
+            // Split what is left of the frame evenly into CFL-stable substeps (no sliver at the end).
+            const double remaining = t_frame_end - solver.time();
+            const double n_left = std::ceil(remaining / double(solver.stable_dt(space)));
+            dt = Real(remaining / std::max(1.0, n_left));
+            solver.step(space, dt);
+            ++substeps;
+            if (g_signal) {  // interrupted: save the exact state mid-frame and stop
+              const int sig = g_signal;
+              write_checkpoint(checkpoint_path, solver, f, scene.fingerprint);
+              if (tty && !quiet) std::cout << "\n";
+              std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM") << " received: checkpoint written to "
+                        << checkpoint_path << " (t = " << solver.time() << " s, frame " << f
+                        << " in progress); continue with --resume " << checkpoint_path << "\n";
+              return 128 + sig;
+            }
+          }
+          break;
+        } catch (const SimulationError& e) {
+          if (attempt >= max_retries) throw;
+          const Real cfl = cfl0 * Real(std::pow(0.5, attempt + 1));
           if (tty && !quiet) std::cout << "\n";
-          std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM") << " received: checkpoint written to "
-                    << checkpoint_path << " (t = " << solver.time() << " s, frame " << f
-                    << " in progress); continue with --resume " << checkpoint_path << "\n";
-          return 128 + sig;
+          std::cerr << "amalgam: warning: frame " << f << ": " << e.what() << "\namalgam: retrying frame " << f
+                    << " from its start with cfl = " << cfl << " (retry " << attempt + 1 << " of " << max_retries
+                    << ")\n";
+          solver.particles().restore(snapshot);
+          solver.restore_clock(t_frame_start, steps_frame_start);
+          solver.set_cfl(cfl);
+          substeps = 0;
         }
       }
+      solver.set_cfl(cfl0);
       total_substeps += substeps;
       const MpmDiagnostics d = solver.diagnostics(space);
       write_frame(f);

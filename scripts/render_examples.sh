@@ -13,6 +13,7 @@ if [ ${#scenes[@]} -eq 0 ]; then
   for f in "$root"/scenes/*.json; do case "$(basename "$f")" in soak_*) ;; *) scenes+=("$(basename "$f" .json)") ;; esac; done
 fi
 for s in "${scenes[@]}"; do
+  rm -rf "${out:?}/$s"
   start=$(date +%s.%N)
   /usr/bin/time -f "%M" -o "$out.$s.mem" "$bin" run "$root/scenes/$s.json" --preview --quiet --out "$out/$s" \
     --checkpoint-every 0 || { echo "$s: FAILED"; continue; }

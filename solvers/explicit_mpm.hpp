@@ -83,6 +83,8 @@ class ExplicitMpm {
   // Whether update_materials has anything to do (plastic, fluid or melting material, heat source).
   bool has_material_update() const { return material_update_; }
 
+  // CFL number used by stable_dt (lowered while retrying a failed frame).
+  void set_cfl(Real cfl) { settings_.cfl = cfl; }
   // Restores the clock after particles were loaded from a checkpoint.
   void restore_clock(double time, std::uint64_t steps) {
     time_ = time;

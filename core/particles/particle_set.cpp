@@ -40,6 +40,18 @@ void ParticleSet::resize(std::size_t n) {
   n_ = n;
 }
 
+void ParticleSet::save(Snapshot& s) const {
+  s.n = n_;
+  s.words.resize(attrs_.size());
+  for (size_t a = 0; a < attrs_.size(); ++a) s.words[a] = attrs_[a].front;  // reuses capacity
+}
+
+void ParticleSet::restore(const Snapshot& s) {
+  if (s.words.size() != attrs_.size()) throw std::invalid_argument("particle snapshot has a different layout");
+  resize(s.n);
+  for (size_t a = 0; a < attrs_.size(); ++a) attrs_[a].front = s.words[a];
+}
+
 std::size_t ParticleSet::bytes_per_particle() const {
   size_t b = 0;
   for (const auto& a : attrs_) b += 2 * 4 * size_t(a.words());

@@ -55,6 +55,15 @@ class ParticleSet {
   // For every attribute: front[i] = old_front[perm[i]] for i < size().
   void permute(const exec::Space& space, const std::uint32_t* perm);
 
+  // A copy of every attribute's values (front buffers only: half the set's memory), and its
+  // restoration into a set with the same attributes (used to retry a failed frame).
+  struct Snapshot {
+    std::size_t n = 0;
+    std::vector<std::vector<std::uint32_t>> words;
+  };
+  void save(Snapshot& s) const;
+  void restore(const Snapshot& s);
+
  private:
   struct Attr {
     std::string name;
