@@ -262,4 +262,40 @@ std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, st
   return out;
 }
 
+std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin) {
+  static std::once_flag init;
+  std::call_once(init, [] { openvdb::initialize(); });
+  std::vector<openvdb::Vec3s> pts;
+  pts.reserve(m.vertices.size());
+  for (const auto& v : m.vertices) pts.emplace_back(float(v[0]), float(v[1]), float(v[2]));
+  std::vector<openvdb::Vec3I> tris;
+  tris.reserve(m.triangles.size());
+  for (const auto& t : m.triangles) tris.emplace_back(t[0], t[1], t[2]);
+  std::vector<openvdb::Vec4I> quads;
+  Vec3d lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
+  for (const auto& v : m.vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+  const auto xform = openvdb::math::Transform::createLinearTransform(h);
+  const float band_out = float(margin / h) + 2.0f, band_in = float((hi - lo).maxCoeff() / h) + 2.0f;
+  const auto grid =
+      openvdb::tools::meshToSignedDistanceField<openvdb::FloatGrid>(*xform, pts, tris, quads, band_out, band_in);
+  auto sdf = std::make_shared<SdfGrid>();
+  sdf->h = h;
+  sdf->origin = lo - Vec3d::Constant(margin);
+  for (int a = 0; a < 3; ++a) sdf->n[a] = int(std::ceil((hi[a] - lo[a] + 2 * margin) / h)) + 2;
+  if (double(sdf->n[0]) * sdf->n[1] * sdf->n[2] > 2e8)
+    throw InputError("mesh collider: the baked distance field would exceed 2e8 samples; coarsen dx");
+  sdf->outside = float(margin);
+  sdf->phi.resize(size_t(sdf->n[0]) * size_t(sdf->n[1]) * size_t(sdf->n[2]));
+  const auto acc = grid->getConstAccessor();
+  openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler> sampler(acc, *xform);
+  size_t q = 0;
+  for (int k = 0; k < sdf->n[2]; ++k)
+    for (int j = 0; j < sdf->n[1]; ++j)
+      for (int i = 0; i < sdf->n[0]; ++i) {
+        const Vec3d p = sdf->origin + h * Vec3d(i, j, k);
+        sdf->phi[q++] = float(sampler.wsSample(openvdb::Vec3d(p[0], p[1], p[2])));
+      }
+  return sdf;
+}
+
 }  // namespace amalgam

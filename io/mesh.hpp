@@ -4,11 +4,13 @@
 #pragma once
 
 #include <array>
+#include <memory>
 #include <cstdint>
 #include <string>
 #include <vector>
 
 #include "core/math/types.hpp"
+#include "kernels/colliders.hpp"
 
 namespace amalgam {
 
@@ -33,5 +35,10 @@ double enclosed_volume(const TriangleMesh& m);
 // Lattice points of spacing h (jittered by jitter * h, seeded) inside the mesh, in the mesh's
 // coordinates. Inside/outside from a level set of voxel size h.
 std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed);
+
+// Signed distance field of the mesh (tools::meshToSignedDistanceField, exact distance inside
+// and out to `margin` beyond the surface), baked into a dense array of spacing h covering the
+// mesh's box plus margin: what a mesh collider samples.
+std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin);
 
 }  // namespace amalgam

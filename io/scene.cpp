@@ -181,9 +181,14 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
 }
 
 // Geometry and motion shared by colliders and heat sources.
-Collider read_region(JsonObject& o) {
+Collider read_region(JsonObject& o, bool allow_mesh = false) {
   Collider c;
-  const std::string type = o.choice("type", "", {"half_space", "box", "sphere"});
+  const std::string type = allow_mesh ? o.choice("type", "", {"half_space", "box", "sphere", "mesh"})
+                                      : o.choice("type", "", {"half_space", "box", "sphere"});
+  if (type == "mesh") {
+    c.shape = ColliderShape::Mesh;
+    return c;  // the caller reads the mesh
+  }
   if (type == "half_space") {
     c.shape = ColliderShape::HalfSpace;
     c.origin = o.required_vec3("point");
@@ -204,8 +209,42 @@ Collider read_region(JsonObject& o) {
   return c;
 }
 
-Collider read_collider(JsonObject o) {
-  Collider c = read_region(o);
+// Mesh collider: the mesh (file, scale, rotate_degrees, translate, allow_open) is its rest pose,
+// baked to a signed distance field of spacing dx; it moves with `velocity` or by `keyframes`
+// (time, translate, rotate_degrees: a rigid motion about `pivot`, default the mesh's box centre).
+void read_mesh_collider(JsonObject& o, Collider& c, const std::string& scene_file, Real dx) {
+  const std::shared_ptr<const TriangleMesh> mesh = read_mesh_object(o, scene_file);
+  Vec3d lo = Vec3d::Constant(1e300), hi = Vec3d::Constant(-1e300);
+  for (const auto& v : mesh->vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+  try {
+    c.sdf = bake_sdf(*mesh, double(dx), 4.0 * double(dx));
+  } catch (const InputError& e) {
+    o.fail("file", e.what());
+  }
+  c.pivot = o.vec3("pivot", (0.5 * (lo + hi)).cast<Real>());
+  const bool has_velocity = o.has("velocity");
+  c.velocity = o.vec3("velocity", Vec3::Zero());
+  const double k = M_PI / 180.0;
+  for (auto& kf : o.objects("keyframes")) {
+    RigidKeyframe key;
+    key.time = Real(kf.required_number("time", 0, kHuge));
+    if (!c.keys.empty() && !(key.time > c.keys.back().time)) kf.fail("time", "keyframe times must increase");
+    key.translation = kf.vec3("translate", Vec3::Zero());
+    const Vec3d deg = kf.vec3("rotate_degrees", Vec3::Zero()).cast<double>();
+    key.rotation = Eigen::Quaternion<Real>((Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) *
+                                            Eigen::AngleAxisd(deg[1] * k, Vec3d::UnitY()) *
+                                            Eigen::AngleAxisd(deg[0] * k, Vec3d::UnitX()))
+                                               .toRotationMatrix()
+                                               .cast<Real>());
+    kf.finish();
+    c.keys.push_back(key);
+  }
+  if (has_velocity && !c.keys.empty()) o.fail("velocity", "give either velocity or keyframes, not both");
+}
+
+Collider read_collider(JsonObject o, const std::string& scene_file, Real dx) {
+  Collider c = read_region(o, true);
+  if (c.shape == ColliderShape::Mesh) read_mesh_collider(o, c, scene_file, dx);
   const std::string b = o.choice("boundary", "separate", {"sticky", "slip", "separate"});
   c.boundary = b == "sticky" ? BoundaryType::Sticky : b == "slip" ? BoundaryType::Slip : BoundaryType::Separate;
   c.friction = Real(o.number("friction", 0, 0, 100));
@@ -266,7 +305,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   if (!top.has("objects")) top.fail("objects", "missing required array of objects");
   for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file));
   if (s.objects.empty()) top.fail("objects", "define at least one object");
-  for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c));
+  for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c, file, s.mpm.dx));
   for (auto& h : top.objects("heat_sources")) s.heat_sources.push_back(read_heat_source(h));
   if (!s.heat_sources.empty()) {
     bool melts = false;

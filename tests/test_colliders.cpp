@@ -2,6 +2,12 @@
 // with Coulomb friction (Stomakhin et al. 2013).
 #include <gtest/gtest.h>
 
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <random>
+
+#include "io/scene.hpp"
 #include "kernels/colliders.hpp"
 
 using namespace amalgam;
@@ -81,4 +87,98 @@ TEST(Colliders, StickySlipSeparateAndFriction) {
   v = Vec3(1, 0.5, 0);  // slower than the lifting floor: pushed up to its speed
   lift.project(inside + Vec3(0, 1, 0), 1, v);
   expect_vec(v, Vec3(1, 1, 0));
+}
+
+namespace {
+// A closed cube mesh (12 outward triangles) of half size `a` centred at c, written as OBJ.
+std::string write_cube(const std::string& name, const Vec3d& c, double a) {
+  const std::string path = (std::filesystem::temp_directory_path() / name).string();
+  std::ofstream f(path);
+  for (int i = 0; i < 8; ++i)
+    f << "v " << c[0] + ((i & 1) ? a : -a) << " " << c[1] + ((i & 2) ? a : -a) << " " << c[2] + ((i & 4) ? a : -a) << "\n";
+  // faces (1-based), counter-clockwise seen from outside
+  f << "f 1 3 4 2\nf 5 6 8 7\nf 1 2 6 5\nf 3 7 8 4\nf 1 5 7 3\nf 2 4 8 6\n";
+  return path;
+}
+double box_sdf(const Vec3d& x, const Vec3d& c, double a) {
+  const Vec3d q = (x - c).cwiseAbs() - Vec3d::Constant(a);
+  return q.cwiseMax(0.0).norm() + std::min(q.maxCoeff(), 0.0);
+}
+Scene mesh_collider_scene(const std::string& obj, const std::string& collider_extra) {
+  return parse_scene(R"({"simulation": {"dx": 0.02, "frames": 1},
+    "materials": {"a": {"density": 1000, "youngs_modulus": 2e4}},
+    "objects": [{"shape": "box", "min": [0.4, 0.55, 0.4], "max": [0.6, 0.65, 0.6], "material": "a"}],
+    "colliders": [{"type": "mesh", "file": ")" + obj + R"(", "boundary": "slip")" + collider_extra + R"(}]})",
+                     "inline.json");
+}
+}  // namespace
+
+// The baked SDF of a cube mesh matches the analytic box distance within one cell (trilinear
+// interpolation of the exact field; edges and corners are where it is worst).
+TEST(MeshCollider, BakedDistanceMatchesTheBox) {
+  const std::string obj = write_cube("amalgam_cube.obj", Vec3d(0.5, 0.3, 0.5), 0.2);
+  const Scene s = mesh_collider_scene(obj, "");
+  ASSERT_EQ(s.colliders.size(), 1u);
+  const Collider& c = s.colliders[0];
+  ASSERT_EQ(c.shape, ColliderShape::Mesh);
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<double> u(0.22, 0.78);
+  double worst = 0;
+  for (int t = 0; t < 2000; ++t) {
+    const Vec3d x(u(rng), u(rng) - 0.2, u(rng));
+    worst = std::max(worst, std::abs(double(c.phi(x.cast<Real>(), 0)) - box_sdf(x, Vec3d(0.5, 0.3, 0.5), 0.2)));
+  }
+  EXPECT_LT(worst, 0.02);
+  // Normals point out of the faces.
+  EXPECT_GT(c.outward_normal(Vec3(0.5, 0.51, 0.5), 0).dot(Vec3::UnitY()), Real(0.99));
+  EXPECT_GT(c.outward_normal(Vec3(0.29, 0.3, 0.5), 0).dot(-Vec3::UnitX()), Real(0.99));
+  std::remove(obj.c_str());
+}
+
+// Keyframes: translation is linear and rotation slerped between keys; the collider's point
+// velocity is the segment's v + omega x r.
+TEST(MeshCollider, KeyframedPoseAndVelocity) {
+  const std::string obj = write_cube("amalgam_cube2.obj", Vec3d(0.5, 0.3, 0.5), 0.1);
+  const Scene s = mesh_collider_scene(obj, R"(, "keyframes": [{"time": 0}, {"time": 1, "translate": [0.2, 0, 0],
+                                              "rotate_degrees": [0, 90, 0]}])");
+  const Collider& c = s.colliders[0];
+  // At t = 1 the cube is at (0.7, 0.3, 0.5); at t = 0.5 at (0.6, 0.3, 0.5), turned 45 deg.
+  EXPECT_NEAR(double(c.phi(Vec3(0.7, 0.3, 0.5), 1)), -0.1, 0.01);
+  EXPECT_NEAR(double(c.phi(Vec3(0.7, 0.45, 0.5), 1)), 0.05, 0.01);
+  const double diag = 0.1 * std::sqrt(2.0);  // half diagonal of the turned square along x
+  EXPECT_NEAR(double(c.phi(Vec3(Real(0.6 + diag + 0.03), 0.3, 0.5), 0.5)), 0.03 / 1.0, 0.012);
+  const Vec3 v = c.velocity_at(Vec3(0.6, 0.3, 0.6), 0.5);  // 0.1 m from the pivot along z
+  EXPECT_NEAR(double(v[0]), 0.2 + (M_PI / 2) * 0.1, 1e-4);  // v + omega x r: omega = pi/2 about y
+  EXPECT_NEAR(double(v[2]), 0.0, 1e-4);
+  // Before the first and after the last key the collider rests.
+  EXPECT_NEAR(double(c.velocity_at(Vec3(0.7, 0.3, 0.5), 2).norm()), 0.0, 1e-9);
+  std::remove(obj.c_str());
+}
+
+// An elastic block dropped on a mesh box lands on its top face and bounces there: during the whole
+// run no particle goes more than a millimetre into the box or below its top face by more than
+// a cell, and the block ends above the face.
+TEST(MeshCollider, BlockLandsOnMeshBox) {
+  const std::string obj = write_cube("amalgam_cube3.obj", Vec3d(0.5, 0.3, 0.5), 0.2);
+  const Scene s = mesh_collider_scene(obj, "");
+  ExplicitMpm solver = build_solver(s);
+  const exec::Space space(exec::Backend::OpenMP, 2);
+  const auto& ps = solver.particles();
+  double ymin_run = 1e9, centre = 0;
+  int steps = 0;
+  while (solver.time() < 0.6) {
+    solver.step(space, solver.stable_dt(space));
+    if (++steps % 10) continue;
+    centre = 0;
+    for (size_t p = 0; p < ps.size(); ++p) {
+      const Vec3 x = ps.vec3(solver.attributes().x)[p];
+      ymin_run = std::min(ymin_run, double(x[1]));
+      centre += double(x[1]) / double(ps.size());
+      ASSERT_GE(double(s.colliders[0].phi(x, Real(solver.time()))), -1e-3) << "particle inside the mesh";
+    }
+  }
+  EXPECT_GT(ymin_run, 0.5 - 0.02);
+  EXPECT_GT(centre, 0.5);
+  EXPECT_LT(centre, 0.7);
+  std::remove(obj.c_str());
 }
