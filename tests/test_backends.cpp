@@ -2,6 +2,9 @@
 // Serial, OpenMP and TBB with 1 and 2 threads, for every transfer and both spline orders.
 #include <gtest/gtest.h>
 
+#include <filesystem>
+#include <fstream>
+
 #include "io/scene.hpp"
 #include "test_util.hpp"
 
@@ -34,9 +37,16 @@ std::vector<Real> state_bytes(const ExplicitMpm& s) {
   return out;
 }
 
-// Every material model with state (return mappings, F reset, melting under a heat source) and
-// the particle collision pass.
+// Every material model with state (return mappings, F reset, melting under a heat source), the
+// particle collision pass and a keyframed mesh collider (a cube sweeping through the snow).
 Scene material_scene() {
+  const std::string cube = (std::filesystem::temp_directory_path() / "amalgam_backend_cube.obj").string();
+  {
+    std::ofstream f(cube);
+    for (int i = 0; i < 8; ++i)
+      f << "v " << ((i & 1) ? 0.06 : -0.06) << " " << ((i & 2) ? 0.06 : -0.06) << " " << ((i & 4) ? 0.06 : -0.06) << "\n";
+    f << "f 1 3 4 2\nf 5 6 8 7\nf 1 2 6 5\nf 3 7 8 4\nf 1 5 7 3\nf 2 4 8 6\n";
+  }
   const std::string text = R"({
     "simulation": {"dx": 0.04, "frames": 1},
     "materials": {
@@ -52,7 +62,9 @@ Scene material_scene() {
       {"shape": "sphere", "center": [0.4, 0.7, 0.4], "radius": 0.08, "material": "metal", "velocity": [0, -4, 0]},
       {"shape": "box", "min": [0.6, 0.55, 0.3], "max": [0.75, 0.7, 0.45], "material": "water", "velocity": [0, -1, 0]},
       {"shape": "box", "min": [0.2, 0.26, 0.6], "max": [0.4, 0.4, 0.75], "material": "wax", "temperature": 300}],
-    "colliders": [{"type": "half_space", "point": [0, 0.25, 0], "normal": [0, 1, 0], "boundary": "sticky"}],
+    "colliders": [{"type": "half_space", "point": [0, 0.25, 0], "normal": [0, 1, 0], "boundary": "sticky"},
+                  {"type": "mesh", "file": ")" + cube + R"(", "translate": [0.25, 0.4, 0.4], "boundary": "separate",
+                   "friction": 0.5, "keyframes": [{"time": 0}, {"time": 0.05, "translate": [0.3, 0, 0], "rotate_degrees": [0, 0, 60]}]}],
     "heat_sources": [{"type": "half_space", "point": [0, 0.3, 0], "normal": [0, 1, 0], "temperature": 400, "rate": 200}]
   })";
   return parse_scene(text, "inline.json");
