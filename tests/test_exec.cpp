@@ -59,7 +59,7 @@ TEST(Exec, ScanMatchesSerialPrefixSum) {
 
 TEST(Exec, ProfilerTimesLabelledRegions) {
   exec::Profiler prof;
-  exec::Space s(exec::Backend::OpenMP, 2, &prof);
+  exec::Space s(test::parallel_backend(), 2, &prof);
   std::vector<double> v(100000);
   for (int r = 0; r < 3; ++r)
     exec::parallel_for(s, "t.work", exec::Index(v.size()), [&](exec::Index i) { v[size_t(i)] = std::sqrt(double(i)); });

@@ -47,7 +47,7 @@ TEST(Binning, SortsStablyAndBinsMatchBruteForce) {
     }
     ParticleBinning binning;
     BinTable bins;
-    exec::Space s(exec::Backend::OpenMP, 2);
+    exec::Space s(test::parallel_backend(), 2);
     binning.sort_and_bin(s, ps, x, dx, order, bins);
     ASSERT_EQ(bins.count(), expect.size());
     for (size_t b = 0; b < bins.count(); ++b) {

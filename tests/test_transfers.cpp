@@ -95,7 +95,7 @@ class TransferConservation : public ::testing::TestWithParam<std::tuple<Transfer
 TEST_P(TransferConservation, P2GConservesMassMomentumAndAngularMomentum) {
   const auto [transfer, order] = GetParam();
   ExplicitMpm s = make_blob(transfer, order);
-  const exec::Space space(exec::Backend::OpenMP, 2);
+  const exec::Space space(test::parallel_backend(), 2);
   const bool affine = transfer != Transfer::PicFlip;
   const Moments before = particle_moments(s, affine);
   s.sort_particles(space);

@@ -7,6 +7,7 @@
 #include <tbb/task_arena.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cctype>
 #include <stdexcept>
 #include <thread>
@@ -44,6 +45,17 @@ void run_chunks(const BackendState& s, Index nchunks, ChunkFn fn, void* ctx) {
             tbb::simple_partitioner());
       });
       break;
+    case Backend::Threads: {
+      std::atomic<Index> next{0};
+      auto work = [&] {
+        for (Index c = next.fetch_add(1); c < nchunks; c = next.fetch_add(1)) fn(ctx, c);
+      };
+      std::vector<std::thread> pool;
+      for (int t = 1; t < s.threads; ++t) pool.emplace_back(work);
+      work();
+      for (auto& th : pool) th.join();
+      break;
+    }
   }
 }
 }  // namespace detail
@@ -53,6 +65,7 @@ const char* backend_name(Backend b) {
     case Backend::Serial: return "serial";
     case Backend::OpenMP: return "openmp";
     case Backend::TBB: return "tbb";
+    case Backend::Threads: return "threads";
   }
   return "?";
 }
@@ -63,7 +76,8 @@ Backend parse_backend(const std::string& name) {
   if (s == "serial") return Backend::Serial;
   if (s == "openmp" || s == "omp") return Backend::OpenMP;
   if (s == "tbb") return Backend::TBB;
-  throw std::invalid_argument("unknown backend '" + name + "' (expected serial, openmp or tbb)");
+  if (s == "threads") return Backend::Threads;
+  throw std::invalid_argument("unknown backend '" + name + "' (expected serial, openmp, tbb or threads)");
 }
 
 std::vector<Backend> available_backends() { return {Backend::Serial, Backend::OpenMP, Backend::TBB}; }

@@ -22,7 +22,11 @@ namespace amalgam::exec {
 
 using Index = std::int64_t;
 
-enum class Backend { Serial, OpenMP, TBB };
+// Threads: plain std::threads started per parallel region, pulling chunks from an atomic counter.
+// Slower (thread start-up per region); it exists so ThreadSanitizer, which cannot see inside the
+// uninstrumented libgomp and libtbb of Debian, can check the kernels for data races
+// (scripts/test_tsan.sh). Not listed by available_backends().
+enum class Backend { Serial, OpenMP, TBB, Threads };
 
 const char* backend_name(Backend b);
 // Parses "serial", "openmp", "tbb" (case-insensitive); throws std::invalid_argument otherwise.
