@@ -235,15 +235,26 @@ double enclosed_volume(const TriangleMesh& m) {
   return v / 6.0;
 }
 
-std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed) {
-  static std::once_flag init;
-  std::call_once(init, [] { openvdb::initialize(); });
+namespace {
+// The mesh in OpenVDB's types (float points, index triangles), OpenVDB initialised.
+struct VdbMesh {
   std::vector<openvdb::Vec3s> pts;
-  pts.reserve(m.vertices.size());
-  for (const auto& v : m.vertices) pts.emplace_back(float(v[0]), float(v[1]), float(v[2]));
   std::vector<openvdb::Vec3I> tris;
-  tris.reserve(m.triangles.size());
-  for (const auto& t : m.triangles) tris.emplace_back(t[0], t[1], t[2]);
+  explicit VdbMesh(const TriangleMesh& m) {
+    static std::once_flag init;
+    std::call_once(init, [] { openvdb::initialize(); });
+    pts.reserve(m.vertices.size());
+    for (const auto& v : m.vertices) pts.emplace_back(float(v[0]), float(v[1]), float(v[2]));
+    tris.reserve(m.triangles.size());
+    for (const auto& t : m.triangles) tris.emplace_back(t[0], t[1], t[2]);
+  }
+};
+}  // namespace
+
+std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed) {
+  const VdbMesh vm(m);
+  const auto& pts = vm.pts;
+  const auto& tris = vm.tris;
   const auto xform = openvdb::math::Transform::createLinearTransform(h);
   // Level set in world units; interior beyond the narrow band is flood-filled negative.
   const auto sdf = openvdb::tools::meshToLevelSet<openvdb::FloatGrid>(*xform, pts, tris, 3.0f);
@@ -263,14 +274,9 @@ std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, st
 }
 
 std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin) {
-  static std::once_flag init;
-  std::call_once(init, [] { openvdb::initialize(); });
-  std::vector<openvdb::Vec3s> pts;
-  pts.reserve(m.vertices.size());
-  for (const auto& v : m.vertices) pts.emplace_back(float(v[0]), float(v[1]), float(v[2]));
-  std::vector<openvdb::Vec3I> tris;
-  tris.reserve(m.triangles.size());
-  for (const auto& t : m.triangles) tris.emplace_back(t[0], t[1], t[2]);
+  const VdbMesh vm(m);
+  const auto& pts = vm.pts;
+  const auto& tris = vm.tris;
   std::vector<openvdb::Vec4I> quads;
   Vec3d lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
   for (const auto& v : m.vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);

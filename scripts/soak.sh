@@ -4,6 +4,7 @@
 # checkpoint) and prints RSS, allocated leaves and active leaves after warm-up: they must stay
 # flat. Files: OUT/rss.csv (elapsed_s, rss_mb) and OUT/diagnostics.csv (per frame, with leaves and
 # rss_mb columns). Usage: scripts/soak.sh [SCENE] [MINUTES] [THREADS]
+# AMALGAM_SOAK_RESUME=CHECKPOINT continues an earlier soak (its checkpoint, copied elsewhere).
 set -euo pipefail
 root="$(cd "$(dirname "$0")/.." && pwd)"
 scene="${1:-$root/scenes/soak_million.json}"
@@ -12,7 +13,9 @@ threads="${3:-2}"
 bin="${AMALGAM_BUILD_DIR:-$root/build}/bin/amalgam"
 out="${AMALGAM_SOAK_OUT:-$root/out/soak}"
 rm -rf "$out" && mkdir -p "$out"
-"$bin" run "$scene" --threads "$threads" --quiet --out "$out" &
+resume=()
+if [ -n "${AMALGAM_SOAK_RESUME:-}" ]; then resume=(--resume "$AMALGAM_SOAK_RESUME"); fi
+"$bin" run "$scene" --threads "$threads" --quiet --out "$out" "${resume[@]}" &
 pid=$!
 echo "elapsed_s,rss_mb" > "$out/rss.csv"
 start=$(date +%s)

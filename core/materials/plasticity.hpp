@@ -13,6 +13,21 @@
 
 namespace amalgam {
 
+namespace detail {
+// Principal logarithmic strains log(max(sigma_i, min)) and F rebuilt from them, for the return
+// mappings on Hencky strain.
+template <class T>
+Eigen::Matrix<T, 3, 1> log_sigma(const Svd3<T>& d, T min_sigma) {
+  Eigen::Matrix<T, 3, 1> e;
+  for (int i = 0; i < 3; ++i) e[i] = std::log(std::max(d.sigma[i], min_sigma));
+  return e;
+}
+template <class T>
+Eigen::Matrix<T, 3, 3> from_log_sigma(const Svd3<T>& d, const Eigen::Matrix<T, 3, 1>& e) {
+  return d.U * Eigen::Matrix<T, 3, 1>(std::exp(e[0]), std::exp(e[1]), std::exp(e[2])).asDiagonal() * d.V.transpose();
+}
+}  // namespace detail
+
 // Snow (Stomakhin et al. 2013, Sec. 5): singular values of F_E clamped to [1 - theta_c,
 // 1 + theta_s] (critical compression and stretch), the rest goes to F_P; hardening scales the
 // fixed-corotated Lame parameters by exp(xi (1 - J_P)) (their eq. 3). State: J_P = det F_P.
@@ -84,8 +99,7 @@ struct DruckerPragerT {
   }
   bool project(M3& FE, T& vc) const {
     const Svd3<T> d = svd3(FE);
-    V3 e0;
-    for (int i = 0; i < 3; ++i) e0[i] = std::log(std::max(d.sigma[i], kMinSigma));
+    const V3 e0 = detail::log_sigma(d, kMinSigma);
     const T shift = volume_correction ? vc / T(3) : T(0);
     V3 e = e0 + V3::Constant(shift);
     const T tr = e.sum();
@@ -105,7 +119,7 @@ struct DruckerPragerT {
     // v_c <- v_c + log det F_trial - log det F_E,new (Tampubolon et al. 2017): zero after
     // cases I and III, the volume gained after case II.
     if (volume_correction) vc += e0.sum() - e.sum();
-    FE = d.U * V3(std::exp(e[0]), std::exp(e[1]), std::exp(e[2])).asDiagonal() * d.V.transpose();
+    FE = detail::from_log_sigma(d, e);
     return true;
   }
 };
@@ -129,8 +143,7 @@ struct VonMisesT {
   }
   bool project(M3& FE, T& a) const {
     const Svd3<T> d = svd3(FE);
-    V3 e;
-    for (int i = 0; i < 3; ++i) e[i] = std::log(std::max(d.sigma[i], kMinSigma));
+    V3 e = detail::log_sigma(d, kMinSigma);
     const V3 dev = e - V3::Constant(e.sum() / T(3));
     const T n = dev.norm();
     const T f = T(2) * mu * n - std::sqrt(T(2) / T(3)) * (yield_stress + hardening * a);
@@ -138,7 +151,7 @@ struct VonMisesT {
     const T dl = f / (T(2) * mu + T(2) / T(3) * hardening);
     e -= (dl / n) * dev;
     a += std::sqrt(T(2) / T(3)) * dl;
-    FE = d.U * V3(std::exp(e[0]), std::exp(e[1]), std::exp(e[2])).asDiagonal() * d.V.transpose();
+    FE = detail::from_log_sigma(d, e);
     return true;
   }
 };
