@@ -26,7 +26,7 @@ namespace amalgam::cli {
 namespace {
 
 const char* kRunHelp =
-    "usage: amalgam run SCENE.json [--backend serial|openmp|tbb] [--threads N] [--out DIR]\n"
+    "usage: amalgam run SCENE.json [--backend serial|openmp|tbb|threads] [--threads N] [--out DIR]\n"
     "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--retries N]\n"
     "                  [--preview] [--quiet]\n"
     "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
@@ -39,7 +39,8 @@ const char* kRunHelp =
     "scene's \"preview\" block or fitted to the objects).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
     "uninterrupted run (frames may be raised to extend it).\n"
-    "Defaults: --backend openmp, --threads = all cores, --out = the scene's output.directory,\n"
+    "Defaults: --backend openmp (threads: plain std::threads, for ThreadSanitizer runs), --threads =\n"
+    "all cores, --out = the scene's output.directory,\n"
     "--frames = the scene's simulation.frames, --checkpoint-every = output.checkpoint_every.\n";
 
 volatile std::sig_atomic_t g_signal = 0;
