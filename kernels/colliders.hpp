@@ -75,15 +75,20 @@ struct Collider {
   std::shared_ptr<const SdfGrid> sdf;
   Vec3 pivot = Vec3::Zero();
   std::vector<RigidKeyframe> keys;
+  // Mesh without keys: constant pose rate, R = rotation, T = translation + t velocity, spin omega
+  // (what posed_at leaves, so kernels do not slerp per node).
+  Mat3 rotation = Mat3::Identity();
+  Vec3 translation = Vec3::Zero();
+  Vec3 omega = Vec3::Zero();
 
   // Mesh pose at time t: rotation R, translation T and its rates (piecewise linear in T,
   // slerp in R between keyframes; constant before the first and after the last).
   void pose(Real t, Mat3& R, Vec3& T, Vec3& v, Vec3& omega) const {
     if (keys.empty()) {
-      R.setIdentity();
-      T = t * velocity;
+      R = rotation;
+      T = translation + t * velocity;
       v = velocity;
-      omega.setZero();
+      omega = this->omega;
       return;
     }
     if (t <= keys.front().time || keys.size() == 1) {
@@ -107,6 +112,17 @@ struct Collider {
     v = (b.translation - a.translation) / span;
     const Eigen::AngleAxis<Real> rel(b.rotation * a.rotation.conjugate());
     omega = rel.axis() * (rel.angle() / span);
+  }
+  // The same collider with its keyframed pose evaluated once at time t (keys dropped): what a
+  // substep hands the kernels, so a node or particle test costs a transform, not a slerp.
+  Collider posed_at(Real t) const {
+    Collider c = *this;
+    if (shape != ColliderShape::Mesh || keys.empty()) return c;
+    Vec3 T;
+    pose(t, c.rotation, T, c.velocity, c.omega);
+    c.translation = T - t * c.velocity;
+    c.keys.clear();
+    return c;
   }
   // Velocity of the collider's material point at x, time t.
   Vec3 velocity_at(const Vec3& x, Real t) const {

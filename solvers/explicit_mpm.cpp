@@ -91,6 +91,18 @@ MpmGridView ExplicitMpm::grid_view() {
   return g;
 }
 
+const Collider* ExplicitMpm::colliders_at(Real t) const {
+  bool keyed = false;
+  for (const auto& c : colliders_) keyed |= !c.keys.empty();
+  if (!keyed) return colliders_.data();
+  if (posed_colliders_.size() != colliders_.size() || posed_time_ != t) {
+    posed_colliders_.clear();
+    for (const auto& c : colliders_) posed_colliders_.push_back(c.posed_at(t));
+    posed_time_ = t;
+  }
+  return posed_colliders_.data();
+}
+
 MpmStepParams ExplicitMpm::step_params(Real dt) const {
   MpmStepParams p;
   p.transfer = settings_.transfer;
@@ -101,7 +113,7 @@ MpmStepParams ExplicitMpm::step_params(Real dt) const {
   p.gravity = settings_.gravity;
   p.time = Real(time_);
   p.materials = materials_.data();
-  p.colliders = colliders_.data();
+  p.colliders = colliders_at(p.time + dt);
   p.ncolliders = int(colliders_.size());
   return p;
 }
@@ -145,8 +157,10 @@ void ExplicitMpm::step(const exec::Space& space, Real dt) {
   particle_to_grid(space, dt);
   update_grid_velocities(space, dt);
   grid_to_particle(space, dt);
-  if (!colliders_.empty()) collide_particles(space, particle_view(), colliders_.data(), int(colliders_.size()),
-                                             Real(time_ + double(dt)));
+  if (!colliders_.empty()) {
+    const Real t_end = Real(time_) + dt;  // the grid update's end-of-substep time (same posed colliders)
+    collide_particles(space, particle_view(), colliders_at(t_end), int(colliders_.size()), t_end);
+  }
   if (material_update_) update_materials(space, dt);
   time_ += double(dt);
   ++steps_;

@@ -100,6 +100,11 @@ class ExplicitMpm {
   std::vector<MaterialParams> materials_;
   std::vector<Collider> colliders_;
   std::vector<HeatSource> heat_sources_;
+  // Colliders with keyframed poses evaluated at the end of the current substep (refreshed when
+  // the time changes); empty when no collider is keyframed.
+  mutable std::vector<Collider> posed_colliders_;
+  mutable Real posed_time_ = Real(-1);
+  const Collider* colliders_at(Real t) const;
   Real max_wave_speed_ = 0;
   Real max_kinematic_viscosity_ = 0;
   bool hardening_ = false;        // some material's wave speed depends on its plastic state

@@ -150,6 +150,13 @@ TEST(MeshCollider, KeyframedPoseAndVelocity) {
   const Vec3 v = c.velocity_at(Vec3(0.6, 0.3, 0.6), 0.5);  // 0.1 m from the pivot along z
   EXPECT_NEAR(double(v[0]), 0.2 + (M_PI / 2) * 0.1, 1e-4);  // v + omega x r: omega = pi/2 about y
   EXPECT_NEAR(double(v[2]), 0.0, 1e-4);
+  // The pose evaluated once per substep (what the kernels get) agrees with the keyframes.
+  const Collider posed = c.posed_at(Real(0.5));
+  EXPECT_TRUE(posed.keys.empty());
+  for (const Vec3& x : {Vec3(0.6, 0.3, 0.6), Vec3(0.72, 0.35, 0.45), Vec3(0.5, 0.2, 0.5)}) {
+    EXPECT_NEAR(double(posed.phi(x, Real(0.5))), double(c.phi(x, Real(0.5))), 1e-5);
+    EXPECT_NEAR(double((posed.velocity_at(x, Real(0.5)) - c.velocity_at(x, Real(0.5))).norm()), 0.0, 1e-5);
+  }
   // Before the first and after the last key the collider rests.
   EXPECT_NEAR(double(c.velocity_at(Vec3(0.7, 0.3, 0.5), 2).norm()), 0.0, 1e-9);
   std::remove(obj.c_str());

@@ -64,8 +64,16 @@ void check_gradient(const M& m, double min_det = -1e9) {
   }
 }
 
-// dP(F)[dF] = d/ds P(F + s dF) by five-point central differences, random F and dF, in double.
-// `min_det` skips F outside a model's smooth domain (neo-Hookean's clamp at small J).
+// d/ds P(F + s dF) at s = 0 by five-point central differences.
+template <class M>
+Mat3d fd_dP(const M& m, const Mat3d& F, const Mat3d& dF) {
+  const double h = 1e-5;
+  auto P = [&](double s) { return Mat3d(m.first_piola(F + s * h * dF)); };
+  return (P(-2) - 8 * P(-1) + 8 * P(1) - P(2)) / (12.0 * h);
+}
+
+// dP(F)[dF] against fd_dP for random F and dF, in double. `min_det` skips F outside a model's
+// smooth domain (neo-Hookean's clamp at small J).
 template <class M>
 void check_dP(const M& m, double min_det = -1e9) {
   std::mt19937 rng(7);
@@ -76,9 +84,7 @@ void check_dP(const M& m, double min_det = -1e9) {
     for (int i = 0; i < 9; ++i) F(i) += u(rng), dF(i) = u(rng);
     if (t % 4 == 0) F.col(2) *= -0.2;
     if (F.determinant() <= min_det) continue;
-    const double h = 1e-5;
-    auto P = [&](double s) { return Mat3d(m.first_piola(F + s * h * dF)); };
-    const Mat3d fd = (P(-2) - 8 * P(-1) + 8 * P(1) - P(2)) / (12.0 * h);
+    const Mat3d fd = fd_dP(m, F, dF);
     const Mat3d an = m.dP(F, dF);
     EXPECT_LT((fd - an).norm(), 1e-6 * (1 + an.norm())) << "t=" << t << "\nfd=\n" << fd << "\nan=\n" << an;
     ++checked;
@@ -94,9 +100,7 @@ void check_dP_repeated(const M& m) {
   for (const Mat3d& F : {Mat3d(Mat3d::Identity()), Mat3d(Vec3d(1.2, 1.2, 0.9).asDiagonal())}) {
     Mat3d dF;
     for (int i = 0; i < 9; ++i) dF(i) = u(rng);
-    const double h = 1e-5;
-    auto P = [&](double s) { return Mat3d(m.first_piola(F + s * h * dF)); };
-    const Mat3d fd = (P(-2) - 8 * P(-1) + 8 * P(1) - P(2)) / (12.0 * h);
+    const Mat3d fd = fd_dP(m, F, dF);
     EXPECT_LT((fd - m.dP(F, dF)).norm(), 1e-5 * (1 + fd.norm()));
   }
 }
