@@ -78,7 +78,7 @@ int bench_command(const std::vector<std::string>& args) {
       exec::Profiler prof;
       std::size_t leaves = 0, particle_bytes = 0, leaf_bytes = 0;
       for (int r = 0; r < reps; ++r) {
-        ExplicitMpm solver = make_bench_sphere(so);
+        MpmSolver solver = make_bench_sphere(so);
         exec::Space warm(backend, t);
         for (int s = 0; s < 2; ++s) solver.step(warm, dt);
         exec::Profiler run_prof;

@@ -120,7 +120,7 @@ int run_command(const std::vector<std::string>& args) {
     if (const auto* c = o.get("--checkpoint-every")) checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
     const std::string checkpoint_path = out_dir + "/checkpoint.amck";
 
-    ExplicitMpm solver = build_solver(scene);
+    MpmSolver solver = build_solver(scene);
     int first_frame = 1;
     if (const auto* r = o.get("--resume")) {
       first_frame = read_checkpoint(*r, solver, scene.fingerprint).next_frame;

@@ -31,13 +31,13 @@ void backend_args(benchmark::internal::Benchmark* b) {
 }
 
 // A solver after one full substep, sorted and with topology built: ready for P2G/G2P.
-std::unique_ptr<ExplicitMpm> prepared(Transfer t, int order, const exec::Space& space) {
+std::unique_ptr<MpmSolver> prepared(Transfer t, int order, const exec::Space& space) {
   BenchSceneOptions o;
   o.particles = kParticles;
   o.dx = Real(std::cbrt(1e6 / double(kParticles)) / 128.0);  // same ppc as 1e6 at dx = 1/128
   o.transfer = t;
   o.order = order;
-  auto s = std::make_unique<ExplicitMpm>(make_bench_sphere(o));
+  auto s = std::make_unique<MpmSolver>(make_bench_sphere(o));
   s->step(space, Real(1e-4));
   s->sort_particles(space);
   s->update_grid(space);

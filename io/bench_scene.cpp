@@ -5,7 +5,7 @@
 
 namespace amalgam {
 
-ExplicitMpm make_bench_sphere(const BenchSceneOptions& o) {
+MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   MpmSettings s;
   s.dx = o.dx;
   s.order = o.order;
@@ -19,7 +19,7 @@ ExplicitMpm make_bench_sphere(const BenchSceneOptions& o) {
   floor.origin = Vec3(0, Real(0.15), 0);
   floor.normal = Vec3::UnitY();
   floor.friction = Real(0.2);
-  ExplicitMpm solver(s, {m}, {floor});
+  MpmSolver solver(s, {m}, {floor});
   std::mt19937_64 rng(12345);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   std::vector<Vec3> x;

@@ -3,7 +3,7 @@
 // slowly above a floor, explicit MLS-MPM with quadratic B-splines. Seeded and reproducible.
 #pragma once
 
-#include "solvers/explicit_mpm.hpp"
+#include "solvers/mpm_solver.hpp"
 
 namespace amalgam {
 
@@ -14,6 +14,6 @@ struct BenchSceneOptions {
   int order = 2;
 };
 
-ExplicitMpm make_bench_sphere(const BenchSceneOptions& o);
+MpmSolver make_bench_sphere(const BenchSceneOptions& o);
 
 }  // namespace amalgam

@@ -50,7 +50,7 @@ class Reader {
 };
 }  // namespace
 
-void write_checkpoint(const std::string& path, const ExplicitMpm& solver, int next_frame,
+void write_checkpoint(const std::string& path, const MpmSolver& solver, int next_frame,
                       std::uint64_t scene_fingerprint) {
   const ParticleSet& ps = solver.particles();
   std::string b;
@@ -79,7 +79,7 @@ void write_checkpoint(const std::string& path, const ExplicitMpm& solver, int ne
   write_file_atomic(path, b);
 }
 
-CheckpointState read_checkpoint(const std::string& path, ExplicitMpm& solver, std::uint64_t scene_fingerprint) {
+CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint) {
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open checkpoint");
   std::ostringstream ss;

@@ -15,7 +15,7 @@
 #include <string>
 
 #include "core/hash.hpp"
-#include "solvers/explicit_mpm.hpp"
+#include "solvers/mpm_solver.hpp"
 
 namespace amalgam {
 
@@ -25,9 +25,9 @@ struct CheckpointState {
   int next_frame = 1;  // the frame the run continues with
 };
 
-void write_checkpoint(const std::string& path, const ExplicitMpm& solver, int next_frame,
+void write_checkpoint(const std::string& path, const MpmSolver& solver, int next_frame,
                       std::uint64_t scene_fingerprint);
 // Loads particles and clock into `solver` (built from the same scene); returns the state.
-CheckpointState read_checkpoint(const std::string& path, ExplicitMpm& solver, std::uint64_t scene_fingerprint);
+CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint);
 
 }  // namespace amalgam

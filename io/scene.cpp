@@ -290,6 +290,17 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.mpm.gravity = sim.vec3("gravity", Vec3(0, Real(-9.81), 0));
   s.mpm.max_speed = Real(sim.number("max_speed", 1e4, 0, kHuge, true));
   s.frames = int(sim.integer("frames", 48, 1, 1000000));
+  s.mpm.implicit = sim.choice("integrator", "explicit", {"explicit", "implicit"}) == "implicit";
+  {
+    JsonObject imp = sim.object("implicit");
+    if (imp.has("tolerance") || imp.has("max_iterations") || imp.has("solver") || imp.has("definiteness_fix"))
+      if (!s.mpm.implicit) sim.fail("implicit", "set \"integrator\": \"implicit\" to use these settings");
+    s.mpm.solver.tolerance = imp.number("tolerance", 1e-4, 0, 1, true);
+    s.mpm.solver.max_iterations = int(imp.integer("max_iterations", 200, 1, 100000));
+    s.mpm.solver.method = imp.choice("solver", "cg", {"cg", "minres"}) == "cg" ? KrylovMethod::Cg : KrylovMethod::Minres;
+    s.mpm.solver.definiteness_fix = imp.boolean("definiteness_fix", true);
+    imp.finish();
+  }
   sim.finish();
 
   std::map<std::string, int> mat_index;
@@ -428,8 +439,8 @@ double preview_radius(const Scene& scene) {
   return 0.6 * double(scene.mpm.dx) / std::cbrt(double(ppc));
 }
 
-ExplicitMpm build_solver(const Scene& scene) {
-  ExplicitMpm solver(scene.mpm, scene.materials, scene.colliders, scene.heat_sources);
+MpmSolver build_solver(const Scene& scene) {
+  MpmSolver solver(scene.mpm, scene.materials, scene.colliders, scene.heat_sources);
   for (const auto& obj : scene.objects) {
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol);

@@ -12,7 +12,7 @@
 #include "io/mesh.hpp"
 #include "io/preview.hpp"
 #include "kernels/colliders.hpp"
-#include "solvers/explicit_mpm.hpp"
+#include "solvers/mpm_solver.hpp"
 
 namespace amalgam {
 
@@ -82,6 +82,6 @@ double preview_radius(const Scene& scene);
 double preview_floor(const Scene& scene);
 
 // Builds a solver from a scene and fills its particles.
-ExplicitMpm build_solver(const Scene& scene);
+MpmSolver build_solver(const Scene& scene);
 
 }  // namespace amalgam

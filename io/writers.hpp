@@ -6,7 +6,7 @@
 #include <vector>
 
 #include "core/particles/particle_set.hpp"
-#include "solvers/explicit_mpm.hpp"
+#include "solvers/mpm_solver.hpp"
 
 namespace amalgam {
 

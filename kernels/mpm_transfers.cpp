@@ -3,6 +3,7 @@
 #include <cstring>
 
 #include "core/math/bspline.hpp"
+#include "kernels/grid_block.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
 namespace amalgam {
@@ -18,15 +19,9 @@ const char* transfer_name(Transfer t) {
 
 namespace {
 
-// Private scatter/gather block: (8 + Order)^3 nodes x CH channels, node (i,j,k) relative to the
-// bin's leaf origin at ((i * B) + j) * B + k.
+// Private scatter/gather block of (8 + Order)^3 nodes x CH channels (kernels/grid_block.hpp).
 template <int Order, int CH>
-struct Block {
-  static constexpr int B = kLeafDim + Order;
-  static constexpr int kSize = B * B * B * CH;
-  alignas(64) Real data[kSize];
-  static int at(int i, int j, int k) { return ((i * B + j) * B + k) * CH; }
-};
+using Block = GridBlock<Order, CH>;
 
 constexpr int channels_of(Transfer t) { return t == Transfer::PicFlip ? 8 : 4; }
 
@@ -352,6 +347,31 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
             lb[o + 1] = v[0] - v_old[0];
             lb[o + 2] = v[1] - v_old[1];
             lb[o + 3] = v[2] - v_old[2];
+          }
+        }
+  });
+}
+
+void grid_apply_colliders(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
+  if (prm.ncolliders == 0) return;
+  const Real t_end = prm.time + prm.dt, dx = prm.dx;
+  exec::parallel_for(space, "mpm.grid_colliders", exec::Index(g.nactive), [&](exec::Index li) {
+    const std::size_t leaf = std::size_t(g.active_leaves[li]);
+    const Vec3i node0 = g.leaf_coord[leaf] * kLeafDim;
+    Real* la = g.a + leaf * kLeafNodes * 4;
+    Real* lb = g.b ? g.b + leaf * kLeafNodes * 4 : nullptr;
+    for (int i = 0; i < kLeafDim; ++i)
+      for (int j = 0; j < kLeafDim; ++j)
+        for (int k = 0; k < kLeafDim; ++k) {
+          Real* n = la + leaf_offset(i, j, k) * 4;
+          if (n[0] <= 0) continue;
+          const Vec3 v0(n[1], n[2], n[3]);
+          Vec3 v = v0;
+          const Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
+          for (int c = 0; c < prm.ncolliders; ++c) prm.colliders[c].project(xi, t_end, v);
+          for (int c = 0; c < 3; ++c) {
+            n[1 + c] = v[c];
+            if (lb) lb[leaf_offset(i, j, k) * 4 + 1 + c] += v[c] - v0[c];
           }
         }
   });

@@ -79,6 +79,9 @@ void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepPar
 void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm);
 // Momentum -> velocity, forces, gravity, colliders, per active leaf.
 void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm);
+// Applies the colliders to the grid velocities (a = (m, v) after grid_update), keeping PIC/FLIP's
+// b = v_new - v_old consistent: the implicit solver's final pass (friction, separation).
+void grid_apply_colliders(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm);
 // Grid -> particle gather of v (and C), F update and advection.
 void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm);
 

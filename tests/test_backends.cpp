@@ -28,7 +28,7 @@ Scene small_scene(const std::string& transfer, int order) {
   return parse_scene(text, "inline.json");
 }
 
-std::vector<Real> state_bytes(const ExplicitMpm& s) {
+std::vector<Real> state_bytes(const MpmSolver& s) {
   std::vector<Real> out;
   const auto& ps = s.particles();
   const auto& a = s.attributes();
@@ -77,7 +77,7 @@ template <class OnReference>
 std::vector<Real> run_everywhere(const Scene& scene, int steps, OnReference on_reference) {
   std::vector<Real> ref;
   for (const auto& c : test::all_configs()) {
-    ExplicitMpm s = build_solver(scene);
+    MpmSolver s = build_solver(scene);
     const exec::Space space(c.backend, c.threads);
     for (int i = 0; i < steps; ++i) s.step(space, s.stable_dt(space));
     const std::vector<Real> st = state_bytes(s);
@@ -99,9 +99,9 @@ class BackendDeterminism : public ::testing::TestWithParam<std::tuple<std::strin
 TEST_P(BackendDeterminism, TwentySubstepsBitwiseIdentical) {
   const auto [transfer, order] = GetParam();
   const Scene scene = small_scene(transfer, order);
-  const std::vector<Real> ref = run_everywhere(scene, 20, [](const ExplicitMpm&) {});
+  const std::vector<Real> ref = run_everywhere(scene, 20, [](const MpmSolver&) {});
   // And the state actually changed (the test compares a non-trivial evolution).
-  ExplicitMpm fresh = build_solver(scene);
+  MpmSolver fresh = build_solver(scene);
   fresh.sort_particles(exec::Space());
   EXPECT_FALSE(test::bitwise_equal(state_bytes(fresh).data(), ref.data(), ref.size()));
 }
@@ -113,7 +113,7 @@ INSTANTIATE_TEST_SUITE_P(Transfers, BackendDeterminism,
                          });
 
 TEST(BackendDeterminism, MaterialsWithStateBitwiseIdentical) {
-  run_everywhere(material_scene(), 30, [](const ExplicitMpm& s) {
+  run_everywhere(material_scene(), 30, [](const MpmSolver& s) {
     // Non-trivial: some snow, sand and metal projected, some wax melted.
     const auto& ps = s.particles();
     const auto& a = s.attributes();

@@ -30,7 +30,7 @@ void spit(const std::string& p, const std::string& d) {
   std::ofstream(p, std::ios::binary).write(d.data(), std::streamsize(d.size()));
 }
 std::string error_reading(const std::string& path, std::uint64_t fp) {
-  ExplicitMpm s = build_solver(parse_scene(kScene, "s.json"));
+  MpmSolver s = build_solver(parse_scene(kScene, "s.json"));
   try {
     read_checkpoint(path, s, fp);
   } catch (const InputError& e) {
@@ -42,12 +42,12 @@ std::string error_reading(const std::string& path, std::uint64_t fp) {
 
 TEST(Checkpoint, RoundTripIsBitwise) {
   const Scene scene = parse_scene(kScene, "s.json");
-  ExplicitMpm a = build_solver(scene);
+  MpmSolver a = build_solver(scene);
   const exec::Space space(exec::Backend::OpenMP, 2);
   for (int i = 0; i < 7; ++i) a.step(space, a.stable_dt(space));
   const std::string path = tmp_path("roundtrip.amck");
   write_checkpoint(path, a, 3, scene.fingerprint);
-  ExplicitMpm b = build_solver(scene);
+  MpmSolver b = build_solver(scene);
   const CheckpointState st = read_checkpoint(path, b, scene.fingerprint);
   EXPECT_EQ(st.next_frame, 3);
   EXPECT_EQ(st.steps, 7u);
@@ -70,7 +70,7 @@ TEST(Checkpoint, RoundTripIsBitwise) {
 
 TEST(Checkpoint, DamagedFilesAreClearErrors) {
   const Scene scene = parse_scene(kScene, "s.json");
-  ExplicitMpm a = build_solver(scene);
+  MpmSolver a = build_solver(scene);
   const std::string path = tmp_path("good.amck"), bad = tmp_path("bad.amck");
   write_checkpoint(path, a, 1, scene.fingerprint);
   const std::string good = slurp(path);

@@ -168,7 +168,7 @@ TEST(MeshCollider, KeyframedPoseAndVelocity) {
 TEST(MeshCollider, BlockLandsOnMeshBox) {
   const std::string obj = write_cube("amalgam_cube3.obj", Vec3d(0.5, 0.3, 0.5), 0.2);
   const Scene s = mesh_collider_scene(obj, "");
-  ExplicitMpm solver = build_solver(s);
+  MpmSolver solver = build_solver(s);
   const exec::Space space(exec::Backend::OpenMP, 2);
   const auto& ps = solver.particles();
   double ymin_run = 1e9, centre = 0;

@@ -11,7 +11,7 @@
 #include <cstdio>
 #include <map>
 
-#include "solvers/explicit_mpm.hpp"
+#include "solvers/mpm_solver.hpp"
 
 using namespace amalgam;
 
@@ -44,7 +44,7 @@ Collider wall(const Vec3& point, const Vec3& normal, BoundaryType b, Real fricti
   return c;
 }
 
-void run_until(ExplicitMpm& solver, const exec::Space& space, double t_end) {
+void run_until(MpmSolver& solver, const exec::Space& space, double t_end) {
   while (solver.time() < t_end) {
     const double dt = std::min(double(solver.stable_dt(space)), t_end - solver.time() + 1e-12);
     solver.step(space, Real(dt));
@@ -76,7 +76,7 @@ TEST(MaterialValidation, WaterColumnHydrostaticPressure) {
   water.gamma = 7;
   water.viscosity = 1;
   const BoundaryType slip = BoundaryType::Slip;
-  ExplicitMpm solver(s, {water},
+  MpmSolver solver(s, {water},
                      {wall(Vec3(0, 0.1, 0), Vec3::UnitY(), slip), wall(Vec3(0.1, 0, 0), Vec3::UnitX(), slip),
                       wall(Vec3(0.3, 0, 0), -Vec3::UnitX(), slip), wall(Vec3(0, 0, 0.1), Vec3::UnitZ(), slip),
                       wall(Vec3(0, 0, 0.3), -Vec3::UnitZ(), slip)});
@@ -173,7 +173,7 @@ TEST(MaterialValidation, SnowConfinedCompressionHardensAsModelPredicts) {
   const BoundaryType slip = BoundaryType::Slip;
   Collider lid = wall(Vec3(0, Real(lo[1] + H), 0), -Vec3::UnitY(), BoundaryType::Slip);
   lid.velocity = Vec3(0, Real(-v_lid), 0);
-  ExplicitMpm solver(s, {snow},
+  MpmSolver solver(s, {snow},
                      {wall(Vec3(0, Real(lo[1]), 0), Vec3::UnitY(), slip), lid,
                       wall(Vec3(Real(lo[0]), 0, 0), Vec3::UnitX(), slip),
                       wall(Vec3(Real(lo[0] + W), 0, 0), -Vec3::UnitX(), slip),
@@ -226,7 +226,7 @@ TEST(MaterialValidation, SandPileSlopeMatchesFrictionAngle) {
   const Lame l = Lame::from_young_poisson(3.537e5, 0.3);
   MaterialParams sand{MaterialModel::DruckerPrager, l.mu, l.lambda, 2200};
   sand.friction_alpha = DruckerPragerT<Real>::friction_alpha(Real(phi_deg * M_PI / 180));
-  ExplicitMpm solver(s, {sand}, {wall(Vec3(0, Real(c[1]), 0), Vec3::UnitY(), BoundaryType::Sticky)});
+  MpmSolver solver(s, {sand}, {wall(Vec3(0, Real(c[1]), 0), Vec3::UnitY(), BoundaryType::Sticky)});
   const std::vector<Vec3> x =
       lattice(c - Vec3d(R, 0, R), c + Vec3d(R, Hc, R), dx, [&](const Vec3d& p) {
         return (Vec3d(p[0], 0, p[2]) - Vec3d(c[0], 0, c[2])).norm() <= R;

@@ -88,14 +88,14 @@ TEST(Scene, ShippedScenesValidate) {
 }
 
 TEST(Solver, NegativeOrNanTimeStepIsRejected) {
-  ExplicitMpm s = build_solver(parse_scene(kGood, "s.json"));
+  MpmSolver s = build_solver(parse_scene(kGood, "s.json"));
   const exec::Space space;
   EXPECT_THROW(s.step(space, Real(-1e-3)), SimulationError);
   EXPECT_THROW(s.step(space, std::numeric_limits<Real>::quiet_NaN()), SimulationError);
 }
 
 TEST(Solver, StabilityGuardNamesParticleAndQuantity) {
-  ExplicitMpm s = build_solver(parse_scene(kGood, "s.json"));
+  MpmSolver s = build_solver(parse_scene(kGood, "s.json"));
   s.particles().vec3(s.attributes().v)[123] = Vec3(0, std::numeric_limits<Real>::infinity(), 0);
   try {
     s.stable_dt(exec::Space());

@@ -5,7 +5,7 @@
 
 #include <random>
 
-#include "solvers/explicit_mpm.hpp"
+#include "solvers/mpm_solver.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 #include "test_util.hpp"
 
@@ -13,7 +13,7 @@ using namespace amalgam;
 
 namespace {
 
-ExplicitMpm make_blob(Transfer t, int order, Real dt_stress_scale = 1) {
+MpmSolver make_blob(Transfer t, int order, Real dt_stress_scale = 1) {
   MpmSettings s;
   s.dx = Real(0.05);
   s.order = order;
@@ -21,7 +21,7 @@ ExplicitMpm make_blob(Transfer t, int order, Real dt_stress_scale = 1) {
   s.gravity = Vec3::Zero();
   const Lame l = Lame::from_young_poisson(1e4, 0.3);
   MaterialParams m{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
-  ExplicitMpm solver(s, {m}, {});
+  MpmSolver solver(s, {m}, {});
   std::mt19937 rng(17);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   std::vector<Vec3> x;
@@ -46,7 +46,7 @@ struct Moments {
   Vec3d p = Vec3d::Zero(), L = Vec3d::Zero();
 };
 
-Moments grid_moments(const ExplicitMpm& s) {
+Moments grid_moments(const MpmSolver& s) {
   Moments r;
   const auto& g = s.grid();
   const Real* a = g.node4(0);
@@ -65,7 +65,7 @@ Moments grid_moments(const ExplicitMpm& s) {
 
 // Particle angular momentum including the affine part: x_p x m v_p + m D_p eps:(C_p)
 // (Jiang et al. 2015), D_p = dx^2 / Dinv_scale.
-Moments particle_moments(const ExplicitMpm& s, bool affine) {
+Moments particle_moments(const MpmSolver& s, bool affine) {
   Moments r;
   const auto& ps = s.particles();
   const auto& a = s.attributes();
@@ -94,7 +94,7 @@ class TransferConservation : public ::testing::TestWithParam<std::tuple<Transfer
 
 TEST_P(TransferConservation, P2GConservesMassMomentumAndAngularMomentum) {
   const auto [transfer, order] = GetParam();
-  ExplicitMpm s = make_blob(transfer, order);
+  MpmSolver s = make_blob(transfer, order);
   const exec::Space space(test::parallel_backend(), 2);
   const bool affine = transfer != Transfer::PicFlip;
   const Moments before = particle_moments(s, affine);
@@ -115,7 +115,7 @@ TEST_P(TransferConservation, P2GConservesMassMomentumAndAngularMomentum) {
 
 TEST_P(TransferConservation, RoundTripConservesOnParticles) {
   const auto [transfer, order] = GetParam();
-  ExplicitMpm s = make_blob(transfer, order);
+  MpmSolver s = make_blob(transfer, order);
   const exec::Space space(exec::Backend::TBB, 2);
   const bool affine = transfer != Transfer::PicFlip;
   const Moments before = particle_moments(s, affine);
@@ -145,7 +145,7 @@ INSTANTIATE_TEST_SUITE_P(AllTransfers, TransferConservation,
                          });
 
 TEST(TransferPIC, PurePicConservesLinearMomentum) {
-  ExplicitMpm s = make_blob(Transfer::PicFlip, 2);
+  MpmSolver s = make_blob(Transfer::PicFlip, 2);
   const Moments before = particle_moments(s, false);
   const exec::Space space;
   s.sort_particles(space);
@@ -166,7 +166,7 @@ class KernelDeterminism : public ::testing::TestWithParam<Transfer> {};
 TEST_P(KernelDeterminism, P2GGridUpdateG2PBitwiseAcrossBackends) {
   std::vector<Real> ref_grid_p2g, ref_grid_upd, ref_particles;
   for (const auto& c : test::all_configs()) {
-    ExplicitMpm s = make_blob(GetParam(), 2);
+    MpmSolver s = make_blob(GetParam(), 2);
     const exec::Space space(c.backend, c.threads);
     s.sort_particles(space);
     s.update_grid(space);

@@ -11,7 +11,7 @@
 
 #include <cmath>
 
-#include "solvers/explicit_mpm.hpp"
+#include "solvers/mpm_solver.hpp"
 
 using namespace amalgam;
 
@@ -37,7 +37,7 @@ BarResult run_bar(Transfer transfer, int order) {
   wall.boundary = BoundaryType::Sticky;
   wall.origin = Vec3(Real(x0), 0, 0);
   wall.normal = Vec3::UnitX();
-  ExplicitMpm solver(s, {m}, {wall});
+  MpmSolver solver(s, {m}, {wall});
   // 2 particles per cell per axis, a 4 x 4 cell cross-section.
   const double h = dx / 2, V = 0.05;
   std::vector<Vec3> x;

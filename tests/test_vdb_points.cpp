@@ -21,7 +21,7 @@ TEST(VdbPoints, ReadBackFieldByField) {
                 {"shape": "sphere", "center": [0.7,0.7,0.7], "radius": 0.1, "material": "b", "angular_velocity": [0,5,0]}],
     "heat_sources": [{"type": "sphere", "center": [0.7,0.7,0.7], "radius": 0.05, "temperature": 350, "rate": 100}]
   })", "s.json");
-  ExplicitMpm solver = build_solver(scene);
+  MpmSolver solver = build_solver(scene);
   const exec::Space space(exec::Backend::TBB, 2);
   for (int i = 0; i < 5; ++i) solver.step(space, solver.stable_dt(space));  // sorted: index != id
   const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_points.vdb").string();
@@ -81,7 +81,7 @@ TEST(VdbGridFields, ReadBackMassAndVelocity) {
     "materials": {"a": {"density": 1000, "youngs_modulus": 1e4}},
     "objects": [{"shape": "sphere", "center": [0.5,0.5,0.5], "radius": 0.15, "material": "a", "velocity": [1,-2,0.5]}]
   })", "s.json");
-  ExplicitMpm solver = build_solver(scene);
+  MpmSolver solver = build_solver(scene);
   const exec::Space space(exec::Backend::Serial, 1);
   for (int i = 0; i < 3; ++i) solver.step(space, solver.stable_dt(space));
   const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_grid.vdb").string();

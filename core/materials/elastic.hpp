@@ -108,6 +108,27 @@ struct NeoHookeanT {
     const T J = std::max(F.determinant(), kMinJ);
     return mu * (F * F.transpose() - M3::Identity()) + (lambda * std::log(J)) * M3::Identity();
   }
+  // SVD frame: p_i = mu s_i + (lambda log J - mu) / s_i, H_ii = mu + (mu + lambda - lambda log J) / s_i^2,
+  // H_ij = lambda / (s_i s_j); with J clamped at kMinJ the log J terms stop depending on sigma.
+  // |s_i| is kept >= kMinSigma so a flattened particle has a large but finite stiffness.
+  static constexpr T kMinSigma = T(1e-4);
+  static T safe(T s) { return std::abs(s) >= kMinSigma ? s : std::copysign(kMinSigma, s); }
+  V3 sigma_stress(const V3& s) const {
+    const T lj = std::log(std::max(s.prod(), kMinJ));
+    V3 p;
+    for (int i = 0; i < 3; ++i) p[i] = mu * s[i] + (lambda * lj - mu) / safe(s[i]);
+    return p;
+  }
+  M3 sigma_hessian(const V3& s) const {
+    const T J = s.prod();
+    const T lj = std::log(std::max(J, kMinJ));
+    const T l = J > kMinJ ? lambda : T(0);
+    M3 H;
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j)
+        H(i, j) = i == j ? mu + (mu + l - lambda * lj) / (safe(s[i]) * safe(s[i])) : l / (safe(s[i]) * safe(s[j]));
+    return H;
+  }
 };
 
 // St. Venant-Kirchhoff with Hencky strain (Klar et al. 2016, Sec. 5): with eps = log(sigma),

@@ -37,6 +37,21 @@ struct WeaklyCompressibleT {
     const T J = F.determinant();
     return -dpressure_dJ(J) * cof.cwiseProduct(dF).sum() * cof - pressure(J) * cofactor_derivative(F, dF);
   }
+  // SVD frame of Psi(J), J = s0 s1 s2, c_i = J / s_i: p_i = -p(J) c_i,
+  // H_ii = -p'(J) c_i^2, H_ij = -p'(J) c_i c_j - p(J) s_k (k the third index).
+  using V3 = Eigen::Matrix<T, 3, 1>;
+  V3 sigma_stress(const V3& s) const {
+    const V3 c(s[1] * s[2], s[0] * s[2], s[0] * s[1]);
+    return -pressure(s.prod()) * c;
+  }
+  M3 sigma_hessian(const V3& s) const {
+    const T J = s.prod(), pr = pressure(J), dp = dpressure_dJ(J);
+    const V3 c(s[1] * s[2], s[0] * s[2], s[0] * s[1]);
+    M3 H;
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j) H(i, j) = i == j ? -dp * c[i] * c[i] : -dp * c[i] * c[j] - pr * s[3 - i - j];
+    return H;
+  }
   M3 kirchhoff(const M3& F, const M3& L) const {
     const T J = F.determinant();
     M3 tau = (-J * pressure(J)) * M3::Identity();

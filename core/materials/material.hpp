@@ -87,6 +87,43 @@ struct MaterialParams {
     }
     return 0;
   }
+  // The elastic energy's derivatives in the SVD frame of F (singular values s): p_i = d psi /
+  // d s_i and H_ij = d p_i / d s_j, for the first Piola stress P = U diag(p) V^T and the Hessian
+  // d^2 Psi / dF dF that implicit solvers need (enriched MPM eq. 15). Plastic models use their
+  // elastic part (snow: hardened fixed corotated; sand, von Mises: StVK-Hencky) at the current
+  // plastic state; the viscous stress of fluids is not part of the energy.
+  void sigma_derivatives(const Vec3& s, Real plastic, Real temperature, Vec3& p, Mat3& H) const {
+    if (melting && temperature >= melting_point) {
+      p = liquid().sigma_stress(s), H = liquid().sigma_hessian(s);
+      return;
+    }
+    switch (model) {
+      case MaterialModel::FixedCorotated: {
+        const FixedCorotated m{mu, lambda};
+        p = m.sigma_stress(s), H = m.sigma_hessian(s);
+        return;
+      }
+      case MaterialModel::NeoHookean: {
+        const NeoHookean m{mu, lambda};
+        p = m.sigma_stress(s), H = m.sigma_hessian(s);
+        return;
+      }
+      case MaterialModel::StvkHencky:
+      case MaterialModel::DruckerPrager:
+      case MaterialModel::VonMises: {
+        const StvkHencky m{mu, lambda};
+        p = m.sigma_stress(s), H = m.sigma_hessian(s);
+        return;
+      }
+      case MaterialModel::Snow: {
+        const FixedCorotated m = snow().elastic(plastic);
+        p = m.sigma_stress(s), H = m.sigma_hessian(s);
+        return;
+      }
+      case MaterialModel::Fluid: p = fluid().sigma_stress(s), H = fluid().sigma_hessian(s); return;
+    }
+    p.setZero(), H.setZero();
+  }
   // Return mapping / F reset after the F update; returns whether F changed.
   bool project(Mat3& F, Real& plastic, Real temperature) const {
     if (melting && temperature >= melting_point) return WeaklyCompressibleT<Real>::reset(F);

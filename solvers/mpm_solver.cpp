@@ -1,4 +1,4 @@
-#include "solvers/explicit_mpm.hpp"
+#include "solvers/mpm_solver.hpp"
 
 #include <algorithm>
 #include <climits>
@@ -6,10 +6,11 @@
 #include <sstream>
 
 #include "core/errors.hpp"
+#include "solvers/mpm_elastic_term.hpp"
 
 namespace amalgam {
 
-ExplicitMpm::ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams> materials,
+MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials,
                          std::vector<Collider> colliders, std::vector<HeatSource> heat_sources)
     : settings_(settings),
       materials_(std::move(materials)),
@@ -31,7 +32,7 @@ ExplicitMpm::ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams
   grid_.set_node4_channels(settings_.transfer == Transfer::PicFlip ? 2 : 1);
 }
 
-void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
+void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
                                 int material, Real volume_per_particle, Real temperature) {
   if (material < 0 || size_t(material) >= materials_.size()) throw InputError("material index out of range");
   if (particles_.size() + x.size() > size_t(INT32_MAX)) throw InputError("more than 2^31 particles");
@@ -66,7 +67,7 @@ void ExplicitMpm::add_particles(const std::vector<Vec3>& x, const Vec3& v0, cons
   }
 }
 
-MpmParticleView ExplicitMpm::particle_view() {
+MpmParticleView MpmSolver::particle_view() {
   MpmParticleView v{particles_.vec3(attr_.x),    particles_.vec3(attr_.v),       particles_.mat3(attr_.C),
                     particles_.mat3(attr_.F),    particles_.real(attr_.mass),    particles_.real(attr_.volume0),
                     particles_.int32(attr_.material), particles_.size()};
@@ -75,7 +76,7 @@ MpmParticleView ExplicitMpm::particle_view() {
   return v;
 }
 
-MpmGridView ExplicitMpm::grid_view() {
+MpmGridView MpmSolver::grid_view() {
   MpmGridView g;
   g.a = grid_.node4(0);
   g.b = settings_.transfer == Transfer::PicFlip ? grid_.node4(1) : nullptr;
@@ -91,7 +92,7 @@ MpmGridView ExplicitMpm::grid_view() {
   return g;
 }
 
-const Collider* ExplicitMpm::colliders_at(Real t) const {
+const Collider* MpmSolver::colliders_at(Real t) const {
   bool keyed = false;
   for (const auto& c : colliders_) keyed |= !c.keys.empty();
   if (!keyed) return colliders_.data();
@@ -103,7 +104,7 @@ const Collider* ExplicitMpm::colliders_at(Real t) const {
   return posed_colliders_.data();
 }
 
-MpmStepParams ExplicitMpm::step_params(Real dt) const {
+MpmStepParams MpmSolver::step_params(Real dt) const {
   MpmStepParams p;
   p.transfer = settings_.transfer;
   p.order = settings_.order;
@@ -118,25 +119,126 @@ MpmStepParams ExplicitMpm::step_params(Real dt) const {
   return p;
 }
 
-void ExplicitMpm::sort_particles(const exec::Space& space) {
+void MpmSolver::sort_particles(const exec::Space& space) {
   binning_.sort_and_bin(space, particles_, attr_.x, settings_.dx, settings_.order, bins_);
 }
-void ExplicitMpm::update_grid(const exec::Space& space) { grid_.update_topology(space, bins_); }
+void MpmSolver::update_grid(const exec::Space& space) { grid_.update_topology(space, bins_); }
 
-void ExplicitMpm::particle_to_grid(const exec::Space& space, Real dt) {
+void MpmSolver::particle_to_grid(const exec::Space& space, Real dt) {
   const MpmGridView g = grid_view();
   const MpmStepParams prm = step_params(dt);
   grid_clear(space, g, prm);
   p2g(space, particle_view(), g, prm);
 }
-void ExplicitMpm::update_grid_velocities(const exec::Space& space, Real dt) {
-  grid_update(space, grid_view(), step_params(dt));
+void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
+  MpmStepParams prm = step_params(dt);
+  if (settings_.implicit) prm.ncolliders = 0;  // the implicit solve takes the colliders as constraints
+  grid_update(space, grid_view(), prm);
 }
-void ExplicitMpm::grid_to_particle(const exec::Space& space, Real dt) {
+
+void MpmSolver::assemble_implicit(const exec::Space& space, Real dt) {
+  const MpmGridView g = grid_view();
+  const std::size_t ngrid = grid_.leaf_count() * std::size_t(kLeafNodes);
+  implicit_.begin(ngrid, grid_.active_leaves());
+  implicit_.finalize();
+  grid_velocities_to_dofs(space, g, implicit_.mass(), implicit_.rhs());
+  std::copy(implicit_.rhs(), implicit_.rhs() + ngrid * 4, implicit_.solution());  // initial guess v*
+
+  // Colliders -> constraints (enriched MPM Sec. 7 / Stomakhin et al. 2013, as projections): a
+  // node inside a sticky collider takes its velocity; slip fixes the normal velocity; separating
+  // only while v* approaches. Friction is applied after the solve from the normal velocity v*
+  // had to lose. Detection in parallel, constraints added serially (few nodes).
+  contacts_.clear();
+  if (!colliders_.empty()) {
+    const Real t_end = Real(time_) + dt, dx = settings_.dx;
+    const Collider* cols = colliders_at(t_end);
+    const int ncol = int(colliders_.size());
+    in_collider_.assign(ngrid, 0);
+    std::uint8_t* flag = in_collider_.data();
+    const Real* mass = implicit_.mass();
+    exec::parallel_for(space, "implicit.find_contacts", exec::Index(g.nactive), [&](exec::Index li) {
+      const std::size_t leaf = std::size_t(g.active_leaves[li]);
+      const Vec3i node0 = g.leaf_coord[leaf] * kLeafDim;
+      for (int i = 0; i < kLeafDim; ++i)
+        for (int j = 0; j < kLeafDim; ++j)
+          for (int k = 0; k < kLeafDim; ++k) {
+            const std::size_t d = leaf * kLeafNodes + std::size_t(leaf_offset(i, j, k));
+            if (mass[d] <= 0) continue;
+            const Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
+            for (int c = 0; c < ncol; ++c)
+              if (cols[c].phi(xi, t_end) <= 0) flag[d] = 1;
+          }
+    });
+    const Real* vstar = implicit_.rhs();
+    for (const std::int32_t leaf : grid_.active_leaves()) {
+      const Vec3i node0 = g.leaf_coord[leaf] * kLeafDim;
+      for (int o = 0; o < kLeafNodes; ++o) {
+        const std::size_t d = std::size_t(leaf) * kLeafNodes + std::size_t(o);
+        if (!flag[d]) continue;
+        const Vec3 xi = (node0 + Vec3i(o >> 6, (o >> 3) & 7, o & 7)).cast<Real>() * dx;
+        const Vec3 vs(vstar[d * 4], vstar[d * 4 + 1], vstar[d * 4 + 2]);
+        for (int c = 0; c < ncol; ++c) {
+          const Collider& col = cols[c];
+          if (col.phi(xi, t_end) > 0) continue;
+          const Vec3 vc = col.velocity_at(xi, t_end);
+          if (col.boundary == BoundaryType::Sticky) {
+            implicit_.fix(d, vc);
+            continue;
+          }
+          const Vec3 n = col.outward_normal(xi, t_end);
+          const Real vn = (vs - vc).dot(n);
+          if (col.boundary == BoundaryType::Separate && vn >= 0) continue;
+          implicit_.constrain_normal(d, n, n.dot(vc));
+          if (col.friction > 0) contacts_.push_back({d, n, vc, std::min(vn, Real(0)), col.friction});
+        }
+      }
+    }
+  }
+
+  hessians_.resize(particles_.size());
+  ImplicitKernelParams kp;
+  kp.order = settings_.order;
+  kp.transfer = settings_.transfer;
+  kp.dx = settings_.dx;
+  kp.materials = materials_.data();
+  const MpmParticleView pv = particle_view();
+  prepare_particle_hessians(space, pv, kp, settings_.solver.definiteness_fix, hessians_.data());
+  elastic_term_ = std::make_unique<MpmElasticTerm>(pv, g, kp, hessians_.data());
+  implicit_.add_term(elastic_term_.get());
+}
+
+void MpmSolver::solve_grid_velocities(const exec::Space& space, Real dt) {
+  assemble_implicit(space, dt);
+  last_solve_ = implicit_.solve(space, dt, settings_.solver);
+  ++counters_.solves;
+  counters_.iterations += std::uint64_t(last_solve_.iterations);
+  counters_.max_iterations = std::max(counters_.max_iterations, last_solve_.iterations);
+  counters_.max_residual = std::max(counters_.max_residual, last_solve_.residual);
+  counters_.minres += last_solve_.used_minres ? 1 : 0;
+  counters_.unconverged += last_solve_.converged ? 0 : 1;
+  // Coulomb friction at the contacts: the tangential velocity loses mu times the normal
+  // velocity the constraint removed (Stomakhin et al. 2013's grid collision, after the solve).
+  Real* v = implicit_.solution();
+  for (const FrictionContact& c : contacts_) {
+    Real* vd = v + c.dof * 4;
+    const Vec3 vrel = Vec3(vd[0], vd[1], vd[2]) - c.vc;
+    const Real vn = vrel.dot(c.n);
+    Vec3 vt = vrel - vn * c.n;
+    const Real vt_norm = vt.norm();
+    if (vt_norm > 0) vt *= std::max(Real(0), vt_norm + c.mu * c.vn_star) / vt_norm;
+    const Vec3 out = c.vc + vn * c.n + vt;
+    vd[0] = out[0], vd[1] = out[1], vd[2] = out[2];
+  }
+  const MpmGridView g = grid_view();
+  dofs_to_grid_velocities(space, g, v);
+  // Separating nodes left free by the solve may approach a collider now: one more projection.
+  grid_apply_colliders(space, g, step_params(dt));
+}
+void MpmSolver::grid_to_particle(const exec::Space& space, Real dt) {
   g2p(space, particle_view(), grid_view(), step_params(dt));
 }
 
-void ExplicitMpm::update_materials(const exec::Space& space, Real dt) {
+void MpmSolver::update_materials(const exec::Space& space, Real dt) {
   MaterialUpdateParams prm;
   prm.materials = materials_.data();
   prm.sources = heat_sources_.data();
@@ -146,7 +248,7 @@ void ExplicitMpm::update_materials(const exec::Space& space, Real dt) {
   update_material_state(space, particle_view(), prm);
 }
 
-void ExplicitMpm::step(const exec::Space& space, Real dt) {
+void MpmSolver::step(const exec::Space& space, Real dt) {
   if (!(dt > 0) || !std::isfinite(dt)) {
     std::ostringstream os;
     os << "step " << steps_ << ": time step must be positive and finite, got " << dt;
@@ -156,6 +258,7 @@ void ExplicitMpm::step(const exec::Space& space, Real dt) {
   update_grid(space);
   particle_to_grid(space, dt);
   update_grid_velocities(space, dt);
+  if (settings_.implicit) solve_grid_velocities(space, dt);
   grid_to_particle(space, dt);
   if (!colliders_.empty()) {
     const Real t_end = Real(time_) + dt;  // the grid update's end-of-substep time (same posed colliders)
@@ -175,7 +278,7 @@ struct SpeedCheck {
 };
 }  // namespace
 
-Real ExplicitMpm::stable_dt(const exec::Space& space) const {
+Real MpmSolver::stable_dt(const exec::Space& space) const {
   const Vec3* v = particles_.vec3(attr_.v);
   const Mat3* F = particles_.mat3(attr_.F);
   const Real limit = settings_.max_speed;
@@ -219,7 +322,9 @@ Real ExplicitMpm::stable_dt(const exec::Space& space) const {
     os << "; the simulation blew up (reduce cfl or max_dt, or check material stiffness)";
     throw SimulationError(os.str());
   }
-  const Real denom = chk.max_speed + std::max(max_wave_speed_, chk.max_wave);
+  // Implicit: the elastic waves are integrated stably, only the material speed limits dt.
+  const Real wave = settings_.implicit ? Real(0) : std::max(max_wave_speed_, chk.max_wave);
+  const Real denom = chk.max_speed + wave;
   Real dt = denom > 0 ? settings_.cfl * settings_.dx / denom : settings_.max_dt;
   // Explicit viscosity: the diffusion number nu dt / dx^2 must stay below 1/(2 d) = 1/6.
   if (max_kinematic_viscosity_ > 0)
@@ -227,7 +332,7 @@ Real ExplicitMpm::stable_dt(const exec::Space& space) const {
   return std::min(dt, settings_.max_dt);
 }
 
-MpmDiagnostics ExplicitMpm::diagnostics(const exec::Space& space) const {
+MpmDiagnostics MpmSolver::diagnostics(const exec::Space& space) const {
   struct Acc {
     double ke = 0, ee = 0, m = 0, vmax = 0;
     Vec3d p = Vec3d::Zero();

@@ -1,26 +1,33 @@
-// Explicit MPM solver (course report Sec. 3.2; MLS-MPM as in A-ULMPM Sec. 5.8). One substep is
-// five named phases, plus a sixth when a material has state (plasticity, fluid, phase change):
+// MPM solver (course report Sec. 3.2; MLS-MPM as in A-ULMPM Sec. 5.8), explicit or implicit
+// (backward Euler, one Newton step: enriched MPM Sec. 6, A-ULMPM eq. 26). One substep is
+// these named phases:
 //   sort_particles   stable radix sort by grid leaf, bins           (sparse_grid/binning)
 //   update_grid      activate leaves, tables, colours                (sparse_grid)
 //   particle_to_grid mass, momentum, stress forces                   (kernels p2g)
-//   update_grid_velocities  p/m, gravity, forces, colliders          (kernels grid_update)
+//   update_grid_velocities  p/m, gravity, forces -> v*; colliders (explicit)  (kernels grid_update)
+//   solve_grid_velocities   implicit only: (M + dt^2 H) v = M v* with the colliders as
+//                    constraints, then friction and separation       (solvers/implicit_system)
 //   grid_to_particle v, C, F update, advection                       (kernels g2p)
 //   collide_particles  push particles that entered a collider back out  (kernels material_update)
 //   update_materials heat sources, return mapping / F reset          (kernels material_update)
-// The time step comes from a CFL condition on particle speed plus the elastic wave speed, and
-// the explicit viscosity limit dx^2 / (6 nu) when a material is viscous.
+// The time step comes from a CFL condition on particle speed plus the elastic wave speed (the
+// wave speed only when explicit), and the explicit viscosity limit dx^2 / (6 nu) when a
+// material is viscous (viscosity stays explicit in the implicit integrator).
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 #include "core/exec/exec.hpp"
 #include "core/materials/material.hpp"
 #include "core/particles/particle_set.hpp"
 #include "kernels/colliders.hpp"
+#include "kernels/implicit_mpm.hpp"
 #include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"
 #include "sparse_grid/binning.hpp"
+#include "solvers/implicit_system.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
 namespace amalgam {
@@ -34,6 +41,15 @@ struct MpmSettings {
   Real cfl = Real(0.5);      // dt <= cfl dx / (max |v_p| + c_max)
   Real max_dt = Real(1e-2);  // upper bound on a substep
   Real max_speed = Real(1e4);  // stability guard: a faster particle is a blow-up (m/s)
+  bool implicit = false;       // backward Euler velocity update instead of explicit
+  ImplicitSettings solver;     // Krylov solver settings when implicit
+};
+
+// Implicit solves since the counters were last reset (per frame in the runner).
+struct ImplicitCounters {
+  std::uint64_t solves = 0, iterations = 0, minres = 0, unconverged = 0;
+  int max_iterations = 0;
+  double max_residual = 0;
 };
 
 struct MpmDiagnostics {
@@ -43,9 +59,9 @@ struct MpmDiagnostics {
   double mass = 0;
 };
 
-class ExplicitMpm {
+class MpmSolver {
  public:
-  ExplicitMpm(const MpmSettings& settings, std::vector<MaterialParams> materials, std::vector<Collider> colliders,
+  MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials, std::vector<Collider> colliders,
               std::vector<HeatSource> heat_sources = {});
 
   ParticleSet& particles() { return particles_; }
@@ -78,10 +94,20 @@ class ExplicitMpm {
   void update_grid(const exec::Space& space);
   void particle_to_grid(const exec::Space& space, Real dt);
   void update_grid_velocities(const exec::Space& space, Real dt);
+  void solve_grid_velocities(const exec::Space& space, Real dt);
   void grid_to_particle(const exec::Space& space, Real dt);
   void update_materials(const exec::Space& space, Real dt);
   // Whether update_materials has anything to do (plastic, fluid or melting material, heat source).
   bool has_material_update() const { return material_update_; }
+
+  const SolveStats& last_solve() const { return last_solve_; }
+  const ImplicitCounters& implicit_counters() const { return counters_; }
+  void reset_implicit_counters() { counters_ = {}; }
+  // The implicit system of the last solve (tests, benchmarks).
+  ImplicitSystem& implicit_system() { return implicit_; }
+  // Sets up the implicit system for the current grid (mass, v*, constraints, Hessian cache,
+  // elastic term) without solving: what solve_grid_velocities does before its solve.
+  void assemble_implicit(const exec::Space& space, Real dt);
 
   // CFL number used by stable_dt (lowered while retrying a failed frame).
   void set_cfl(Real cfl) { settings_.cfl = cfl; }
@@ -116,6 +142,19 @@ class ExplicitMpm {
   SparseGrid grid_;
   double time_ = 0;
   std::uint64_t steps_ = 0;
+  // Implicit integration state (reused between steps).
+  ImplicitSystem implicit_;
+  std::vector<ParticleHessian> hessians_;
+  std::unique_ptr<ImplicitTerm> elastic_term_;
+  struct FrictionContact {
+    std::uint64_t dof;
+    Vec3 n, vc;
+    Real vn_star, mu;
+  };
+  std::vector<FrictionContact> contacts_;
+  std::vector<std::uint8_t> in_collider_;
+  SolveStats last_solve_;
+  ImplicitCounters counters_;
 };
 
 }  // namespace amalgam

@@ -1,0 +1,56 @@
+// A bin's private block of grid nodes for scatter (P2G-like) and gather (G2P-like) kernels.
+//
+// A bin's particles reach nodes base .. base + Order of their leaf and its +x/+y/+z neighbours,
+// so a block of (8 + Order)^3 nodes with node (0,0,0) at the bin leaf's origin holds them all
+// (L1-resident). Kernels scatter into the block and flush it into the bin's 8 leaves (nbr8), or
+// gather the 8 leaves into the block first. Node (i,j,k) of the block is at ((i B) + j) B + k.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <cstring>
+
+#include "core/math/types.hpp"
+#include "sparse_grid/sparse_grid.hpp"
+
+namespace amalgam {
+
+template <int Order, int CH>
+struct GridBlock {
+  static constexpr int B = kLeafDim + Order;
+  static constexpr int kSize = B * B * B * CH;
+  alignas(64) Real data[kSize];
+  static int at(int i, int j, int k) { return ((i * B + j) * B + k) * CH; }
+  void clear() { std::memset(data, 0, sizeof(data)); }
+
+  // Calls fn(block node pointer, leaf index, offset in leaf) for every node of the block, leaf
+  // by leaf (t = 0..7: +x, +y, +z neighbours by bit), z fastest.
+  template <class Fn>
+  void for_each_node(const std::array<std::int32_t, 8>& nbr8, Fn&& fn) {
+    for (int t = 0; t < 8; ++t) {
+      const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
+      const std::size_t leaf = std::size_t(nbr8[size_t(t)]);
+      const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim, nk = tz ? B - kLeafDim : kLeafDim;
+      for (int i = 0; i < ni; ++i)
+        for (int j = 0; j < nj; ++j)
+          for (int k = 0; k < nk; ++k)
+            fn(data + at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k), leaf, leaf_offset(i, j, k));
+    }
+  }
+  // 4-lane node vectors [leaf][512][4] (the implicit solver's layout): block <- grid (CH == 4).
+  void gather4(const std::array<std::int32_t, 8>& nbr8, const Real* grid) {
+    for_each_node(nbr8, [grid](Real* d, std::size_t leaf, int off) {
+      const Real* s = grid + (leaf * kLeafNodes + std::size_t(off)) * 4;
+      d[0] = s[0], d[1] = s[1], d[2] = s[2], d[3] = s[3];
+    });
+  }
+  // grid += block (CH == 4). Race-free when same-colour bins run in parallel.
+  void flush_add4(const std::array<std::int32_t, 8>& nbr8, Real* grid) {
+    for_each_node(nbr8, [grid](Real* s, std::size_t leaf, int off) {
+      Real* d = grid + (leaf * kLeafNodes + std::size_t(off)) * 4;
+      d[0] += s[0], d[1] += s[1], d[2] += s[2], d[3] += s[3];
+    });
+  }
+};
+
+}  // namespace amalgam
