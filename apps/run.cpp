@@ -47,14 +47,15 @@ volatile std::sig_atomic_t g_signal = 0;
 extern "C" void on_signal(int sig) { g_signal = sig; }
 
 // Profiler seconds so far in the groups of the CSV columns: p2g, g2p, sort, grid.
-std::array<double, 4> kernel_groups(const exec::Profiler& p) {
-  std::array<double, 4> g{};
+std::array<double, 5> kernel_groups(const exec::Profiler& p) {
+  std::array<double, 5> g{};
   for (const auto& r : p.regions()) {
     if (r.label == "mpm.p2g") g[0] += r.seconds;
     else if (r.label == "mpm.g2p") g[1] += r.seconds;
     else if (r.label.rfind("bin.", 0) == 0 || r.label == "particles.permute") g[2] += r.seconds;
     else if (r.label.rfind("grid.", 0) == 0 || r.label == "mpm.grid_clear" || r.label == "mpm.grid_update")
       g[3] += r.seconds;
+    else if (r.label.rfind("implicit.", 0) == 0) g[4] += r.seconds;
   }
   return g;
 }
@@ -168,7 +169,7 @@ int run_command(const std::vector<std::string>& args) {
     const bool tty = isatty(fileno(stdout));
     const auto t_start = std::chrono::steady_clock::now();
     long long total_substeps = 0;
-    std::array<double, 4> groups_before = kernel_groups(profiler);
+    std::array<double, 5> groups_before = kernel_groups(profiler);
     double wall_before = 0;
     for (int f = first_frame; f <= scene.frames; ++f) {
       const double t_frame_end = double(f) / scene.fps;
@@ -178,6 +179,7 @@ int run_command(const std::vector<std::string>& args) {
       const double t_frame_start = solver.time();
       const std::uint64_t steps_frame_start = solver.step_count();
       if (max_retries > 0) solver.particles().save(snapshot);
+      solver.reset_implicit_counters();
       for (int attempt = 0;; ++attempt) {
         try {
           // Tolerance covers the rounding of dt to Real; it is far below any physical substep.
@@ -209,6 +211,7 @@ int run_command(const std::vector<std::string>& args) {
           solver.particles().restore(snapshot);
           solver.restore_clock(t_frame_start, steps_frame_start);
           solver.set_cfl(cfl);
+          solver.reset_implicit_counters();
           substeps = 0;
         }
       }
@@ -218,12 +221,24 @@ int run_command(const std::vector<std::string>& args) {
       write_frame(f);
       const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
       DiagnosticsRow row{f, solver.time(), double(dt), wall, substeps, d, np};
-      const std::array<double, 4> groups = kernel_groups(profiler);
+      const std::array<double, 5> groups = kernel_groups(profiler);
       row.p2g_s = groups[0] - groups_before[0];
       row.g2p_s = groups[1] - groups_before[1];
       row.sort_s = groups[2] - groups_before[2];
       row.grid_s = groups[3] - groups_before[3];
-      row.other_s = std::max(0.0, (wall - wall_before) - row.p2g_s - row.g2p_s - row.sort_s - row.grid_s);
+      row.solve_s = groups[4] - groups_before[4];
+      row.other_s =
+          std::max(0.0, (wall - wall_before) - row.p2g_s - row.g2p_s - row.sort_s - row.grid_s - row.solve_s);
+      const ImplicitCounters& ic = solver.implicit_counters();
+      row.cg_iterations = (long long)ic.iterations;
+      row.cg_max_iterations = ic.max_iterations;
+      row.cg_max_residual = ic.max_residual;
+      row.cg_unconverged = (long long)ic.unconverged;
+      if (ic.unconverged > 0)
+        std::cerr << (tty && !quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": " << ic.unconverged
+                  << " implicit solve(s) stopped at max_iterations = " << scene.mpm.solver.max_iterations
+                  << " (worst relative residual " << ic.max_residual
+                  << "); raise simulation.implicit.max_iterations or lower max_dt\n";
       row.leaves = solver.grid().leaf_count();
       row.active_leaves = solver.grid().active_leaves().size();
       row.rss_mb = resident_mb();
@@ -241,11 +256,14 @@ int run_command(const std::vector<std::string>& args) {
         const int done = f - first_frame + 1;
         const double eta = wall / done * (scene.frames - f);
         const double rate = double(np) * double(total_substeps) / std::max(wall, 1e-9);
-        char line[256];
+        char cg[64] = "";
+        if (scene.mpm.implicit)
+          std::snprintf(cg, sizeof cg, "  CG %.1f it/step", double(row.cg_iterations) / double(std::max(1LL, substeps)));
+        char line[320];
         std::snprintf(line, sizeof line,
-                      "frame %d/%d  t=%.4fs  substeps=%lld  dt=%.2e  KE=%.4g J  max|v|=%.3g m/s  %.2fM p-steps/s  "
+                      "frame %d/%d  t=%.4fs  substeps=%lld  dt=%.2e  KE=%.4g J  max|v|=%.3g m/s%s  %.2fM p-steps/s  "
                       "elapsed %s  ETA %s",
-                      f, scene.frames, solver.time(), substeps, double(dt), d.kinetic, d.max_speed, rate * 1e-6,
+                      f, scene.frames, solver.time(), substeps, double(dt), d.kinetic, d.max_speed, cg, rate * 1e-6,
                       format_seconds(wall).c_str(), format_seconds(eta).c_str());
         if (tty) std::cout << "\r" << line << "\033[K" << std::flush;
         else std::cout << line << "\n";

@@ -148,6 +148,12 @@ Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols, c
     if (it == cols.end()) throw InputError("diagnostics: missing column '" + n + "'");
     return it->second;
   };
+  // Columns added later (implicit solve time) are optional, so older runs still plot.
+  static const std::vector<double> none;
+  auto optional_col = [&](const std::string& n) -> const std::vector<double>& {
+    const auto it = cols.find(n);
+    return it == cols.end() ? none : it->second;
+  };
   const std::vector<double>& t = col("time_s");
   const std::vector<double>& frame = col("frame");
   const std::vector<double>& ke = col("kinetic_J");
@@ -170,6 +176,7 @@ Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols, c
          {"G2P", &frame, &col("g2p_s"), blue},
          {"SORT", &frame, &col("sort_s"), green},
          {"GRID", &frame, &col("grid_s"), orange},
+         {"SOLVE", &frame, &optional_col("solve_s"), grey},
          {"OTHER", &frame, &col("other_s"), purple}},
         false);
   return img;

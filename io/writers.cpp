@@ -80,7 +80,8 @@ void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmA
 
 std::string diagnostics_csv_header() {
   return "frame,time_s,last_dt_s,substeps,kinetic_J,elastic_J,momentum_x,momentum_y,momentum_z,max_speed_m_s,"
-         "particles,wall_s,p2g_s,g2p_s,sort_s,grid_s,other_s,leaves,active_leaves,rss_mb\n";
+         "particles,wall_s,p2g_s,g2p_s,sort_s,grid_s,other_s,leaves,active_leaves,rss_mb,solve_s,cg_iterations,"
+         "cg_max_iterations,cg_max_residual,cg_unconverged\n";
 }
 
 std::string diagnostics_csv_line(const DiagnosticsRow& r) {
@@ -89,7 +90,9 @@ std::string diagnostics_csv_line(const DiagnosticsRow& r) {
   os << r.frame << ',' << r.time << ',' << r.dt << ',' << r.substeps << ',' << r.d.kinetic << ',' << r.d.elastic << ','
      << r.d.momentum[0] << ',' << r.d.momentum[1] << ',' << r.d.momentum[2] << ',' << r.d.max_speed << ','
      << r.particles << ',' << r.wall_seconds << ',' << r.p2g_s << ',' << r.g2p_s << ',' << r.sort_s << ','
-     << r.grid_s << ',' << r.other_s << ',' << r.leaves << ',' << r.active_leaves << ',' << r.rss_mb << '\n';
+     << r.grid_s << ',' << r.other_s << ',' << r.leaves << ',' << r.active_leaves << ',' << r.rss_mb << ','
+     << r.solve_s << ',' << r.cg_iterations << ',' << r.cg_max_iterations << ',' << r.cg_max_residual << ','
+     << r.cg_unconverged << '\n';
   return os.str();
 }
 

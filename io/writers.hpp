@@ -28,6 +28,13 @@ struct DiagnosticsRow {
   // Seconds spent this frame in P2G, G2P, sorting (keys, radix sort, permutation, bins),
   // grid (topology, clear, update) and everything else (CFL check, diagnostics, output).
   double p2g_s = 0, g2p_s = 0, sort_s = 0, grid_s = 0, other_s = 0;
+  // Implicit integration: seconds in the solve (Hessian cache, operator, CG), CG iterations this
+  // frame (total and the most in one substep), the worst final relative residual and the number
+  // of substeps whose solve stopped at the iteration limit. Zero when explicit.
+  double solve_s = 0;
+  long long cg_iterations = 0, cg_unconverged = 0;
+  int cg_max_iterations = 0;
+  double cg_max_residual = 0;
   // Memory: grid leaves allocated and active this frame, resident set size of the process (MB).
   std::size_t leaves = 0, active_leaves = 0;
   double rss_mb = 0;

@@ -133,14 +133,30 @@ void hessian_diagonal_impl(const exec::Space& space, const MpmParticleView& p, c
         const ParticleHessian& ph = hess[q];
         const Stencil<Order> st = gradient_stencil<Order>(p.x[q], inv_dx, mls);
         const Vec3i l = st.base - origin;
-        const Real s = scale * ph.V0;
+        // diag_c = M : frame(M) for M = u_c b^T, u_c = row c of U, b = S U^T g (eq. 18 in the
+        // frame): a quadratic form in b, Q_c(i,i) = u_i^2 H_ii + sum_{j != i} c1_ij u_j^2,
+        // Q_c(i,j) = u_i u_j (H_ij + c2_ij); so diag_c = g^T K_c g with K_c = U S Q_c S U^T,
+        // three symmetric 3x3 matrices per particle instead of a frame product per node.
+        Mat3 K[3];
+        for (int c = 0; c < 3; ++c) {
+          const Vec3 u = ph.U.row(c).transpose();
+          const Vec3 c1 = ph.h.c1, c2 = ph.h.c2;  // pairs (0,1), (0,2), (1,2)
+          Mat3 Q;
+          Q(0, 0) = u[0] * u[0] * ph.h.H(0, 0) + c1[0] * u[1] * u[1] + c1[1] * u[2] * u[2];
+          Q(1, 1) = u[1] * u[1] * ph.h.H(1, 1) + c1[0] * u[0] * u[0] + c1[2] * u[2] * u[2];
+          Q(2, 2) = u[2] * u[2] * ph.h.H(2, 2) + c1[1] * u[0] * u[0] + c1[2] * u[1] * u[1];
+          Q(0, 1) = Q(1, 0) = u[0] * u[1] * (ph.h.H(0, 1) + c2[0]);
+          Q(0, 2) = Q(2, 0) = u[0] * u[2] * (ph.h.H(0, 2) + c2[1]);
+          Q(1, 2) = Q(2, 1) = u[1] * u[2] * (ph.h.H(1, 2) + c2[2]);
+          const Mat3 US = ph.U * ph.sigma.asDiagonal();
+          K[c] = (scale * ph.V0) * (US * Q * US.transpose());
+        }
         for (int i = 0; i < N; ++i)
           for (int j = 0; j < N; ++j)
             for (int k = 0; k < N; ++k) {
-              // diag_c = M : frame(M) for M = u_c (S U^T g)^T, u_c row c of U (eq. 18 in the frame).
-              const Vec3 bvec = ph.sigma.cwiseProduct(ph.U.transpose() * st.gradient(i, j, k));
+              const Vec3 gv = st.gradient(i, j, k);
               Real* node = acc.data + Blk::at(l[0] + i, l[1] + j, l[2] + k);
-              for (int a = 0; a < 3; ++a) node[a] += s * ph.h.rank_one_quadratic(ph.U.row(a).transpose(), bvec);
+              for (int c = 0; c < 3; ++c) node[c] += gv.dot(K[c] * gv);
             }
       }
       acc.flush_add4(g.nbr8[b], diag);

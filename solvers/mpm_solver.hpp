@@ -105,6 +105,7 @@ class MpmSolver {
   void reset_implicit_counters() { counters_ = {}; }
   // The implicit system of the last solve (tests, benchmarks).
   ImplicitSystem& implicit_system() { return implicit_; }
+  const ImplicitSystem& implicit_system() const { return implicit_; }
   // Sets up the implicit system for the current grid (mass, v*, constraints, Hessian cache,
   // elastic term) without solving: what solve_grid_velocities does before its solve.
   void assemble_implicit(const exec::Space& space, Real dt);
