@@ -14,11 +14,14 @@ namespace amalgam::cli {
 namespace {
 const char* kBenchHelp =
     "usage: amalgam bench [--particles N] [--steps S] [--reps R] [--threads LIST] [--backends LIST]\n"
-    "                     [--transfer mls|apic|flip|pic]\n"
+    "                     [--transfer mls|apic|flip|pic] [--implicit [--dt SECONDS]]\n"
     "Runs the standard sphere scene (N particles, default 1e6, dx = 1/128, MLS, fixed corotated)\n"
     "for S timed substeps (default 10) after 2 warm-up substeps, R times (default 3), on each\n"
     "backend (default serial,openmp,tbb) and thread count (default 1,2), and prints one line per\n"
-    "run with the median (min, max) particle-substeps per second and per-kernel ns per particle.\n";
+    "run with the median (min, max) particle-substeps per second and per-kernel ns per particle.\n"
+    "--implicit: the same sphere stiffened to E = 1e7 with the implicit integrator, dx scaled so\n"
+    "particles per cell stay those of 1e6 at 1/128, dt = 10x the explicit CFL step of that\n"
+    "resolution (or --dt); adds CG iterations per substep (mean, max) and the solve's share.\n";
 
 std::vector<std::string> split(const std::string& s) {
   std::vector<std::string> out;
@@ -31,6 +34,67 @@ double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
 }
+
+// The implicit integrator on the stiff sphere: CG iterations per substep and where time goes.
+int implicit_bench(BenchSceneOptions so, int steps, int reps, const std::vector<int>& threads,
+                   const std::vector<exec::Backend>& backends, double fixed_dt) {
+  so.dx = Real(std::cbrt(1e6 / double(so.particles)) / 128.0);
+  so.youngs_modulus = 1e7;
+  so.implicit = false;
+  const Real dt_cfl = make_bench_sphere(so).stable_dt(exec::Space());
+  so.implicit = true;
+  const Real dt = fixed_dt > 0 ? Real(fixed_dt) : 10 * dt_cfl;
+  std::cout << "# amalgam bench --implicit: sphere, " << so.particles << " particles, dx=" << so.dx
+            << ", E=1e7, transfer=" << transfer_name(so.transfer) << ", precision=" << real_name() << ", dt=" << dt
+            << " (" << dt / dt_cfl << "x explicit CFL), " << steps << " substeps x " << reps
+            << " reps (median, [min, max])\n";
+  for (const auto backend : backends) {
+    for (const int t : threads) {
+      if (backend == exec::Backend::Serial && t != 1) continue;
+      std::vector<double> rate;
+      exec::Profiler prof;
+      double mean_it = 0;
+      int max_it = 0;
+      std::uint64_t applications = 0;
+      for (int r = 0; r < reps; ++r) {
+        MpmSolver solver = make_bench_sphere(so);
+        exec::Space warm(backend, t);
+        for (int s = 0; s < 2; ++s) solver.step(warm, dt);
+        solver.reset_implicit_counters();
+        exec::Profiler run_prof;
+        exec::Space space(backend, t, &run_prof);
+        const auto t0 = std::chrono::steady_clock::now();
+        for (int s = 0; s < steps; ++s) solver.step(space, dt);
+        const double sec = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        rate.push_back(double(so.particles) * steps / sec);
+        if (r == reps / 2) {
+          prof = run_prof;
+          const ImplicitCounters& c = solver.implicit_counters();
+          mean_it = double(c.iterations) / double(c.solves);
+          max_it = c.max_iterations;
+          applications = c.iterations + c.solves;  // + the initial residual
+        }
+      }
+      const double per = 1e9 / (double(so.particles) * steps);
+      double solve = 0;
+      for (const auto& r : prof.regions())
+        if (r.label.rfind("implicit.", 0) == 0) solve += r.seconds;
+      const double op = prof.seconds("implicit.hessian_action") + prof.seconds("implicit.apply_mass");
+      char line[512];
+      std::snprintf(line, sizeof line,
+                    "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
+                    "cg_iterations_mean=%.1f cg_iterations_max=%d solve_ns=%.1f operator_ns_per_application=%.1f "
+                    "p2g_ns=%.1f g2p_ns=%.1f",
+                    exec::backend_name(backend), t, so.particles, median(rate),
+                    *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()), mean_it,
+                    max_it, solve * per, op * 1e9 / (double(so.particles) * double(std::max<std::uint64_t>(1, applications))),
+                    prof.seconds("mpm.p2g") * per, prof.seconds("mpm.g2p") * per);
+      std::cout << line << std::endl;
+    }
+  }
+  return kOk;
+}
+
 }  // namespace
 
 int bench_command(const std::vector<std::string>& args) {
@@ -38,9 +102,11 @@ int bench_command(const std::vector<std::string>& args) {
   int steps = 10, reps = 3;
   std::vector<int> threads = {1, 2};
   std::vector<exec::Backend> backends = exec::available_backends();
+  bool implicit = false;
+  double fixed_dt = 0;
   try {
-    const Options o = parse_options(args, {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer"},
-                                    {"--help"});
+    const Options o = parse_options(
+        args, {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer", "--dt"}, {"--help", "--implicit"});
     if (o.flag("--help")) {
       std::cout << kBenchHelp;
       return kOk;
@@ -63,10 +129,16 @@ int bench_command(const std::vector<std::string>& args) {
       else if (*v == "flip" || *v == "pic") so.transfer = Transfer::PicFlip;
       else throw std::invalid_argument("--transfer expects mls, apic, flip or pic, got '" + *v + "'");
     }
+    implicit = o.flag("--implicit");
+    if (auto* v = o.get("--dt")) {
+      if (!implicit) throw std::invalid_argument("--dt needs --implicit");
+      fixed_dt = parse_double("--dt", *v, 1e-9, 1.0);
+    }
   } catch (const std::invalid_argument& e) {
     std::cerr << "amalgam bench: " << e.what() << "\n" << kBenchHelp;
     return kUsage;
   }
+  if (implicit) return implicit_bench(so, steps, reps, threads, backends, fixed_dt);
   std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/" << int(std::lround(1 / so.dx))
             << ", transfer=" << transfer_name(so.transfer) << ", precision=" << real_name() << ", " << steps
             << " substeps x " << reps << " reps (median, [min, max])\n";

@@ -25,5 +25,6 @@ struct Options {
 Options parse_options(const std::vector<std::string>& args, const std::vector<std::string>& value_keys,
                       const std::vector<std::string>& flag_keys);
 int parse_int(const std::string& key, const std::string& value, int lo, int hi);
+double parse_double(const std::string& key, const std::string& value, double lo, double hi);
 
 }  // namespace amalgam::cli

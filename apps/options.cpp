@@ -1,3 +1,4 @@
+#include <sstream>
 #include <stdexcept>
 
 #include "apps/commands.hpp"
@@ -49,6 +50,22 @@ Options parse_options(const std::vector<std::string>& args, const std::vector<st
     }
   }
   return o;
+}
+
+double parse_double(const std::string& key, const std::string& value, double lo, double hi) {
+  size_t pos = 0;
+  double v = 0;
+  try {
+    v = std::stod(value, &pos);
+  } catch (...) {
+    pos = 0;
+  }
+  if (pos != value.size() || value.empty() || !(v >= lo && v <= hi)) {
+    std::ostringstream os;
+    os << key << " expects a number in [" << lo << ", " << hi << "], got '" << value << "'";
+    throw std::invalid_argument(os.str());
+  }
+  return v;
 }
 
 int parse_int(const std::string& key, const std::string& value, int lo, int hi) {

@@ -89,6 +89,81 @@ void BM_SortAndActivate(benchmark::State& st) {
   set_items(st, kParticles, s->particles().bytes_per_particle());
 }
 
+// Implicit integration on the same sphere, stiffened (E = 1e7) and stepped at 10x the explicit
+// CFL limit for a realistic system; the system is assembled once, then timed.
+struct ImplicitRig {
+  std::unique_ptr<MpmSolver> s;
+  Real dt = 0;
+  std::size_t dofs = 0;  // grid nodes with mass
+};
+ImplicitRig implicit_rig(const exec::Space& space) {
+  BenchSceneOptions o;
+  o.particles = kParticles;
+  o.dx = Real(std::cbrt(1e6 / double(kParticles)) / 128.0);
+  o.youngs_modulus = 1e7;
+  ImplicitRig r;
+  o.implicit = false;
+  const Real dt_explicit = MpmSolver(make_bench_sphere(o)).stable_dt(space);
+  o.implicit = true;
+  r.s = std::make_unique<MpmSolver>(make_bench_sphere(o));
+  r.dt = 10 * dt_explicit;
+  r.s->step(space, r.dt);
+  r.s->sort_particles(space);
+  r.s->update_grid(space);
+  r.s->particle_to_grid(space, r.dt);
+  r.s->update_grid_velocities(space, r.dt);
+  r.s->assemble_implicit(space, r.dt);
+  const ImplicitSystem& sys = r.s->implicit_system();
+  for (const auto& b : sys.blocks())
+    for (std::uint64_t d = b.first; d < b.first + b.count; ++d) r.dofs += r.s->grid().node4(0)[d * 4] > 0;
+  return r;
+}
+
+// One application of M + dt^2 H (the matrix-free operator: colour gather/scatter per particle).
+void BM_ImplicitOperator(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  ImplicitRig r = implicit_rig(space);
+  ImplicitSystem& sys = r.s->implicit_system();
+  std::vector<Real> out(sys.dof_count() * 4);
+  for (auto _ : st) sys.apply(space, r.dt, sys.rhs(), out.data());
+  set_items(st, kParticles, 0);
+  st.counters["dofs"] = double(r.dofs);
+}
+
+// Ten Jacobi-PCG iterations (operator, projections, two dot products, updates; the
+// preconditioner is built before timing); items are DOF-iterations, so 1 / (items/s) is the
+// time per iteration per DOF.
+void BM_CgIteration(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  ImplicitRig r = implicit_rig(space);
+  ImplicitSystem& sys = r.s->implicit_system();
+  ImplicitSettings cfg;
+  cfg.tolerance = 0;  // never converged: exactly max_iterations
+  cfg.max_iterations = 10;
+  std::vector<Real> guess(sys.solution(), sys.solution() + sys.dof_count() * 4);
+  sys.prepare(space, r.dt);
+  for (auto _ : st) {
+    st.PauseTiming();
+    std::copy(guess.begin(), guess.end(), sys.solution());
+    st.ResumeTiming();
+    sys.solve(space, r.dt, cfg);
+  }
+  set_items(st, r.dofs * 10, 0);
+  st.counters["dofs"] = double(r.dofs);
+}
+
+// Per step: DOFs from the grid, contacts, particle Hessian cache (SVD + frame blocks with the
+// fix) and the Jacobi diagonal (eqs. 17-19).
+void BM_ImplicitAssemble(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  ImplicitRig r = implicit_rig(space);
+  for (auto _ : st) {
+    r.s->assemble_implicit(space, r.dt);
+    r.s->implicit_system().prepare(space, r.dt);
+  }
+  set_items(st, kParticles, 0);
+}
+
 std::vector<Mat3> random_F(std::size_t n) {
   std::mt19937 rng(7);
   std::uniform_real_distribution<double> u(-0.2, 0.2);
@@ -148,6 +223,9 @@ BENCHMARK_CAPTURE(BM_G2P, apic_quadratic, Transfer::Apic, 2)->Apply(backend_args
 BENCHMARK_CAPTURE(BM_G2P, flip_quadratic, Transfer::PicFlip, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_G2P, mls_cubic, Transfer::Mls, 3)->Apply(backend_args);
 BENCHMARK(BM_GridUpdate)->Apply(backend_args);
+BENCHMARK(BM_ImplicitOperator)->Apply(backend_args);
+BENCHMARK(BM_CgIteration)->Apply(backend_args);
+BENCHMARK(BM_ImplicitAssemble)->Apply(backend_args);
 BENCHMARK(BM_SortAndActivate)->Apply(backend_args);
 BENCHMARK(BM_Svd3)->Unit(benchmark::kNanosecond);
 BENCHMARK(BM_PolarFast)->Unit(benchmark::kNanosecond);

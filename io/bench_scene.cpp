@@ -10,8 +10,9 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   s.dx = o.dx;
   s.order = o.order;
   s.transfer = o.transfer;
+  s.implicit = o.implicit;
   MaterialParams m;
-  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  const Lame l = Lame::from_young_poisson(o.youngs_modulus, 0.3);
   m.mu = l.mu;
   m.lambda = l.lambda;
   m.density = 1000;

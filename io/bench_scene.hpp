@@ -12,6 +12,8 @@ struct BenchSceneOptions {
   Real dx = Real(1.0 / 128.0);
   Transfer transfer = Transfer::Mls;
   int order = 2;
+  bool implicit = false;  // backward Euler (CG) instead of explicit
+  double youngs_modulus = 1e5;
 };
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o);

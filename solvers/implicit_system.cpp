@@ -40,9 +40,11 @@ void ImplicitSystem::finalize() {
   con_P_.clear();
   con_val_.clear();
   con_index_.assign(ndof_, -1);
+  preconditioner_dt_ = -1;
 }
 
 void ImplicitSystem::fix(std::size_t dof, const Vec3& v) {
+  preconditioner_dt_ = -1;
   std::int32_t& c = con_index_[dof];
   if (c < 0) {
     c = std::int32_t(con_dof_.size());
@@ -56,6 +58,7 @@ void ImplicitSystem::fix(std::size_t dof, const Vec3& v) {
 }
 
 void ImplicitSystem::constrain_normal(std::size_t dof, const Vec3& n, Real vn) {
+  preconditioner_dt_ = -1;
   std::int32_t& c = con_index_[dof];
   if (c < 0) {
     c = std::int32_t(con_dof_.size());
@@ -110,6 +113,11 @@ void ImplicitSystem::apply(const exec::Space& space, Real dt, const Real* v, Rea
   for (const ImplicitTerm* t : terms_) t->add_hessian_action(space, v, dt * dt, out);
 }
 
+void ImplicitSystem::prepare(const exec::Space& space, Real dt) {
+  if (preconditioner_dt_ != dt) build_preconditioner(space, dt);
+  preconditioner_dt_ = dt;
+}
+
 void ImplicitSystem::build_preconditioner(const exec::Space& space, Real dt) {
   Real* diag = inv_diag_.data();
   std::fill(inv_diag_.begin(), inv_diag_.end(), Real(0));
@@ -145,7 +153,7 @@ SolveStats ImplicitSystem::solve(const exec::Space& space, Real dt, const Implic
   const std::size_t n4 = ndof_ * 4;
   for (auto* v : {&r_, &z_, &p_, &q_})
     if (v->size() != n4) v->assign(n4, Real(0));
-  build_preconditioner(space, dt);
+  prepare(space, dt);
   const Block* blk = blocks_.data();
   const Real* m = mass_.data();
   Real* x = x_.data();

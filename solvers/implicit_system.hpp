@@ -72,7 +72,10 @@ class ImplicitSystem {
   Real* rhs() { return vstar_.data(); }          // v*, 4 lanes per DOF
   Real* solution() { return x_.data(); }         // v: initial guess in, solution out
   const Real* solution() const { return x_.data(); }
-  void add_term(const ImplicitTerm* term) { terms_.push_back(term); }
+  void add_term(const ImplicitTerm* term) {
+    terms_.push_back(term);
+    preconditioner_dt_ = -1;
+  }
 
   // Constraints (call after finalize, before solve; one per DOF, later calls combine):
   void fix(std::size_t dof, const Vec3& v);                        // v prescribed
@@ -81,6 +84,8 @@ class ImplicitSystem {
 
   // out = (M + dt^2 H) v (no projection). For tests and benchmarks.
   void apply(const exec::Space& space, Real dt, const Real* v, Real* out) const;
+  // Builds the Jacobi preconditioner for dt (eq. 17) unless it is current; solve() calls it.
+  void prepare(const exec::Space& space, Real dt);
   // Solves for solution() from rhs(); the initial guess is solution() (e.g. v*).
   SolveStats solve(const exec::Space& space, Real dt, const ImplicitSettings& settings);
 
@@ -102,6 +107,7 @@ class ImplicitSystem {
   std::vector<Mat3> con_P_;    // projector onto the free directions
   std::vector<Vec3> con_val_;  // the prescribed part of v
   std::vector<std::int32_t> con_index_;  // per DOF, index into the constraint list or -1
+  Real preconditioner_dt_ = -1;          // dt the preconditioner was built for (-1: stale)
 
   void project(const exec::Space& space, Real* v) const;
   void apply_preconditioner(const exec::Space& space, const Real* r, Real* z) const;
