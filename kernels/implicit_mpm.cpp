@@ -18,6 +18,7 @@ ParticleHessian particle_hessian(const MaterialParams& m, const Mat3& F, Real pl
   ph.h = SvdFrameHessian<Real>::from(d.sigma, p, H);
   if (psd) ph.h.make_psd();
   ph.V0 = V0;
+  ph.tau = p.cwiseProduct(d.sigma);
   return ph;
 }
 
@@ -38,9 +39,16 @@ inline Stencil<Order> gradient_stencil(const Vec3& x, Real inv_dx, bool mls) {
 }
 
 // sum_i u_i g_ip^T from a block of 4-lane node vectors (hierarchical sums over k, j, i).
+// Since sum_i g_ip = 0 (partition of unity, or MLS's linear reproduction), the sum is taken of
+// u_i - u_c with u_c the stencil's centre node: mathematically the same, but a uniform u (a
+// rigid translation, e.g. free fall) gives exactly 0 instead of float round-off times
+// |u| / dx, which dt^2 times the stiffness would lift to the solver's tolerance (measured:
+// a falling stiff armadillo took 25 CG iterations per substep fighting that noise).
 template <int Order>
 inline Mat3 gather_gradient(const GridBlock<Order, 4>& blk, const Vec3i& l, const Stencil<Order>& st) {
   constexpr int N = Stencil<Order>::kN;
+  const Real* centre = blk.data + GridBlock<Order, 4>::at(l[0] + 1, l[1] + 1, l[2] + 1);
+  const Real uc[4] = {centre[0], centre[1], centre[2], centre[3]};
   Real D0[4] = {}, D1[4] = {}, D2[4] = {};
   for (int i = 0; i < N; ++i) {
     Real Ti[4] = {}, Tdy[4] = {}, Tdz[4] = {};
@@ -49,8 +57,9 @@ inline Mat3 gather_gradient(const GridBlock<Order, 4>& blk, const Vec3i& l, cons
       const Real* row = blk.data + GridBlock<Order, 4>::at(l[0] + i, l[1] + j, l[2]);
       for (int k = 0; k < N; ++k)
         for (int c = 0; c < 4; ++c) {
-          U[c] += st.w[2][k] * row[k * 4 + c];
-          Ud[c] += st.dw[2][k] * row[k * 4 + c];
+          const Real u = row[k * 4 + c] - uc[c];
+          U[c] += st.w[2][k] * u;
+          Ud[c] += st.dw[2][k] * u;
         }
       const Real wy = st.w[1][j], dwy = st.dw[1][j];
       for (int c = 0; c < 4; ++c) {
@@ -192,7 +201,23 @@ void dispatch_forces(const exec::Space& space, const MpmParticleView& p, const M
                                });
 }
 
+template <int Order>
+void dispatch_cached_forces(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                            const ImplicitKernelParams& prm, const ParticleHessian* hess, Real* f) {
+  colour_gather_scatter<Order>(space, "implicit.cached_forces", p, g, prm, nullptr, f,
+                               [hess](std::uint32_t q, const Mat3&) -> Mat3 {
+                                 const ParticleHessian& ph = hess[q];
+                                 return -ph.V0 * (ph.U * ph.tau.asDiagonal() * ph.U.transpose());
+                               });
+}
+
 }  // namespace
+
+void mpm_cached_elastic_forces(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                               const ImplicitKernelParams& prm, const ParticleHessian* hess, Real* f) {
+  if (prm.order == 3) dispatch_cached_forces<3>(space, p, g, prm, hess, f);
+  else dispatch_cached_forces<2>(space, p, g, prm, hess, f);
+}
 
 void prepare_particle_hessians(const exec::Space& space, const MpmParticleView& p, const ImplicitKernelParams& prm,
                                bool psd, ParticleHessian* out) {
@@ -234,6 +259,18 @@ void grid_velocities_to_dofs(const exec::Space& space, const MpmGridView& g, Rea
       mass[d0 + n] = a[n * 4];
       Real* vd = v + (d0 + n) * 4;
       vd[0] = a[n * 4 + 1], vd[1] = a[n * 4 + 2], vd[2] = a[n * 4 + 3], vd[3] = 0;
+    }
+  });
+}
+
+void initial_guess_from_force(const exec::Space& space, const MpmGridView& g, const Real* mass, const Real* f,
+                              Real dt, Real* v) {
+  exec::parallel_for(space, "implicit.initial_guess", exec::Index(g.nactive), [&](exec::Index li) {
+    const std::size_t d0 = std::size_t(g.active_leaves[li]) * kLeafNodes;
+    for (std::size_t d = d0; d < d0 + std::size_t(kLeafNodes); ++d) {
+      if (mass[d] <= 0) continue;
+      const Real s = dt / mass[d];
+      for (int c = 0; c < 3; ++c) v[d * 4 + c] -= s * f[d * 4 + c];
     }
   });
 }

@@ -29,6 +29,7 @@ struct ParticleHessian {
   Vec3 sigma;
   SvdFrameHessian<Real> h;
   Real V0;
+  Vec3 tau;  // principal Kirchhoff stresses p_i sigma_i: tau = P F^T = U diag(tau) U^T
 };
 
 // The part of MpmStepParams these kernels use.
@@ -58,6 +59,11 @@ void mpm_hessian_diagonal(const exec::Space& space, const MpmParticleView& p, co
 void mpm_elastic_forces(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                         const ImplicitKernelParams& prm, const Real* u, Real* f);
 
+// f += elastic force at zero displacement from the cached stresses (no SVD): what the implicit
+// solver subtracts from v* for its initial guess.
+void mpm_cached_elastic_forces(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                               const ImplicitKernelParams& prm, const ParticleHessian* hess, Real* f);
+
 // Per-particle pieces, pure (no grid), for tests:
 // V_p^0 A_p F_p^T for a velocity-increment gradient grad_du.
 inline Mat3 particle_stress_differential(const ParticleHessian& ph, const Mat3& grad_du) {
@@ -75,6 +81,9 @@ namespace amalgam {
 // Grid -> implicit DOFs: mass (1 per node) and velocity (4 lanes) from the transfer channel
 // a = (m, v) after the explicit grid update, for the active leaves (DOF = 512 leaf + offset).
 void grid_velocities_to_dofs(const exec::Space& space, const MpmGridView& g, Real* mass, Real* v);
+// v -= dt f / m on the active leaves' nodes with mass (the implicit solve's initial guess).
+void initial_guess_from_force(const exec::Space& space, const MpmGridView& g, const Real* mass, const Real* f,
+                              Real dt, Real* v);
 // DOFs -> grid: a's velocity lanes <- v; PIC/FLIP's b (v_new - v_old) shifts by the same change.
 void dofs_to_grid_velocities(const exec::Space& space, const MpmGridView& g, const Real* v);
 

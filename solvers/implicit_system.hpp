@@ -9,8 +9,10 @@
 // Solvers: Jacobi-preconditioned conjugate gradients (preconditioner diag(M + dt^2 H), eqs.
 // 17-19) and preconditioned MINRES (Paige & Saunders 1975) for indefinite systems; CG switches to
 // MINRES when it meets a direction of non-positive curvature (only possible without the
-// definiteness fix). Stopping test: ||r||_{D^-1} <= tolerance ||M v*||_{D^-1}, D the Jacobi
-// diagonal (a mass-weighted velocity residual), or the iteration limit.
+// definiteness fix). Stopping test, CG: the velocity error estimated by the preconditioned
+// residual z = D^-1 r, ||z||_M <= tolerance max(||v*||_M, ||v0||_M) (D the Jacobi diagonal,
+// ||.||_M the mass-weighted norm); MINRES: ||r||_{D^-1} <= tolerance ||M v*||_{D^-1} (its
+// recurrence only knows that norm). Or the iteration limit.
 //
 // Boundary conditions are projections inside the solve (Baraff & Witkin 1998 filtered PCG):
 // a fixed DOF has its velocity prescribed, a normal constraint prescribes n . v; the residual and
@@ -34,7 +36,7 @@ enum class KrylovMethod { Cg, Minres };
 const char* krylov_name(KrylovMethod m);
 
 struct ImplicitSettings {
-  double tolerance = 1e-4;  // relative (preconditioned) residual
+  double tolerance = 1e-4;  // relative velocity error (CG) / relative residual (MINRES)
   int max_iterations = 200;
   KrylovMethod method = KrylovMethod::Cg;
   bool definiteness_fix = true;  // Teran et al. 2005 (enriched MPM eq. 16)
@@ -112,6 +114,11 @@ class ImplicitSystem {
   void project(const exec::Space& space, Real* v) const;
   void apply_preconditioner(const exec::Space& space, const Real* r, Real* z) const;
   double dot(const exec::Space& space, const Real* a, const Real* b) const;
+  struct Dots {
+    double rz = 0, mzz = 0;  // r . z and sum m |z|^2
+  };
+  Dots dots(const exec::Space& space, const Real* r, const Real* z) const;
+  double mass_norm2(const exec::Space& space, const Real* v) const;  // sum m |v|^2
   void build_preconditioner(const exec::Space& space, Real dt);
   SolveStats minres(const exec::Space& space, Real dt, const ImplicitSettings& s, double bnorm, int used);
 };

@@ -146,6 +146,7 @@ class MpmSolver {
   // Implicit integration state (reused between steps).
   ImplicitSystem implicit_;
   std::vector<ParticleHessian> hessians_;
+  std::vector<Real> guess_force_;
   std::unique_ptr<ImplicitTerm> elastic_term_;
   struct FrictionContact {
     std::uint64_t dof;
