@@ -1,8 +1,11 @@
 // Subcommands of the amalgam CLI. Each returns the process exit code (see README, "Exit codes").
 #pragma once
 
+#include <csignal>
 #include <string>
 #include <vector>
+
+#include "core/exec/exec.hpp"
 
 namespace amalgam::cli {
 
@@ -26,5 +29,23 @@ Options parse_options(const std::vector<std::string>& args, const std::vector<st
                       const std::vector<std::string>& flag_keys);
 int parse_int(const std::string& key, const std::string& value, int lo, int hi);
 double parse_double(const std::string& key, const std::string& value, double lo, double hi);
+
+}  // namespace amalgam::cli
+
+namespace amalgam {
+struct Scene;
+}
+
+namespace amalgam::cli {
+
+// Set by the SIGINT/SIGTERM handler of `amalgam run` (0 until a signal arrives).
+extern volatile std::sig_atomic_t g_signal;
+extern "C" void on_signal(int sig);
+std::string format_seconds(double s);
+
+// `amalgam run` of a peridynamics scene (apps/run_pd.cpp), after the options and the scene
+// were read and the output directory made. Throws like run_command's body.
+int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& space, exec::Profiler& profiler,
+                     const std::string& out_dir);
 
 }  // namespace amalgam::cli

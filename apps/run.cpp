@@ -43,8 +43,6 @@ const char* kRunHelp =
     "all cores, --out = the scene's output.directory,\n"
     "--frames = the scene's simulation.frames, --checkpoint-every = output.checkpoint_every.\n";
 
-volatile std::sig_atomic_t g_signal = 0;
-extern "C" void on_signal(int sig) { g_signal = sig; }
 
 // Profiler seconds so far in the groups of the CSV columns: p2g, g2p, sort, grid.
 std::array<double, 5> kernel_groups(const exec::Profiler& p) {
@@ -73,6 +71,11 @@ std::vector<std::string> earlier_rows(const std::string& csv, int first_frame) {
   return rows;
 }
 
+}  // namespace
+
+volatile std::sig_atomic_t g_signal = 0;
+extern "C" void on_signal(int sig) { g_signal = sig; }
+
 std::string format_seconds(double s) {
   char buf[64];
   if (s < 0 || !std::isfinite(s)) return "?";
@@ -81,6 +84,8 @@ std::string format_seconds(double s) {
   else std::snprintf(buf, sizeof buf, "%dh%02dm", int(s) / 3600, (int(s) % 3600) / 60);
   return buf;
 }
+
+namespace {
 
 exec::Space make_space(const Options& o, exec::Profiler* prof) {
   exec::Backend b = exec::Backend::OpenMP;
@@ -116,6 +121,7 @@ int run_command(const std::vector<std::string>& args) {
     std::error_code ec;
     std::filesystem::create_directories(out_dir, ec);
     if (ec) throw InputError(out_dir + ": cannot create output directory: " + ec.message());
+    if (scene.method == Method::Peridynamics) return run_peridynamics(scene, o, space, profiler, out_dir);
 
     int checkpoint_every = scene.output.checkpoint_every;
     if (const auto* c = o.get("--checkpoint-every")) checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
@@ -159,6 +165,32 @@ int run_command(const std::vector<std::string>& args) {
     const std::string csv_path = out_dir + "/diagnostics.csv";
     std::vector<std::string> csv_rows;
     if (first_frame > 1) csv_rows = earlier_rows(csv_path, first_frame);
+    // Implicit runs: one row per substep (CG iterations, residual), appended frame by frame; on
+    // resume the rows of substeps before the checkpoint are kept.
+    const std::string steps_path = out_dir + "/implicit_steps.csv";
+    const bool step_log = scene.mpm.implicit && scene.output.diagnostics_csv;
+    std::string step_rows;
+    if (step_log) {
+      std::string kept = "frame,step,time_s,dt_s,iterations,relative_residual,converged,minres\n";
+      if (solver.step_count() > 0) {
+        std::ifstream in(steps_path);
+        std::string line;
+        std::getline(in, line);
+        while (std::getline(in, line)) {
+          const size_t comma = line.find(',');
+          if (comma != std::string::npos && std::strtoull(line.c_str() + comma + 1, nullptr, 10) < solver.step_count())
+            kept += line + "\n";
+        }
+      }
+      write_file_atomic(steps_path, kept);
+    }
+    auto flush_steps = [&]() {
+      if (step_rows.empty()) return;
+      std::ofstream app(steps_path, std::ios::app);
+      app << step_rows;
+      if (!app) throw InputError(steps_path + ": cannot append implicit solver statistics");
+      step_rows.clear();
+    };
     g_signal = 0;
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);
@@ -190,9 +222,18 @@ int run_command(const std::vector<std::string>& args) {
             dt = Real(remaining / std::max(1.0, n_left));
             solver.step(space, dt);
             ++substeps;
+            if (step_log) {
+              const SolveStats& ls = solver.last_solve();
+              char row[160];
+              std::snprintf(row, sizeof row, "%d,%llu,%.9g,%.9g,%d,%.4g,%d,%d\n", f,
+                            (unsigned long long)(solver.step_count() - 1), solver.time(), double(dt), ls.iterations,
+                            ls.residual, ls.converged ? 1 : 0, ls.used_minres ? 1 : 0);
+              step_rows += row;
+            }
             if (g_signal) {  // interrupted: save the exact state mid-frame and stop
               const int sig = g_signal;
               write_checkpoint(checkpoint_path, solver, f, scene.fingerprint);
+              flush_steps();
               if (tty && !quiet) std::cout << "\n";
               std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM") << " received: checkpoint written to "
                         << checkpoint_path << " (t = " << solver.time() << " s, frame " << f
@@ -212,11 +253,13 @@ int run_command(const std::vector<std::string>& args) {
           solver.restore_clock(t_frame_start, steps_frame_start);
           solver.set_cfl(cfl);
           solver.reset_implicit_counters();
+          step_rows.clear();
           substeps = 0;
         }
       }
       solver.set_cfl(cfl0);
       total_substeps += substeps;
+      flush_steps();
       const MpmDiagnostics d = solver.diagnostics(space);
       write_frame(f);
       const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();

@@ -13,6 +13,7 @@
 #include "core/materials/material.hpp"
 #include "core/math/svd3.hpp"
 #include "io/bench_scene.hpp"
+#include "solvers/pd_solver.hpp"
 
 using namespace amalgam;
 
@@ -212,6 +213,82 @@ void BM_Material(benchmark::State& st, MaterialModel model) {
   set_items(st, F.size(), sizeof(Mat3) * 3);
 }
 
+
+// Peridynamics: a 40^3 lattice block (64 000 particles, delta = 3.015 lc: 122 bonds in the bulk,
+// 6.9 M directed bonds), stretched 0.1 % and sheared so every bond carries a force; plastic and
+// fracture enabled (thresholds not reached) so the kernels run their full paths. Items are
+// directed bonds (each visited from both ends, as LAMMPS counts them).
+std::unique_ptr<PdSolver> pd_block(const exec::Space& space) {
+  PdMaterial m;
+  m.bulk = Real(3.3e7);
+  m.shear = Real(2e7);
+  m.density = 2200;
+  m.psi0 = pd_psi0_from_yield_stress(Real(1e9), Real(0.03015));
+  m.plastic_cap = Real(0.2);
+  m.critical_stretch = Real(0.05);
+  PdSettings ps;
+  ps.spacing = Real(0.01);
+  ps.horizon = Real(0.03015);
+  ps.contact = false;
+  auto s = std::make_unique<PdSolver>(ps, std::vector<PdMaterial>{m});
+  std::vector<Vec3> x;
+  for (int i = 0; i < 40; ++i)
+    for (int j = 0; j < 40; ++j)
+      for (int k = 0; k < 40; ++k) x.push_back(Vec3(Real(0.01 * (i + 0.5)), Real(0.01 * (j + 0.5)), Real(0.01 * (k + 0.5))));
+  s->add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(1e-6));
+  s->initialize(space);
+  Vec3* px = s->particles().vec3(s->attributes().x);
+  for (std::size_t i = 0; i < s->particles().size(); ++i) px[i] += Vec3(Real(1e-3) * px[i][0] + Real(5e-4) * px[i][1], 0, 0);
+  return s;
+}
+
+void BM_PdBuildBonds(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = pd_block(exec::Space());
+  const ParticleSet& ps = s->particles();
+  PdBonds b;
+  for (auto _ : st)
+    pd_build_bonds(space, ps.vec3(s->attributes().x0), ps.real(s->attributes().volume), ps.int32(s->attributes().material),
+                   ps.size(), s->params(), true, b);
+  set_items(st, s->bonds().size(), sizeof(std::uint32_t) + sizeof(std::uint64_t) + 4 * sizeof(Real) + 1);
+}
+
+void BM_PdDilatation(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = pd_block(space);
+  for (auto _ : st) s->compute_dilatation(space);
+  // per bond: neighbour index, length, omega, volume, plastic (r/w), intact; + a gathered position
+  set_items(st, s->bonds().size(), sizeof(std::uint32_t) + 5 * sizeof(Real) + 1 + sizeof(Vec3));
+}
+
+void BM_PdForces(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = pd_block(space);
+  s->compute_dilatation(space);
+  for (auto _ : st) s->compute_forces(space);
+  // per bond: neighbour, reverse, length, omega (both ends), volume, plastic (both), intact; + x, x0, theta, a, b of j
+  set_items(st, s->bonds().size(),
+            sizeof(std::uint32_t) + sizeof(std::uint64_t) + 6 * sizeof(Real) + 1 + 2 * sizeof(Vec3) + 3 * sizeof(Real));
+}
+
+void BM_PdContact(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = pd_block(space);
+  std::vector<Vec3> f(s->particles().size());
+  PdContactList list;
+  pd_build_contact_list(space, s->particles().vec3(s->attributes().x), s->particles().size(), Real(0.014), list);
+  for (auto _ : st) pd_contact_forces(space, s->view(), s->bonds(), s->params(), Real(0.009), list, f.data());
+  set_items(st, s->particles().size(), 2 * sizeof(Vec3));
+}
+
+void BM_PdContactList(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = pd_block(space);
+  PdContactList list;
+  for (auto _ : st) pd_build_contact_list(space, s->particles().vec3(s->attributes().x), s->particles().size(), Real(0.014), list);
+  set_items(st, s->particles().size(), sizeof(Vec3));
+}
+
 }  // namespace
 
 BENCHMARK_CAPTURE(BM_P2G, mls_quadratic, Transfer::Mls, 2)->Apply(backend_args);
@@ -236,5 +313,11 @@ BENCHMARK_CAPTURE(BM_Material, snow, MaterialModel::Snow)->Unit(benchmark::kNano
 BENCHMARK_CAPTURE(BM_Material, drucker_prager, MaterialModel::DruckerPrager)->Unit(benchmark::kNanosecond);
 BENCHMARK_CAPTURE(BM_Material, von_mises, MaterialModel::VonMises)->Unit(benchmark::kNanosecond);
 BENCHMARK_CAPTURE(BM_Material, fluid, MaterialModel::Fluid)->Unit(benchmark::kNanosecond);
+
+BENCHMARK(BM_PdBuildBonds)->Apply(backend_args);
+BENCHMARK(BM_PdDilatation)->Apply(backend_args);
+BENCHMARK(BM_PdForces)->Apply(backend_args);
+BENCHMARK(BM_PdContact)->Apply(backend_args);
+BENCHMARK(BM_PdContactList)->Apply(backend_args);
 
 BENCHMARK_MAIN();

@@ -56,6 +56,15 @@ Vec3d ramp(double t) {
 
 Image render_particles(const ParticleSet& ps, const MpmAttributes& a, const Camera& cam, double radius, int width,
                        int height, ColorBy color_by, double floor_y) {
+  std::vector<float> scalar;
+  const ParticleSet::Id id = color_by == ColorBy::Temperature ? a.temperature : color_by == ColorBy::Plastic ? a.plastic : -1;
+  if (id >= 0) scalar.assign(ps.real(id), ps.real(id) + ps.size());
+  return render_points(ps.size(), ps.vec3(a.x), ps.vec3(a.v), ps.int32(a.material), id >= 0 ? scalar.data() : nullptr,
+                       cam, radius, width, height, color_by, floor_y);
+}
+
+Image render_points(std::size_t n, const Vec3* x, const Vec3* v, const std::int32_t* mat, const float* scalar,
+                    const Camera& cam, double radius, int width, int height, ColorBy color_by, double floor_y) {
   Image img;
   img.width = width;
   img.height = height;
@@ -68,14 +77,7 @@ Image render_particles(const ParticleSet& ps, const MpmAttributes& a, const Came
   const Vec3d right = fwd.cross(cam.up).normalized();
   const Vec3d up = right.cross(fwd);
   const double focal = 0.5 * double(height) / std::tan(0.5 * cam.fov_degrees * M_PI / 180.0);
-  const size_t n = ps.size();
-  const Vec3* x = ps.vec3(a.x);
-  const Vec3* v = ps.vec3(a.v);
-  const std::int32_t* mat = ps.int32(a.material);
-  const Real* scalar = nullptr;
-  if (color_by == ColorBy::Temperature && a.temperature >= 0) scalar = ps.real(a.temperature);
-  if (color_by == ColorBy::Plastic && a.plastic >= 0) scalar = ps.real(a.plastic);
-  if ((color_by == ColorBy::Temperature || color_by == ColorBy::Plastic) && !scalar) color_by = ColorBy::Material;
+  if (color_by != ColorBy::Speed && color_by != ColorBy::Material && !scalar) color_by = ColorBy::Material;
   // Ranges for the colour ramps and the depth cue.
   double smin = std::numeric_limits<double>::max(), smax = -smin, zmin = smin, zmax = -smin;
   for (size_t i = 0; i < n; ++i) {

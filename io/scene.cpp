@@ -80,6 +80,48 @@ MaterialParams read_material(JsonObject o) {
   return m;
 }
 
+// Peridynamic material (model "peridynamic"): elastic constants as bulk/shear modulus or
+// Young's modulus/Poisson ratio; plasticity by yield_stress (or the paper's psi0) and
+// plastic_cap; fracture by critical_stretch and damage_alpha (eq. 18); anisotropy (eq. 16) as
+// G = I + (ratio - 1) n n^T for a unit axis n.
+PdMaterial read_pd_material(JsonObject o, Real horizon) {
+  PdMaterial m;
+  o.choice("model", "", {"peridynamic"});
+  m.density = Real(o.required_number("density", 0, kHuge, true));
+  if (o.has("bulk_modulus") || o.has("shear_modulus")) {
+    if (o.has("youngs_modulus")) o.fail("youngs_modulus", "give either youngs_modulus/poisson_ratio or bulk_modulus/shear_modulus");
+    if (o.has("poisson_ratio")) o.fail("poisson_ratio", "give either youngs_modulus/poisson_ratio or bulk_modulus/shear_modulus");
+    m.bulk = Real(o.required_number("bulk_modulus", 0, kHuge, true));
+    m.shear = Real(o.required_number("shear_modulus", 0, kHuge, true));
+  } else {
+    const double E = o.required_number("youngs_modulus", 0, kHuge, true);
+    const double nu = o.number("poisson_ratio", 0.25, -0.999, 0.499);
+    m.bulk = Real(E / (3 * (1 - 2 * nu)));
+    m.shear = Real(E / (2 * (1 + nu)));
+  }
+  if (o.has("yield_stress") && o.has("psi0")) o.fail("psi0", "give either yield_stress or psi0, not both");
+  if (o.has("yield_stress")) m.psi0 = pd_psi0_from_yield_stress(Real(o.required_number("yield_stress", 0, kHuge, true)), horizon);
+  if (o.has("psi0")) m.psi0 = Real(o.required_number("psi0", 0, 1e38, true));
+  const bool plastic = o.has("yield_stress") || o.has("psi0");
+  if (o.has("plastic_cap") && !plastic) o.fail("plastic_cap", "needs yield_stress or psi0 (the material is elastic)");
+  if (o.has("plastic_cap")) m.plastic_cap = Real(o.required_number("plastic_cap", 0, kHuge, true));
+  if (o.has("critical_stretch")) m.critical_stretch = Real(o.required_number("critical_stretch", 0, kHuge, true));
+  if (o.has("damage_alpha") && !o.has("critical_stretch"))
+    o.fail("damage_alpha", "needs critical_stretch (the material does not fracture)");
+  m.alpha = Real(o.number("damage_alpha", 0, 0, 1e6));
+  if (o.has("anisotropy")) {
+    JsonObject an = o.object("anisotropy");
+    const Vec3 axis = an.required_vec3("axis");
+    if (!(axis.norm() > 0)) an.fail("axis", "must be a non-zero vector");
+    const Real ratio = Real(an.required_number("ratio", 0, 1e6, true));
+    const Vec3 n = axis.normalized();
+    m.G = Mat3::Identity() + (ratio - 1) * n * n.transpose();
+    an.finish();
+  }
+  o.finish();
+  return m;
+}
+
 std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::string& scene_file) {
   const std::string file = o.string("file", "");
   if (!o.has("file") || file.empty()) o.fail("file", "missing required mesh file (.obj, .off or .ply)");
@@ -116,7 +158,8 @@ std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::s
   return mesh;
 }
 
-ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials, const std::string& scene_file) {
+ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials, const std::string& scene_file,
+                       bool peridynamics) {
   ObjectSpec s;
   const std::string shape = o.choice("shape", "", {"box", "sphere", "cylinder", "torus", "mesh"});
   if (shape == "mesh") {
@@ -172,8 +215,9 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
   s.material = it->second;
   s.velocity = o.vec3("velocity", Vec3::Zero());
   s.angular_velocity = o.vec3("angular_velocity", Vec3::Zero());
-  s.particles_per_cell = int(o.integer("particles_per_cell", 8, 1, 64));
-  s.jitter = Real(o.number("jitter", 0.5, 0, 1));
+  // Peridynamics wants a regular lattice (its bond families and constants assume one).
+  s.particles_per_cell = int(o.integer("particles_per_cell", peridynamics ? 1 : 8, 1, 64));
+  s.jitter = Real(o.number("jitter", peridynamics ? 0.0 : 0.5, 0, 1));
   s.seed = std::uint64_t(o.integer("seed", 1, 0, (1LL << 62)));
   s.temperature = Real(o.number("temperature", 293.15, 0, kHuge));
   o.finish();
@@ -278,13 +322,19 @@ Scene parse_scene(const std::string& text, const std::string& file) {
 
   JsonObject sim = top.object("simulation");
   if (!top.has("simulation")) top.fail("simulation", "missing required object");
+  s.method = sim.choice("method", "mpm", {"mpm", "peridynamics"}) == "mpm" ? Method::Mpm : Method::Peridynamics;
+  const bool pd = s.method == Method::Peridynamics;
+  if (pd)
+    for (const char* k : {"transfer", "order", "flip_alpha", "integrator", "implicit"})
+      if (sim.has(k)) sim.fail(k, "only for \"method\": \"mpm\"");
+  if (!pd && sim.has("peridynamics")) sim.fail("peridynamics", "set \"method\": \"peridynamics\" to use these settings");
   s.mpm.dx = Real(sim.required_number("dx", 0, kHuge, true));
   s.mpm.order = int(sim.integer("order", 2, 2, 3));
   const std::string tr = sim.choice("transfer", "mls", {"mls", "apic", "pic", "flip"});
   s.mpm.transfer = tr == "mls" ? Transfer::Mls : tr == "apic" ? Transfer::Apic : Transfer::PicFlip;
   s.mpm.flip_alpha = Real(sim.number("flip_alpha", tr == "pic" ? 0.0 : 0.95, 0, 1));
   if (tr == "pic" && s.mpm.flip_alpha != 0) sim.fail("flip_alpha", "must be 0 (or absent) with transfer \"pic\"");
-  s.mpm.cfl = Real(sim.number("cfl", 0.4, 0, 1, true));
+  s.mpm.cfl = Real(sim.number("cfl", pd ? 0.7 : 0.4, 0, 1, true));
   s.fps = sim.number("fps", 24, 0, 1e6, true);
   s.mpm.max_dt = Real(sim.number("max_dt", 1e-3, 0, kHuge, true));
   s.mpm.gravity = sim.vec3("gravity", Vec3(0, Real(-9.81), 0));
@@ -301,23 +351,76 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     s.mpm.solver.definiteness_fix = imp.boolean("definiteness_fix", true);
     imp.finish();
   }
+  {
+    JsonObject p = sim.object("peridynamics");
+    const double factor = p.number("horizon_factor", 3.015, 1, 8, true);
+    s.pd.deviatoric = p.choice("deviatoric", "paper", {"paper", "lps"}) == "paper" ? PdDeviatoric::Paper : PdDeviatoric::Lps;
+    s.pd.surface_correction = p.boolean("surface_correction", true);
+    s.pd.partial_volume = p.boolean("partial_volume", true);
+    s.pd.fracture = p.boolean("fracture", true);
+    s.pd.contact = p.boolean("contact", true);
+    const double contact = p.number("contact_distance", 0.9, 0, 3, true);
+    p.finish();
+    s.pd.horizon = Real(factor);  // times the spacing, set once the objects are known
+    s.pd.contact_distance = Real(contact);
+  }
   sim.finish();
 
   std::map<std::string, int> mat_index;
   JsonObject mats = top.object("materials");
   if (!top.has("materials") || mats.keys().empty()) top.fail("materials", "define at least one material");
+  // Peridynamics: the lattice spacing comes from dx and the objects' particles_per_cell, and the
+  // horizon (which yield_stress needs) from the spacing: read the objects first.
   for (const auto& name : mats.keys()) {
     mat_index[name] = int(s.materials.size());
     s.material_names.push_back(name);
-    s.materials.push_back(read_material(mats.object(name)));
+  }
+  if (!top.has("objects")) top.fail("objects", "missing required array of objects");
+  for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file, pd));
+  if (s.objects.empty()) top.fail("objects", "define at least one object");
+  if (pd) {
+    const int ppc = s.objects[0].particles_per_cell;
+    for (std::size_t k = 1; k < s.objects.size(); ++k)
+      if (s.objects[k].particles_per_cell != ppc)
+        throw InputError(file + ": /objects/" + std::to_string(k) +
+                         "/particles_per_cell: peridynamic objects share one lattice spacing; use the same value as "
+                         "/objects/0 (" + std::to_string(ppc) + ")");
+    s.pd.spacing = Real(double(s.mpm.dx) / std::cbrt(double(ppc)));
+    s.pd.horizon *= s.pd.spacing;
+    s.pd.contact_distance *= s.pd.spacing;
+    s.pd.gravity = s.mpm.gravity;
+    s.pd.cfl = s.mpm.cfl;
+    s.pd.max_dt = s.mpm.max_dt;
+  }
+  for (const auto& name : s.material_names) {
+    JsonObject mo = mats.object(name);
+    const bool is_pd = mo.has("model") && mo.string("model", "") == "peridynamic";
+    if (pd && !is_pd) mo.fail("model", "a peridynamics scene needs \"model\": \"peridynamic\"");
+    if (!pd && is_pd) mo.fail("model", "\"peridynamic\" needs \"method\": \"peridynamics\" in /simulation");
+    if (pd) {
+      s.pd_materials.push_back(read_pd_material(mats.object(name), s.pd.horizon));
+      MaterialParams mp;  // density only: what the shared diagnostics and previews read
+      mp.density = s.pd_materials.back().density;
+      s.materials.push_back(mp);
+    } else {
+      s.materials.push_back(read_material(mats.object(name)));
+    }
   }
   mats.finish();
-
-  if (!top.has("objects")) top.fail("objects", "missing required array of objects");
-  for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file));
-  if (s.objects.empty()) top.fail("objects", "define at least one object");
+  for (auto& b : top.objects("boundary_conditions")) {
+    if (!pd) b.fail("min", "boundary_conditions need \"method\": \"peridynamics\" (MPM uses colliders)");
+    PdBoundarySpec bc;
+    bc.min = b.required_vec3("min");
+    bc.max = b.required_vec3("max");
+    for (int a = 0; a < 3; ++a)
+      if (!(bc.max[a] >= bc.min[a])) b.fail("max", "every component must be at least the matching one of \"min\"");
+    bc.velocity = b.vec3("velocity", Vec3::Zero());
+    b.finish();
+    s.pd_boundaries.push_back(bc);
+  }
   for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c, file, s.mpm.dx));
   for (auto& h : top.objects("heat_sources")) s.heat_sources.push_back(read_heat_source(h));
+  if (pd && !s.heat_sources.empty()) top.fail("heat_sources", "only for \"method\": \"mpm\"");
   if (!s.heat_sources.empty()) {
     bool melts = false;
     for (const auto& m : s.materials) melts |= m.melting;
@@ -337,8 +440,9 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     JsonObject pv = top.object("preview");
     s.preview.width = int(pv.integer("width", 640, 16, 8192));
     s.preview.height = int(pv.integer("height", 480, 16, 8192));
-    const std::string c = pv.choice("color_by", "material", {"material", "speed", "temperature", "plastic"});
+    const std::string c = pv.choice("color_by", "material", {"material", "speed", "temperature", "plastic", "damage"});
     s.preview.color_by = c == "speed" ? ColorBy::Speed
+                         : c == "damage" ? ColorBy::Damage
                          : c == "temperature" ? ColorBy::Temperature
                          : c == "plastic" ? ColorBy::Plastic
                                           : ColorBy::Material;
@@ -446,6 +550,17 @@ MpmSolver build_solver(const Scene& scene) {
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol);
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol, obj.temperature);
   }
+  return solver;
+}
+
+PdSolver build_pd_solver(const Scene& scene) {
+  PdSolver solver(scene.pd, scene.pd_materials, scene.colliders);
+  for (const auto& obj : scene.objects) {
+    Real vol = 0;
+    const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol);
+    solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);
+  }
+  for (const auto& b : scene.pd_boundaries) solver.prescribe_velocity(b.min, b.max, b.velocity);
   return solver;
 }
 

@@ -13,6 +13,7 @@
 #include "io/preview.hpp"
 #include "kernels/colliders.hpp"
 #include "solvers/mpm_solver.hpp"
+#include "solvers/pd_solver.hpp"
 
 namespace amalgam {
 
@@ -45,10 +46,22 @@ struct OutputSpec {
   int checkpoint_every = 10;  // frames; 0 = only on SIGINT/SIGTERM
 };
 
+enum class Method { Mpm, Peridynamics };
+
+// Peridynamics: particles whose reference position lies in [min, max] move with `velocity`
+// (zero: fixed).
+struct PdBoundarySpec {
+  Vec3 min, max, velocity;
+};
+
 struct Scene {
   std::string file;
   std::string name;
-  MpmSettings mpm;
+  Method method = Method::Mpm;
+  MpmSettings mpm;  // dx, fps, max_dt and gravity are shared by both methods
+  PdSettings pd;
+  std::vector<PdMaterial> pd_materials;  // parallel to materials (peridynamics scenes)
+  std::vector<PdBoundarySpec> pd_boundaries;
   int frames = 48;
   double fps = 24;
   std::vector<std::string> material_names;
@@ -83,5 +96,7 @@ double preview_floor(const Scene& scene);
 
 // Builds a solver from a scene and fills its particles.
 MpmSolver build_solver(const Scene& scene);
+// Peridynamics scenes: the solver with its particles and boundary sets, not yet initialised.
+PdSolver build_pd_solver(const Scene& scene);
 
 }  // namespace amalgam

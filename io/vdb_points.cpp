@@ -25,23 +25,16 @@ void add_attribute(openvdb::points::PointDataGrid& grid, const openvdb::tools::P
 }
 }  // namespace
 
-void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a, double voxel_size) {
+void write_vdb_points(const std::string& path, const PointFields& p, double voxel_size) {
   static std::once_flag init;
   std::call_once(init, [] { openvdb::initialize(); });
-  const size_t n = ps.size();
+  const size_t n = p.n;
   std::vector<openvdb::Vec3R> P(n);
   std::vector<openvdb::Vec3s> v(n);
-  std::vector<float> J(n);
-  std::vector<openvdb::Int32> material(n), id(n);
-  const Vec3* x = ps.vec3(a.x);
-  const Vec3* pv = ps.vec3(a.v);
-  const Mat3* F = ps.mat3(a.F);
+  std::vector<openvdb::Int32> material(p.material, p.material + n), id(p.id, p.id + n);
   for (size_t i = 0; i < n; ++i) {
-    P[i] = openvdb::Vec3R(double(x[i][0]), double(x[i][1]), double(x[i][2]));
-    v[i] = openvdb::Vec3s(float(pv[i][0]), float(pv[i][1]), float(pv[i][2]));
-    J[i] = float(F[i].determinant());
-    material[i] = ps.int32(a.material)[i];
-    id[i] = ps.int32(a.id)[i];
+    P[i] = openvdb::Vec3R(double(p.x[i][0]), double(p.x[i][1]), double(p.x[i][2]));
+    v[i] = openvdb::Vec3s(float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2]));
   }
   const openvdb::math::Transform::Ptr xform = openvdb::math::Transform::createLinearTransform(voxel_size);
   const openvdb::points::PointAttributeVector<openvdb::Vec3R> positions(P);
@@ -49,17 +42,10 @@ void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmA
   auto grid = openvdb::points::createPointDataGrid<openvdb::points::NullCodec, openvdb::points::PointDataGrid>(
       *index, positions, *xform);
   add_attribute(*grid, *index, "v", v);
-  add_attribute(*grid, *index, "J", J);
+  for (const auto& s : p.primary) add_attribute(*grid, *index, s.first, s.second);
   add_attribute(*grid, *index, "material", material);
   add_attribute(*grid, *index, "id", id);
-  // Method-specific state, when the scene's materials carry it.
-  for (const auto& [attr, name] : {std::pair<ParticleSet::Id, const char*>{a.plastic, "plastic"},
-                                   std::pair<ParticleSet::Id, const char*>{a.temperature, "temperature"}}) {
-    if (attr < 0) continue;
-    std::vector<float> f(n);
-    for (size_t i = 0; i < n; ++i) f[i] = float(ps.real(attr)[i]);
-    add_attribute(*grid, *index, name, f);
-  }
+  for (const auto& s : p.extra) add_attribute(*grid, *index, s.first, s.second);
   grid->setName("points");
 
   const std::string tmp = path + ".tmp";

@@ -7,12 +7,18 @@
 #include <string>
 
 #include "core/particles/particle_set.hpp"
+#include "io/writers.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
 namespace amalgam {
 
-// `voxel_size` sets the point grid's voxel (the simulation dx is a good choice).
-void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a, double voxel_size);
+// `voxel_size` sets the point grid's voxel (the simulation dx is a good choice). Every float
+// attribute of `p` (primary and extra) becomes a point attribute of that name.
+void write_vdb_points(const std::string& path, const PointFields& p, double voxel_size);
+inline void write_vdb_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a,
+                             double voxel_size) {
+  write_vdb_points(path, mpm_point_fields(ps, a), voxel_size);
+}
 
 // Grid fields of the last substep as OpenVDB volumes: a FloatGrid "mass" (kg per node) and a
 // Vec3SGrid "velocity" (m/s, the updated grid velocity), voxel = node, voxel size dx, over the

@@ -36,43 +36,53 @@ void commit_temporary(const std::string& tmp, const std::string& path) {
   }
 }
 
-void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a) {
-  const size_t n = ps.size();
+PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a) {
+  PointFields p;
+  p.n = ps.size();
+  p.x = ps.vec3(a.x);
+  p.v = ps.vec3(a.v);
+  p.material = ps.int32(a.material);
+  p.id = ps.int32(a.id);
+  std::vector<float> J(p.n);
+  const Mat3* F = ps.mat3(a.F);
+  for (std::size_t i = 0; i < p.n; ++i) J[i] = float(F[i].determinant());
+  p.primary.emplace_back("J", std::move(J));
+  // Method-specific state, when the scene's materials carry it.
+  for (const auto& [attr, name] : {std::pair<ParticleSet::Id, const char*>{a.plastic, "plastic"},
+                                   std::pair<ParticleSet::Id, const char*>{a.temperature, "temperature"}}) {
+    if (attr < 0) continue;
+    const Real* r = ps.real(attr);
+    p.extra.emplace_back(name, std::vector<float>(r, r + p.n));
+  }
+  return p;
+}
+
+void write_ply_points(const std::string& path, const PointFields& p) {
+  const size_t n = p.n;
   std::ostringstream h;
   h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam\n"
     << "element vertex " << n << "\n"
     << "property float x\nproperty float y\nproperty float z\n"
-    << "property float vx\nproperty float vy\nproperty float vz\n"
-    << "property float J\nproperty int material\nproperty int id\n";
-  // Method-specific state, when the scene's materials carry it.
-  const Real* extra[2] = {a.plastic >= 0 ? ps.real(a.plastic) : nullptr,
-                          a.temperature >= 0 ? ps.real(a.temperature) : nullptr};
-  if (extra[0]) h << "property float plastic\n";
-  if (extra[1]) h << "property float temperature\n";
+    << "property float vx\nproperty float vy\nproperty float vz\n";
+  for (const auto& s : p.primary) h << "property float " << s.first << "\n";
+  h << "property int material\nproperty int id\n";
+  for (const auto& s : p.extra) h << "property float " << s.first << "\n";
   h << "end_header\n";
   std::string buf = h.str();
   const size_t header = buf.size();
-  const size_t kRecord = 7 * 4 + 4 + 4 + 4 * size_t((extra[0] != nullptr) + (extra[1] != nullptr));
+  const size_t kRecord = 6 * 4 + 4 * p.primary.size() + 8 + 4 * p.extra.size();
   buf.resize(header + n * kRecord);
-  const Vec3* x = ps.vec3(a.x);
-  const Vec3* v = ps.vec3(a.v);
-  const Mat3* F = ps.mat3(a.F);
-  const std::int32_t* mat = ps.int32(a.material);
-  const std::int32_t* id = ps.int32(a.id);
   char* dst = buf.data() + header;
   for (size_t i = 0; i < n; ++i) {
-    const float rec[7] = {float(x[i][0]), float(x[i][1]), float(x[i][2]), float(v[i][0]),
-                          float(v[i][1]), float(v[i][2]), float(F[i].determinant())};
+    const float rec[6] = {float(p.x[i][0]), float(p.x[i][1]), float(p.x[i][2]),
+                          float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2])};
     std::memcpy(dst, rec, sizeof rec);
-    std::memcpy(dst + sizeof rec, &mat[i], 4);
-    std::memcpy(dst + sizeof rec + 4, &id[i], 4);
-    size_t off = sizeof rec + 8;
-    for (const Real* e : extra)
-      if (e) {
-        const float f = float(e[i]);
-        std::memcpy(dst + off, &f, 4);
-        off += 4;
-      }
+    size_t off = sizeof rec;
+    for (const auto& s : p.primary) std::memcpy(dst + off, &s.second[i], 4), off += 4;
+    std::memcpy(dst + off, &p.material[i], 4);
+    std::memcpy(dst + off + 4, &p.id[i], 4);
+    off += 8;
+    for (const auto& s : p.extra) std::memcpy(dst + off, &s.second[i], 4), off += 4;
     dst += kRecord;
   }
   write_file_atomic(path, buf);

@@ -10,9 +10,27 @@
 
 namespace amalgam {
 
-// Binary little-endian PLY point cloud with x y z, vx vy vz, J (= det F), material and id, readable by
-// Houdini, Blender and ParaView.
-void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a);
+// What a frame writer needs of any solver's particles: positions, velocities, material and a
+// stable id, plus named float attributes, `primary` written before material and id, `extra`
+// after them (the PLY property order; VDB points keep the names).
+struct PointFields {
+  std::size_t n = 0;
+  const Vec3* x = nullptr;
+  const Vec3* v = nullptr;
+  const std::int32_t* material = nullptr;
+  const std::int32_t* id = nullptr;
+  std::vector<std::pair<std::string, std::vector<float>>> primary, extra;
+};
+// MPM particles: primary J (= det F); extra plastic and temperature when the scene has them.
+PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a);
+
+// Binary little-endian PLY point cloud with x y z, vx vy vz, the primary attributes, material, id
+// and the extra attributes (MPM: x y z vx vy vz J material id [plastic] [temperature]), readable
+// by Houdini, Blender and ParaView.
+void write_ply_points(const std::string& path, const PointFields& p);
+inline void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a) {
+  write_ply_points(path, mpm_point_fields(ps, a));
+}
 
 // Writes `content` to `path` atomically (temporary file, then rename). Throws InputError.
 void write_file_atomic(const std::string& path, const std::string& content);

@@ -1,0 +1,422 @@
+#include "kernels/peridynamics.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+
+namespace amalgam {
+
+const char* pd_deviatoric_name(PdDeviatoric d) { return d == PdDeviatoric::Paper ? "paper" : "lps"; }
+
+namespace {
+
+// Deviatoric extension (eq. 8, or the LPS form; see PdDeviatoric).
+// kappa: the paper's delta / 4, or its discrete counterpart with the surface correction.
+inline Real deviatoric_extension(PdDeviatoric d, Real e, Real lambda, Real theta, Real L, Real kappa) {
+  return d == PdDeviatoric::Paper ? e - kappa * lambda * theta : e - theta * L / Real(3);
+}
+
+// Current bond of row i: eta, its length, extension and Lambda (eqs. 3, 6).
+struct BondGeometry {
+  Vec3 dir;
+  Real l, e, lambda;
+};
+inline bool bond_geometry(const Vec3& xi, const Vec3& eta, Real L, BondGeometry& g) {
+  g.l = eta.norm();
+  if (!(g.l > 0)) return false;  // coincident particles: no direction, no force
+  g.dir = eta / g.l;
+  g.e = g.l - L;
+  g.lambda = g.dir.dot(xi) / L;
+  return true;
+}
+
+// Cell binning for the neighbour search: sorted (cell key, particle) pairs, a cell's particles
+// found by binary search (no dense cell array, so far-apart objects cost nothing).
+struct CellIndex {
+  Vec3d origin;
+  double h;
+  std::int64_t dims[3];
+  std::vector<std::uint64_t> keys;      // sorted (sparse mode)
+  std::vector<std::uint32_t> particle;  // particles in key order
+  std::vector<std::uint32_t> start;     // dense mode: particles of cell k are particle[start[k]..start[k+1])
+  std::uint64_t key(std::int64_t i, std::int64_t j, std::int64_t k) const {
+    return (std::uint64_t(i) * std::uint64_t(dims[1]) + std::uint64_t(j)) * std::uint64_t(dims[2]) + std::uint64_t(k);
+  }
+  void cell_of(const Vec3& x, std::int64_t c[3]) const {
+    for (int a = 0; a < 3; ++a)
+      c[a] = std::min<std::int64_t>(dims[a] - 1, std::max<std::int64_t>(0, std::int64_t((double(x[a]) - origin[a]) / h)));
+  }
+};
+
+CellIndex make_cells(const exec::Space& space, const Vec3* x, std::size_t n, double h) {
+  CellIndex c;
+  Vec3d lo = Vec3d::Constant(1e300), hi = Vec3d::Constant(-1e300);
+  for (std::size_t i = 0; i < n; ++i) {
+    lo = lo.cwiseMin(x[i].cast<double>());
+    hi = hi.cwiseMax(x[i].cast<double>());
+  }
+  c.origin = lo;
+  c.h = h;
+  for (int a = 0; a < 3; ++a) c.dims[a] = std::max<std::int64_t>(1, std::int64_t((hi[a] - lo[a]) / h) + 1);
+  std::vector<std::uint64_t> key(n);
+  exec::parallel_for(space, "pd.cell_keys", exec::Index(n), [&](exec::Index i) {
+    std::int64_t ci[3];
+    c.cell_of(x[i], ci);
+    key[std::size_t(i)] = c.key(ci[0], ci[1], ci[2]);
+  });
+  const double ncells = double(c.dims[0]) * double(c.dims[1]) * double(c.dims[2]);
+  c.particle.resize(n);
+  if (ncells <= 8.0 * double(n) + 1e6) {  // dense: counting sort into a cell table (stable: index order)
+    c.start.assign(std::size_t(ncells) + 1, 0);
+    for (std::size_t i = 0; i < n; ++i) ++c.start[key[i] + 1];
+    for (std::size_t k = 0; k + 1 < c.start.size(); ++k) c.start[k + 1] += c.start[k];
+    std::vector<std::uint32_t> fill(c.start.begin(), c.start.end() - 1);
+    for (std::size_t i = 0; i < n; ++i) c.particle[fill[key[i]]++] = std::uint32_t(i);
+    return c;
+  }
+  // Sparse (far-apart particles): sorted (key, index) pairs, cells found by binary search.
+  std::vector<std::pair<std::uint64_t, std::uint32_t>> order(n);
+  for (std::size_t i = 0; i < n; ++i) order[i] = {key[i], std::uint32_t(i)};
+  std::sort(order.begin(), order.end());  // a total order, so deterministic
+  c.keys.resize(n);
+  for (std::size_t i = 0; i < n; ++i) c.keys[i] = order[i].first, c.particle[i] = order[i].second;
+  return c;
+}
+
+// Calls fn(j) for every particle j != i with |x_j - x_i| <= r (r <= cell size), in (cell, index)
+// order.
+template <class Fn>
+void for_neighbours(const CellIndex& c, const Vec3* x, std::uint32_t i, Real r, Fn&& fn) {
+  std::int64_t ci[3];
+  c.cell_of(x[i], ci);
+  const Real r2 = r * r;
+  // Per (a, b) column the cells d0..d1 have consecutive keys: one binary search per column.
+  const std::int64_t d0 = std::max<std::int64_t>(0, ci[2] - 1), d1 = std::min(c.dims[2] - 1, ci[2] + 1);
+  for (std::int64_t a = std::max<std::int64_t>(0, ci[0] - 1); a <= std::min(c.dims[0] - 1, ci[0] + 1); ++a)
+    for (std::int64_t b = std::max<std::int64_t>(0, ci[1] - 1); b <= std::min(c.dims[1] - 1, ci[1] + 1); ++b) {
+      const std::uint64_t k0 = c.key(a, b, d0), k1 = c.key(a, b, d1);
+      std::size_t p0, p1;
+      if (!c.start.empty()) {
+        p0 = c.start[k0], p1 = c.start[k1 + 1];
+      } else {
+        p0 = std::size_t(std::lower_bound(c.keys.begin(), c.keys.end(), k0) - c.keys.begin());
+        p1 = std::size_t(std::upper_bound(c.keys.begin() + std::ptrdiff_t(p0), c.keys.end(), k1) - c.keys.begin());
+      }
+      for (std::size_t q = p0; q < p1; ++q) {
+        const std::uint32_t j = c.particle[q];
+        if (j != i && (x[j] - x[i]).squaredNorm() <= r2) fn(j);
+      }
+    }
+}
+
+}  // namespace
+
+void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume, const std::int32_t* material,
+                    std::size_t n, const PdParams& prm, bool partial_volume, PdBonds& bonds) {
+  const Real delta = prm.horizon, lc = prm.spacing;
+  const CellIndex cells = make_cells(space, x0, n, double(delta));
+  std::vector<std::uint64_t> count(n);
+  exec::parallel_for(space, "pd.bond_count", exec::Index(n), [&](exec::Index i) {
+    std::uint64_t c = 0;
+    for_neighbours(cells, x0, std::uint32_t(i), delta, [&](std::uint32_t) { ++c; });
+    count[std::size_t(i)] = c;
+  });
+  bonds.offsets.assign(n + 1, 0);
+  const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
+      space, "pd.bond_scan", exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, bonds.offsets.data());
+  bonds.offsets[n] = total;
+  bonds.neighbor.resize(total);
+  bonds.reverse.resize(total);
+  bonds.length.resize(total);
+  bonds.omega.resize(total);
+  bonds.volume.resize(total);
+  bonds.plastic.assign(total, Real(0));
+  bonds.intact.assign(total, 1);
+  const std::uint64_t* off = bonds.offsets.data();
+  exec::parallel_for(space, "pd.bond_fill", exec::Index(n), [&](exec::Index ii) {
+    const std::uint32_t i = std::uint32_t(ii);
+    std::uint32_t* row = bonds.neighbor.data() + off[i];
+    std::uint64_t c = 0;
+    for_neighbours(cells, x0, i, delta, [&](std::uint32_t j) { row[c++] = j; });
+    std::sort(row, row + c);
+    const Mat3& G = prm.materials[material[i]].G;
+    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+      const std::uint32_t j = bonds.neighbor[k];
+      const Vec3 xi = x0[j] - x0[i];
+      const Real L = xi.norm();
+      bonds.length[k] = L;
+      bonds.omega[k] = delta / (G * xi).norm();  // eq. 16 (eq. 4 when G = I)
+      Real nu = 1;
+      if (partial_volume && L > delta - lc / 2) nu = std::min(Real(1), (delta + lc / 2 - L) / lc);
+      bonds.volume[k] = nu * volume[j];
+    }
+  });
+  exec::parallel_for(space, "pd.bond_reverse", exec::Index(n), [&](exec::Index ii) {
+    const std::uint32_t i = std::uint32_t(ii);
+    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+      const std::uint32_t j = bonds.neighbor[k];
+      const std::uint32_t* b = bonds.neighbor.data() + off[j];
+      const std::uint32_t* e = bonds.neighbor.data() + off[j + 1];
+      bonds.reverse[k] = off[j] + std::uint64_t(std::lower_bound(b, e, i) - b);  // |x_i - x_j| is symmetric
+    }
+  });
+}
+
+void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, const PdBonds& bonds,
+                  const PdParams& prm, bool surface_correction, PdConstants& out) {
+  const std::size_t n = bonds.particles();
+  out.m.resize(n);
+  out.a.resize(n);
+  out.b.resize(n);
+  out.kappa.resize(n);
+  out.bonds0.resize(n);
+  const double delta = double(prm.horizon);
+  const double m_cont = 4.0 * M_PI * std::pow(delta, 4) / 3.0;  // eq. 5: 3 / m = 9 / (4 pi delta^4)
+  const double s_cont = M_PI * std::pow(delta, 5) / 15.0;
+  const double b_unit = 15.0 / (2.0 * M_PI * std::pow(delta, 5));  // eq. 9 per unit shear modulus
+  exec::parallel_for(space, "pd.constants", exec::Index(n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
+    double m = m_cont, c = 1, kappa = delta / 4;
+    if (surface_correction) {
+      double ms = 0, ss = 0, m2 = 0;
+      for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) {
+        const Vec3d xi = (x0[bonds.neighbor[k]] - x0[i]).cast<double>();
+        const double L = xi.norm(), w = double(bonds.omega[k]), V = double(bonds.volume[k]);
+        const Vec3d q = (xi / L).cwiseAbs2();
+        ms += w * L * V;
+        m2 += w * L * L * V;
+        ss += w * L * L * (q[0] * q[1] + q[1] * q[2] + q[2] * q[0]) / 3.0 * V;
+      }
+      if (ms > 0) m = ms;
+      if (ms > 0) kappa = m2 / (3 * ms);
+      if (ss > 0) c = s_cont / ss;
+    }
+    const PdMaterial& mat = prm.materials[material[i]];
+    out.m[i] = Real(m);
+    out.a[i] = Real(1.5 * double(mat.bulk) / m);
+    out.b[i] = Real(b_unit * double(mat.shear) * c);
+    out.kappa[i] = Real(kappa);
+    out.bonds0[i] = std::int32_t(bonds.offsets[i + 1] - bonds.offsets[i]);
+  });
+}
+
+void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm) {
+  const PdDeviatoric dev = prm.deviatoric;
+  exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
+    const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
+    const Vec3 x0i = p.x0[i], xi_ = p.x[i];
+    Real sum = 0;
+    for (std::uint64_t k = k0; k < k1; ++k) {
+      if (!bonds.intact[k]) continue;
+      const std::uint32_t j = bonds.neighbor[k];
+      const Real L = bonds.length[k];
+      BondGeometry g;
+      if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
+      sum += bonds.omega[k] * (g.e / L) * g.lambda * L * bonds.volume[k];  // omega s Lambda |xi| V (eq. 5)
+    }
+    const Real theta = Real(3) * sum / p.m[i];
+    p.theta[i] = theta;
+
+    const PdMaterial& mat = prm.materials[p.material[i]];
+    if (!(mat.psi0 < std::numeric_limits<Real>::infinity())) return;
+    const Real ac = std::sqrt(Real(2) * mat.psi0), bi = p.b[i];
+    for (std::uint64_t k = k0; k < k1; ++k) {
+      if (!bonds.intact[k]) continue;
+      const std::uint32_t j = bonds.neighbor[k];
+      const Real L = bonds.length[k];
+      BondGeometry g;
+      if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
+      const Real ed = deviatoric_extension(dev, g.e, g.lambda, theta, L, p.kappa[i]);
+      const Real stiff = Real(4) * bonds.omega[k] * bi;
+      Real ep = bonds.plastic[k];
+      const Real adev = stiff * (ed - ep);  // eq. 11
+      if (Real(0.5) * adev * adev > mat.psi0) {  // eq. 12
+        const Real target = std::copysign(ac, adev);  // eq. 13
+        ep += (adev - target) / stiff;                // eq. 14 (exact return, see header)
+      }
+      const Real cap = mat.plastic_cap * L;  // eq. 15
+      if (std::abs(ep) > cap) ep = std::copysign(cap, ep);
+      bonds.plastic[k] = ep;
+    }
+  });
+}
+
+void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, bool fracture,
+               Vec3* force, Mat3* stress) {
+  const Real delta = prm.horizon;
+  const PdDeviatoric dev = prm.deviatoric;
+  const PdMaterial* mats = prm.materials;
+  exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
+    const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
+    const Vec3 x0i = p.x0[i], xi_ = p.x[i];
+    const Real ti = p.theta[i], ai = p.a[i], bi = p.b[i];
+    const PdMaterial& mi = mats[p.material[i]];
+    const Real crit_i = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
+    Vec3 f = Vec3::Zero();
+    Mat3 s = Mat3::Zero();
+    for (std::uint64_t k = k0; k < k1; ++k) {
+      if (!bonds.intact[k]) continue;
+      const std::uint32_t j = bonds.neighbor[k];
+      const std::uint64_t kr = bonds.reverse[k];
+      const Real L = bonds.length[k];
+      const Vec3 xi = p.x0[j] - x0i;
+      BondGeometry g;
+      if (!bond_geometry(xi, p.x[j] - xi_, L, g)) continue;
+      const Real tj = p.theta[j];
+      const Real epi = bonds.plastic[k], epj = bonds.plastic[kr];
+      // eqs. 3, 7, 11 from each end of the bond
+      const Real aij = Real(4) * bonds.omega[k] *
+                       (ai * g.lambda * ti + bi * (deviatoric_extension(dev, g.e, g.lambda, ti, L, p.kappa[i]) - epi));
+      const Real aji = Real(4) * bonds.omega[kr] *
+                       (p.a[j] * g.lambda * tj + p.b[j] * (deviatoric_extension(dev, g.e, g.lambda, tj, L, p.kappa[j]) - epj));
+      const Vec3 fij = (Real(0.5) * (aij + aji) * bonds.volume[k]) * g.dir;  // eq. 1 with eq. 2
+      f += fij;
+      if (stress) s += Real(0.5) * fij * xi.transpose();
+      if (fracture) {  // eq. 18, from both ends (symmetric decision)
+        const PdMaterial& mj = mats[p.material[j]];
+        const Real crit_j = mj.critical_stretch * (Real(1) + mj.alpha * p.damage[j]);
+        if ((g.e - epi) / delta > crit_i || (g.e - epj) / delta > crit_j) bonds.intact[k] = 0;
+      }
+    }
+    force[i] = f;
+    if (stress) stress[i] = s;
+  });
+}
+
+void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius, PdContactList& list) {
+  list.offsets.assign(n + 1, 0);
+  list.x_built.assign(x, x + n);
+  list.neighbor.clear();
+  if (n == 0) return;
+  const CellIndex cells = make_cells(space, x, n, double(radius));
+  std::vector<std::uint64_t> count(n);
+  exec::parallel_for(space, "pd.contact_count", exec::Index(n), [&](exec::Index i) {
+    std::uint64_t c = 0;
+    for_neighbours(cells, x, std::uint32_t(i), radius, [&](std::uint32_t) { ++c; });
+    count[std::size_t(i)] = c;
+  });
+  const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
+      space, "pd.contact_scan", exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, list.offsets.data());
+  list.offsets[n] = total;
+  list.neighbor.resize(total);
+  exec::parallel_for(space, "pd.contact_fill", exec::Index(n), [&](exec::Index ii) {
+    std::uint32_t* row = list.neighbor.data() + list.offsets[std::size_t(ii)];
+    std::uint64_t c = 0;
+    for_neighbours(cells, x, std::uint32_t(ii), radius, [&](std::uint32_t j) { row[c++] = j; });
+    std::sort(row, row + c);
+  });
+}
+
+Real pd_max_displacement(const exec::Space& space, const Vec3* x, const PdContactList& list) {
+  return exec::parallel_reduce(
+      space, "pd.contact_check", exec::Index(list.x_built.size()), Real(0),
+      [&](exec::Index i, Real& acc) { acc = std::max(acc, (x[i] - list.x_built[std::size_t(i)]).norm()); },
+      [](Real a, Real b) { return std::max(a, b); });
+}
+
+void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds& bonds, const PdParams& prm,
+                       Real distance, const PdContactList& list, Vec3* force) {
+  if (p.n == 0 || !(distance > 0)) return;
+  const double c0 = 15.0 * 18.0 / (M_PI * std::pow(double(prm.horizon), 4));
+  const Real inv_delta = Real(1) / prm.horizon, d2 = distance * distance;
+  exec::parallel_for(space, "pd.contact", exec::Index(p.n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
+    const std::uint32_t* row = bonds.neighbor.data() + bonds.offsets[i];
+    const std::uint32_t* row_end = bonds.neighbor.data() + bonds.offsets[i + 1];
+    const Real ki = prm.materials[p.material[i]].bulk;
+    Vec3 f = Vec3::Zero();
+    for (std::uint64_t c = list.offsets[i]; c < list.offsets[i + 1]; ++c) {
+      const std::uint32_t j = list.neighbor[c];
+      const Vec3 d = p.x[j] - p.x[i];
+      const Real r2 = d.squaredNorm();
+      if (!(r2 < d2) || !(r2 > 0)) continue;
+      const std::uint32_t* b = std::lower_bound(row, row_end, j);
+      if (b != row_end && *b == j && bonds.intact[bonds.offsets[i] + std::uint64_t(b - row)]) continue;  // bonded
+      const Real r = std::sqrt(r2);
+      const Real cs = Real(c0 * 0.5 * double(ki + prm.materials[p.material[j]].bulk));
+      f -= (cs * (distance - r) * inv_delta * p.volume[j] / r) * d;
+    }
+    force[i] += f;
+  });
+}
+
+std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds& bonds) {
+  return exec::parallel_reduce(
+      space, "pd.damage", exec::Index(p.n), std::uint64_t(0),
+      [&](exec::Index ii, std::uint64_t& acc) {
+        const std::size_t i = std::size_t(ii);
+        std::int32_t c = 0;
+        for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) c += bonds.intact[k];
+        p.damage[i] = p.bonds0[i] > 0 ? Real(1) - Real(c) / Real(p.bonds0[i]) : Real(0);
+        acc += std::uint64_t(c);
+      },
+      [](std::uint64_t a, std::uint64_t b) { return a + b; });
+}
+
+Real pd_stable_dt(const exec::Space& space, const PdView& p, const PdBonds& bonds, const PdParams& prm) {
+  const double delta = double(prm.horizon);
+  const double b_unit = 15.0 / (2.0 * M_PI * std::pow(delta, 5));
+  const double dt = exec::parallel_reduce(
+      space, "pd.stable_dt", exec::Index(p.n), 1e300,
+      [&](exec::Index ii, double& acc) {
+        const std::size_t i = std::size_t(ii);
+        const PdMaterial& m = prm.materials[p.material[i]];
+        const double corr = std::max(1.0, double(p.b[i]) / (b_unit * std::max(double(m.shear), 1e-30)));
+        const double c = 18.0 * (double(m.bulk) + 4.0 * double(m.shear) / 3.0) / (M_PI * std::pow(delta, 4)) * corr;
+        double sum = 0;
+        for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k)
+          sum += double(bonds.volume[k]) * c / double(bonds.length[k]);
+        if (sum > 0) acc = std::min(acc, std::sqrt(2.0 * double(m.density) / sum));
+      },
+      [](double a, double b) { return std::min(a, b); });
+  return Real(dt);
+}
+
+void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
+  const std::size_t n = bonds.particles();
+  std::vector<std::uint64_t> count(n), off(n + 1);
+  exec::parallel_for(space, "pd.compact_count", exec::Index(n), [&](exec::Index i) {
+    std::uint64_t c = 0;
+    for (std::uint64_t k = bonds.offsets[std::size_t(i)]; k < bonds.offsets[std::size_t(i) + 1]; ++k) c += bonds.intact[k];
+    count[std::size_t(i)] = c;
+  });
+  const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
+      space, "pd.compact_scan", exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, off.data());
+  off[n] = total;
+  PdBonds out;
+  out.offsets = off;
+  out.neighbor.resize(total);
+  out.reverse.resize(total);
+  out.length.resize(total);
+  out.omega.resize(total);
+  out.volume.resize(total);
+  out.plastic.resize(total);
+  out.intact.assign(total, 1);
+  exec::parallel_for(space, "pd.compact_copy", exec::Index(n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
+    std::uint64_t o = off[i];
+    for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) {
+      if (!bonds.intact[k]) continue;
+      out.neighbor[o] = bonds.neighbor[k];
+      out.length[o] = bonds.length[k];
+      out.omega[o] = bonds.omega[k];
+      out.volume[o] = bonds.volume[k];
+      out.plastic[o] = bonds.plastic[k];
+      ++o;
+    }
+  });
+  exec::parallel_for(space, "pd.compact_reverse", exec::Index(n), [&](exec::Index ii) {
+    const std::uint32_t i = std::uint32_t(ii);
+    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+      const std::uint32_t j = out.neighbor[k];
+      const std::uint32_t* b = out.neighbor.data() + off[j];
+      const std::uint32_t* e = out.neighbor.data() + off[j + 1];
+      out.reverse[k] = off[j] + std::uint64_t(std::lower_bound(b, e, i) - b);
+    }
+  });
+  bonds = std::move(out);
+}
+
+}  // namespace amalgam

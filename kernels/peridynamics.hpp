@@ -1,0 +1,167 @@
+// Ordinary state-based peridynamics (Chen, Zhu, Zhao, Li, Wang: "Peridynamics-based fracture
+// animation for elastoplastic solids", after Madenci & Oterkus 2014 and Mitchell 2011):
+// elasticity (eqs. 2-9), deviatoric plasticity with a cap (eqs. 10-15), anisotropy through a
+// matrix G in the influence weight (eq. 16), fracture by a critical stretch with damage (eqs.
+// 17-18). Bonds in CSR form (DESIGN.md "Peridynamics storage"). Every kernel gathers per particle
+// over its own row (no scatter), so results are bitwise identical on every backend and thread
+// count; the pair force uses both directed bonds i->j and j->i, read from both rows.
+//
+// Notation: xi = x0_j - x0_i (reference bond), eta = y_j - y_i (current), L = |xi|, l = |eta|,
+// e = l - L (extension), Lambda = (eta / l) . (xi / L), omega_ij = delta / |G_i xi| (eq. 16; G = I:
+// eq. 4), V_j the neighbour's volume times the partial-volume factor nu_ij.
+#pragma once
+
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+#include "core/exec/exec.hpp"
+#include "core/math/types.hpp"
+
+namespace amalgam {
+
+// Which deviatoric extension the model uses.
+//  Paper: e^d = e - (delta / 4) Lambda theta (eq. 8). Not zero bond by bond under a pure
+//         dilation (short bonds negative, long ones positive; only its stress resultant
+//         vanishes), so a yield test on it sees hydrostatic load.
+//  Lps:   e^d = e - theta L / 3 (Silling et al. 2007, Mitchell 2011): exactly zero under a pure
+//         dilation. Same bulk and shear moduli in the continuum limit.
+enum class PdDeviatoric : std::uint8_t { Paper, Lps };
+const char* pd_deviatoric_name(PdDeviatoric d);
+
+struct PdMaterial {
+  Real bulk = Real(1e6);   // kappa (Pa)
+  Real shear = Real(6e5);  // mu (Pa)
+  Real density = 1000;     // kg/m^3
+  // Plasticity (eqs. 12-15): yield when A_dev^2 / 2 > psi0 (N^2/m^12); infinity = elastic. The
+  // cap on |e^p| is plastic_cap * |xi| (the paper's gamma / |x_j - x_i|, Table 1).
+  Real psi0 = std::numeric_limits<Real>::infinity();
+  Real plastic_cap = std::numeric_limits<Real>::infinity();
+  // Fracture (eq. 18): the bond breaks when (e - e^p) / delta > critical_stretch (1 + alpha phi),
+  // phi the damage of the particle; infinity = unbreakable.
+  Real critical_stretch = std::numeric_limits<Real>::infinity();
+  Real alpha = 0;
+  Mat3 G = Mat3::Identity();  // anisotropy (eq. 16)
+};
+
+// psi0 for a von Mises yield stress sigma_Y: under pure shear the largest per-bond deviatoric
+// force density is A_dev = 4 omega b e^d = 4 delta b (tau / 2 mu) = 15 tau / (pi delta^4)
+// (omega |xi| = delta), so yield at tau_Y = sigma_Y / sqrt(3) gives psi0 = A_c^2 / 2.
+inline Real pd_psi0_from_yield_stress(Real sigma_y, Real delta) {
+  const double ac = 15.0 * double(sigma_y) / (std::sqrt(3.0) * M_PI * std::pow(double(delta), 4));
+  return Real(0.5 * ac * ac);
+}
+
+// Bonds of directed pairs i -> j (row i), rows sorted by j.
+struct PdBonds {
+  std::vector<std::uint64_t> offsets;    // n + 1
+  std::vector<std::uint32_t> neighbor;   // j
+  std::vector<std::uint64_t> reverse;    // index of the bond j -> i in row j
+  std::vector<Real> length;              // L = |xi|
+  std::vector<Real> omega;               // omega_ij (G of particle i)
+  std::vector<Real> volume;              // nu_ij V_j: the neighbour's (partial) volume
+  std::vector<Real> plastic;             // e^p_ij (deviatoric plastic extension, eq. 10)
+  std::vector<std::uint8_t> intact;      // 1 until the bond breaks (irreversible)
+  std::size_t size() const { return neighbor.size(); }
+  std::size_t particles() const { return offsets.empty() ? 0 : offsets.size() - 1; }
+};
+
+struct PdParams {
+  Real horizon = Real(0.03);  // delta
+  Real spacing = Real(0.01);  // lattice spacing lc (partial volumes, contact distance)
+  PdDeviatoric deviatoric = PdDeviatoric::Paper;
+  const PdMaterial* materials = nullptr;
+};
+
+// Per-particle constants of the model (set up once from the reference configuration).
+//   m_i: theta normaliser, theta_i = (3 / m_i) sum_j omega s Lambda L V_j (eq. 5 with m = 4 pi
+//        delta^4 / 3 gives the paper's 9 / (4 pi delta^4));
+//   a_i = 3 kappa / (2 m_i) (eq. 9: 9 kappa / (8 pi delta^4));
+//   b_i = 15 mu / (2 pi delta^5) c_i (eq. 9), c_i = 1 without correction.
+// With the surface correction m_i is the discrete sum sum_j omega L V_j (theta exact for any
+// uniform dilation, at every particle, also near free surfaces: LPS's normalisation), and c_i
+// the ratio of the continuum to the discrete shear sum (1/3) sum_j omega L^2 (n_x^2 n_y^2 +
+// n_y^2 n_z^2 + n_z^2 n_x^2) V_j, whose continuum value is pi delta^5 / 15: shear stiffness
+// exact for the three coordinate shears, and the missing family at a free surface compensated.
+//   kappa_i: the paper's delta / 4 in e^d = e - kappa Lambda theta (eq. 8); corrected, the
+//        discrete sum_j omega L^2 V_j / (3 m_i), which is delta / 4 in the continuum and makes
+//        the deviatoric part's stress vanish under a uniform dilation on the actual family
+//        (without it the paper's form lowers K by 1.4 % on the delta = 3.015 lc lattice).
+struct PdConstants {
+  std::vector<Real> m, a, b, kappa;
+  std::vector<std::int32_t> bonds0;  // bonds at t = 0 (for the damage phi = 1 - n / N)
+};
+
+// A particle view for the kernels.
+struct PdView {
+  std::size_t n = 0;
+  const Vec3* x0 = nullptr;  // reference positions
+  const Vec3* x = nullptr;   // current positions
+  const Real* volume = nullptr;
+  const std::int32_t* material = nullptr;
+  Real* theta = nullptr;
+  Real* damage = nullptr;
+  const Real* m = nullptr;
+  const Real* a = nullptr;
+  const Real* b = nullptr;
+  const Real* kappa = nullptr;
+  const std::int32_t* bonds0 = nullptr;
+};
+
+// Bonds within the horizon (L <= delta, a particle is not its own neighbour) by a cell-binned
+// search over cells of size delta; rows sorted by neighbour index, so the list does not depend
+// on the thread count. partial_volume: nu_ij = (delta + lc/2 - L) / lc for L > delta - lc/2
+// (the share of the neighbour's cell inside the horizon, as LAMMPS does), else 1.
+void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume, const std::int32_t* material,
+                    std::size_t n, const PdParams& prm, bool partial_volume, PdBonds& bonds);
+
+// m, a, b, bonds0 per particle (see PdConstants).
+void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, const PdBonds& bonds,
+                  const PdParams& prm, bool surface_correction, PdConstants& out);
+
+// theta_i over the intact bonds (eq. 5), then the plastic return of each bond of row i (eqs.
+// 11-15): trial A_dev = 4 omega b (e^d - e^p); beyond the yield surface e^p grows by
+// (A_dev - A_c) / (4 omega b), which puts A_dev exactly on the surface A_c = sqrt(2 psi0)
+// sign(A_dev), then |e^p| is capped at plastic_cap L. (Eq. 14 as printed divides by 2b, which
+// equals this only where 2 omega = 1; we use the exact projection.)
+void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm);
+
+// Pair force per bond (eqs. 1-3, 7, 11): A_ij = 4 omega_ij (a_i Lambda theta_i + b_i (e^d_ij -
+// e^p_ij)), and the force density on i is sum_j (A_ij + A_ji) / 2 (eta / l) V_j (the paper's
+// T_i<x_j - x_i> - T_j<x_i - x_j>). stress (optional): sigma_i = 1/2 sum_j f_ij (x) xi V_j (the
+// peridynamic stress of a homogeneous deformation). fracture: after the force, bonds whose
+// criterion (eq. 18) holds from either end break; both rows decide alike, so breaking stays
+// symmetric. Returns nothing; force is a density (N/m^3).
+void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, bool fracture,
+               Vec3* force, Mat3* stress);
+
+// Short-range contact (fragments, or bodies, meeting), as LAMMPS's peri styles do: particles
+// closer than `distance` that share no intact bond repel with force density
+// c_S (distance - r) / delta V_j, c_S = 15 * 18 kappa / (pi delta^4) (kappa averaged over the
+// pair). Candidates come from a Verlet list: every pair within distance + skin at the last
+// build (CSR, rows sorted), rebuilt by the caller once some particle moved more than skin / 2.
+struct PdContactList {
+  std::vector<std::uint64_t> offsets;
+  std::vector<std::uint32_t> neighbor;
+  std::vector<Vec3> x_built;  // positions at the build
+};
+void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius, PdContactList& list);
+// Largest displacement since the list was built.
+Real pd_max_displacement(const exec::Space& space, const Vec3* x, const PdContactList& list);
+// Adds the contact force densities.
+void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds& bonds, const PdParams& prm,
+                       Real distance, const PdContactList& list, Vec3* force);
+
+// phi_i = 1 - n_i / N_i (eq. 18's damage); returns the number of intact directed bonds.
+std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds& bonds);
+
+// The largest explicit time step (Silling & Askari 2005, eq. 34, with a bond micromodulus from
+// the P-wave modulus): min_i sqrt(2 rho_i / sum_j V_j c / L), c = 18 (kappa + 4 mu / 3) / (pi
+// delta^4) scaled like b_i. A safety factor is applied by the caller.
+Real pd_stable_dt(const exec::Space& space, const PdView& p, const PdBonds& bonds, const PdParams& prm);
+
+// Removes broken bonds from the CSR arrays (rows keep their order; reverse indices rebuilt).
+// Worth it only once many bonds are broken (measured in docs/benchmarks.md).
+void pd_compact_bonds(const exec::Space& space, PdBonds& bonds);
+
+}  // namespace amalgam

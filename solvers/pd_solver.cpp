@@ -1,0 +1,274 @@
+#include "solvers/pd_solver.hpp"
+
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+#include <utility>
+
+#include "core/errors.hpp"
+
+namespace amalgam {
+
+PdAttributes PdAttributes::add_to(ParticleSet& ps) {
+  PdAttributes a;
+  a.x = ps.add("x", AttrType::Real, 3);
+  a.x0 = ps.add("x0", AttrType::Real, 3);
+  a.v = ps.add("v", AttrType::Real, 3);
+  a.acc = ps.add("acc", AttrType::Real, 3);
+  a.volume = ps.add("volume", AttrType::Real, 1);
+  a.material = ps.add("material", AttrType::Int32, 1);
+  a.id = ps.add("id", AttrType::Int32, 1);
+  a.theta = ps.add("theta", AttrType::Real, 1);
+  a.damage = ps.add("damage", AttrType::Real, 1);
+  a.fixed = ps.add("fixed", AttrType::Int32, 1);
+  a.fixed_v = ps.add("fixed_v", AttrType::Real, 3);
+  return a;
+}
+
+PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials, std::vector<Collider> colliders)
+    : settings_(settings), materials_(std::move(materials)), colliders_(std::move(colliders)) {
+  if (materials_.empty()) throw std::invalid_argument("PdSolver: no materials");
+  if (!(settings_.spacing > 0) || !(settings_.horizon > settings_.spacing))
+    throw std::invalid_argument("PdSolver: the horizon must exceed the particle spacing");
+  attr_ = PdAttributes::add_to(particles_);
+  params_.horizon = settings_.horizon;
+  params_.spacing = settings_.spacing;
+  params_.deviatoric = settings_.deviatoric;
+  params_.materials = materials_.data();
+}
+
+void PdSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega, const Vec3& centre,
+                             int material, Real volume) {
+  if (initialized_) throw std::logic_error("PdSolver: particles added after initialize()");
+  if (material < 0 || std::size_t(material) >= materials_.size()) throw std::invalid_argument("PdSolver: bad material");
+  const std::size_t n0 = particles_.size();
+  particles_.resize(n0 + x.size());
+  Vec3* px = particles_.vec3(attr_.x);
+  Vec3* px0 = particles_.vec3(attr_.x0);
+  Vec3* pv = particles_.vec3(attr_.v);
+  Real* vol = particles_.real(attr_.volume);
+  std::int32_t* mat = particles_.int32(attr_.material);
+  std::int32_t* id = particles_.int32(attr_.id);
+  for (std::size_t k = 0; k < x.size(); ++k) {
+    const std::size_t i = n0 + k;
+    px[i] = px0[i] = x[k];
+    pv[i] = v + omega.cross(x[k] - centre);
+    vol[i] = volume;
+    mat[i] = material;
+    id[i] = std::int32_t(i);
+  }
+}
+
+void PdSolver::prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& velocity) {
+  const Vec3* x0 = particles_.vec3(attr_.x0);
+  std::int32_t* fixed = particles_.int32(attr_.fixed);
+  Vec3* fv = particles_.vec3(attr_.fixed_v);
+  Vec3* v = particles_.vec3(attr_.v);
+  for (std::size_t i = 0; i < particles_.size(); ++i)
+    if ((x0[i].array() >= lo.array()).all() && (x0[i].array() <= hi.array()).all()) {
+      fixed[i] = 1;
+      fv[i] = velocity;
+      v[i] = velocity;
+    }
+}
+
+PdView PdSolver::view() {
+  PdView p;
+  p.n = particles_.size();
+  p.x0 = particles_.vec3(attr_.x0);
+  p.x = particles_.vec3(attr_.x);
+  p.volume = particles_.real(attr_.volume);
+  p.material = particles_.int32(attr_.material);
+  p.theta = particles_.real(attr_.theta);
+  p.damage = particles_.real(attr_.damage);
+  p.m = constants_.m.data();
+  p.a = constants_.a.data();
+  p.b = constants_.b.data();
+  p.kappa = constants_.kappa.data();
+  p.bonds0 = constants_.bonds0.data();
+  return p;
+}
+
+void PdSolver::initialize(const exec::Space& space) {
+  const std::size_t n = particles_.size();
+  pd_build_bonds(space, particles_.vec3(attr_.x0), particles_.real(attr_.volume), particles_.int32(attr_.material), n,
+                 params_, settings_.partial_volume, bonds_);
+  pd_constants(space, particles_.vec3(attr_.x0), particles_.int32(attr_.material), bonds_, params_,
+               settings_.surface_correction, constants_);
+  force_.assign(n, Vec3::Zero());
+  initialized_ = true;
+  sa_dt_ = pd_stable_dt(space, view(), bonds_, params_);
+  // Initial accelerations (velocity Verlet needs a^0).
+  compute_dilatation(space);
+  compute_forces(space);
+  contact_forces(space);
+  update_damage(space);
+  kick(space, 0);
+}
+
+Real PdSolver::stable_dt(const exec::Space& space) const {
+  struct Check {
+    Real vmax = 0;
+    exec::Index bad = -1;
+    int what = 0;  // 1 non-finite velocity, 2 non-finite position, 3 runaway speed
+  };
+  const Vec3* v = particles_.vec3(attr_.v);
+  const Vec3* x = particles_.vec3(attr_.x);
+  const Real limit = settings_.max_speed;
+  const Check c = exec::parallel_reduce(
+      space, "pd.cfl_check", exec::Index(particles_.size()), Check{},
+      [=](exec::Index i, Check& acc) {
+        const Real s = v[i].norm();
+        const int what = !std::isfinite(s) ? 1 : !x[i].allFinite() ? 2 : s > limit ? 3 : 0;
+        if (what && acc.bad < 0) acc.bad = i, acc.what = what;
+        acc.vmax = std::max(acc.vmax, s);
+      },
+      [](Check a, const Check& b) {
+        if (a.bad < 0 && b.bad >= 0) a.bad = b.bad, a.what = b.what;
+        a.vmax = std::max(a.vmax, b.vmax);
+        return a;
+      });
+  if (c.bad >= 0) {
+    std::ostringstream os;
+    os << "step " << steps_ << " (t = " << time_ << " s): particle " << c.bad << " (id "
+       << particles_.int32(attr_.id)[c.bad] << ") ";
+    if (c.what == 1) os << "has a non-finite velocity (" << v[c.bad].transpose() << ")";
+    else if (c.what == 2) os << "has a non-finite position";
+    else os << "moves at " << v[c.bad].norm() << " m/s, above the stability limit max_speed = " << limit << " m/s";
+    os << "; the simulation blew up (reduce cfl or max_dt, or check the material stiffness)";
+    throw SimulationError(os.str());
+  }
+  Real dt = std::min(settings_.max_dt, settings_.cfl * sa_dt_);
+  if (c.vmax > 0) dt = std::min(dt, settings_.cfl * settings_.spacing / c.vmax);
+  return dt;
+}
+
+void PdSolver::kick_drift(const exec::Space& space, Real dt) {
+  Vec3* x = particles_.vec3(attr_.x);
+  Vec3* v = particles_.vec3(attr_.v);
+  const Vec3* a = particles_.vec3(attr_.acc);
+  const std::int32_t* fixed = particles_.int32(attr_.fixed);
+  const Vec3* fv = particles_.vec3(attr_.fixed_v);
+  const Real h = Real(0.5) * dt;
+  exec::parallel_for(space, "pd.kick_drift", exec::Index(particles_.size()), [=](exec::Index i) {
+    v[i] = fixed[i] ? fv[i] : Vec3(v[i] + h * a[i]);
+    x[i] += dt * v[i];
+  });
+}
+
+void PdSolver::apply_colliders(const exec::Space& space, Real t) {
+  if (colliders_.empty()) return;
+  std::vector<Collider> posed;
+  for (const Collider& c : colliders_) posed.push_back(c.posed_at(t));
+  const Collider* cols = posed.data();
+  const int nc = int(posed.size());
+  Vec3* x = particles_.vec3(attr_.x);
+  Vec3* v = particles_.vec3(attr_.v);
+  const std::int32_t* fixed = particles_.int32(attr_.fixed);
+  exec::parallel_for(space, "pd.colliders", exec::Index(particles_.size()), [=](exec::Index i) {
+    if (fixed[i]) return;
+    for (int c = 0; c < nc; ++c) {
+      const Real phi = cols[c].phi(x[i], t);
+      if (phi >= 0) continue;
+      cols[c].project(x[i], t, v[i]);                // velocity: sticky / slip / separating + friction
+      x[i] -= phi * cols[c].outward_normal(x[i], t);  // position back onto the surface
+    }
+  });
+}
+
+void PdSolver::compute_dilatation(const exec::Space& space) { pd_dilatation(space, view(), bonds_, params_); }
+
+void PdSolver::compute_forces(const exec::Space& space) {
+  pd_forces(space, view(), bonds_, params_, settings_.fracture, force_.data(), nullptr);
+}
+
+void PdSolver::contact_forces(const exec::Space& space) {
+  if (!settings_.contact) return;
+  const Real d = settings_.contact_distance > 0 ? settings_.contact_distance : Real(0.9) * settings_.spacing;
+  const Real skin = settings_.contact_skin > 0 ? settings_.contact_skin : Real(0.5) * settings_.spacing;
+  const Vec3* x = particles_.vec3(attr_.x);
+  if (contact_list_.x_built.size() != particles_.size() || pd_max_displacement(space, x, contact_list_) > skin / 2) {
+    pd_build_contact_list(space, x, particles_.size(), d + skin, contact_list_);
+    ++contact_builds_;
+  }
+  pd_contact_forces(space, view(), bonds_, params_, d, contact_list_, force_.data());
+}
+
+void PdSolver::update_damage(const exec::Space& space) { pd_damage(space, view(), bonds_); }
+
+void PdSolver::kick(const exec::Space& space, Real dt) {
+  Vec3* v = particles_.vec3(attr_.v);
+  Vec3* a = particles_.vec3(attr_.acc);
+  const std::int32_t* fixed = particles_.int32(attr_.fixed);
+  const Vec3* fv = particles_.vec3(attr_.fixed_v);
+  const std::int32_t* mat = particles_.int32(attr_.material);
+  const PdMaterial* mats = materials_.data();
+  const Vec3* f = force_.data();
+  const Vec3 g = settings_.gravity;
+  const Real h = Real(0.5) * dt;
+  exec::parallel_for(space, "pd.kick", exec::Index(particles_.size()), [=](exec::Index i) {
+    a[i] = f[i] / mats[mat[i]].density + g;  // rho a = f + b (eq. 1)
+    v[i] = fixed[i] ? fv[i] : Vec3(v[i] + h * a[i]);
+  });
+}
+
+void PdSolver::step(const exec::Space& space, Real dt) {
+  if (!initialized_) throw std::logic_error("PdSolver: step() before initialize()");
+  if (!(dt > 0) || !std::isfinite(dt)) throw SimulationError("peridynamics: invalid time step " + std::to_string(dt));
+  kick_drift(space, dt);
+  apply_colliders(space, Real(time_ + double(dt)));
+  compute_dilatation(space);
+  compute_forces(space);
+  contact_forces(space);
+  update_damage(space);
+  kick(space, dt);
+  time_ += double(dt);
+  ++steps_;
+}
+
+void PdSolver::compute_stress(const exec::Space& space, std::vector<Mat3>& stress) {
+  stress.resize(particles_.size());
+  std::vector<Vec3> f(particles_.size());
+  pd_forces(space, view(), bonds_, params_, false, f.data(), stress.data());
+}
+
+PdDiagnostics PdSolver::diagnostics(const exec::Space& space) const {
+  struct Acc {
+    double ke = 0, vmax = 0, dmax = 0;
+    Vec3d p = Vec3d::Zero();
+  };
+  const Vec3* v = particles_.vec3(attr_.v);
+  const Real* vol = particles_.real(attr_.volume);
+  const Real* dmg = particles_.real(attr_.damage);
+  const std::int32_t* mat = particles_.int32(attr_.material);
+  const PdMaterial* mats = materials_.data();
+  const Acc r = exec::parallel_reduce(
+      space, "pd.diagnostics", exec::Index(particles_.size()), Acc{},
+      [=](exec::Index i, Acc& a) {
+        const double m = double(mats[mat[i]].density) * double(vol[i]);
+        const Vec3d vi = v[i].cast<double>();
+        a.ke += 0.5 * m * vi.squaredNorm();
+        a.p += m * vi;
+        a.vmax = std::max(a.vmax, vi.norm());
+        a.dmax = std::max(a.dmax, double(dmg[i]));
+      },
+      [](Acc a, const Acc& b) {
+        a.ke += b.ke;
+        a.p += b.p;
+        a.vmax = std::max(a.vmax, b.vmax);
+        a.dmax = std::max(a.dmax, b.dmax);
+        return a;
+      });
+  PdDiagnostics d;
+  d.kinetic = r.ke;
+  d.momentum = r.p;
+  d.max_speed = r.vmax;
+  d.max_damage = r.dmax;
+  d.bonds = bonds_.size();
+  std::uint64_t intact = 0;
+  for (std::uint8_t b : bonds_.intact) intact += b;
+  d.intact = intact;
+  return d;
+}
+
+}  // namespace amalgam

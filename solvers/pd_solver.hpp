@@ -1,0 +1,119 @@
+// Peridynamics solver (peridynamics-elastoplastic-fracture.txt): particles with CSR bond
+// families, explicit velocity Verlet, gravity, fixed and prescribed-velocity particles,
+// colliders (the rigid projectiles of the paper's Fig. 1 and 15) and short-range contact
+// between particles that are not bonded, so fragments do not pass through each other.
+//
+// step() = kick_drift -> apply_colliders -> compute_dilatation (with the plastic return) ->
+// compute_forces (with fracture) -> contact_forces -> update_damage -> kick.
+#pragma once
+
+#include <cstdint>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "core/exec/exec.hpp"
+#include "core/particles/particle_set.hpp"
+#include "kernels/colliders.hpp"
+#include "kernels/peridynamics.hpp"
+
+namespace amalgam {
+
+struct PdSettings {
+  Real spacing = Real(0.01);  // lattice spacing lc of the particles (m)
+  Real horizon = Real(0.0301);  // delta (m); 3.01 lc by default
+  PdDeviatoric deviatoric = PdDeviatoric::Paper;
+  bool partial_volume = true;      // nu_ij for bonds cut by the horizon
+  bool surface_correction = true;  // discrete theta normaliser and shear factor (see PdConstants)
+  bool fracture = true;
+  bool contact = true;              // repulsion between unbonded particles closer than contact_distance
+  Real contact_distance = 0;        // 0: 0.9 lc
+  Real contact_skin = 0;            // Verlet-list skin; 0: 0.5 lc
+  Vec3 gravity = Vec3(0, Real(-9.81), 0);
+  Real cfl = Real(0.7);             // safety factor on the Silling-Askari step
+  Real max_dt = std::numeric_limits<Real>::infinity();
+  Real max_speed = Real(1e4);  // stability guard: faster particles stop the run
+};
+
+// Particle attributes of a peridynamic body.
+struct PdAttributes {
+  ParticleSet::Id x, x0, v, acc, volume, material, id, theta, damage;
+  ParticleSet::Id fixed;     // int32: 1 = velocity prescribed (fixed_velocity), 0 = free
+  ParticleSet::Id fixed_v;   // prescribed velocity
+  static PdAttributes add_to(ParticleSet& ps);
+};
+
+struct PdDiagnostics {
+  double kinetic = 0;
+  Vec3d momentum = Vec3d::Zero();
+  double max_speed = 0;
+  double max_damage = 0;
+  std::uint64_t bonds = 0, intact = 0;  // directed bonds
+};
+
+class PdSolver {
+ public:
+  PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials, std::vector<Collider> colliders = {});
+
+  // Adds particles of one material with a velocity v + omega x (x - centre) and a volume each.
+  void add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega, const Vec3& centre, int material,
+                     Real volume);
+  // Prescribes the velocity of the particles inside the box [lo, hi] (at their reference
+  // position): zero velocity fixes them.
+  void prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& velocity);
+  // Builds the bond families and the model constants from the current positions (the reference
+  // configuration) and the initial forces. Called once, after the particles are added.
+  void initialize(const exec::Space& space);
+
+  void step(const exec::Space& space, Real dt);
+  // min(max_dt, cfl * the Silling-Askari step (computed once: it depends on the reference
+  // configuration only), cfl * spacing / fastest particle). Also the stability guard: throws
+  // SimulationError naming the step and particle when a velocity or position is not finite or a
+  // speed exceeds max_speed.
+  Real stable_dt(const exec::Space& space) const;
+
+  PdDiagnostics diagnostics(const exec::Space& space) const;
+  double time() const { return time_; }
+  std::uint64_t step_count() const { return steps_; }
+  const PdSettings& settings() const { return settings_; }
+  ParticleSet& particles() { return particles_; }
+  const ParticleSet& particles() const { return particles_; }
+  const PdAttributes& attributes() const { return attr_; }
+  const PdBonds& bonds() const { return bonds_; }
+  PdBonds& bonds() { return bonds_; }
+  const std::vector<PdMaterial>& materials() const { return materials_; }
+  const PdParams& params() const { return params_; }
+  PdView view();
+  // Force densities of the last step (N/m^3), and the stress of each particle recomputed now.
+  const std::vector<Vec3>& forces() const { return force_; }
+  std::uint64_t contact_list_builds() const { return contact_builds_; }
+  void compute_stress(const exec::Space& space, std::vector<Mat3>& stress);
+
+  // Phases of step(), public for tests.
+  void kick_drift(const exec::Space& space, Real dt);
+  void apply_colliders(const exec::Space& space, Real t);
+  void compute_dilatation(const exec::Space& space);
+  void compute_forces(const exec::Space& space);
+  void contact_forces(const exec::Space& space);
+  void update_damage(const exec::Space& space);
+  void kick(const exec::Space& space, Real dt);
+
+ private:
+  PdSettings settings_;
+  std::vector<PdMaterial> materials_;
+  std::vector<Collider> colliders_;
+  ParticleSet particles_;
+  PdAttributes attr_;
+  PdBonds bonds_;
+  PdConstants constants_;
+  PdContactList contact_list_;
+  std::uint64_t contact_builds_ = 0;
+  PdParams params_;
+  std::vector<Vec3> force_;
+  Real sa_dt_ = 0;  // Silling-Askari step of the reference configuration
+  double time_ = 0;
+  std::uint64_t steps_ = 0;
+  bool initialized_ = false;
+};
+
+}  // namespace amalgam
