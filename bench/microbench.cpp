@@ -215,7 +215,7 @@ void BM_Material(benchmark::State& st, MaterialModel model) {
 
 
 // Peridynamics: a 40^3 lattice block (64 000 particles, delta = 3.015 lc: 122 bonds in the bulk,
-// 6.9 M directed bonds), stretched 0.1 % and sheared so every bond carries a force; plastic and
+// 7.2 M directed bonds), stretched 0.1 % and sheared so every bond carries a force; plastic and
 // fracture enabled (thresholds not reached) so the kernels run their full paths. Items are
 // directed bonds (each visited from both ends, as LAMMPS counts them).
 std::unique_ptr<PdSolver> pd_block(const exec::Space& space) {

@@ -407,8 +407,9 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     }
   }
   mats.finish();
+  if (!pd && top.has("boundary_conditions"))
+    top.fail("boundary_conditions", "only for \"method\": \"peridynamics\" (MPM uses colliders)");
   for (auto& b : top.objects("boundary_conditions")) {
-    if (!pd) b.fail("min", "boundary_conditions need \"method\": \"peridynamics\" (MPM uses colliders)");
     PdBoundarySpec bc;
     bc.min = b.required_vec3("min");
     bc.max = b.required_vec3("max");
