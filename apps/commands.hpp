@@ -42,6 +42,8 @@ namespace amalgam::cli {
 extern volatile std::sig_atomic_t g_signal;
 extern "C" void on_signal(int sig);
 std::string format_seconds(double s);
+// Rows of an existing diagnostics.csv for frames before `first_frame` (kept on resume).
+std::vector<std::string> earlier_rows(const std::string& csv, int first_frame);
 
 // `amalgam run` of a peridynamics scene (apps/run_pd.cpp), after the options and the scene
 // were read and the output directory made. Throws like run_command's body.

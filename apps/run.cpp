@@ -58,6 +58,8 @@ std::array<double, 5> kernel_groups(const exec::Profiler& p) {
   return g;
 }
 
+}  // namespace
+
 // Rows of an existing diagnostics.csv for frames before `first_frame` (kept on resume).
 std::vector<std::string> earlier_rows(const std::string& csv, int first_frame) {
   std::vector<std::string> rows;
@@ -70,8 +72,6 @@ std::vector<std::string> earlier_rows(const std::string& csv, int first_frame) {
   }
   return rows;
 }
-
-}  // namespace
 
 volatile std::sig_atomic_t g_signal = 0;
 extern "C" void on_signal(int sig) { g_signal = sig; }

@@ -10,6 +10,7 @@
 
 #include "apps/commands.hpp"
 #include "core/errors.hpp"
+#include "io/checkpoint.hpp"
 #include "io/preview.hpp"
 #include "io/scene.hpp"
 #include "io/vdb_points.hpp"
@@ -57,8 +58,6 @@ const char* kCsvHeader =
 
 int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& space, exec::Profiler& profiler,
                      const std::string& out_dir) {
-  if (o.get("--resume"))
-    throw InputError(scene.file + ": --resume: checkpoints of peridynamics runs are not implemented yet (MPM only)");
   const bool quiet = o.flag("--quiet");
   const bool preview = o.flag("--preview");
   const bool tty = isatty(fileno(stdout));
@@ -66,6 +65,16 @@ int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& sp
   const auto t_setup = std::chrono::steady_clock::now();
   PdSolver solver = build_pd_solver(scene);
   solver.initialize(space);
+  int checkpoint_every = scene.output.checkpoint_every;
+  if (const auto* c = o.get("--checkpoint-every")) checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
+  const std::string checkpoint_path = out_dir + "/checkpoint.amck";
+  int first_frame = 1;
+  if (const auto* r = o.get("--resume")) {
+    first_frame = read_checkpoint(*r, solver, scene.fingerprint).next_frame;
+    if (!quiet)
+      std::cout << "amalgam: resumed from " << *r << " at t = " << solver.time() << " s, substep "
+                << solver.step_count() << ", frame " << first_frame << "\n";
+  }
   const std::size_t np = solver.particles().size();
   const PdDiagnostics d0 = solver.diagnostics(space);
   if (!quiet) {
@@ -96,18 +105,20 @@ int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& sp
     if (scene.output.ply) write_ply_points(frame_path(f, "frame", "ply"), p);
     if (scene.output.vdb_points) write_vdb_points(frame_path(f, "frame", "vdb"), p, double(scene.pd.spacing));
   };
-  write_frame(0);
+  if (first_frame == 1) write_frame(0);
 
   g_signal = 0;
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
-  std::string csv = kCsvHeader;
   const std::string csv_path = out_dir + "/diagnostics.csv";
+  std::string csv = kCsvHeader;
+  if (first_frame > 1)
+    for (const std::string& row : earlier_rows(csv_path, first_frame)) csv += row;
   const auto t_start = std::chrono::steady_clock::now();
   long long total_substeps = 0;
   PdTimes before = pd_times(profiler);
   double wall_before = 0;
-  for (int f = 1; f <= scene.frames; ++f) {
+  for (int f = first_frame; f <= scene.frames; ++f) {
     const double t_frame_end = double(f) / scene.fps;
     long long substeps = 0;
     Real dt = 0;
@@ -117,12 +128,13 @@ int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& sp
       dt = Real(remaining / std::max(1.0, n_left));
       solver.step(space, dt);
       ++substeps;
-      if (g_signal) {
+      if (g_signal) {  // interrupted: save the exact state mid-frame and stop
         const int sig = g_signal;
+        write_checkpoint(checkpoint_path, solver, f, scene.fingerprint);
         if (tty && !quiet) std::cout << "\n";
-        std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM") << " received at t = " << solver.time()
-                  << " s (frame " << f << " in progress): stopped; frames 0-" << f - 1
-                  << " are complete (peridynamics runs write no checkpoint yet)\n";
+        std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM") << " received: checkpoint written to "
+                  << checkpoint_path << " (t = " << solver.time() << " s, frame " << f
+                  << " in progress); continue with --resume " << checkpoint_path << "\n";
         return 128 + sig;
       }
     }
@@ -144,8 +156,10 @@ int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& sp
     before = now;
     wall_before = wall;
     if (scene.output.diagnostics_csv) write_file_atomic(csv_path, csv);
+    if ((checkpoint_every > 0 && f % checkpoint_every == 0) || f == scene.frames)
+      write_checkpoint(checkpoint_path, solver, f + 1, scene.fingerprint);
     if (!quiet) {
-      const double eta = wall / f * (scene.frames - f);
+      const double eta = wall / (f - first_frame + 1) * (scene.frames - f);
       const double rate = double(d.bonds) * double(total_substeps) / std::max(wall, 1e-9);
       char line[320];
       std::snprintf(line, sizeof line,
@@ -161,7 +175,7 @@ int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& sp
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
   if (!quiet) {
     if (tty) std::cout << "\n";
-    std::cout << "amalgam: done: " << scene.frames << " frames, " << total_substeps << " substeps in "
+    std::cout << "amalgam: done: " << scene.frames - first_frame + 1 << " frames, " << total_substeps << " substeps in "
               << format_seconds(wall) << " (" << wall << " s), "
               << double(d0.bonds) * double(total_substeps) / wall * 1e-6 << "M directed bond-updates/s\n"
               << "amalgam: per-kernel time:\n"

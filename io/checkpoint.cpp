@@ -3,6 +3,7 @@
 #include <cstring>
 #include <fstream>
 #include <sstream>
+#include <vector>
 
 #include "core/errors.hpp"
 #include "io/writers.hpp"
@@ -12,7 +13,7 @@ namespace amalgam {
 namespace {
 constexpr char kMagic[] = "AMALGAM-CKPT\n";
 constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
-constexpr std::uint32_t kVersion = 1;
+constexpr std::uint32_t kVersion = 2;
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -48,21 +49,26 @@ class Reader {
   const std::string& path_;
   std::size_t pos_ = 0;
 };
-}  // namespace
+// A named block of raw bytes after the particle attributes.
+struct Section {
+  std::string name;
+  char* data;
+  std::size_t bytes;
+};
 
-void write_checkpoint(const std::string& path, const MpmSolver& solver, int next_frame,
-                      std::uint64_t scene_fingerprint) {
-  const ParticleSet& ps = solver.particles();
+void write_state(const std::string& path, const ParticleSet& ps, double time, std::uint64_t steps, int next_frame,
+                 std::uint64_t scene_fingerprint, const std::vector<Section>& sections) {
   std::string b;
   std::size_t total = 128;
   for (int a = 0; a < ps.attribute_count(); ++a) total += 64 + ps.size() * 4 * size_t(ps.words_per_particle(a));
+  for (const Section& sec : sections) total += 64 + sec.bytes;
   b.reserve(total);
   b.append(kMagic, kMagicLen);
   put(b, kVersion);
   put(b, std::uint32_t(sizeof(Real)));
   put(b, scene_fingerprint);
-  put(b, solver.time());
-  put(b, std::uint64_t(solver.step_count()));
+  put(b, time);
+  put(b, steps);
   put(b, std::int32_t(next_frame));
   put(b, std::uint64_t(ps.size()));
   put(b, std::uint32_t(ps.attribute_count()));
@@ -75,11 +81,20 @@ void write_checkpoint(const std::string& path, const MpmSolver& solver, int next
     put(b, std::uint32_t(ps.words_per_particle(a)));
     b.append(reinterpret_cast<const char*>(ps.words(a)), ps.size() * 4 * size_t(ps.words_per_particle(a)));
   }
+  put(b, std::uint32_t(sections.size()));
+  for (const Section& sec : sections) {
+    put(b, std::uint32_t(sec.name.size()));
+    b.append(sec.name);
+    put(b, std::uint64_t(sec.bytes));
+    b.append(sec.data, sec.bytes);
+  }
   put(b, fnv1a64(b.data(), b.size()));
   write_file_atomic(path, b);
 }
 
-CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint) {
+// Reads into ps (same attribute layout) and the sections (same names and sizes, in order).
+CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64_t scene_fingerprint,
+                           const std::vector<Section>& sections) {
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open checkpoint");
   std::ostringstream ss;
@@ -95,8 +110,8 @@ CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std:
   Reader r(d, path);
   r.take(kMagicLen, "magic");
   const auto version = r.get<std::uint32_t>("version");
-  if (version != kVersion)
-    throw InputError(path + ": checkpoint format version " + std::to_string(version) + ", this build reads " +
+  if (version != 1 && version != kVersion)
+    throw InputError(path + ": checkpoint format version " + std::to_string(version) + ", this build reads 1 and " +
                      std::to_string(kVersion));
   const auto real_size = r.get<std::uint32_t>("precision");
   if (real_size != sizeof(Real))
@@ -111,10 +126,12 @@ CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std:
   st.next_frame = r.get<std::int32_t>("frame");
   const auto n = r.get<std::uint64_t>("particle count");
   const auto nattr = r.get<std::uint32_t>("attribute count");
-  ParticleSet& ps = solver.particles();
   if (nattr != std::uint32_t(ps.attribute_count()))
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) + " particle attributes, expected " +
                      std::to_string(ps.attribute_count()));
+  if (!sections.empty() && n != ps.size())
+    throw InputError(path + ": checkpoint has " + std::to_string(n) + " particles, this scene " +
+                     std::to_string(ps.size()));
   ps.resize(size_t(n));
   for (std::uint32_t i = 0; i < nattr; ++i) {
     const auto len = r.get<std::uint32_t>("attribute name length");
@@ -130,7 +147,50 @@ CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std:
     const std::size_t bytes = size_t(n) * 4 * words;
     std::memcpy(ps.words(a), r.take(bytes, "attribute data"), bytes);
   }
+  const std::uint32_t nsec = version >= 2 ? r.get<std::uint32_t>("section count") : 0;
+  if (nsec != sections.size())
+    throw InputError(path + ": checkpoint has " + std::to_string(nsec) + " state sections, this solver expects " +
+                     std::to_string(sections.size()) + " (written by a different method?)");
+  for (const Section& sec : sections) {
+    const auto len = r.get<std::uint32_t>("section name length");
+    if (len > 256) throw InputError(path + ": checkpoint section name too long (corrupt file)");
+    const std::string name(r.take(len, "section name"), len);
+    const auto bytes = r.get<std::uint64_t>("section size");
+    if (name != sec.name || bytes != sec.bytes)
+      throw InputError(path + ": checkpoint section '" + name + "' (" + std::to_string(bytes) +
+                       " bytes) does not match this solver's '" + sec.name + "' (" + std::to_string(sec.bytes) + ")");
+    std::memcpy(sec.data, r.take(std::size_t(bytes), "section data"), std::size_t(bytes));
+  }
   if (r.pos() != d.size() - 8) throw InputError(path + ": checkpoint has trailing bytes (corrupt file)");
+  return st;
+}
+
+std::vector<Section> pd_sections(const PdBonds& b) {
+  PdBonds& m = const_cast<PdBonds&>(b);  // written from, or read into
+  return {{"bonds.plastic", reinterpret_cast<char*>(m.plastic.data()), m.plastic.size() * sizeof(Real)},
+          {"bonds.intact", reinterpret_cast<char*>(m.intact.data()), m.intact.size()}};
+}
+}  // namespace
+
+void write_checkpoint(const std::string& path, const MpmSolver& solver, int next_frame,
+                      std::uint64_t scene_fingerprint) {
+  write_state(path, solver.particles(), solver.time(), solver.step_count(), next_frame, scene_fingerprint, {});
+}
+
+CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint) {
+  const CheckpointState st = read_state(path, solver.particles(), scene_fingerprint, {});
+  solver.restore_clock(st.time, st.steps);
+  return st;
+}
+
+void write_checkpoint(const std::string& path, const PdSolver& solver, int next_frame,
+                      std::uint64_t scene_fingerprint) {
+  write_state(path, solver.particles(), solver.time(), solver.step_count(), next_frame, scene_fingerprint,
+              pd_sections(solver.bonds()));
+}
+
+CheckpointState read_checkpoint(const std::string& path, PdSolver& solver, std::uint64_t scene_fingerprint) {
+  const CheckpointState st = read_state(path, solver.particles(), scene_fingerprint, pd_sections(solver.bonds()));
   solver.restore_clock(st.time, st.steps);
   return st;
 }

@@ -2,11 +2,14 @@
 //
 // The grid is rebuilt from the particles every substep and no node value depends on the leaf
 // table's history, so the state is the particle attributes plus the clock (time, substep count)
-// and the frame being computed. Format (little-endian), version 1:
+// and the frame being computed; peridynamics adds its per-bond state (the bond list itself is
+// rebuilt from the reference positions, deterministically). Format (little-endian), version 2:
 //   "AMALGAM-CKPT\n" (13 bytes) | u32 version | u32 sizeof(Real) | u64 scene fingerprint
 //   | f64 time | u64 steps | i32 next_frame | u64 particles | u32 attributes
 //   | per attribute: u32 name length, name, u32 type, u32 width, u32 words/particle, words
+//   | u32 sections | per section: u32 name length, name, u64 bytes, bytes   (version 2 only)
 //   | u64 FNV-1a checksum of every byte before it
+// Version 1 files (no sections) are still read.
 // Written to a temporary name and renamed. Reading checks magic, version, precision, scene,
 // attribute layout, sizes and checksum, each failure an InputError naming the file.
 #pragma once
@@ -16,6 +19,7 @@
 
 #include "core/hash.hpp"
 #include "solvers/mpm_solver.hpp"
+#include "solvers/pd_solver.hpp"
 
 namespace amalgam {
 
@@ -29,5 +33,11 @@ void write_checkpoint(const std::string& path, const MpmSolver& solver, int next
                       std::uint64_t scene_fingerprint);
 // Loads particles and clock into `solver` (built from the same scene); returns the state.
 CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint);
+
+// Peridynamics: particles, clock and the bonds' plastic extensions and intact flags. Reading
+// needs an initialised solver of the same scene (same bond list).
+void write_checkpoint(const std::string& path, const PdSolver& solver, int next_frame,
+                      std::uint64_t scene_fingerprint);
+CheckpointState read_checkpoint(const std::string& path, PdSolver& solver, std::uint64_t scene_fingerprint);
 
 }  // namespace amalgam

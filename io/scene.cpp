@@ -421,6 +421,19 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   }
   for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c, file, s.mpm.dx));
   for (auto& h : top.objects("heat_sources")) s.heat_sources.push_back(read_heat_source(h));
+  if (!pd && top.has("precracks")) top.fail("precracks", "only for \"method\": \"peridynamics\"");
+  for (auto& c : top.objects("precracks")) {
+    PdPrecrackSpec pc;
+    pc.point = c.required_vec3("point");
+    pc.normal = c.required_vec3("normal");
+    if (!(pc.normal.norm() > 0)) c.fail("normal", "must be a non-zero vector");
+    pc.min = c.required_vec3("min");
+    pc.max = c.required_vec3("max");
+    for (int a = 0; a < 3; ++a)
+      if (!(pc.max[a] >= pc.min[a])) c.fail("max", "every component must be at least the matching one of \"min\"");
+    c.finish();
+    s.pd_precracks.push_back(pc);
+  }
   if (pd && !s.heat_sources.empty()) top.fail("heat_sources", "only for \"method\": \"mpm\"");
   if (!s.heat_sources.empty()) {
     bool melts = false;
@@ -562,6 +575,7 @@ PdSolver build_pd_solver(const Scene& scene) {
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);
   }
   for (const auto& b : scene.pd_boundaries) solver.prescribe_velocity(b.min, b.max, b.velocity);
+  for (const auto& c : scene.pd_precracks) solver.add_precrack(c.point, c.normal, c.min, c.max);
   return solver;
 }
 

@@ -53,6 +53,10 @@ enum class Method { Mpm, Peridynamics };
 struct PdBoundarySpec {
   Vec3 min, max, velocity;
 };
+// Peridynamics: a pre-crack, the part inside [min, max] of the plane through point with normal.
+struct PdPrecrackSpec {
+  Vec3 point, normal, min, max;
+};
 
 struct Scene {
   std::string file;
@@ -62,6 +66,7 @@ struct Scene {
   PdSettings pd;
   std::vector<PdMaterial> pd_materials;  // parallel to materials (peridynamics scenes)
   std::vector<PdBoundarySpec> pd_boundaries;
+  std::vector<PdPrecrackSpec> pd_precracks;
   int frames = 48;
   double fps = 24;
   std::vector<std::string> material_names;

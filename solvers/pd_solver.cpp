@@ -72,6 +72,11 @@ void PdSolver::prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& ve
     }
 }
 
+void PdSolver::add_precrack(const Vec3& point, const Vec3& n, const Vec3& lo, const Vec3& hi) {
+  if (initialized_) throw std::logic_error("PdSolver: pre-crack added after initialize()");
+  precracks_.push_back({point, n.normalized(), lo, hi});
+}
+
 PdView PdSolver::view() {
   PdView p;
   p.n = particles_.size();
@@ -95,6 +100,27 @@ void PdSolver::initialize(const exec::Space& space) {
                  params_, settings_.partial_volume, bonds_);
   pd_constants(space, particles_.vec3(attr_.x0), particles_.int32(attr_.material), bonds_, params_,
                settings_.surface_correction, constants_);
+  // Pre-cracks break bonds after the constants: the material around a crack is the same material,
+  // only disconnected (its damage is > 0 from the start).
+  if (!precracks_.empty()) {
+    const Vec3* x0 = particles_.vec3(attr_.x0);
+    const Precrack* cracks = precracks_.data();
+    const std::size_t nc = precracks_.size();
+    PdBonds& b = bonds_;
+    exec::parallel_for(space, "pd.precracks", exec::Index(n), [&](exec::Index ii) {
+      const std::size_t i = std::size_t(ii);
+      for (std::uint64_t k = b.offsets[i]; k < b.offsets[i + 1]; ++k) {
+        const std::uint32_t j = b.neighbor[k];  // evaluate from the lower index: both rows decide alike
+        const Vec3 &a = x0[std::min<std::size_t>(i, j)], &c = x0[std::max<std::size_t>(i, j)];
+        for (std::size_t q = 0; q < nc; ++q) {
+          const Real sa = (a - cracks[q].point).dot(cracks[q].n), sc = (c - cracks[q].point).dot(cracks[q].n);
+          if (!(sa * sc < 0)) continue;
+          const Vec3 hit = a + (sa / (sa - sc)) * (c - a);
+          if ((hit.array() >= cracks[q].lo.array()).all() && (hit.array() <= cracks[q].hi.array()).all()) b.intact[k] = 0;
+        }
+      }
+    });
+  }
   force_.assign(n, Vec3::Zero());
   initialized_ = true;
   sa_dt_ = pd_stable_dt(space, view(), bonds_, params_);

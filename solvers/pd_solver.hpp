@@ -61,6 +61,10 @@ class PdSolver {
   // Prescribes the velocity of the particles inside the box [lo, hi] (at their reference
   // position): zero velocity fixes them.
   void prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& velocity);
+  // A pre-crack: bonds whose reference segment crosses the plane through `point` with normal `n`
+  // at a point inside the box [lo, hi] are broken when the solver is initialised (the paper's
+  // Fig. 17 sheet "with initial cracks").
+  void add_precrack(const Vec3& point, const Vec3& n, const Vec3& lo, const Vec3& hi);
   // Builds the bond families and the model constants from the current positions (the reference
   // configuration) and the initial forces. Called once, after the particles are added.
   void initialize(const exec::Space& space);
@@ -74,6 +78,10 @@ class PdSolver {
 
   PdDiagnostics diagnostics(const exec::Space& space) const;
   double time() const { return time_; }
+  void restore_clock(double time, std::uint64_t steps) {
+    time_ = time;
+    steps_ = steps;
+  }
   std::uint64_t step_count() const { return steps_; }
   const PdSettings& settings() const { return settings_; }
   ParticleSet& particles() { return particles_; }
@@ -110,6 +118,10 @@ class PdSolver {
   std::uint64_t contact_builds_ = 0;
   PdParams params_;
   std::vector<Vec3> force_;
+  struct Precrack {
+    Vec3 point, n, lo, hi;
+  };
+  std::vector<Precrack> precracks_;
   Real sa_dt_ = 0;  // Silling-Askari step of the reference configuration
   double time_ = 0;
   std::uint64_t steps_ = 0;

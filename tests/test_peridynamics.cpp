@@ -310,6 +310,31 @@ TEST(PdFracture, NoBondBreaksBelowTheCriticalStretch) {
   }
 }
 
+// A pre-crack on the plane x = 0.05 over half the block (y < 0.05) breaks exactly the bonds
+// that cross it there, in both directions.
+TEST(PdFracture, PrecrackBreaksExactlyTheCrossingBonds) {
+  const exec::Space space(test::parallel_backend(), 2);
+  PdSolver solver(settings(PdDeviatoric::Paper, true), {glass()});
+  solver.add_particles(lattice(10), Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
+  solver.add_precrack(Vec3(Real(0.05), 0, 0), Vec3(1, 0, 0), Vec3(-1, -1, -1), Vec3(1, Real(0.05), 1));
+  solver.initialize(space);
+  const PdBonds& b = solver.bonds();
+  const Vec3* x0 = solver.particles().vec3(solver.attributes().x0);
+  std::size_t broken = 0;
+  for (std::size_t i = 0; i + 1 < b.offsets.size(); ++i)
+    for (std::uint64_t k = b.offsets[i]; k < b.offsets[i + 1]; ++k) {
+      const Vec3 a = x0[i], c = x0[b.neighbor[k]];
+      const bool crosses = (a[0] - Real(0.05)) * (c[0] - Real(0.05)) < 0;
+      const Real y = a[1] + (Real(0.05) - a[0]) / (c[0] - a[0]) * (c[1] - a[1]);
+      const bool expect_broken = crosses && y <= Real(0.05);
+      ASSERT_EQ(b.intact[k] == 0, expect_broken) << i << " -> " << b.neighbor[k];
+      ASSERT_EQ(b.intact[k], b.intact[b.reverse[k]]);
+      broken += !b.intact[k];
+    }
+  EXPECT_GT(broken, 1000u);
+  EXPECT_GT(solver.diagnostics(space).max_damage, 0.3);
+}
+
 TEST(PdBonds, CsrIsSymmetricSortedAndCompactionKeepsIntactBonds) {
   const exec::Space space(test::parallel_backend(), 2);
   PdMaterial m = glass();
