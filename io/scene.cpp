@@ -372,7 +372,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   // Peridynamics: the lattice spacing comes from dx and the objects' particles_per_cell, and the
   // horizon (which yield_stress needs) from the spacing: read the objects first.
   for (const auto& name : mats.keys()) {
-    mat_index[name] = int(s.materials.size());
+    mat_index[name] = int(s.material_names.size());
     s.material_names.push_back(name);
   }
   if (!top.has("objects")) top.fail("objects", "missing required array of objects");

@@ -49,6 +49,38 @@ TEST(Scene, GoodSceneParsesWithDefaults) {
   EXPECT_EQ(std::memcmp(x.data(), y.data(), x.size() * sizeof(Vec3)), 0);
 }
 
+// Objects refer to materials by name; each gets its own material's index and parameters, in MPM
+// and peridynamics scenes alike (a regression once gave every object material 0).
+TEST(Scene, ObjectsGetTheirNamedMaterials) {
+  for (const char* method : {"mpm", "peridynamics"}) {
+    const std::string model = std::string(method) == "mpm" ? "fixed_corotated" : "peridynamic";
+    const std::string text = std::string(R"({
+      "simulation": {"method": ")") + method + R"(", "dx": 0.05},
+      "materials": {"soft": {"model": ")" + model + R"(", "density": 1000, "youngs_modulus": 1e4},
+                    "hard": {"model": ")" + model + R"(", "density": 3000, "youngs_modulus": 1e7}},
+      "objects": [{"shape": "box", "min": [0,0,0], "max": [0.2,0.2,0.2], "material": "hard"},
+                  {"shape": "box", "min": [0.5,0,0], "max": [0.7,0.2,0.2], "material": "soft"},
+                  {"shape": "box", "min": [1,0,0], "max": [1.2,0.2,0.2], "material": "hard"}]
+    })";
+    const Scene s = parse_scene(text, "s.json");
+    ASSERT_EQ(s.objects.size(), 3u) << method;
+    for (int k = 0; k < 3; ++k) {
+      const int m = s.objects[std::size_t(k)].material;
+      EXPECT_EQ(s.material_names[std::size_t(m)], k == 1 ? "soft" : "hard") << method << " object " << k;
+      EXPECT_EQ(double(s.materials[std::size_t(m)].density), k == 1 ? 1000.0 : 3000.0) << method;
+    }
+    if (std::string(method) == "peridynamics") {
+      ASSERT_EQ(s.pd_materials.size(), 2u);
+      EXPECT_EQ(double(s.pd_materials[std::size_t(s.objects[0].material)].density), 3000.0);
+      PdSolver solver = build_pd_solver(s);
+      const std::int32_t* mat = solver.particles().int32(solver.attributes().material);
+      EXPECT_EQ(mat[0], s.objects[0].material);
+      EXPECT_EQ(mat[solver.particles().size() - 1], s.objects[2].material);
+      EXPECT_NE(s.objects[0].material, s.objects[1].material);
+    }
+  }
+}
+
 TEST(Scene, ErrorsNameFileAndPath) {
   EXPECT_NE(error_of(replace(kGood, "\"jelly\"}", "\"steel\"}")).find("s.json: /objects/0/material: unknown material \"steel\""),
             std::string::npos);
