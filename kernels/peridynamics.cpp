@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <numeric>
 
 namespace amalgam {
 
@@ -109,36 +108,66 @@ void for_neighbours(const CellIndex& c, const Vec3* x, std::uint32_t i, Real r, 
     }
 }
 
+// CSR rows of every particle's neighbours within r (rows sorted by index): a count pass, a
+// scan and a fill pass over the cells. `what` prefixes the profiler labels.
+struct RowLabels {
+  const char *count, *scan, *fill;
+};
+void neighbour_rows(const exec::Space& space, const RowLabels& label, const Vec3* x, std::size_t n, Real r,
+                    std::vector<std::uint64_t>& offsets, std::vector<std::uint32_t>& neighbor) {
+  offsets.assign(n + 1, 0);
+  neighbor.clear();
+  if (n == 0) return;
+  const CellIndex cells = make_cells(space, x, n, double(r));
+  std::vector<std::uint64_t> count(n);
+  exec::parallel_for(space, label.count, exec::Index(n), [&](exec::Index i) {
+    std::uint64_t c = 0;
+    for_neighbours(cells, x, std::uint32_t(i), r, [&](std::uint32_t) { ++c; });
+    count[std::size_t(i)] = c;
+  });
+  const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
+      space, label.scan, exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, offsets.data());
+  offsets[n] = total;
+  neighbor.resize(total);
+  exec::parallel_for(space, label.fill, exec::Index(n), [&](exec::Index ii) {
+    std::uint32_t* row = neighbor.data() + offsets[std::size_t(ii)];
+    std::uint64_t c = 0;
+    for_neighbours(cells, x, std::uint32_t(ii), r, [&](std::uint32_t j) { row[c++] = j; });
+    std::sort(row, row + c);
+  });
+}
+
+// reverse[k] = the index of bond j -> i for the bond k = i -> j (rows sorted, bonds symmetric).
+void fill_reverse(const exec::Space& space, const char* label, const std::vector<std::uint64_t>& off,
+                  const std::vector<std::uint32_t>& neighbor, std::vector<std::uint64_t>& reverse) {
+  reverse.resize(neighbor.size());
+  const std::size_t n = off.empty() ? 0 : off.size() - 1;
+  exec::parallel_for(space, label, exec::Index(n), [&](exec::Index ii) {
+    const std::uint32_t i = std::uint32_t(ii);
+    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+      const std::uint32_t j = neighbor[k];
+      const std::uint32_t* b = neighbor.data() + off[j];
+      const std::uint32_t* e = neighbor.data() + off[j + 1];
+      reverse[k] = off[j] + std::uint64_t(std::lower_bound(b, e, i) - b);
+    }
+  });
+}
+
 }  // namespace
 
 void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume, const std::int32_t* material,
                     std::size_t n, const PdParams& prm, bool partial_volume, PdBonds& bonds) {
   const Real delta = prm.horizon, lc = prm.spacing;
-  const CellIndex cells = make_cells(space, x0, n, double(delta));
-  std::vector<std::uint64_t> count(n);
-  exec::parallel_for(space, "pd.bond_count", exec::Index(n), [&](exec::Index i) {
-    std::uint64_t c = 0;
-    for_neighbours(cells, x0, std::uint32_t(i), delta, [&](std::uint32_t) { ++c; });
-    count[std::size_t(i)] = c;
-  });
-  bonds.offsets.assign(n + 1, 0);
-  const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
-      space, "pd.bond_scan", exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, bonds.offsets.data());
-  bonds.offsets[n] = total;
-  bonds.neighbor.resize(total);
-  bonds.reverse.resize(total);
+  neighbour_rows(space, {"pd.bond_count", "pd.bond_scan", "pd.bond_fill"}, x0, n, delta, bonds.offsets, bonds.neighbor);
+  const std::size_t total = bonds.neighbor.size();
   bonds.length.resize(total);
   bonds.omega.resize(total);
   bonds.volume.resize(total);
   bonds.plastic.assign(total, Real(0));
   bonds.intact.assign(total, 1);
   const std::uint64_t* off = bonds.offsets.data();
-  exec::parallel_for(space, "pd.bond_fill", exec::Index(n), [&](exec::Index ii) {
-    const std::uint32_t i = std::uint32_t(ii);
-    std::uint32_t* row = bonds.neighbor.data() + off[i];
-    std::uint64_t c = 0;
-    for_neighbours(cells, x0, i, delta, [&](std::uint32_t j) { row[c++] = j; });
-    std::sort(row, row + c);
+  exec::parallel_for(space, "pd.bond_geometry", exec::Index(n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
     const Mat3& G = prm.materials[material[i]].G;
     for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
       const std::uint32_t j = bonds.neighbor[k];
@@ -151,15 +180,7 @@ void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume
       bonds.volume[k] = nu * volume[j];
     }
   });
-  exec::parallel_for(space, "pd.bond_reverse", exec::Index(n), [&](exec::Index ii) {
-    const std::uint32_t i = std::uint32_t(ii);
-    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
-      const std::uint32_t j = bonds.neighbor[k];
-      const std::uint32_t* b = bonds.neighbor.data() + off[j];
-      const std::uint32_t* e = bonds.neighbor.data() + off[j + 1];
-      bonds.reverse[k] = off[j] + std::uint64_t(std::lower_bound(b, e, i) - b);  // |x_i - x_j| is symmetric
-    }
-  });
+  fill_reverse(space, "pd.bond_reverse", bonds.offsets, bonds.neighbor, bonds.reverse);
 }
 
 void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, const PdBonds& bonds,
@@ -286,27 +307,9 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
 }
 
 void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius, PdContactList& list) {
-  list.offsets.assign(n + 1, 0);
   list.x_built.assign(x, x + n);
-  list.neighbor.clear();
-  if (n == 0) return;
-  const CellIndex cells = make_cells(space, x, n, double(radius));
-  std::vector<std::uint64_t> count(n);
-  exec::parallel_for(space, "pd.contact_count", exec::Index(n), [&](exec::Index i) {
-    std::uint64_t c = 0;
-    for_neighbours(cells, x, std::uint32_t(i), radius, [&](std::uint32_t) { ++c; });
-    count[std::size_t(i)] = c;
-  });
-  const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
-      space, "pd.contact_scan", exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, list.offsets.data());
-  list.offsets[n] = total;
-  list.neighbor.resize(total);
-  exec::parallel_for(space, "pd.contact_fill", exec::Index(n), [&](exec::Index ii) {
-    std::uint32_t* row = list.neighbor.data() + list.offsets[std::size_t(ii)];
-    std::uint64_t c = 0;
-    for_neighbours(cells, x, std::uint32_t(ii), radius, [&](std::uint32_t j) { row[c++] = j; });
-    std::sort(row, row + c);
-  });
+  neighbour_rows(space, {"pd.contact_count", "pd.contact_scan", "pd.contact_fill"}, x, n, radius, list.offsets,
+                 list.neighbor);
 }
 
 Real pd_max_displacement(const exec::Space& space, const Vec3* x, const PdContactList& list) {
@@ -388,7 +391,6 @@ void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
   PdBonds out;
   out.offsets = off;
   out.neighbor.resize(total);
-  out.reverse.resize(total);
   out.length.resize(total);
   out.omega.resize(total);
   out.volume.resize(total);
@@ -407,15 +409,7 @@ void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
       ++o;
     }
   });
-  exec::parallel_for(space, "pd.compact_reverse", exec::Index(n), [&](exec::Index ii) {
-    const std::uint32_t i = std::uint32_t(ii);
-    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
-      const std::uint32_t j = out.neighbor[k];
-      const std::uint32_t* b = out.neighbor.data() + off[j];
-      const std::uint32_t* e = out.neighbor.data() + off[j + 1];
-      out.reverse[k] = off[j] + std::uint64_t(std::lower_bound(b, e, i) - b);
-    }
-  });
+  fill_reverse(space, "pd.compact_reverse", out.offsets, out.neighbor, out.reverse);
   bonds = std::move(out);
 }
 
