@@ -6,6 +6,7 @@
 #include <cmath>
 #include <random>
 
+#include "core/errors.hpp"
 #include "kernels/peridynamics.hpp"
 #include "solvers/pd_solver.hpp"
 #include "test_util.hpp"
@@ -436,6 +437,31 @@ TEST(PdDynamics, VerletAtTheStableStepConservesMomentumAndStaysBounded) {
   // Elastic energy of the 2 % prestrain is E eps^2 / 2 ~ 1.3 kJ/m^3: speeds of order 1 m/s.
   EXPECT_LT(vmax, 5.0);
   EXPECT_EQ(d1.intact, d1.bonds);
+}
+
+// The stability guard names the step, the particle and the quantity.
+TEST(PdDynamics, StabilityGuardNamesParticleAndQuantity) {
+  const exec::Space space;
+  PdSolver solver = make_block(4, settings(PdDeviatoric::Paper, true), glass(), space);
+  Vec3* v = solver.particles().vec3(solver.attributes().v);
+  v[17] = Vec3(std::numeric_limits<Real>::quiet_NaN(), 0, 0);
+  try {
+    solver.stable_dt(space);
+    FAIL() << "no error on a NaN velocity";
+  } catch (const SimulationError& e) {
+    const std::string m = e.what();
+    EXPECT_NE(m.find("step 0"), std::string::npos) << m;
+    EXPECT_NE(m.find("particle 17 (id 17)"), std::string::npos) << m;
+    EXPECT_NE(m.find("non-finite velocity"), std::string::npos) << m;
+  }
+  v[17] = Vec3(Real(2e4), 0, 0);
+  try {
+    solver.stable_dt(space);
+    FAIL() << "no error on a runaway speed";
+  } catch (const SimulationError& e) {
+    EXPECT_NE(std::string(e.what()).find("above the stability limit max_speed"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(solver.step(space, Real(-1)), SimulationError);
 }
 
 }  // namespace
