@@ -158,11 +158,45 @@ std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::s
   return mesh;
 }
 
+// TetGen mesh object (peridynamics): file (.node/.ele or their stem), scale, rotate_degrees,
+// translate, as for triangle meshes.
+std::shared_ptr<const TetMesh> read_tet_object(JsonObject& o, const std::string& scene_file) {
+  const std::string file = o.string("file", "");
+  if (!o.has("file") || file.empty()) o.fail("file", "missing required TetGen file (.node with its .ele)");
+  const std::filesystem::path p = std::filesystem::path(file).is_absolute()
+                                      ? std::filesystem::path(file)
+                                      : std::filesystem::path(scene_file).parent_path() / file;
+  auto mesh = std::make_shared<TetMesh>();
+  try {
+    *mesh = load_tetgen(p.string());
+  } catch (const InputError& e) {
+    o.fail("file", std::string("TetGen mesh \"") + file + "\": " + e.what());
+  }
+  const double scale = o.number("scale", 1.0, 0, 1e30, true);
+  const Vec3d deg = o.vec3("rotate_degrees", Vec3::Zero()).cast<double>();
+  const Vec3 t = o.vec3("translate", Vec3::Zero());
+  const double k = M_PI / 180.0;
+  const Mat3d R = (Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) * Eigen::AngleAxisd(deg[1] * k, Vec3d::UnitY()) *
+                   Eigen::AngleAxisd(deg[0] * k, Vec3d::UnitX()))
+                      .toRotationMatrix();
+  for (auto& v : mesh->nodes) v = R * (v * scale) + t.cast<double>();
+  return mesh;
+}
+
 ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials, const std::string& scene_file,
                        bool peridynamics) {
   ObjectSpec s;
-  const std::string shape = o.choice("shape", "", {"box", "sphere", "cylinder", "torus", "mesh"});
-  if (shape == "mesh") {
+  const std::string shape = o.choice("shape", "", {"box", "sphere", "cylinder", "torus", "mesh", "tet_mesh"});
+  if (shape == "tet_mesh") {
+    if (!peridynamics) o.fail("shape", "\"tet_mesh\" needs \"method\": \"peridynamics\" (MPM samples \"mesh\" surfaces)");
+    s.shape = ObjectShape::TetMesh;
+    s.tets = read_tet_object(o, scene_file);
+    Vec3d lo = s.tets->nodes[0], hi = lo;
+    for (const auto& v : s.tets->nodes) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+    s.min = lo.cast<Real>();
+    s.max = hi.cast<Real>();
+    s.center = o.vec3("center", Real(0.5) * (s.min + s.max));
+  } else if (shape == "mesh") {
     s.shape = ObjectShape::Mesh;
     s.mesh = read_mesh_object(o, scene_file);
     Vec3d lo = s.mesh->vertices[0], hi = lo;
@@ -378,7 +412,25 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   if (!top.has("objects")) top.fail("objects", "missing required array of objects");
   for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file, pd));
   if (s.objects.empty()) top.fail("objects", "define at least one object");
-  if (pd) {
+  std::size_t tet_objects = 0;
+  double edge_sum = 0, edge_count = 0;
+  for (const auto& o : s.objects)
+    if (o.shape == ObjectShape::TetMesh) {
+      ++tet_objects;
+      edge_sum += tet_mean_edge(*o.tets) * double(o.tets->tets.size());
+      edge_count += double(o.tets->tets.size());
+    }
+  if (tet_objects > 0 && tet_objects < s.objects.size())
+    top.fail("objects", "tet_mesh objects cannot be mixed with lattice-sampled objects (their spacings differ)");
+  if (pd && tet_objects > 0) {
+    // One particle per tetrahedron: the spacing is the mean edge length (the paper's lambda).
+    s.pd.spacing = Real(edge_sum / edge_count);
+    s.pd.horizon *= s.pd.spacing;
+    s.pd.contact_distance *= s.pd.spacing;
+    s.pd.gravity = s.mpm.gravity;
+    s.pd.cfl = s.mpm.cfl;
+    s.pd.max_dt = s.mpm.max_dt;
+  } else if (pd) {
     const int ppc = s.objects[0].particles_per_cell;
     for (std::size_t k = 1; k < s.objects.size(); ++k)
       if (s.objects[k].particles_per_cell != ppc)
@@ -504,6 +556,15 @@ std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per
   if (double(n[0]) * double(n[1]) * double(n[2]) > 2e9)
     throw InputError("object would be sampled with more than 2e9 particles; increase dx or lower particles_per_cell");
   if (obj.shape == ObjectShape::Mesh) return sample_mesh(*obj.mesh, h, double(obj.jitter), obj.seed);
+  if (obj.shape == ObjectShape::TetMesh) {  // barycentres; their volumes differ: the mean here
+    std::vector<Vec3> x;
+    std::vector<Real> vol;
+    tet_barycentres(*obj.tets, x, vol);
+    double sum = 0;
+    for (Real v : vol) sum += double(v);
+    volume_per_particle = Real(sum / double(std::max<std::size_t>(1, vol.size())));
+    return x;
+  }
   const Vec3d c = obj.center.cast<double>();
   const double r2 = double(obj.radius) * double(obj.radius);
   const int ax = obj.axis;
@@ -519,7 +580,8 @@ std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per
         const double ring = std::sqrt(across2) - R;
         return ring * ring + along * along <= r * r;
       }
-      case ObjectShape::Mesh: break;
+      case ObjectShape::Mesh:
+      case ObjectShape::TetMesh: break;
     }
     return false;
   });
@@ -570,6 +632,13 @@ MpmSolver build_solver(const Scene& scene) {
 PdSolver build_pd_solver(const Scene& scene) {
   PdSolver solver(scene.pd, scene.pd_materials, scene.colliders);
   for (const auto& obj : scene.objects) {
+    if (obj.shape == ObjectShape::TetMesh) {
+      std::vector<Vec3> x;
+      std::vector<Real> vol;
+      tet_barycentres(*obj.tets, x, vol);
+      solver.add_particles(x, vol, obj.velocity, obj.angular_velocity, obj.center, obj.material);
+      continue;
+    }
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol);
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);

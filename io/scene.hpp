@@ -10,6 +10,7 @@
 
 #include "core/materials/material.hpp"
 #include "io/mesh.hpp"
+#include "io/tetmesh.hpp"
 #include "io/preview.hpp"
 #include "kernels/colliders.hpp"
 #include "solvers/mpm_solver.hpp"
@@ -17,11 +18,12 @@
 
 namespace amalgam {
 
-enum class ObjectShape { Box, Sphere, Cylinder, Torus, Mesh };
+enum class ObjectShape { Box, Sphere, Cylinder, Torus, Mesh, TetMesh };
 
 struct ObjectSpec {
   ObjectShape shape = ObjectShape::Box;
   std::shared_ptr<const TriangleMesh> mesh;  // Mesh: loaded, scaled and translated
+  std::shared_ptr<const TetMesh> tets;       // TetMesh (peridynamics): one particle per tetrahedron
   Vec3 min = Vec3::Zero(), max = Vec3::Ones();  // box
   Vec3 center = Vec3::Zero();                   // sphere (and rotation centre of both)
   Real radius = 1;        // sphere, cylinder; torus: major radius

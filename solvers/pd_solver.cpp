@@ -39,6 +39,11 @@ PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials
 
 void PdSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega, const Vec3& centre,
                              int material, Real volume) {
+  add_particles(x, std::vector<Real>(x.size(), volume), v, omega, centre, material);
+}
+
+void PdSolver::add_particles(const std::vector<Vec3>& x, const std::vector<Real>& volume, const Vec3& v,
+                             const Vec3& omega, const Vec3& centre, int material) {
   if (initialized_) throw std::logic_error("PdSolver: particles added after initialize()");
   if (material < 0 || std::size_t(material) >= materials_.size()) throw std::invalid_argument("PdSolver: bad material");
   const std::size_t n0 = particles_.size();
@@ -53,7 +58,7 @@ void PdSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v, const Ve
     const std::size_t i = n0 + k;
     px[i] = px0[i] = x[k];
     pv[i] = v + omega.cross(x[k] - centre);
-    vol[i] = volume;
+    vol[i] = volume[k];
     mat[i] = material;
     id[i] = std::int32_t(i);
   }

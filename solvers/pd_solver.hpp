@@ -58,6 +58,9 @@ class PdSolver {
   // Adds particles of one material with a velocity v + omega x (x - centre) and a volume each.
   void add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega, const Vec3& centre, int material,
                      Real volume);
+  // Same with a volume per particle (tetrahedron barycentres).
+  void add_particles(const std::vector<Vec3>& x, const std::vector<Real>& volume, const Vec3& v, const Vec3& omega,
+                     const Vec3& centre, int material);
   // Prescribes the velocity of the particles inside the box [lo, hi] (at their reference
   // position): zero velocity fixes them.
   void prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& velocity);

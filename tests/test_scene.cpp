@@ -7,6 +7,7 @@
 
 #include "core/errors.hpp"
 #include "io/mesh.hpp"
+#include "io/tetmesh.hpp"
 #include "io/scene.hpp"
 
 using namespace amalgam;
@@ -212,4 +213,104 @@ TEST(Scene, MeshScaleRotateTranslate) {
   Real vol = 0;
   const auto x = sample_object(o, s.mpm.dx, vol);
   EXPECT_NEAR(double(x.size()) * double(vol) / 0.008, 1.0, 0.03);
+}
+
+// TetGen meshes: a grid of cubes, each split into 6 tetrahedra around its main diagonal, written
+// in TetGen's format (1-based, comments, boundary markers) and read back; the peridynamics scene
+// puts one particle per tetrahedron with its volume, and takes the mean edge as the spacing.
+namespace {
+std::string write_cube_tets(const std::string& stem, int n, double h) {
+  std::ofstream node(stem + ".node"), ele(stem + ".ele");
+  const int m = n + 1;
+  node << "# cube grid\n" << m * m * m << " 3 0 1\n";
+  auto id = [m](int i, int j, int k) { return 1 + (i * m + j) * m + k; };
+  for (int i = 0; i < m; ++i)
+    for (int j = 0; j < m; ++j)
+      for (int k = 0; k < m; ++k) node << id(i, j, k) << " " << i * h << " " << j * h << " " << k * h << " 0\n";
+  ele << 6 * n * n * n << "  4  0\n";
+  int t = 1;
+  const int perm[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j)
+      for (int k = 0; k < n; ++k)
+        for (const auto& p : perm) {  // path 000 -> e_p0 -> e_p0 + e_p1 -> 111
+          int c[3] = {i, j, k};
+          const int a = id(c[0], c[1], c[2]);
+          c[p[0]]++;
+          const int b = id(c[0], c[1], c[2]);
+          c[p[1]]++;
+          const int d = id(c[0], c[1], c[2]);
+          ele << t++ << " " << a << " " << b << " " << d << " " << id(i + 1, j + 1, k + 1) << "  # tet\n";
+        }
+  return stem;
+}
+}  // namespace
+
+TEST(TetMesh, ReadsTetgenFilesAndSamplesBarycentres) {
+  const std::string dir = ::testing::TempDir();
+  const std::string stem = write_cube_tets(dir + "/cubes", 4, 0.01);
+  const TetMesh m = load_tetgen(stem + ".node");
+  EXPECT_EQ(m.nodes.size(), 125u);
+  ASSERT_EQ(m.tets.size(), 384u);
+  std::vector<Vec3> x;
+  std::vector<Real> vol;
+  tet_barycentres(m, x, vol);
+  double sum = 0;
+  for (Real v : vol) sum += double(v);
+  EXPECT_NEAR(sum, 0.04 * 0.04 * 0.04, 1e-12);
+  EXPECT_NEAR(tet_mean_edge(m), 0.01 * (3 + 2 * std::sqrt(2.0) + std::sqrt(3.0)) / 6, 1e-9);
+
+  const std::string text = R"({
+    "simulation": {"method": "peridynamics", "dx": 0.01, "peridynamics": {"horizon_factor": 2.5}},
+    "materials": {"m": {"model": "peridynamic", "density": 1000, "youngs_modulus": 1e6}},
+    "objects": [{"shape": "tet_mesh", "file": ")" + stem + R"(.ele", "translate": [1, 0, 0], "material": "m"}]
+  })";
+  const Scene s = parse_scene(text, "s.json");
+  EXPECT_NEAR(double(s.pd.spacing), tet_mean_edge(m), 1e-6);
+  EXPECT_NEAR(double(s.pd.horizon), 2.5 * tet_mean_edge(m), 1e-6);
+  PdSolver solver = build_pd_solver(s);
+  ASSERT_EQ(solver.particles().size(), 384u);
+  const Real* v = solver.particles().real(solver.attributes().volume);
+  const Vec3* px = solver.particles().vec3(solver.attributes().x);
+  double vs = 0;
+  for (std::size_t i = 0; i < 384; ++i) vs += double(v[i]);
+  EXPECT_NEAR(vs, 0.04 * 0.04 * 0.04, 1e-9);
+  EXPECT_NEAR(double(px[0][0]), 1.0 + double(x[0][0]), 1e-6);  // translated
+  solver.initialize(exec::Space());
+  EXPECT_GT(solver.bonds().size(), 384u * 20);
+}
+
+TEST(TetMesh, BadFilesNameFileAndLine) {
+  const std::string dir = ::testing::TempDir();
+  const std::string stem = write_cube_tets(dir + "/bad", 1, 0.01);
+  {
+    std::ofstream ele(stem + ".ele");
+    ele << "1 4 0\n1 1 2 3 99\n";
+  }
+  try {
+    load_tetgen(stem);
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("bad.ele:2: node 99 does not exist (the .node file numbers 1..8)"),
+              std::string::npos)
+        << e.what();
+  }
+  {
+    std::ofstream ele(stem + ".ele");
+    ele << "1 4 0\n1 1 2 3 4\n";  // the 4 nodes of a cube face: flat
+  }
+  try {
+    load_tetgen(stem);
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("bad.ele:2: tetrahedron 1 has zero volume"), std::string::npos) << e.what();
+  }
+  EXPECT_THROW(load_tetgen(dir + "/missing"), InputError);
+  const std::string mpm = R"({
+    "simulation": {"dx": 0.01},
+    "materials": {"m": {"density": 1000, "youngs_modulus": 1e6}},
+    "objects": [{"shape": "tet_mesh", "file": ")" + stem + R"(", "material": "m"}]
+  })";
+  EXPECT_NE(error_of(mpm).find("/objects/0/shape: \"tet_mesh\" needs \"method\": \"peridynamics\""), std::string::npos)
+      << error_of(mpm);
 }
