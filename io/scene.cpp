@@ -122,12 +122,29 @@ PdMaterial read_pd_material(JsonObject o, Real horizon) {
   return m;
 }
 
+// A file named in a scene: absolute, or relative to the scene file's folder.
+std::filesystem::path scene_relative(const std::string& file, const std::string& scene_file) {
+  return std::filesystem::path(file).is_absolute() ? std::filesystem::path(file)
+                                                   : std::filesystem::path(scene_file).parent_path() / file;
+}
+
+// Places mesh points by the object's scale, rotate_degrees and translate:
+// x' = Rz Ry Rx (scale x) + translate.
+void place_points(JsonObject& o, std::vector<Vec3d>& points) {
+  const double scale = o.number("scale", 1.0, 0, 1e30, true);
+  const Vec3d deg = o.vec3("rotate_degrees", Vec3::Zero()).cast<double>();
+  const Vec3 t = o.vec3("translate", Vec3::Zero());
+  const double k = M_PI / 180.0;
+  const Mat3d R = (Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) * Eigen::AngleAxisd(deg[1] * k, Vec3d::UnitY()) *
+                   Eigen::AngleAxisd(deg[0] * k, Vec3d::UnitX()))
+                      .toRotationMatrix();
+  for (auto& v : points) v = R * (v * scale) + t.cast<double>();
+}
+
 std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::string& scene_file) {
   const std::string file = o.string("file", "");
   if (!o.has("file") || file.empty()) o.fail("file", "missing required mesh file (.obj, .off or .ply)");
-  const std::filesystem::path p = std::filesystem::path(file).is_absolute()
-                                      ? std::filesystem::path(file)
-                                      : std::filesystem::path(scene_file).parent_path() / file;
+  const std::filesystem::path p = scene_relative(file, scene_file);
   auto mesh = std::make_shared<TriangleMesh>();
   try {
     *mesh = load_mesh(p.string());
@@ -137,15 +154,7 @@ std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::s
     if (msg.rfind(p.string(), 0) == 0) msg = msg.substr(p.string().size());
     o.fail("file", "mesh file \"" + file + "\"" + msg);
   }
-  const double scale = o.number("scale", 1.0, 0, 1e30, true);
-  const Vec3d deg = o.vec3("rotate_degrees", Vec3::Zero()).cast<double>();
-  const Vec3 t = o.vec3("translate", Vec3::Zero());
-  // x' = Rz Ry Rx (scale x) + translate
-  const double k = M_PI / 180.0;
-  const Mat3d R = (Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) * Eigen::AngleAxisd(deg[1] * k, Vec3d::UnitY()) *
-                   Eigen::AngleAxisd(deg[0] * k, Vec3d::UnitX()))
-                      .toRotationMatrix();
-  for (auto& v : mesh->vertices) v = R * (v * scale) + t.cast<double>();
+  place_points(o, mesh->vertices);
   const bool allow_open = o.boolean("allow_open", false);
   const MeshCheck c = check_mesh(*mesh);
   if (!c.watertight()) {
@@ -163,23 +172,14 @@ std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::s
 std::shared_ptr<const TetMesh> read_tet_object(JsonObject& o, const std::string& scene_file) {
   const std::string file = o.string("file", "");
   if (!o.has("file") || file.empty()) o.fail("file", "missing required TetGen file (.node with its .ele)");
-  const std::filesystem::path p = std::filesystem::path(file).is_absolute()
-                                      ? std::filesystem::path(file)
-                                      : std::filesystem::path(scene_file).parent_path() / file;
+  const std::filesystem::path p = scene_relative(file, scene_file);
   auto mesh = std::make_shared<TetMesh>();
   try {
     *mesh = load_tetgen(p.string());
   } catch (const InputError& e) {
     o.fail("file", std::string("TetGen mesh \"") + file + "\": " + e.what());
   }
-  const double scale = o.number("scale", 1.0, 0, 1e30, true);
-  const Vec3d deg = o.vec3("rotate_degrees", Vec3::Zero()).cast<double>();
-  const Vec3 t = o.vec3("translate", Vec3::Zero());
-  const double k = M_PI / 180.0;
-  const Mat3d R = (Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) * Eigen::AngleAxisd(deg[1] * k, Vec3d::UnitY()) *
-                   Eigen::AngleAxisd(deg[0] * k, Vec3d::UnitX()))
-                      .toRotationMatrix();
-  for (auto& v : mesh->nodes) v = R * (v * scale) + t.cast<double>();
+  place_points(o, mesh->nodes);
   return mesh;
 }
 
