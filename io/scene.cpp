@@ -394,6 +394,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     s.pd.fracture = p.boolean("fracture", true);
     s.pd.contact = p.boolean("contact", true);
     const double contact = p.number("contact_distance", 0.9, 0, 3, true);
+    s.pd.damping = Real(p.number("damping", 0, 0, 1e12));
     p.finish();
     s.pd.horizon = Real(factor);  // times the spacing, set once the objects are known
     s.pd.contact_distance = Real(contact);
@@ -467,7 +468,11 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     bc.max = b.required_vec3("max");
     for (int a = 0; a < 3; ++a)
       if (!(bc.max[a] >= bc.min[a])) b.fail("max", "every component must be at least the matching one of \"min\"");
+    if (b.has("velocity") && b.has("force_density"))
+      b.fail("force_density", "give either velocity (prescribed motion) or force_density (a load), not both");
     bc.velocity = b.vec3("velocity", Vec3::Zero());
+    bc.load = b.has("force_density");
+    bc.force_density = b.vec3("force_density", Vec3::Zero());
     b.finish();
     s.pd_boundaries.push_back(bc);
   }
@@ -643,7 +648,10 @@ PdSolver build_pd_solver(const Scene& scene) {
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol);
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);
   }
-  for (const auto& b : scene.pd_boundaries) solver.prescribe_velocity(b.min, b.max, b.velocity);
+  for (const auto& b : scene.pd_boundaries) {
+    if (b.load) solver.apply_force_density(b.min, b.max, b.force_density);
+    else solver.prescribe_velocity(b.min, b.max, b.velocity);
+  }
   for (const auto& c : scene.pd_precracks) solver.add_precrack(c.point, c.normal, c.min, c.max);
   return solver;
 }

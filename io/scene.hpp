@@ -54,6 +54,8 @@ enum class Method { Mpm, Peridynamics };
 // (zero: fixed).
 struct PdBoundarySpec {
   Vec3 min, max, velocity;
+  bool load = false;  // true: force_density is applied, the velocity is free
+  Vec3 force_density = Vec3::Zero();
 };
 // Peridynamics: a pre-crack, the part inside [min, max] of the plane through point with normal.
 struct PdPrecrackSpec {

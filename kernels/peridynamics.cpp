@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include <Eigen/QR>
+
 namespace amalgam {
 
 const char* pd_deviatoric_name(PdDeviatoric d) { return d == PdDeviatoric::Paper ? "paper" : "lps"; }
@@ -183,7 +185,95 @@ void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume
   fill_reverse(space, "pd.bond_reverse", bonds.offsets, bonds.neighbor, bonds.reverse);
 }
 
-void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, const PdBonds& bonds,
+namespace {
+
+// The correction's fit (see PdConstants): positive factors h_k = exp(lambda . phi(k)), the
+// closest to 1 in relative entropy sum_k w_k (h_k log h_k - h_k + 1), under the moment
+// constraints sum_k w_k h_k phi(k) = target. lambda minimises the convex dual sum_k w_k h_k -
+// lambda . target: Newton with backtracking from lambda = 0 (h = 1). Returns false when the
+// family cannot meet the constraints (too few directions, as in a sheet one layer thick: the
+// Hessian is singular or the iteration does not converge) or when the largest factor exceeds
+// 8 times the mean (a few bonds would carry the particle: too stiff for the time step).
+template <int N, class Basis>
+bool fit_factors(std::uint64_t k0, std::uint64_t k1, const double* w, Basis&& basis, const Eigen::Matrix<double, N, 1>& target,
+                 std::vector<double>& h) {
+  using Vec = Eigen::Matrix<double, N, 1>;
+  using Mat = Eigen::Matrix<double, N, N>;
+  const std::size_t nb = std::size_t(k1 - k0);
+  std::vector<Vec> phi(nb);
+  for (std::size_t k = 0; k < nb; ++k) phi[k] = basis(k0 + k);
+  h.assign(nb, 1.0);
+  Vec lambda = Vec::Zero();
+  auto dual = [&](const Vec& l) {
+    double F = -l.dot(target);
+    for (std::size_t k = 0; k < nb; ++k) F += w[k] * std::exp(phi[k].dot(l));
+    return F;
+  };
+  double F = dual(lambda);
+  const double tol = 1e-8 * target.norm();  // well above the round-off of the sums (~1e-14 relative)
+  for (int it = 0; it < 60; ++it) {
+    Vec grad = -target;
+    Mat hess = Mat::Zero();
+    for (std::size_t k = 0; k < nb; ++k) {
+      grad += w[k] * h[k] * phi[k];
+      hess.template selfadjointView<Eigen::Upper>().rankUpdate(phi[k], w[k] * h[k]);
+    }
+    if (grad.norm() <= tol) {
+      double mean = 0, hi = 0;
+      for (double v : h) mean += v / double(nb), hi = std::max(hi, v);
+      return hi <= 8 * mean;
+    }
+    hess.template triangularView<Eigen::StrictlyLower>() = hess.transpose();
+    const Eigen::ColPivHouseholderQR<Mat> qr(hess);
+    if (qr.rank() < N) return false;
+    const Vec step = qr.solve(grad);
+    double t = 1;
+    for (; t > 1e-8; t *= 0.5) {  // backtracking (Armijo) on the dual
+      const double Ft = dual(lambda - t * step);
+      if (Ft <= F - 1e-4 * t * grad.dot(step)) {
+        F = Ft;
+        break;
+      }
+    }
+    if (!(t > 1e-8)) return false;
+    lambda -= t * step;
+    for (std::size_t k = 0; k < nb; ++k) h[k] = std::exp(phi[k].dot(lambda));
+  }
+  return false;
+}
+
+// Monomials n_a n_b (a <= b) and n_a n_b n_c n_d (a <= b <= c <= d) of a direction, and the
+// same moments of the isotropic distribution (the unit sphere average times the scale).
+void monomials2(const Vec3d& n, double* out) {
+  int c = 0;
+  for (int a = 0; a < 3; ++a)
+    for (int b = a; b < 3; ++b) out[c++] = n[a] * n[b];
+}
+void monomials4(const Vec3d& n, double* out) {
+  int c = 0;
+  for (int a = 0; a < 3; ++a)
+    for (int b = a; b < 3; ++b)
+      for (int d = b; d < 3; ++d)
+        for (int e = d; e < 3; ++e) out[c++] = n[a] * n[b] * n[d] * n[e];
+}
+// delta_ab, and delta_ab delta_de + delta_ad delta_be + delta_ae delta_bd (= 3 for xxxx, 1 for xxyy).
+void isotropic2(double* out) {
+  int c = 0;
+  for (int a = 0; a < 3; ++a)
+    for (int b = a; b < 3; ++b) out[c++] = a == b ? 1 : 0;
+}
+void isotropic4(double* out) {
+  int c = 0;
+  for (int a = 0; a < 3; ++a)
+    for (int b = a; b < 3; ++b)
+      for (int d = b; d < 3; ++d)
+        for (int e = d; e < 3; ++e)
+          out[c++] = double((a == b) * (d == e) + (a == d) * (b == e) + (a == e) * (b == d));
+}
+
+}  // namespace
+
+void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, PdBonds& bonds,
                   const PdParams& prm, bool surface_correction, PdConstants& out) {
   const std::size_t n = bonds.particles();
   out.m.resize(n);
@@ -191,43 +281,131 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   out.b.resize(n);
   out.kappa.resize(n);
   out.bonds0.resize(n);
+  out.fitted.assign(n, 0);
+  bonds.shear_omega.resize(bonds.size());
   const double delta = double(prm.horizon);
   const double m_cont = 4.0 * M_PI * std::pow(delta, 4) / 3.0;  // eq. 5: 3 / m = 9 / (4 pi delta^4)
-  const double s_cont = M_PI * std::pow(delta, 5) / 15.0;
+  const double s_cont = M_PI * std::pow(delta, 5) / 15.0;         // continuum M_xxyy of omega L^2
   const double b_unit = 15.0 / (2.0 * M_PI * std::pow(delta, 5));  // eq. 9 per unit shear modulus
+  // Targets: continuum moments of the isotropic weight omega0 = delta / L (eq. 4).
+  Eigen::Matrix<double, 6, 1> t_dil;
+  Eigen::Matrix<double, 21, 1> t_dev;
+  isotropic2(t_dil.data());
+  t_dil *= m_cont / 3 / delta;  // sum omega L n_a n_b V (lengths in units of delta below)
+  isotropic4(t_dev.data());
+  t_dev.head<15>() *= s_cont / (delta * delta);  // sum omega L^2 n_a n_b n_c n_d V
+  isotropic2(t_dev.data() + 15);
+  t_dev.tail<6>() *= m_cont / 3 / delta;  // sum omega L n_a n_b V (the paper's form: e^d exact under dilation)
   exec::parallel_for(space, "pd.constants", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
-    double m = m_cont, c = 1, kappa = delta / 4;
-    if (surface_correction) {
-      double ms = 0, ss = 0, m2 = 0;
-      for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) {
+    const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
+    double m = m_cont, kappa = delta / 4;
+    std::uint8_t fitted = 0;
+    if (surface_correction && k1 > k0) {
+      const std::size_t nb = std::size_t(k1 - k0);
+      std::vector<double> w(nb), L(nb), g, f;
+      std::vector<Vec3d> dir(nb);
+      for (std::uint64_t k = k0; k < k1; ++k) {
         const Vec3d xi = (x0[bonds.neighbor[k]] - x0[i]).cast<double>();
-        const double L = xi.norm(), w = double(bonds.omega[k]), V = double(bonds.volume[k]);
-        const Vec3d q = (xi / L).cwiseAbs2();
-        ms += w * L * V;
-        m2 += w * L * L * V;
-        ss += w * L * L * (q[0] * q[1] + q[1] * q[2] + q[2] * q[0]) / 3.0 * V;
+        L[k - k0] = xi.norm();
+        dir[k - k0] = xi / L[k - k0];
+        w[k - k0] = delta / L[k - k0] * double(bonds.volume[k]);  // isotropic omega0 V (eq. 4)
       }
-      if (ms > 0) m = ms;
-      if (ms > 0) kappa = m2 / (3 * ms);
-      if (ss > 0) c = s_cont / ss;
+      auto basis_dil = [&](std::uint64_t k) {
+        Eigen::Matrix<double, 6, 1> phi;
+        monomials2(dir[k - k0], phi.data());
+        return Eigen::Matrix<double, 6, 1>(phi * (L[k - k0] / delta));
+      };
+      auto basis_dev = [&](std::uint64_t k) {
+        Eigen::Matrix<double, 21, 1> phi;
+        monomials4(dir[k - k0], phi.data());
+        monomials2(dir[k - k0], phi.data() + 15);
+        phi.head<15>() *= (L[k - k0] / delta) * (L[k - k0] / delta);
+        phi.tail<6>() *= L[k - k0] / delta;
+        return phi;
+      };
+      // The axis-diagonal moments only (xx, yy, zz; xxxx, yyyy, zzzz, xxyy, yyzz, zzxx), for
+      // families cut by two faces (an edge): there the cross moments such as yz cannot vanish
+      // with positive weights (every bond has n_y, n_z >= 0).
+      auto basis_dil3 = [&](std::uint64_t k) {
+        return Eigen::Vector3d(dir[k - k0].cwiseAbs2() * (L[k - k0] / delta));
+      };
+      auto basis_dev9 = [&](std::uint64_t k) {
+        const Vec3d q = dir[k - k0].cwiseAbs2();
+        const double l = L[k - k0] / delta;
+        Eigen::Matrix<double, 9, 1> phi;
+        phi << q[0] * q[0], q[1] * q[1], q[2] * q[2], q[0] * q[1], q[1] * q[2], q[2] * q[0], q[0], q[1], q[2];
+        phi.head<6>() *= l * l;
+        phi.tail<3>() *= l;
+        return phi;
+      };
+      Eigen::Matrix<double, 9, 1> t_dev9;
+      t_dev9 << 3, 3, 3, 1, 1, 1, 0, 0, 0;
+      t_dev9.head<6>() *= s_cont / (delta * delta);
+      t_dev9.tail<3>().setConstant(m_cont / 3 / delta);
+      // Dilatation: the full fit, else the diagonal one, else LPS's discrete normaliser m_i.
+      const bool dil_full = fit_factors<6>(k0, k1, w.data(), basis_dil, t_dil, g);
+      const bool dil = dil_full || fit_factors<3>(k0, k1, w.data(), basis_dil3, Eigen::Vector3d(t_dil[0], t_dil[3], t_dil[5]), g);
+      if (!dil) g.assign(nb, 1.0);
+      // Deviatoric: the full fit, else the diagonal one, else one factor for the mean coordinate
+      // shear sum (kappa then from the family).
+      const bool dev_full = dil_full && fit_factors<21>(k0, k1, w.data(), basis_dev, t_dev, f);
+      const bool dev = dev_full || (dil && fit_factors<9>(k0, k1, w.data(), basis_dev9, t_dev9, f));
+      fitted = dev_full ? 2 : dev ? 1 : 0;
+      if (!dev) {
+        double ss = 0;
+        for (std::size_t k = 0; k < nb; ++k) {
+          const Vec3d q = dir[k].cwiseAbs2();
+          ss += w[k] * L[k] * L[k] * (q[0] * q[1] + q[1] * q[2] + q[2] * q[0]) / 3;
+        }
+        f.assign(nb, ss > 0 ? s_cont / ss : 1.0);
+      }
+      double ms = 0, mf = 0, m2f = 0;
+      for (std::uint64_t k = k0; k < k1; ++k) {
+        const double om = double(bonds.omega[k]);  // keeps the material's anisotropy (eq. 16)
+        const double wk = om * double(bonds.volume[k]), l = L[k - k0];
+        ms += wk * l;
+        mf += wk * f[k - k0] * l;
+        m2f += wk * f[k - k0] * l * l;
+        bonds.omega[k] = Real(om * g[k - k0]);
+        bonds.shear_omega[k] = Real(om * f[k - k0]);
+      }
+      if (!dil && ms > 0) m = ms;
+      if (!dev && mf > 0) kappa = m2f / (3 * mf);
+    } else {
+      for (std::uint64_t k = k0; k < k1; ++k) bonds.shear_omega[k] = bonds.omega[k];
     }
     const PdMaterial& mat = prm.materials[material[i]];
+    // With the consistent term (PdParams::consistent), the paper's e^d is not zero under a
+    // dilation (e^d = eps (L - 3 kappa) bond by bond), so q adds a dilatational stiffness: under
+    // theta = 3 eps, q = (b / m) theta sum_j shear_omega (L - 3 d) d V_j (d = kappa; 0 for LPS,
+    // whose e^d vanishes). a absorbs it, so that a theta - q keeps K exact.
+    double a_extra = 0;
+    if (surface_correction && prm.deviatoric == PdDeviatoric::Paper) {
+      double r = 0;
+      for (std::uint64_t k = k0; k < k1; ++k)
+        r += double(bonds.shear_omega[k]) * (double(bonds.length[k]) - 3 * kappa) * kappa * double(bonds.volume[k]);
+      a_extra = b_unit * double(mat.shear) * r / m;
+    }
     out.m[i] = Real(m);
-    out.a[i] = Real(1.5 * double(mat.bulk) / m);
-    out.b[i] = Real(b_unit * double(mat.shear) * c);
+    out.a[i] = Real(1.5 * double(mat.bulk) / m + a_extra);
+    out.b[i] = Real(b_unit * double(mat.shear));
     out.kappa[i] = Real(kappa);
-    out.bonds0[i] = std::int32_t(bonds.offsets[i + 1] - bonds.offsets[i]);
+    out.bonds0[i] = std::int32_t(k1 - k0);
+    out.fitted[i] = fitted;
   });
 }
 
 void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm) {
   const PdDeviatoric dev = prm.deviatoric;
+  const bool consistent = prm.consistent;
   exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
     const Vec3 x0i = p.x0[i], xi_ = p.x[i];
-    Real sum = 0;
+    const bool paper = dev == PdDeviatoric::Paper;
+    const Real kap = p.kappa[i];
+    Real sum = 0, s1 = 0, s2 = 0, s3 = 0;  // s1..s3: the consistent term's sums (see header)
     for (std::uint64_t k = k0; k < k1; ++k) {
       if (!bonds.intact[k]) continue;
       const std::uint32_t j = bonds.neighbor[k];
@@ -235,12 +413,21 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       BondGeometry g;
       if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
       sum += bonds.omega[k] * (g.e / L) * g.lambda * L * bonds.volume[k];  // omega s Lambda |xi| V (eq. 5)
+      if (consistent) {
+        const Real d = paper ? kap * g.lambda : L / Real(3), w = bonds.shear_omega[k] * bonds.volume[k] * d;
+        s1 += w * g.e;
+        s2 += w * d;
+        s3 += w * bonds.plastic[k];
+      }
     }
     const Real theta = Real(3) * sum / p.m[i];
     p.theta[i] = theta;
+    const Real qscale = p.b[i] * Real(3) / p.m[i];
+    if (consistent) p.q[i] = qscale * (s1 - theta * s2 - s3);
 
     const PdMaterial& mat = prm.materials[p.material[i]];
     if (!(mat.psi0 < std::numeric_limits<Real>::infinity())) return;
+    Real Q = 0;
     const Real ac = std::sqrt(Real(2) * mat.psi0), bi = p.b[i];
     for (std::uint64_t k = k0; k < k1; ++k) {
       if (!bonds.intact[k]) continue;
@@ -249,7 +436,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       BondGeometry g;
       if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
       const Real ed = deviatoric_extension(dev, g.e, g.lambda, theta, L, p.kappa[i]);
-      const Real stiff = Real(4) * bonds.omega[k] * bi;
+      const Real stiff = Real(4) * bonds.shear_omega[k] * bi;
       Real ep = bonds.plastic[k];
       const Real adev = stiff * (ed - ep);  // eq. 11
       if (Real(0.5) * adev * adev > mat.psi0) {  // eq. 12
@@ -259,7 +446,9 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const Real cap = mat.plastic_cap * L;  // eq. 15
       if (std::abs(ep) > cap) ep = std::copysign(cap, ep);
       bonds.plastic[k] = ep;
+      Q += bonds.shear_omega[k] * (ed - ep) * (paper ? kap * g.lambda : L / Real(3)) * bonds.volume[k];
     }
+    if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
   });
 }
 
@@ -273,6 +462,8 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
     const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
     const Vec3 x0i = p.x0[i], xi_ = p.x[i];
     const Real ti = p.theta[i], ai = p.a[i], bi = p.b[i];
+    const bool consistent = prm.consistent;
+    const Real dil_i = ai * ti - (consistent ? p.q[i] : Real(0));  // a theta (- q: consistent term)
     const PdMaterial& mi = mats[p.material[i]];
     const Real crit_i = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
     Vec3 f = Vec3::Zero();
@@ -288,10 +479,13 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
       const Real tj = p.theta[j];
       const Real epi = bonds.plastic[k], epj = bonds.plastic[kr];
       // eqs. 3, 7, 11 from each end of the bond
-      const Real aij = Real(4) * bonds.omega[k] *
-                       (ai * g.lambda * ti + bi * (deviatoric_extension(dev, g.e, g.lambda, ti, L, p.kappa[i]) - epi));
-      const Real aji = Real(4) * bonds.omega[kr] *
-                       (p.a[j] * g.lambda * tj + p.b[j] * (deviatoric_extension(dev, g.e, g.lambda, tj, L, p.kappa[j]) - epj));
+      const Real dil_j = p.a[j] * tj - (consistent ? p.q[j] : Real(0));
+      const Real aij = Real(4) * (bonds.omega[k] * g.lambda * dil_i +
+                                  bonds.shear_omega[k] * bi *
+                                      (deviatoric_extension(dev, g.e, g.lambda, ti, L, p.kappa[i]) - epi));
+      const Real aji = Real(4) * (bonds.omega[kr] * g.lambda * dil_j +
+                                  bonds.shear_omega[kr] * p.b[j] *
+                                      (deviatoric_extension(dev, g.e, g.lambda, tj, L, p.kappa[j]) - epj));
       const Vec3 fij = (Real(0.5) * (aij + aji) * bonds.volume[k]) * g.dir;  // eq. 1 with eq. 2
       f += fij;
       if (stress) s += Real(0.5) * fij * xi.transpose();
@@ -358,25 +552,6 @@ std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds
       [](std::uint64_t a, std::uint64_t b) { return a + b; });
 }
 
-Real pd_stable_dt(const exec::Space& space, const PdView& p, const PdBonds& bonds, const PdParams& prm) {
-  const double delta = double(prm.horizon);
-  const double b_unit = 15.0 / (2.0 * M_PI * std::pow(delta, 5));
-  const double dt = exec::parallel_reduce(
-      space, "pd.stable_dt", exec::Index(p.n), 1e300,
-      [&](exec::Index ii, double& acc) {
-        const std::size_t i = std::size_t(ii);
-        const PdMaterial& m = prm.materials[p.material[i]];
-        const double corr = std::max(1.0, double(p.b[i]) / (b_unit * std::max(double(m.shear), 1e-30)));
-        const double c = 18.0 * (double(m.bulk) + 4.0 * double(m.shear) / 3.0) / (M_PI * std::pow(delta, 4)) * corr;
-        double sum = 0;
-        for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k)
-          sum += double(bonds.volume[k]) * c / double(bonds.length[k]);
-        if (sum > 0) acc = std::min(acc, std::sqrt(2.0 * double(m.density) / sum));
-      },
-      [](double a, double b) { return std::min(a, b); });
-  return Real(dt);
-}
-
 void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
   const std::size_t n = bonds.particles();
   std::vector<std::uint64_t> count(n), off(n + 1);
@@ -393,6 +568,7 @@ void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
   out.neighbor.resize(total);
   out.length.resize(total);
   out.omega.resize(total);
+  out.shear_omega.resize(total);
   out.volume.resize(total);
   out.plastic.resize(total);
   out.intact.assign(total, 1);
@@ -404,6 +580,7 @@ void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
       out.neighbor[o] = bonds.neighbor[k];
       out.length[o] = bonds.length[k];
       out.omega[o] = bonds.omega[k];
+      out.shear_omega[o] = bonds.shear_omega[k];
       out.volume[o] = bonds.volume[k];
       out.plastic[o] = bonds.plastic[k];
       ++o;

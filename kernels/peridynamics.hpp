@@ -58,7 +58,8 @@ struct PdBonds {
   std::vector<std::uint32_t> neighbor;   // j
   std::vector<std::uint64_t> reverse;    // index of the bond j -> i in row j
   std::vector<Real> length;              // L = |xi|
-  std::vector<Real> omega;               // omega_ij (G of particle i)
+  std::vector<Real> omega;               // omega_ij (eq. 16, G of particle i) x the correction g_ij
+  std::vector<Real> shear_omega;         // omega_ij (eq. 16) x the correction f_ij (PdConstants)
   std::vector<Real> volume;              // nu_ij V_j: the neighbour's (partial) volume
   std::vector<Real> plastic;             // e^p_ij (deviatoric plastic extension, eq. 10)
   std::vector<std::uint8_t> intact;      // 1 until the bond breaks (irreversible)
@@ -71,24 +72,49 @@ struct PdParams {
   Real spacing = Real(0.01);  // lattice spacing lc (partial volumes, contact distance)
   PdDeviatoric deviatoric = PdDeviatoric::Paper;
   const PdMaterial* materials = nullptr;
+  // Energy-consistent forces (with the surface correction): A_ij gains the derivative of the
+  // deviatoric energy through theta (see pd_dilatation), so that the forces are the gradient of
+  // sum_i W_i V_i. The paper's force leaves it out; it vanishes where the family's moments are
+  // isotropic (the bulk of a corrected lattice), but at edges and corners, where the correction
+  // can only fit part of the moments, leaving it out gave a non-symmetric stiffness whose modes
+  // grew exponentially whatever the time step (flutter).
+  bool consistent = false;
 };
 
 // Per-particle constants of the model (set up once from the reference configuration).
 //   m_i: theta normaliser, theta_i = (3 / m_i) sum_j omega s Lambda L V_j (eq. 5 with m = 4 pi
 //        delta^4 / 3 gives the paper's 9 / (4 pi delta^4));
 //   a_i = 3 kappa / (2 m_i) (eq. 9: 9 kappa / (8 pi delta^4));
-//   b_i = 15 mu / (2 pi delta^5) c_i (eq. 9), c_i = 1 without correction.
-// With the surface correction m_i is the discrete sum sum_j omega L V_j (theta exact for any
-// uniform dilation, at every particle, also near free surfaces: LPS's normalisation), and c_i
-// the ratio of the continuum to the discrete shear sum (1/3) sum_j omega L^2 (n_x^2 n_y^2 +
-// n_y^2 n_z^2 + n_z^2 n_x^2) V_j, whose continuum value is pi delta^5 / 15: shear stiffness
-// exact for the three coordinate shears, and the missing family at a free surface compensated.
-//   kappa_i: the paper's delta / 4 in e^d = e - kappa Lambda theta (eq. 8); corrected, the
-//        discrete sum_j omega L^2 V_j / (3 m_i), which is delta / 4 in the continuum and makes
-//        the deviatoric part's stress vanish under a uniform dilation on the actual family
-//        (without it the paper's form lowers K by 1.4 % on the delta = 3.015 lc lattice).
+//   b_i = 15 mu / (2 pi delta^5) (eq. 9); bond ij's deviatoric stiffness is 4 b_i shear_omega_ij;
+//   kappa_i: the delta / 4 of e^d = e - kappa Lambda theta (eq. 8).
+// Without the correction omega is eq. 16's, shear_omega = omega, m and kappa the continuum values.
+//
+// The surface/lattice correction (option, on by default) makes every particle's own stress
+// 1/2 sum_j A_ij (eta/l) (x) xi V_j exact for every homogeneous deformation, at interior and
+// near-surface particles alike, in the spirit of the position-aware linear solid (Mitchell,
+// Silling, Littlewood 2015). Per bond it scales the dilatational weight, omega = omega_16 g_ij,
+// and the deviatoric one, shear_omega = omega_16 f_ij, with factors as close to 1 as possible
+// (least squares, weight omega0 V) under moment constraints against the continuum (omega0 =
+// delta / L, eq. 4):
+//   g: sum_j omega0 g L n_a n_b V_j = (m / 3) delta_ab (6 constraints): theta exact for every
+//      homogeneous strain, and the dilatational stress isotropic;
+//   f: sum_j omega0 f L^2 n_a n_b n_c n_d V_j = (pi delta^5 / 15) (d_ab d_cd + d_ac d_bd +
+//      d_ad d_bc) (15) and sum_j omega0 f L n_a n_b V_j = (m / 3) delta_ab (6): the deviatoric
+//      stiffness isotropic with the continuum shear modulus, and the paper's e^d (kappa = delta /
+//      4) free of stress under a dilation.
+// m and kappa keep their continuum values. Why: the lattice's fourth moments are cubic, not
+// isotropic (uncorrected, (C11 - C12) / 2 = 0.81-0.96 C44 on the delta = 3.015 lc lattice, so E
+// is 12 % off and nu 0.32 for an input 0.25), and near a free surface both moments lose the
+// missing part of the family anisotropically (a scalar per particle over-stiffens the directions
+// along the surface: a 6 x 6 bar was 8 % fast). The factors are positive by construction
+// (exponential family: the fit minimises relative entropy, see fit_factors). Families that cannot
+// meet the constraints (an edge, cut by two faces, or a sheet one layer thick) fall back step by
+// step: g = 1 with m_i = sum_j omega L V_j (LPS's discrete normaliser, theta exact under
+// dilation); f fitted to the fourth moments only, kappa_i = sum_j omega f L^2 V_j / (3 sum_j
+// omega f L V_j); else one factor normalising the mean coordinate shear sum.
 struct PdConstants {
   std::vector<Real> m, a, b, kappa;
+  std::vector<std::uint8_t> fitted;  // correction: 2 full fit, 1 fourth moments only, 0 fallback (or off)
   std::vector<std::int32_t> bonds0;  // bonds at t = 0 (for the damage phi = 1 - n / N)
 };
 
@@ -100,6 +126,7 @@ struct PdView {
   const Real* volume = nullptr;
   const std::int32_t* material = nullptr;
   Real* theta = nullptr;
+  Real* q = nullptr;  // b_i (3 / m_i) Q_i: the consistent term (PdParams::consistent), written by pd_dilatation
   Real* damage = nullptr;
   const Real* m = nullptr;
   const Real* a = nullptr;
@@ -115,8 +142,8 @@ struct PdView {
 void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume, const std::int32_t* material,
                     std::size_t n, const PdParams& prm, bool partial_volume, PdBonds& bonds);
 
-// m, a, b, bonds0 per particle (see PdConstants).
-void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, const PdBonds& bonds,
+// m, a, b, kappa, bonds0 per particle and the bonds' shear_omega (see PdConstants).
+void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, PdBonds& bonds,
                   const PdParams& prm, bool surface_correction, PdConstants& out);
 
 // theta_i over the intact bonds (eq. 5), then the plastic return of each bond of row i (eqs.
@@ -124,6 +151,10 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
 // (A_dev - A_c) / (4 omega b), which puts A_dev exactly on the surface A_c = sqrt(2 psi0)
 // sign(A_dev), then |e^p| is capped at plastic_cap L. (Eq. 14 as printed divides by 2b, which
 // equals this only where 2 omega = 1; we use the exact projection.)
+// With PdParams::consistent it also writes q_i = b_i (3 / m_i) Q_i, Q_i = sum_j shear_omega
+// (e^d - e^p) d_j V_j, d_j = -de^d/dtheta (kappa Lambda, paper; L / 3, LPS): the deviatoric
+// energy b sum shear_omega (e^d - e^p)^2 V depends on every bond through theta, and its
+// derivative adds -4 omega Lambda q_i to every A_ij of the row.
 void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm);
 
 // Pair force per bond (eqs. 1-3, 7, 11): A_ij = 4 omega_ij (a_i Lambda theta_i + b_i (e^d_ij -
@@ -155,10 +186,6 @@ void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds&
 // phi_i = 1 - n_i / N_i (eq. 18's damage); returns the number of intact directed bonds.
 std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds& bonds);
 
-// The largest explicit time step (Silling & Askari 2005, eq. 34, with a bond micromodulus from
-// the P-wave modulus): min_i sqrt(2 rho_i / sum_j V_j c / L), c = 18 (kappa + 4 mu / 3) / (pi
-// delta^4) scaled like b_i. A safety factor is applied by the caller.
-Real pd_stable_dt(const exec::Space& space, const PdView& p, const PdBonds& bonds, const PdParams& prm);
 
 // Removes broken bonds from the CSR arrays (rows keep their order; reverse indices rebuilt).
 // Worth it only once many bonds are broken (measured in docs/benchmarks.md).

@@ -1,6 +1,8 @@
 #include "solvers/pd_solver.hpp"
 
+#include <algorithm>
 #include <cmath>
+#include <random>
 #include <sstream>
 #include <stdexcept>
 #include <utility>
@@ -22,6 +24,7 @@ PdAttributes PdAttributes::add_to(ParticleSet& ps) {
   a.damage = ps.add("damage", AttrType::Real, 1);
   a.fixed = ps.add("fixed", AttrType::Int32, 1);
   a.fixed_v = ps.add("fixed_v", AttrType::Real, 3);
+  a.f_ext = ps.add("f_ext", AttrType::Real, 3);
   return a;
 }
 
@@ -35,6 +38,7 @@ PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials
   params_.spacing = settings_.spacing;
   params_.deviatoric = settings_.deviatoric;
   params_.materials = materials_.data();
+  params_.consistent = settings_.surface_correction;
 }
 
 void PdSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega, const Vec3& centre,
@@ -77,6 +81,13 @@ void PdSolver::prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& ve
     }
 }
 
+void PdSolver::apply_force_density(const Vec3& lo, const Vec3& hi, const Vec3& force_density) {
+  const Vec3* x0 = particles_.vec3(attr_.x0);
+  Vec3* fe = particles_.vec3(attr_.f_ext);
+  for (std::size_t i = 0; i < particles_.size(); ++i)
+    if ((x0[i].array() >= lo.array()).all() && (x0[i].array() <= hi.array()).all()) fe[i] += force_density;
+}
+
 void PdSolver::add_precrack(const Vec3& point, const Vec3& n, const Vec3& lo, const Vec3& hi) {
   if (initialized_) throw std::logic_error("PdSolver: pre-crack added after initialize()");
   precracks_.push_back({point, n.normalized(), lo, hi});
@@ -90,6 +101,7 @@ PdView PdSolver::view() {
   p.volume = particles_.real(attr_.volume);
   p.material = particles_.int32(attr_.material);
   p.theta = particles_.real(attr_.theta);
+  p.q = q_.data();
   p.damage = particles_.real(attr_.damage);
   p.m = constants_.m.data();
   p.a = constants_.a.data();
@@ -127,14 +139,61 @@ void PdSolver::initialize(const exec::Space& space) {
     });
   }
   force_.assign(n, Vec3::Zero());
+  q_.assign(n, Real(0));
   initialized_ = true;
-  sa_dt_ = pd_stable_dt(space, view(), bonds_, params_);
+  crit_dt_ = critical_dt(space);
   // Initial accelerations (velocity Verlet needs a^0).
   compute_dilatation(space);
   compute_forces(space);
   contact_forces(space);
   update_damage(space);
   kick(space, 0);
+}
+
+Real PdSolver::critical_dt(const exec::Space& space) {
+  const std::size_t n = particles_.size();
+  if (n == 0) return std::numeric_limits<Real>::infinity();
+  Vec3* x = particles_.vec3(attr_.x);
+  const std::int32_t* fixed = particles_.int32(attr_.fixed);
+  const std::int32_t* mat = particles_.int32(attr_.material);
+  const std::vector<Vec3> x_start(x, x + n);
+  // Elastic copies of the materials (a yield in the probe would soften the operator) and no
+  // fracture: the probe only reads forces.
+  std::vector<PdMaterial> elastic = materials_;
+  for (PdMaterial& m : elastic) m.psi0 = std::numeric_limits<Real>::infinity();
+  PdParams prm = params_;
+  prm.materials = elastic.data();
+  const PdView p = view();
+  std::vector<Vec3> f0(n), f(n), v(n);
+  pd_dilatation(space, p, bonds_, prm);
+  pd_forces(space, p, bonds_, prm, false, f0.data(), nullptr);
+  std::mt19937 rng(20261123);  // a fixed start vector: the estimate is reproducible
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (std::size_t i = 0; i < n; ++i) v[i] = fixed[i] ? Vec3::Zero() : Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
+  const Real amp = Real(3e-3) * settings_.spacing;  // probe displacement: linear, above float round-off
+  double lambda = 0;
+  for (int it = 0; it < 40; ++it) {
+    double vmax = 0, vv = 0;
+    for (std::size_t i = 0; i < n; ++i) vmax = std::max(vmax, double(v[i].cwiseAbs().maxCoeff()));
+    if (!(vmax > 0)) break;
+    for (std::size_t i = 0; i < n; ++i) {
+      v[i] /= Real(vmax);
+      vv += double(v[i].squaredNorm());
+      x[i] = x_start[i] + amp * v[i];
+    }
+    pd_dilatation(space, p, bonds_, prm);
+    pd_forces(space, p, bonds_, prm, false, f.data(), nullptr);
+    double aa = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+      v[i] = fixed[i] ? Vec3::Zero() : Vec3(-(f[i] - f0[i]) / (amp * materials_[std::size_t(mat[i])].density));
+      aa += double(v[i].squaredNorm());
+    }
+    lambda = std::sqrt(aa / vv);  // |A v| / |v| -> the largest |eigenvalue| of A = rho^-1 K
+  }
+  std::copy(x_start.begin(), x_start.end(), x);
+  if (!(lambda > 0)) return std::numeric_limits<Real>::infinity();
+  // Power iteration approaches the largest eigenvalue from below: 10 % margin on omega^2.
+  return Real(2.0 / std::sqrt(1.1 * lambda));
 }
 
 Real PdSolver::stable_dt(const exec::Space& space) const {
@@ -169,7 +228,7 @@ Real PdSolver::stable_dt(const exec::Space& space) const {
     os << "; the simulation blew up (reduce cfl or max_dt, or check the material stiffness)";
     throw SimulationError(os.str());
   }
-  Real dt = std::min(settings_.max_dt, settings_.cfl * sa_dt_);
+  Real dt = std::min(settings_.max_dt, settings_.cfl * crit_dt_);
   if (c.vmax > 0) dt = std::min(dt, settings_.cfl * settings_.spacing / c.vmax);
   return dt;
 }
@@ -181,8 +240,9 @@ void PdSolver::kick_drift(const exec::Space& space, Real dt) {
   const std::int32_t* fixed = particles_.int32(attr_.fixed);
   const Vec3* fv = particles_.vec3(attr_.fixed_v);
   const Real h = Real(0.5) * dt;
+  const Real damp = Real(std::exp(-double(settings_.damping) * double(h)));
   exec::parallel_for(space, "pd.kick_drift", exec::Index(particles_.size()), [=](exec::Index i) {
-    v[i] = fixed[i] ? fv[i] : Vec3(v[i] + h * a[i]);
+    v[i] = fixed[i] ? fv[i] : Vec3(damp * (v[i] + h * a[i]));
     x[i] += dt * v[i];
   });
 }
@@ -235,11 +295,13 @@ void PdSolver::kick(const exec::Space& space, Real dt) {
   const std::int32_t* mat = particles_.int32(attr_.material);
   const PdMaterial* mats = materials_.data();
   const Vec3* f = force_.data();
+  const Vec3* fe = particles_.vec3(attr_.f_ext);
   const Vec3 g = settings_.gravity;
   const Real h = Real(0.5) * dt;
+  const Real damp = Real(std::exp(-double(settings_.damping) * double(h)));
   exec::parallel_for(space, "pd.kick", exec::Index(particles_.size()), [=](exec::Index i) {
-    a[i] = f[i] / mats[mat[i]].density + g;  // rho a = f + b (eq. 1)
-    v[i] = fixed[i] ? fv[i] : Vec3(v[i] + h * a[i]);
+    a[i] = (f[i] + fe[i]) / mats[mat[i]].density + g;  // rho a = f + b (eq. 1)
+    v[i] = fixed[i] ? fv[i] : Vec3(damp * (v[i] + h * a[i]));
   });
 }
 

@@ -30,9 +30,12 @@ struct PdSettings {
   Real contact_distance = 0;        // 0: 0.9 lc
   Real contact_skin = 0;            // Verlet-list skin; 0: 0.5 lc
   Vec3 gravity = Vec3(0, Real(-9.81), 0);
-  Real cfl = Real(0.7);             // safety factor on the Silling-Askari step
+  Real cfl = Real(0.7);             // safety factor on the critical Verlet step (PdSolver::critical_dt)
   Real max_dt = std::numeric_limits<Real>::infinity();
   Real max_speed = Real(1e4);  // stability guard: faster particles stop the run
+  // Viscous damping (1/s): each half kick multiplies velocities by exp(-damping dt / 2). For dynamic
+  // relaxation to a static state (quasi-static loading); 0 = none (the papers' dynamics).
+  Real damping = 0;
 };
 
 // Particle attributes of a peridynamic body.
@@ -40,6 +43,7 @@ struct PdAttributes {
   ParticleSet::Id x, x0, v, acc, volume, material, id, theta, damage;
   ParticleSet::Id fixed;     // int32: 1 = velocity prescribed (fixed_velocity), 0 = free
   ParticleSet::Id fixed_v;   // prescribed velocity
+  ParticleSet::Id f_ext;     // external force density (N/m^3), e.g. a traction on an end layer
   static PdAttributes add_to(ParticleSet& ps);
 };
 
@@ -64,6 +68,9 @@ class PdSolver {
   // Prescribes the velocity of the particles inside the box [lo, hi] (at their reference
   // position): zero velocity fixes them.
   void prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& velocity);
+  // Adds an external force density (N/m^3) on the particles inside [lo, hi] (reference
+  // positions), for the whole run: a traction T on an end layer of thickness h is T / h.
+  void apply_force_density(const Vec3& lo, const Vec3& hi, const Vec3& force_density);
   // A pre-crack: bonds whose reference segment crosses the plane through `point` with normal `n`
   // at a point inside the box [lo, hi] are broken when the solver is initialised (the paper's
   // Fig. 17 sheet "with initial cracks").
@@ -73,7 +80,7 @@ class PdSolver {
   void initialize(const exec::Space& space);
 
   void step(const exec::Space& space, Real dt);
-  // min(max_dt, cfl * the Silling-Askari step (computed once: it depends on the reference
+  // min(max_dt, cfl * the critical Verlet step (computed once: it depends on the reference
   // configuration only), cfl * spacing / fastest particle). Also the stability guard: throws
   // SimulationError naming the step and particle when a velocity or position is not finite or a
   // speed exceeds max_speed.
@@ -94,6 +101,7 @@ class PdSolver {
   PdBonds& bonds() { return bonds_; }
   const std::vector<PdMaterial>& materials() const { return materials_; }
   const PdParams& params() const { return params_; }
+  const PdConstants& constants() const { return constants_; }
   PdView view();
   // Force densities of the last step (N/m^3), and the stress of each particle recomputed now.
   const std::vector<Vec3>& forces() const { return force_; }
@@ -120,12 +128,20 @@ class PdSolver {
   PdContactList contact_list_;
   std::uint64_t contact_builds_ = 0;
   PdParams params_;
+  // The largest stable velocity-Verlet step at the start, 2 / omega_max: omega_max^2 is the
+  // largest eigenvalue of rho^-1 K, K the stiffness of the linearised peridynamic forces, found
+  // by 40 power iterations on finite differences of the forces (a probe displacement of 3e-3 lc,
+  // elastic, no fracture), with a 10 % margin. Silling & Askari's bound (2005, eq. 34) and
+  // Gershgorin's bound on the state-based forces were 2.6x and 3.5-4.5x below the measured
+  // critical step of a corrected 8^3 block, i.e. that many more steps for nothing.
+  Real critical_dt(const exec::Space& space);
   std::vector<Vec3> force_;
+  std::vector<Real> q_;  // consistent term per particle (PdView::q), recomputed every step
   struct Precrack {
     Vec3 point, n, lo, hi;
   };
   std::vector<Precrack> precracks_;
-  Real sa_dt_ = 0;  // Silling-Askari step of the reference configuration
+  Real crit_dt_ = 0;  // critical Verlet step of the reference configuration (critical_dt)
   double time_ = 0;
   std::uint64_t steps_ = 0;
   bool initialized_ = false;
