@@ -104,6 +104,20 @@ int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& sp
     }
     if (scene.output.ply) write_ply_points(frame_path(f, "frame", "ply"), p);
     if (scene.output.vdb_points) write_vdb_points(frame_path(f, "frame", "vdb"), p, double(scene.pd.spacing));
+    if (!solver.crack_meshes().empty() && (scene.output.surface_obj || scene.output.surface_ply)) {
+      std::vector<Vec3> verts, all_verts;
+      std::vector<std::array<std::uint32_t, 3>> tris, all_tris;
+      std::vector<std::uint8_t> crack, all_crack;
+      for (const PdCrackMesh& m : solver.crack_meshes()) {  // one surface file for all meshes
+        m.surface(verts, tris, crack);
+        const auto base = std::uint32_t(all_verts.size());
+        all_verts.insert(all_verts.end(), verts.begin(), verts.end());
+        for (auto t : tris) all_tris.push_back({t[0] + base, t[1] + base, t[2] + base});
+        all_crack.insert(all_crack.end(), crack.begin(), crack.end());
+      }
+      if (scene.output.surface_obj) write_surface_obj(frame_path(f, "surface", "obj"), all_verts, all_tris, all_crack);
+      if (scene.output.surface_ply) write_surface_ply(frame_path(f, "surface", "ply"), all_verts, all_tris, all_crack);
+    }
   };
   if (first_frame == 1) write_frame(0);
 

@@ -165,10 +165,16 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64
   return st;
 }
 
-std::vector<Section> pd_sections(const PdBonds& b) {
-  PdBonds& m = const_cast<PdBonds&>(b);  // written from, or read into
-  return {{"bonds.plastic", reinterpret_cast<char*>(m.plastic.data()), m.plastic.size() * sizeof(Real)},
-          {"bonds.intact", reinterpret_cast<char*>(m.intact.data()), m.intact.size()}};
+std::vector<Section> pd_sections(const PdSolver& solver) {
+  PdSolver& s = const_cast<PdSolver&>(solver);  // written from, or read into
+  PdBonds& m = s.bonds();
+  std::vector<Section> out = {
+      {"bonds.plastic", reinterpret_cast<char*>(m.plastic.data()), m.plastic.size() * sizeof(Real)},
+      {"bonds.intact", reinterpret_cast<char*>(m.intact.data()), m.intact.size()}};
+  for (std::size_t k = 0; k < s.crack_meshes().size(); ++k)  // embedded meshes (vertices, splits)
+    for (const auto& a : s.crack_meshes()[k].state())
+      out.push_back({"crack_mesh" + std::to_string(k) + "." + a.name, a.data, a.bytes});
+  return out;
 }
 }  // namespace
 
@@ -186,11 +192,12 @@ CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std:
 void write_checkpoint(const std::string& path, const PdSolver& solver, int next_frame,
                       std::uint64_t scene_fingerprint) {
   write_state(path, solver.particles(), solver.time(), solver.step_count(), next_frame, scene_fingerprint,
-              pd_sections(solver.bonds()));
+              pd_sections(solver));
 }
 
 CheckpointState read_checkpoint(const std::string& path, PdSolver& solver, std::uint64_t scene_fingerprint) {
-  const CheckpointState st = read_state(path, solver.particles(), scene_fingerprint, pd_sections(solver.bonds()));
+  const CheckpointState st = read_state(path, solver.particles(), scene_fingerprint, pd_sections(solver));
+  for (PdCrackMesh& m : solver.crack_meshes()) m.restored();
   solver.restore_clock(st.time, st.steps);
   return st;
 }

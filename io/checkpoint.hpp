@@ -34,7 +34,8 @@ void write_checkpoint(const std::string& path, const MpmSolver& solver, int next
 // Loads particles and clock into `solver` (built from the same scene); returns the state.
 CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint);
 
-// Peridynamics: particles, clock and the bonds' plastic extensions and intact flags. Reading
+// Peridynamics: particles, clock, the bonds' plastic extensions and intact flags, and embedded
+// crack meshes (vertex positions, split tetrahedra, crack faces). Reading
 // needs an initialised solver of the same scene (same bond list).
 void write_checkpoint(const std::string& path, const PdSolver& solver, int next_frame,
                       std::uint64_t scene_fingerprint);

@@ -505,6 +505,9 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.output.diagnostics_csv = out.boolean("diagnostics_csv", true);
   s.output.grid_volumes = out.boolean("grid_volumes", false);
   s.output.checkpoint_every = int(out.integer("checkpoint_every", 10, 0, 1000000));
+  const std::string surf = out.choice("surface", "obj", {"obj", "ply", "both", "none"});
+  s.output.surface_obj = surf == "obj" || surf == "both";
+  s.output.surface_ply = surf == "ply" || surf == "both";
   out.finish();
 
   if (top.has("preview")) {
@@ -641,7 +644,9 @@ PdSolver build_pd_solver(const Scene& scene) {
       std::vector<Vec3> x;
       std::vector<Real> vol;
       tet_barycentres(*obj.tets, x, vol);
+      const auto first = std::uint32_t(solver.particles().size());
       solver.add_particles(x, vol, obj.velocity, obj.angular_velocity, obj.center, obj.material);
+      solver.add_crack_mesh(obj.tets->nodes, obj.tets->tets, first);  // crack surfaces (Sec. 5.2)
       continue;
     }
     Real vol = 0;

@@ -46,6 +46,8 @@ struct OutputSpec {
   bool diagnostics_csv = true;
   bool grid_volumes = false;  // frame_NNNN_grid.vdb: node mass and velocity
   int checkpoint_every = 10;  // frames; 0 = only on SIGINT/SIGTERM
+  // Peridynamic tet_mesh objects: the surface with crack faces per frame (frame_NNNN_surface.*).
+  bool surface_obj = true, surface_ply = false;
 };
 
 enum class Method { Mpm, Peridynamics };

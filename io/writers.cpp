@@ -88,6 +88,52 @@ void write_ply_points(const std::string& path, const PointFields& p) {
   write_file_atomic(path, buf);
 }
 
+void write_surface_obj(const std::string& path, const std::vector<Vec3>& vertices,
+                       const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack) {
+  std::string out = "# written by Amalgam: peridynamic body surface with crack faces\n";
+  out.reserve(out.size() + vertices.size() * 40 + triangles.size() * 30);
+  char line[96];
+  for (const Vec3& v : vertices) {
+    std::snprintf(line, sizeof line, "v %.7g %.7g %.7g\n", double(v[0]), double(v[1]), double(v[2]));
+    out += line;
+  }
+  for (int group = 0; group < 2; ++group) {
+    out += group == 0 ? "g surface\n" : "g crack\n";
+    for (std::size_t f = 0; f < triangles.size(); ++f) {
+      if (int(crack[f] != 0) != group) continue;
+      std::snprintf(line, sizeof line, "f %u %u %u\n", triangles[f][0] + 1, triangles[f][1] + 1, triangles[f][2] + 1);
+      out += line;
+    }
+  }
+  write_file_atomic(path, out);
+}
+
+void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertices,
+                       const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack) {
+  std::ostringstream h;
+  h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam: surface with crack faces\n"
+    << "element vertex " << vertices.size() << "\nproperty float x\nproperty float y\nproperty float z\n"
+    << "element face " << triangles.size() << "\nproperty list uchar int vertex_indices\nproperty uchar crack\n"
+    << "end_header\n";
+  std::string buf = h.str();
+  const std::size_t header = buf.size();
+  buf.resize(header + vertices.size() * 12 + triangles.size() * 14);
+  char* dst = buf.data() + header;
+  for (const Vec3& v : vertices) {
+    const float p[3] = {float(v[0]), float(v[1]), float(v[2])};
+    std::memcpy(dst, p, 12);
+    dst += 12;
+  }
+  for (std::size_t f = 0; f < triangles.size(); ++f) {
+    *dst++ = 3;
+    const std::int32_t idx[3] = {std::int32_t(triangles[f][0]), std::int32_t(triangles[f][1]), std::int32_t(triangles[f][2])};
+    std::memcpy(dst, idx, 12);
+    dst += 12;
+    *dst++ = char(crack[f]);
+  }
+  write_file_atomic(path, buf);
+}
+
 std::string diagnostics_csv_header() {
   return "frame,time_s,last_dt_s,substeps,kinetic_J,elastic_J,momentum_x,momentum_y,momentum_z,max_speed_m_s,"
          "particles,wall_s,p2g_s,g2p_s,sort_s,grid_s,other_s,leaves,active_leaves,rss_mb,solve_s,cg_iterations,"

@@ -2,6 +2,8 @@
 // place, so an interrupted run never leaves a half-written frame.
 #pragma once
 
+#include <array>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -31,6 +33,14 @@ void write_ply_points(const std::string& path, const PointFields& p);
 inline void write_ply_points(const std::string& path, const ParticleSet& ps, const MpmAttributes& a) {
   write_ply_points(path, mpm_point_fields(ps, a));
 }
+
+// A triangle surface (peridynamic crack meshes): OBJ with the groups "surface" and "crack" (the
+// triangles with crack[f] = 1 go to "crack"), or binary PLY with a uchar face property "crack".
+// Both atomic; Houdini, Blender and ParaView read them.
+void write_surface_obj(const std::string& path, const std::vector<Vec3>& vertices,
+                       const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack);
+void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertices,
+                       const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack);
 
 // Writes `content` to `path` atomically (temporary file, then rename). Throws InputError.
 void write_file_atomic(const std::string& path, const std::string& content);

@@ -8,7 +8,7 @@ PKGS=(
   libopenvdb-dev libboost-iostreams-dev libtbb-dev libimath-dev libblosc-dev zlib1g-dev
   libeigen3-dev nlohmann-json3-dev
   libgtest-dev libgmock-dev libbenchmark-dev
-  libcgal-demo
+  libcgal-demo tetgen
 )
 
 SUDO=""

@@ -88,6 +88,26 @@ void PdSolver::apply_force_density(const Vec3& lo, const Vec3& hi, const Vec3& f
     if ((x0[i].array() >= lo.array()).all() && (x0[i].array() <= hi.array()).all()) fe[i] += force_density;
 }
 
+void PdSolver::add_crack_mesh(const std::vector<Vec3d>& nodes, const std::vector<std::array<std::int32_t, 4>>& tets,
+                              std::uint32_t first_particle) {
+  if (initialized_) throw std::logic_error("PdSolver: mesh added after initialize()");
+  if (std::size_t(first_particle) + tets.size() > particles_.size())
+    throw std::invalid_argument("PdSolver: the mesh's tetrahedra have no particles");
+  meshes_.emplace_back(nodes, tets, first_particle);
+}
+
+void PdSolver::move_meshes(Real dt) {
+  for (PdCrackMesh& m : meshes_)
+    m.move_vertices(particles_.vec3(attr_.v), particles_.real(attr_.volume), particles_.int32(attr_.material),
+                    materials_.data(), dt);
+}
+
+void PdSolver::split_meshes() {
+  if (intact_ == meshes_intact_) return;  // no bond broke since the last look
+  for (PdCrackMesh& m : meshes_) m.update_topology(bonds_);
+  meshes_intact_ = intact_;
+}
+
 void PdSolver::add_precrack(const Vec3& point, const Vec3& n, const Vec3& lo, const Vec3& hi) {
   if (initialized_) throw std::logic_error("PdSolver: pre-crack added after initialize()");
   precracks_.push_back({point, n.normalized(), lo, hi});
@@ -140,6 +160,7 @@ void PdSolver::initialize(const exec::Space& space) {
   }
   force_.assign(n, Vec3::Zero());
   q_.assign(n, Real(0));
+  for (PdCrackMesh& m : meshes_) m.attach(bonds_);
   initialized_ = true;
   crit_dt_ = critical_dt(space);
   // Initial accelerations (velocity Verlet needs a^0).
@@ -285,7 +306,7 @@ void PdSolver::contact_forces(const exec::Space& space) {
   pd_contact_forces(space, view(), bonds_, params_, d, contact_list_, force_.data());
 }
 
-void PdSolver::update_damage(const exec::Space& space) { pd_damage(space, view(), bonds_); }
+void PdSolver::update_damage(const exec::Space& space) { intact_ = pd_damage(space, view(), bonds_); }
 
 void PdSolver::kick(const exec::Space& space, Real dt) {
   Vec3* v = particles_.vec3(attr_.v);
@@ -309,11 +330,13 @@ void PdSolver::step(const exec::Space& space, Real dt) {
   if (!initialized_) throw std::logic_error("PdSolver: step() before initialize()");
   if (!(dt > 0) || !std::isfinite(dt)) throw SimulationError("peridynamics: invalid time step " + std::to_string(dt));
   kick_drift(space, dt);
+  move_meshes(dt);  // with the half-step velocities that moved the particles
   apply_colliders(space, Real(time_ + double(dt)));
   compute_dilatation(space);
   compute_forces(space);
   contact_forces(space);
   update_damage(space);
+  split_meshes();
   kick(space, dt);
   time_ += double(dt);
   ++steps_;

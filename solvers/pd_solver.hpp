@@ -3,8 +3,9 @@
 // colliders (the rigid projectiles of the paper's Fig. 1 and 15) and short-range contact
 // between particles that are not bonded, so fragments do not pass through each other.
 //
-// step() = kick_drift -> apply_colliders -> compute_dilatation (with the plastic return) ->
-// compute_forces (with fracture) -> contact_forces -> update_damage -> kick.
+// step() = kick_drift -> move_meshes -> apply_colliders -> compute_dilatation (with the plastic
+// return) -> compute_forces (with fracture) -> contact_forces -> update_damage -> split_meshes ->
+// kick. (move_meshes and split_meshes act on embedded tetrahedral meshes, Sec. 5.2.)
 #pragma once
 
 #include <cstdint>
@@ -16,6 +17,7 @@
 #include "core/particles/particle_set.hpp"
 #include "kernels/colliders.hpp"
 #include "kernels/peridynamics.hpp"
+#include "solvers/pd_crack_mesh.hpp"
 
 namespace amalgam {
 
@@ -75,6 +77,12 @@ class PdSolver {
   // at a point inside the box [lo, hi] are broken when the solver is initialised (the paper's
   // Fig. 17 sheet "with initial cracks").
   void add_precrack(const Vec3& point, const Vec3& n, const Vec3& lo, const Vec3& hi);
+  // Embeds a tetrahedral mesh whose tetrahedron t is particle first_particle + t (the particles
+  // added from its barycentres): it follows the particles and splits along crack faces (Sec. 5.2).
+  void add_crack_mesh(const std::vector<Vec3d>& nodes, const std::vector<std::array<std::int32_t, 4>>& tets,
+                      std::uint32_t first_particle);
+  std::vector<PdCrackMesh>& crack_meshes() { return meshes_; }
+  const std::vector<PdCrackMesh>& crack_meshes() const { return meshes_; }
   // Builds the bond families and the model constants from the current positions (the reference
   // configuration) and the initial forces. Called once, after the particles are added.
   void initialize(const exec::Space& space);
@@ -115,6 +123,8 @@ class PdSolver {
   void compute_forces(const exec::Space& space);
   void contact_forces(const exec::Space& space);
   void update_damage(const exec::Space& space);
+  void move_meshes(Real dt);
+  void split_meshes();
   void kick(const exec::Space& space, Real dt);
 
  private:
@@ -141,6 +151,8 @@ class PdSolver {
     Vec3 point, n, lo, hi;
   };
   std::vector<Precrack> precracks_;
+  std::vector<PdCrackMesh> meshes_;
+  std::uint64_t intact_ = 0, meshes_intact_ = 0;  // intact directed bonds: now, and when the meshes last split
   Real crit_dt_ = 0;  // critical Verlet step of the reference configuration (critical_dt)
   double time_ = 0;
   std::uint64_t steps_ = 0;

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <map>
 #include <random>
 
 #include "core/errors.hpp"
@@ -566,6 +567,146 @@ TEST(PdDynamics, StabilityGuardNamesParticleAndQuantity) {
     EXPECT_NE(std::string(e.what()).find("above the stability limit max_speed"), std::string::npos) << e.what();
   }
   EXPECT_THROW(solver.step(space, Real(-1)), SimulationError);
+}
+
+}  // namespace
+}  // namespace amalgam
+
+namespace amalgam {
+namespace {
+
+// A conforming tetrahedral mesh of an n x n x n grid of cubes of side h (6 Kuhn tetrahedra per
+// cube: the paths from corner 000 to 111 along the three axes in every order).
+void kuhn_grid(int n, double h, std::vector<Vec3d>& nodes, std::vector<std::array<std::int32_t, 4>>& tets) {
+  const int m = n + 1;
+  auto id = [m](int i, int j, int k) { return std::int32_t((i * m + j) * m + k); };
+  nodes.clear();
+  tets.clear();
+  for (int i = 0; i < m; ++i)
+    for (int j = 0; j < m; ++j)
+      for (int k = 0; k < m; ++k) nodes.emplace_back(i * h, j * h, k * h);
+  const int perms[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j)
+      for (int k = 0; k < n; ++k)
+        for (const auto& p : perms) {
+          int c[3] = {i, j, k};
+          std::array<std::int32_t, 4> t;
+          t[0] = id(c[0], c[1], c[2]);
+          for (int s = 0; s < 3; ++s) {
+            ++c[p[s]];
+            t[s + 1] = id(c[0], c[1], c[2]);
+          }
+          tets.push_back(t);
+        }
+}
+
+// A solver with one particle per tetrahedron (barycentre, volume) and the mesh embedded.
+PdSolver tet_solver(int n, double h, const PdSettings& s, const PdMaterial& m) {
+  std::vector<Vec3d> nodes;
+  std::vector<std::array<std::int32_t, 4>> tets;
+  kuhn_grid(n, h, nodes, tets);
+  std::vector<Vec3> x;
+  std::vector<Real> vol;
+  for (const auto& t : tets) {
+    const Vec3d a = nodes[t[0]], b = nodes[t[1]], c = nodes[t[2]], d = nodes[t[3]];
+    x.push_back(((a + b + c + d) / 4).cast<Real>());
+    vol.push_back(Real(std::abs((b - a).cross(c - a).dot(d - a)) / 6));
+  }
+  PdSolver solver(s, {m});
+  solver.add_particles(x, vol, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0);
+  solver.add_crack_mesh(nodes, tets, 0);
+  return solver;
+}
+
+// Every directed edge of the surface, counted: a closed, consistently oriented 2-manifold has
+// each directed edge exactly once and its reverse exactly once.
+bool closed_oriented_manifold(const std::vector<std::array<std::uint32_t, 3>>& tris) {
+  std::map<std::pair<std::uint32_t, std::uint32_t>, int> edges;
+  for (const auto& t : tris)
+    for (int k = 0; k < 3; ++k) ++edges[{t[k], t[(k + 1) % 3]}];
+  for (const auto& e : edges)
+    if (e.second != 1 || edges.count({e.first.second, e.first.first}) == 0) return false;
+  return true;
+}
+
+// Sec. 5.2: a crack through the whole body (a pre-crack across the plane x = 2h of a 4^3 grid)
+// splits every vertex on the plane in two, the crack faces appear on both sides, and the surface
+// is two closed, outward-oriented pieces.
+TEST(PdCrackMesh, ACrackThroughTheBodySplitsThePlaneVerticesAndClosesBothPieces) {
+  const exec::Space space;
+  const double h = 0.01;
+  PdSettings s = settings(PdDeviatoric::Paper, true);
+  s.spacing = Real(0.5 * h);
+  s.horizon = Real(1.5 * h);
+  PdSolver solver = tet_solver(4, h, s, glass());
+  std::vector<Vec3> v;
+  std::vector<std::array<std::uint32_t, 3>> tris;
+  std::vector<std::uint8_t> crack;
+  solver.crack_meshes()[0].surface(v, tris, crack);
+  EXPECT_EQ(tris.size(), std::size_t(6 * 16 * 2));  // 6 faces x 16 squares x 2 triangles
+  EXPECT_TRUE(closed_oriented_manifold(tris));
+  solver.add_precrack(Vec3(Real(2 * h), 0, 0), Vec3(1, 0, 0), Vec3::Constant(-1), Vec3::Constant(1));
+  solver.initialize(space);
+  const PdCrackMesh& mesh = solver.crack_meshes()[0];
+  EXPECT_EQ(mesh.vertices(), std::size_t(125 + 25));  // the 5 x 5 vertices of the plane, twice
+  EXPECT_EQ(mesh.crack_faces(), std::size_t(16 * 2));  // 16 squares of 2 triangles in the plane
+  mesh.surface(v, tris, crack);
+  EXPECT_EQ(tris.size(), std::size_t(6 * 16 * 2 + 2 * 32));
+  EXPECT_EQ(std::count(crack.begin(), crack.end(), 1), 64);
+  EXPECT_TRUE(closed_oriented_manifold(tris));
+  // No vertex is shared across the plane any more.
+  for (const auto& t : mesh.tets()) {
+    const bool left = (mesh.positions()[t[0]] + mesh.positions()[t[1]] + mesh.positions()[t[2]] +
+                       mesh.positions()[t[3]])[0] / 4 < Real(2 * h);
+    for (const auto& u : mesh.tets()) {
+      const bool uleft = (mesh.positions()[u[0]] + mesh.positions()[u[1]] + mesh.positions()[u[2]] +
+                          mesh.positions()[u[3]])[0] / 4 < Real(2 * h);
+      if (left == uleft) continue;
+      for (auto a : t)
+        for (auto b : u) ASSERT_NE(a, b);
+    }
+  }
+}
+
+// Eqs. 19-21: under a rigid translation every vertex moves with the particles; under fracture
+// the vertices stay with their tetrahedra's particles.
+TEST(PdCrackMesh, VerticesFollowTheParticles) {
+  const exec::Space space(test::parallel_backend(), 2);
+  const double h = 0.01;
+  PdSettings s = settings(PdDeviatoric::Paper, true);
+  s.spacing = Real(0.5 * h);
+  s.horizon = Real(1.5 * h);
+  PdMaterial m = glass();
+  m.critical_stretch = Real(2e-3);
+  PdSolver solver = tet_solver(4, h, s, m);
+  ParticleSet& ps = solver.particles();
+  {  // rigid translation, eqs. 19-21 directly: every vertex moves by v dt
+    PdCrackMesh mesh = solver.crack_meshes()[0];
+    const std::vector<Vec3> before = mesh.positions();
+    const std::vector<Vec3> v(ps.size(), Vec3(1, -2, 3));
+    mesh.move_vertices(v.data(), ps.real(solver.attributes().volume), ps.int32(solver.attributes().material),
+                       solver.materials().data(), Real(1e-3));
+    for (std::size_t k = 0; k < mesh.vertices(); ++k)
+      EXPECT_LT((mesh.positions()[k] - before[k] - Vec3(1, -2, 3) * Real(1e-3)).norm(), 1e-6) << k;
+  }
+  solver.prescribe_velocity(Vec3::Constant(-1), Vec3(Real(0.8 * h), 1, 1), Vec3(-20, 0, 0));
+  solver.prescribe_velocity(Vec3(Real(3.2 * h), -1, -1), Vec3::Constant(1), Vec3(20, 0, 0));
+  solver.initialize(space);
+  const Real dt = solver.stable_dt(space);
+  for (int k = 0; k < 200; ++k) solver.step(space, dt);
+  const PdCrackMesh& mesh = solver.crack_meshes()[0];
+  EXPECT_GT(mesh.crack_faces(), 0u);
+  EXPECT_GT(mesh.vertices(), 125u);
+  // Each tetrahedron's vertex centroid stays near its particle (within half a cell).
+  const Vec3* x = ps.vec3(solver.attributes().x);
+  double worst = 0;
+  for (std::size_t t = 0; t < mesh.tets().size(); ++t) {
+    Vec3 c = Vec3::Zero();
+    for (auto vtx : mesh.tets()[t]) c += mesh.positions()[vtx] / Real(4);
+    worst = std::max(worst, double((c - x[t]).norm()));
+  }
+  EXPECT_LT(worst, 0.5 * h);
 }
 
 }  // namespace
