@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <unordered_map>
 
 #include <Eigen/QR>
 
@@ -296,8 +297,41 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   t_dev.head<15>() *= s_cont / (delta * delta);  // sum omega L^2 n_a n_b n_c n_d V
   isotropic2(t_dev.data() + 15);
   t_dev.tail<6>() *= m_cont / 3 / delta;  // sum omega L n_a n_b V (the paper's form: e^d exact under dilation)
+  // Particles with the same family (material, bond vectors and volumes, to 1e-6 of delta and of
+  // the largest volume) share one fit: on a lattice only the few hundred distinct positions
+  // relative to the faces are fitted. The representative is the lowest index, so the result does
+  // not depend on the thread count.
+  double vmax = 0;
+  for (std::size_t k = 0; k < bonds.size(); ++k) vmax = std::max(vmax, double(bonds.volume[k]));
+  auto signature = [&](std::size_t i) {
+    std::vector<std::int64_t> sig{std::int64_t(material[i]), std::int64_t(bonds.offsets[i + 1] - bonds.offsets[i])};
+    for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) {
+      const Vec3d xi = (x0[bonds.neighbor[k]] - x0[i]).cast<double>() / (1e-6 * delta);
+      for (int a = 0; a < 3; ++a) sig.push_back(std::llround(xi[a]));
+      sig.push_back(std::llround(double(bonds.volume[k]) / (1e-6 * vmax + 1e-300)));
+    }
+    return sig;
+  };
+  std::vector<std::uint64_t> key(n);
+  exec::parallel_for(space, "pd.constants_keys", exec::Index(n), [&](exec::Index ii) {
+    const std::vector<std::int64_t> sig = signature(std::size_t(ii));
+    std::uint64_t h = 1469598103934665603ull;  // FNV-1a over the signature
+    for (std::int64_t v : sig)
+      for (int b = 0; b < 8; ++b) h = (h ^ ((std::uint64_t(v) >> (8 * b)) & 0xff)) * 1099511628211ull;
+    key[std::size_t(ii)] = h;
+  });
+  std::vector<std::uint32_t> rep(n);
+  {
+    std::unordered_map<std::uint64_t, std::uint32_t> first;
+    for (std::size_t i = 0; i < n; ++i) rep[i] = first.emplace(key[i], std::uint32_t(i)).first->second;
+  }
+  exec::parallel_for(space, "pd.constants_verify", exec::Index(n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
+    if (rep[i] != i && signature(i) != signature(rep[i])) rep[i] = std::uint32_t(i);  // a hash collision
+  });
   exec::parallel_for(space, "pd.constants", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
+    if (rep[i] != i) return;  // copied from its representative below
     const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
     double m = m_cont, kappa = delta / 4;
     std::uint8_t fitted = 0;
@@ -393,6 +427,16 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     out.kappa[i] = Real(kappa);
     out.bonds0[i] = std::int32_t(k1 - k0);
     out.fitted[i] = fitted;
+  });
+  exec::parallel_for(space, "pd.constants_copy", exec::Index(n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii), r = rep[i];
+    if (r == i) return;
+    out.m[i] = out.m[r], out.a[i] = out.a[r], out.b[i] = out.b[r], out.kappa[i] = out.kappa[r];
+    out.bonds0[i] = out.bonds0[r], out.fitted[i] = out.fitted[r];
+    for (std::uint64_t k = bonds.offsets[i], q = bonds.offsets[r]; k < bonds.offsets[i + 1]; ++k, ++q) {
+      bonds.omega[k] = bonds.omega[q];
+      bonds.shear_omega[k] = bonds.shear_omega[q];
+    }
   });
 }
 
