@@ -574,10 +574,19 @@ void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds&
       const Real r2 = d.squaredNorm();
       if (!(r2 < d2) || !(r2 > 0)) continue;
       const std::uint32_t* b = std::lower_bound(row, row_end, j);
-      if (b != row_end && *b == j && bonds.intact[bonds.offsets[i] + std::uint64_t(b - row)]) continue;  // bonded
+      Real dij = distance;
+      if (b != row_end && *b == j) {
+        const std::uint64_t k = bonds.offsets[i] + std::uint64_t(b - row);
+        if (bonds.intact[k]) continue;  // bonded
+        // A broken bond: contact below 0.9 of its reference length (LAMMPS's min(0.9 r0, d)),
+        // so pairs that started closer than `distance` (tetrahedron barycentres) are not pushed
+        // apart the moment their bond breaks.
+        dij = std::min(distance, Real(0.9) * bonds.length[k]);
+        if (!(r2 < dij * dij)) continue;
+      }
       const Real r = std::sqrt(r2);
       const Real cs = Real(c0 * 0.5 * double(ki + prm.materials[p.material[j]].bulk));
-      f -= (cs * (distance - r) * inv_delta * p.volume[j] / r) * d;
+      f -= (cs * (dij - r) * inv_delta * p.volume[j] / r) * d;
     }
     force[i] += f;
   });

@@ -169,7 +169,9 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
 // Short-range contact (fragments, or bodies, meeting), as LAMMPS's peri styles do: particles
 // closer than `distance` that share no intact bond repel with force density
 // c_S (distance - r) / delta V_j, c_S = 15 * 18 kappa / (pi delta^4) (kappa averaged over the
-// pair). Candidates come from a Verlet list: every pair within distance + skin at the last
+// pair); for a pair whose bond broke the distance is min(distance, 0.9 L_ij) (LAMMPS), so
+// particles that started closer (tetrahedron barycentres) are not pushed apart when it breaks.
+// Candidates come from a Verlet list: every pair within distance + skin at the last
 // build (CSR, rows sorted), rebuilt by the caller once some particle moved more than skin / 2.
 struct PdContactList {
   std::vector<std::uint64_t> offsets;
