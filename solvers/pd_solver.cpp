@@ -38,6 +38,7 @@ PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials
   params_.spacing = settings_.spacing;
   params_.deviatoric = settings_.deviatoric;
   params_.materials = materials_.data();
+  params_.material_count = std::int32_t(materials_.size());
   params_.consistent = settings_.surface_correction;
 }
 
@@ -121,7 +122,9 @@ PdView PdSolver::view() {
   p.volume = particles_.real(attr_.volume);
   p.material = particles_.int32(attr_.material);
   p.theta = particles_.real(attr_.theta);
-  p.q = q_.data();
+  p.dil = dil_.data();
+  p.tdev = tdev_.data();
+  p.crit = crit_.data();
   p.damage = particles_.real(attr_.damage);
   p.m = constants_.m.data();
   p.a = constants_.a.data();
@@ -159,7 +162,9 @@ void PdSolver::initialize(const exec::Space& space) {
     });
   }
   force_.assign(n, Vec3::Zero());
-  q_.assign(n, Real(0));
+  dil_.assign(n, Real(0));
+  tdev_.assign(n, Real(0));
+  crit_.assign(n, Real(0));
   for (PdCrackMesh& m : meshes_) m.attach(bonds_);
   initialized_ = true;
   crit_dt_ = critical_dt(space);
