@@ -250,15 +250,15 @@ void BM_PdBuildBonds(benchmark::State& st) {
   for (auto _ : st)
     pd_build_bonds(space, ps.vec3(s->attributes().x0), ps.real(s->attributes().volume), ps.int32(s->attributes().material),
                    ps.size(), s->params(), true, b);
-  set_items(st, s->bonds().size(), 2 * sizeof(std::uint32_t) + 5 * sizeof(Real) + 1);
+  set_items(st, s->bonds().size(), sizeof(std::uint32_t) + sizeof(std::uint64_t) + 4 * sizeof(Real) + 1);
 }
 
 void BM_PdDilatation(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = pd_block(space);
   for (auto _ : st) s->compute_dilatation(space);
-  // per bond: neighbour index, length, omega, shear stiffness, volume, plastic (r/w), intact; + x, x0 of j
-  set_items(st, s->bonds().size(), sizeof(std::uint32_t) + 6 * sizeof(Real) + 1 + 2 * sizeof(Vec3));
+  // per bond: neighbour index, length, omega, volume, plastic (r/w), intact; + a gathered position
+  set_items(st, s->bonds().size(), sizeof(std::uint32_t) + 5 * sizeof(Real) + 1 + sizeof(Vec3));
 }
 
 void BM_PdForces(benchmark::State& st) {
@@ -266,10 +266,9 @@ void BM_PdForces(benchmark::State& st) {
   auto s = pd_block(space);
   s->compute_dilatation(space);
   for (auto _ : st) s->compute_forces(space);
-  // per bond: neighbour, reverse, length, omega and shear stiffness (both ends), volume, plastic (both), intact;
-  // + x, x0, dil, tdev, crit of j
+  // per bond: neighbour, reverse, length, omega (both ends), volume, plastic (both), intact; + x, x0, theta, a, b of j
   set_items(st, s->bonds().size(),
-            2 * sizeof(std::uint32_t) + 8 * sizeof(Real) + 1 + 2 * sizeof(Vec3) + 3 * sizeof(Real));
+            sizeof(std::uint32_t) + sizeof(std::uint64_t) + 6 * sizeof(Real) + 1 + 2 * sizeof(Vec3) + 3 * sizeof(Real));
 }
 
 void BM_PdContact(benchmark::State& st) {

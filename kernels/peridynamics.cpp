@@ -142,9 +142,7 @@ void neighbour_rows(const exec::Space& space, const RowLabels& label, const Vec3
 
 // reverse[k] = the index of bond j -> i for the bond k = i -> j (rows sorted, bonds symmetric).
 void fill_reverse(const exec::Space& space, const char* label, const std::vector<std::uint64_t>& off,
-                  const std::vector<std::uint32_t>& neighbor, std::vector<std::uint32_t>& reverse) {
-  if (neighbor.size() >= (std::uint64_t(1) << 32))
-    throw std::length_error("peridynamics: more than 2^32 directed bonds (reduce the horizon or the particle count)");
+                  const std::vector<std::uint32_t>& neighbor, std::vector<std::uint64_t>& reverse) {
   reverse.resize(neighbor.size());
   const std::size_t n = off.empty() ? 0 : off.size() - 1;
   exec::parallel_for(space, label, exec::Index(n), [&](exec::Index ii) {
@@ -153,7 +151,7 @@ void fill_reverse(const exec::Space& space, const char* label, const std::vector
       const std::uint32_t j = neighbor[k];
       const std::uint32_t* b = neighbor.data() + off[j];
       const std::uint32_t* e = neighbor.data() + off[j + 1];
-      reverse[k] = std::uint32_t(off[j] + std::uint64_t(std::lower_bound(b, e, i) - b));
+      reverse[k] = off[j] + std::uint64_t(std::lower_bound(b, e, i) - b);
     }
   });
 }
@@ -285,7 +283,7 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   out.kappa.resize(n);
   out.bonds0.resize(n);
   out.fitted.assign(n, 0);
-  bonds.shear_stiffness.resize(bonds.size());
+  bonds.shear_omega.resize(bonds.size());
   const double delta = double(prm.horizon);
   const double m_cont = 4.0 * M_PI * std::pow(delta, 4) / 3.0;  // eq. 5: 3 / m = 9 / (4 pi delta^4)
   const double s_cont = M_PI * std::pow(delta, 5) / 15.0;         // continuum M_xxyy of omega L^2
@@ -336,7 +334,6 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     if (rep[i] != i) return;  // copied from its representative below
     const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
     double m = m_cont, kappa = delta / 4;
-    const double b_i = b_unit * double(prm.materials[material[i]].shear);
     std::uint8_t fitted = 0;
     if (surface_correction && k1 > k0) {
       const std::size_t nb = std::size_t(k1 - k0);
@@ -405,24 +402,24 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
         mf += wk * f[k - k0] * l;
         m2f += wk * f[k - k0] * l * l;
         bonds.omega[k] = Real(om * g[k - k0]);
-        bonds.shear_stiffness[k] = Real(b_i * om * f[k - k0]);
+        bonds.shear_omega[k] = Real(om * f[k - k0]);
       }
       if (!dil && ms > 0) m = ms;
       if (!dev && mf > 0) kappa = m2f / (3 * mf);
     } else {
-      for (std::uint64_t k = k0; k < k1; ++k) bonds.shear_stiffness[k] = Real(b_i * double(bonds.omega[k]));
+      for (std::uint64_t k = k0; k < k1; ++k) bonds.shear_omega[k] = bonds.omega[k];
     }
     const PdMaterial& mat = prm.materials[material[i]];
     // With the consistent term (PdParams::consistent), the paper's e^d is not zero under a
     // dilation (e^d = eps (L - 3 kappa) bond by bond), so q adds a dilatational stiffness: under
-    // theta = 3 eps, q = (b / m) theta sum_j shear_stiffness (L - 3 d) d V_j (d = kappa; 0 for LPS,
+    // theta = 3 eps, q = (b / m) theta sum_j shear_omega (L - 3 d) d V_j (d = kappa; 0 for LPS,
     // whose e^d vanishes). a absorbs it, so that a theta - q keeps K exact.
     double a_extra = 0;
     if (surface_correction && prm.deviatoric == PdDeviatoric::Paper) {
       double r = 0;
       for (std::uint64_t k = k0; k < k1; ++k)
-        r += double(bonds.shear_stiffness[k]) * (double(bonds.length[k]) - 3 * kappa) * kappa * double(bonds.volume[k]);
-      a_extra = r / m;
+        r += double(bonds.shear_omega[k]) * (double(bonds.length[k]) - 3 * kappa) * kappa * double(bonds.volume[k]);
+      a_extra = b_unit * double(mat.shear) * r / m;
     }
     out.m[i] = Real(m);
     out.a[i] = Real(1.5 * double(mat.bulk) / m + a_extra);
@@ -438,7 +435,7 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     out.bonds0[i] = out.bonds0[r], out.fitted[i] = out.fitted[r];
     for (std::uint64_t k = bonds.offsets[i], q = bonds.offsets[r]; k < bonds.offsets[i + 1]; ++k, ++q) {
       bonds.omega[k] = bonds.omega[q];
-      bonds.shear_stiffness[k] = bonds.shear_stiffness[q];
+      bonds.shear_omega[k] = bonds.shear_omega[q];
     }
   });
 }
@@ -459,9 +456,9 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const Real L = bonds.length[k];
       BondGeometry g;
       if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
-      sum += bonds.omega[k] * g.e * g.lambda * bonds.volume[k];  // omega s Lambda |xi| V (eq. 5)
+      sum += bonds.omega[k] * (g.e / L) * g.lambda * L * bonds.volume[k];  // omega s Lambda |xi| V (eq. 5)
       if (consistent) {
-        const Real d = paper ? kap * g.lambda : L / Real(3), w = bonds.shear_stiffness[k] * bonds.volume[k] * d;
+        const Real d = paper ? kap * g.lambda : L / Real(3), w = bonds.shear_omega[k] * bonds.volume[k] * d;
         s1 += w * g.e;
         s2 += w * d;
         s3 += w * bonds.plastic[k];
@@ -469,86 +466,78 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
     }
     const Real theta = Real(3) * sum / p.m[i];
     p.theta[i] = theta;
-    p.tdev[i] = paper ? kap * theta : theta / Real(3);
-    const PdMaterial& mat = prm.materials[p.material[i]];
-    p.crit[i] = mat.critical_stretch * (Real(1) + mat.alpha * p.damage[i]);  // eq. 18's threshold
-    const Real qscale = Real(3) / p.m[i];
-    Real q = consistent ? qscale * (s1 - theta * s2 - s3) : Real(0);
+    const Real qscale = p.b[i] * Real(3) / p.m[i];
+    if (consistent) p.q[i] = qscale * (s1 - theta * s2 - s3);
 
-    if (mat.psi0 < std::numeric_limits<Real>::infinity()) {
-      const Real ac = std::sqrt(Real(2) * mat.psi0);
-      Real Q = 0;
-      for (std::uint64_t k = k0; k < k1; ++k) {
-        if (!bonds.intact[k]) continue;
-        const std::uint32_t j = bonds.neighbor[k];
-        const Real L = bonds.length[k];
-        BondGeometry g;
-        if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
-        const Real ed = deviatoric_extension(dev, g.e, g.lambda, theta, L, kap);
-        const Real stiff = Real(4) * bonds.shear_stiffness[k];
-        Real ep = bonds.plastic[k];
-        const Real adev = stiff * (ed - ep);  // eq. 11
-        if (Real(0.5) * adev * adev > mat.psi0) {  // eq. 12
-          const Real target = std::copysign(ac, adev);  // eq. 13
-          ep += (adev - target) / stiff;                // eq. 14 (exact return, see header)
-        }
-        const Real cap = mat.plastic_cap * L;  // eq. 15
-        if (std::abs(ep) > cap) ep = std::copysign(cap, ep);
-        bonds.plastic[k] = ep;
-        Q += bonds.shear_stiffness[k] * (ed - ep) * (paper ? kap * g.lambda : L / Real(3)) * bonds.volume[k];
+    const PdMaterial& mat = prm.materials[p.material[i]];
+    if (!(mat.psi0 < std::numeric_limits<Real>::infinity())) return;
+    Real Q = 0;
+    const Real ac = std::sqrt(Real(2) * mat.psi0), bi = p.b[i];
+    for (std::uint64_t k = k0; k < k1; ++k) {
+      if (!bonds.intact[k]) continue;
+      const std::uint32_t j = bonds.neighbor[k];
+      const Real L = bonds.length[k];
+      BondGeometry g;
+      if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
+      const Real ed = deviatoric_extension(dev, g.e, g.lambda, theta, L, p.kappa[i]);
+      const Real stiff = Real(4) * bonds.shear_omega[k] * bi;
+      Real ep = bonds.plastic[k];
+      const Real adev = stiff * (ed - ep);  // eq. 11
+      if (Real(0.5) * adev * adev > mat.psi0) {  // eq. 12
+        const Real target = std::copysign(ac, adev);  // eq. 13
+        ep += (adev - target) / stiff;                // eq. 14 (exact return, see header)
       }
-      if (consistent) q = qscale * Q;  // with the returned plastic extensions
+      const Real cap = mat.plastic_cap * L;  // eq. 15
+      if (std::abs(ep) > cap) ep = std::copysign(cap, ep);
+      bonds.plastic[k] = ep;
+      Q += bonds.shear_omega[k] * (ed - ep) * (paper ? kap * g.lambda : L / Real(3)) * bonds.volume[k];
     }
-    p.dil[i] = p.a[i] * theta - q;
+    if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
   });
 }
 
 void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, bool fracture,
                Vec3* force, Mat3* stress) {
-  const Real inv_delta = Real(1) / prm.horizon;
-  const bool paper = prm.deviatoric == PdDeviatoric::Paper;
-  bool plastic = false;  // elastic materials keep e^p = 0: skip reading it
-  for (std::int32_t m = 0; m < prm.material_count; ++m) plastic |= prm.materials[m].psi0 < std::numeric_limits<Real>::infinity();
-  if (prm.material_count == 0) plastic = true;
-  const Vec3* x0 = p.x0;
-  const Vec3* x = p.x;
-  const std::uint32_t* nbr = bonds.neighbor.data();
-  const std::uint32_t* rev = bonds.reverse.data();
-  const Real* len = bonds.length.data();
-  const Real* om = bonds.omega.data();
-  const Real* sst = bonds.shear_stiffness.data();
-  const Real* vol = bonds.volume.data();
-  const Real* ep = bonds.plastic.data();
-  std::uint8_t* intact = bonds.intact.data();
+  const Real delta = prm.horizon;
+  const PdDeviatoric dev = prm.deviatoric;
+  const PdMaterial* mats = prm.materials;
   exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-    const Vec3 x0i = x0[i], xi_ = x[i];
-    const Real di = p.dil[i], ti = p.tdev[i], crit_i = p.crit[i];
+    const Vec3 x0i = p.x0[i], xi_ = p.x[i];
+    const Real ti = p.theta[i], ai = p.a[i], bi = p.b[i];
+    const bool consistent = prm.consistent;
+    const Real dil_i = ai * ti - (consistent ? p.q[i] : Real(0));  // a theta (- q: consistent term)
+    const PdMaterial& mi = mats[p.material[i]];
+    const Real crit_i = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
     Vec3 f = Vec3::Zero();
     Mat3 s = Mat3::Zero();
     for (std::uint64_t k = k0; k < k1; ++k) {
-      if (!intact[k]) continue;
-      const std::uint32_t j = nbr[k];
-      const std::uint32_t kr = rev[k];
-      const Real L = len[k];
-      const Vec3 xi = x0[j] - x0i;
-      const Vec3 eta = x[j] - xi_;
-      const Real l2 = eta.squaredNorm();
-      if (!(l2 > 0)) continue;  // coincident particles: no direction, no force
-      const Real inv_l = Real(1) / std::sqrt(l2);
-      const Real e = l2 * inv_l - L;
-      const Real lambda = eta.dot(xi) * inv_l / L;
-      const Real c = paper ? lambda : L;  // e^d = e - tdev c (eq. 8 or LPS)
-      const Real epi = plastic ? ep[k] : Real(0), epj = plastic ? ep[kr] : Real(0);
-      // eqs. 3, 7, 11 from each end of the bond, over 4: A_ij / 4 = omega Lambda dil_i + s (e^d - e^p)
-      const Real aij = om[k] * lambda * di + sst[k] * (e - ti * c - epi);
-      const Real aji = om[kr] * lambda * p.dil[j] + sst[kr] * (e - p.tdev[j] * c - epj);
-      const Vec3 fij = (Real(2) * (aij + aji) * vol[k] * inv_l) * eta;  // eq. 1 with eq. 2: (A_ij + A_ji) / 2
+      if (!bonds.intact[k]) continue;
+      const std::uint32_t j = bonds.neighbor[k];
+      const std::uint64_t kr = bonds.reverse[k];
+      const Real L = bonds.length[k];
+      const Vec3 xi = p.x0[j] - x0i;
+      BondGeometry g;
+      if (!bond_geometry(xi, p.x[j] - xi_, L, g)) continue;
+      const Real tj = p.theta[j];
+      const Real epi = bonds.plastic[k], epj = bonds.plastic[kr];
+      // eqs. 3, 7, 11 from each end of the bond
+      const Real dil_j = p.a[j] * tj - (consistent ? p.q[j] : Real(0));
+      const Real aij = Real(4) * (bonds.omega[k] * g.lambda * dil_i +
+                                  bonds.shear_omega[k] * bi *
+                                      (deviatoric_extension(dev, g.e, g.lambda, ti, L, p.kappa[i]) - epi));
+      const Real aji = Real(4) * (bonds.omega[kr] * g.lambda * dil_j +
+                                  bonds.shear_omega[kr] * p.b[j] *
+                                      (deviatoric_extension(dev, g.e, g.lambda, tj, L, p.kappa[j]) - epj));
+      const Vec3 fij = (Real(0.5) * (aij + aji) * bonds.volume[k]) * g.dir;  // eq. 1 with eq. 2
       f += fij;
       if (stress) s += Real(0.5) * fij * xi.transpose();
-      // eq. 18, from both ends (symmetric decision)
-      if (fracture && ((e - epi) * inv_delta > crit_i || (e - epj) * inv_delta > p.crit[j])) intact[k] = 0;
+      if (fracture) {  // eq. 18, from both ends (symmetric decision)
+        const PdMaterial& mj = mats[p.material[j]];
+        const Real crit_j = mj.critical_stretch * (Real(1) + mj.alpha * p.damage[j]);
+        if ((g.e - epi) / delta > crit_i || (g.e - epj) / delta > crit_j) bonds.intact[k] = 0;
+      }
     }
     force[i] = f;
     if (stress) stress[i] = s;
@@ -632,7 +621,7 @@ void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
   out.neighbor.resize(total);
   out.length.resize(total);
   out.omega.resize(total);
-  out.shear_stiffness.resize(total);
+  out.shear_omega.resize(total);
   out.volume.resize(total);
   out.plastic.resize(total);
   out.intact.assign(total, 1);
@@ -644,7 +633,7 @@ void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
       out.neighbor[o] = bonds.neighbor[k];
       out.length[o] = bonds.length[k];
       out.omega[o] = bonds.omega[k];
-      out.shear_stiffness[o] = bonds.shear_stiffness[k];
+      out.shear_omega[o] = bonds.shear_omega[k];
       out.volume[o] = bonds.volume[k];
       out.plastic[o] = bonds.plastic[k];
       ++o;

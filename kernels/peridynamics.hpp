@@ -56,10 +56,10 @@ inline Real pd_psi0_from_yield_stress(Real sigma_y, Real delta) {
 struct PdBonds {
   std::vector<std::uint64_t> offsets;    // n + 1
   std::vector<std::uint32_t> neighbor;   // j
-  std::vector<std::uint32_t> reverse;    // index of the bond j -> i in row j (< 2^32 bonds: checked)
+  std::vector<std::uint64_t> reverse;    // index of the bond j -> i in row j
   std::vector<Real> length;              // L = |xi|
   std::vector<Real> omega;               // omega_ij (eq. 16, G of particle i) x the correction g_ij
-  std::vector<Real> shear_stiffness;     // b_i omega_ij (eq. 16) x the correction f_ij (PdConstants)
+  std::vector<Real> shear_omega;         // omega_ij (eq. 16) x the correction f_ij (PdConstants)
   std::vector<Real> volume;              // nu_ij V_j: the neighbour's (partial) volume
   std::vector<Real> plastic;             // e^p_ij (deviatoric plastic extension, eq. 10)
   std::vector<std::uint8_t> intact;      // 1 until the bond breaks (irreversible)
@@ -72,7 +72,6 @@ struct PdParams {
   Real spacing = Real(0.01);  // lattice spacing lc (partial volumes, contact distance)
   PdDeviatoric deviatoric = PdDeviatoric::Paper;
   const PdMaterial* materials = nullptr;
-  std::int32_t material_count = 0;
   // Energy-consistent forces (with the surface correction): A_ij gains the derivative of the
   // deviatoric energy through theta (see pd_dilatation), so that the forces are the gradient of
   // sum_i W_i V_i. The paper's force leaves it out; it vanishes where the family's moments are
@@ -86,15 +85,15 @@ struct PdParams {
 //   m_i: theta normaliser, theta_i = (3 / m_i) sum_j omega s Lambda L V_j (eq. 5 with m = 4 pi
 //        delta^4 / 3 gives the paper's 9 / (4 pi delta^4));
 //   a_i = 3 kappa / (2 m_i) (eq. 9: 9 kappa / (8 pi delta^4));
-//   b_i = 15 mu / (2 pi delta^5) (eq. 9); bond ij's deviatoric stiffness is 4 b_i shear_stiffness_ij;
+//   b_i = 15 mu / (2 pi delta^5) (eq. 9); bond ij's deviatoric stiffness is 4 b_i shear_omega_ij;
 //   kappa_i: the delta / 4 of e^d = e - kappa Lambda theta (eq. 8).
-// Without the correction omega is eq. 16's, shear_stiffness = omega, m and kappa the continuum values.
+// Without the correction omega is eq. 16's, shear_omega = omega, m and kappa the continuum values.
 //
 // The surface/lattice correction (option, on by default) makes every particle's own stress
 // 1/2 sum_j A_ij (eta/l) (x) xi V_j exact for every homogeneous deformation, at interior and
 // near-surface particles alike, in the spirit of the position-aware linear solid (Mitchell,
 // Silling, Littlewood 2015). Per bond it scales the dilatational weight, omega = omega_16 g_ij,
-// and the deviatoric one, shear_stiffness = omega_16 f_ij, with factors as close to 1 as possible
+// and the deviatoric one, shear_omega = omega_16 f_ij, with factors as close to 1 as possible
 // (least squares, weight omega0 V) under moment constraints against the continuum (omega0 =
 // delta / L, eq. 4):
 //   g: sum_j omega0 g L n_a n_b V_j = (m / 3) delta_ab (6 constraints): theta exact for every
@@ -127,10 +126,7 @@ struct PdView {
   const Real* volume = nullptr;
   const std::int32_t* material = nullptr;
   Real* theta = nullptr;
-  // Written by pd_dilatation for pd_forces (so a bond's far end costs three gathers, not seven):
-  Real* dil = nullptr;   // a_i theta_i - q_i: the dilatational coefficient of A_ij (q: consistent term)
-  Real* tdev = nullptr;  // kappa_i theta_i (paper: e^d = e - tdev Lambda) or theta_i / 3 (LPS: e - tdev L)
-  Real* crit = nullptr;  // critical_stretch (1 + alpha phi_i) (eq. 18), phi from the last step
+  Real* q = nullptr;  // b_i (3 / m_i) Q_i: the consistent term (PdParams::consistent), written by pd_dilatation
   Real* damage = nullptr;
   const Real* m = nullptr;
   const Real* a = nullptr;
@@ -146,7 +142,7 @@ struct PdView {
 void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume, const std::int32_t* material,
                     std::size_t n, const PdParams& prm, bool partial_volume, PdBonds& bonds);
 
-// m, a, b, kappa, bonds0 per particle and the bonds' shear_stiffness (see PdConstants).
+// m, a, b, kappa, bonds0 per particle and the bonds' shear_omega (see PdConstants).
 void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, PdBonds& bonds,
                   const PdParams& prm, bool surface_correction, PdConstants& out);
 
@@ -155,10 +151,10 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
 // (A_dev - A_c) / (4 omega b), which puts A_dev exactly on the surface A_c = sqrt(2 psi0)
 // sign(A_dev), then |e^p| is capped at plastic_cap L. (Eq. 14 as printed divides by 2b, which
 // equals this only where 2 omega = 1; we use the exact projection.)
-// It also writes dil, tdev and crit (PdView). With PdParams::consistent, dil includes -q_i, q_i =
-// (3 / m_i) sum_j s_j (e^d - e^p) d_j V_j (s = shear_stiffness = b omega f), d_j = -de^d/dtheta
-// (kappa Lambda, paper; L / 3, LPS): the deviatoric energy sum_j s (e^d - e^p)^2 V_j depends on
-// every bond through theta, and its derivative adds -4 omega Lambda q_i to every A_ij of the row.
+// With PdParams::consistent it also writes q_i = b_i (3 / m_i) Q_i, Q_i = sum_j shear_omega
+// (e^d - e^p) d_j V_j, d_j = -de^d/dtheta (kappa Lambda, paper; L / 3, LPS): the deviatoric
+// energy b sum shear_omega (e^d - e^p)^2 V depends on every bond through theta, and its
+// derivative adds -4 omega Lambda q_i to every A_ij of the row.
 void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm);
 
 // Pair force per bond (eqs. 1-3, 7, 11): A_ij = 4 omega_ij (a_i Lambda theta_i + b_i (e^d_ij -

@@ -38,7 +38,6 @@ PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials
   params_.spacing = settings_.spacing;
   params_.deviatoric = settings_.deviatoric;
   params_.materials = materials_.data();
-  params_.material_count = std::int32_t(materials_.size());
   params_.consistent = settings_.surface_correction;
 }
 
@@ -122,9 +121,7 @@ PdView PdSolver::view() {
   p.volume = particles_.real(attr_.volume);
   p.material = particles_.int32(attr_.material);
   p.theta = particles_.real(attr_.theta);
-  p.dil = dil_.data();
-  p.tdev = tdev_.data();
-  p.crit = crit_.data();
+  p.q = q_.data();
   p.damage = particles_.real(attr_.damage);
   p.m = constants_.m.data();
   p.a = constants_.a.data();
@@ -162,9 +159,7 @@ void PdSolver::initialize(const exec::Space& space) {
     });
   }
   force_.assign(n, Vec3::Zero());
-  dil_.assign(n, Real(0));
-  tdev_.assign(n, Real(0));
-  crit_.assign(n, Real(0));
+  q_.assign(n, Real(0));
   for (PdCrackMesh& m : meshes_) m.attach(bonds_);
   initialized_ = true;
   crit_dt_ = critical_dt(space);

@@ -146,7 +146,7 @@ class PdSolver {
   // critical step of a corrected 8^3 block, i.e. that many more steps for nothing.
   Real critical_dt(const exec::Space& space);
   std::vector<Vec3> force_;
-  std::vector<Real> dil_, tdev_, crit_;  // per-particle scalars of the dilatation pass (PdView), every step
+  std::vector<Real> q_;  // consistent term per particle (PdView::q), recomputed every step
   struct Precrack {
     Vec3 point, n, lo, hi;
   };

@@ -266,7 +266,7 @@ TEST(PdPlasticity, ReturnMappingLandsOnTheYieldSurfaceAndIsCapped) {
     const Vec3 xi = p.x0[b.neighbor[k]] - p.x0[c], eta = p.x[b.neighbor[k]] - p.x[c];
     const double L = xi.norm(), e = eta.norm() - L;
     const double ed = e - double(p.theta[c]) * L / 3;
-    const double adev = 4 * double(b.shear_stiffness[k]) * (ed - double(b.plastic[k]));
+    const double adev = 4 * double(b.shear_omega[k]) * double(p.b[c]) * (ed - double(b.plastic[k]));
     const double cap = double(m.plastic_cap) * L;
     EXPECT_LE(std::abs(double(b.plastic[k])), cap * (1 + 1e-6));
     // On the yield surface, unless the cap stopped the plastic flow (then above it).
@@ -284,7 +284,7 @@ TEST(PdPlasticity, ReturnMappingLandsOnTheYieldSurfaceAndIsCapped) {
   for (std::uint64_t k = b.offsets[c]; k < b.offsets[c + 1]; ++k) {
     if (ep[k] == 0) continue;
     EXPECT_GT(double(b.plastic[k]) * double(ep[k]), 0.0);
-    const double adev = 4 * double(b.shear_stiffness[k]) * (0.0 - double(b.plastic[k]));
+    const double adev = 4 * double(b.shear_omega[k]) * double(p.b[c]) * (0.0 - double(b.plastic[k]));
     EXPECT_LE(std::abs(adev), ac * (1 + 1e-3));
   }
 }
