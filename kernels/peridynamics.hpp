@@ -114,7 +114,7 @@ struct PdParams {
 // omega f L V_j); else one factor normalising the mean coordinate shear sum.
 struct PdConstants {
   std::vector<Real> m, a, b, kappa;
-  std::vector<std::uint8_t> fitted;  // correction: 2 full fit, 1 fourth moments only, 0 fallback (or off)
+  std::vector<std::uint8_t> fitted;  // correction: 2 full fit, 1 axis-diagonal fit (edges), 0 scalar fallback (or off)
   std::vector<std::int32_t> bonds0;  // bonds at t = 0 (for the damage phi = 1 - n / N)
 };
 

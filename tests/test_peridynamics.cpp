@@ -494,6 +494,40 @@ TEST(PdValidation, LongitudinalWaveTravelsAtTheBarSpeed) {
   }
 }
 
+// The correction's fit chain on a thin bar: interior and face particles get the full fit, edge
+// particles (families cut by two faces, whose cross moments cannot vanish with positive weights)
+// the axis-diagonal one, and no particle is left with the scalar fallback.
+TEST(PdModuli, CorrectionFitsEveryParticleOfABar) {
+  const exec::Space space;
+  PdSolver solver(settings(PdDeviatoric::Paper, true), {glass()});
+  const std::vector<Vec3> x = bar(24, 6, 6);
+  solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
+  solver.initialize(space);
+  const std::vector<std::uint8_t>& fitted = solver.constants().fitted;
+  int full = 0, diagonal = 0, checked = 0;
+  for (std::size_t i = 0; i < x.size(); ++i) {
+    ASSERT_GT(fitted[i], 0) << "particle " << i << " fell back to the scalar correction";
+    full += fitted[i] == 2;
+    diagonal += fitted[i] == 1;
+    // Away from the bar's ends: a particle on a face, mid-width, gets the full fit; one on an
+    // edge of the bar, the diagonal fit.
+    const long xx = std::lround(double(x[i][0]) / kLc - 0.5), y = std::lround(double(x[i][1]) / kLc - 0.5),
+               z = std::lround(double(x[i][2]) / kLc - 0.5);
+    if (xx < 4 || xx > 19 || y != 0) continue;
+    if (z == 2) {
+      EXPECT_EQ(fitted[i], 2) << i;
+      ++checked;
+    }
+    if (z == 0) {
+      EXPECT_EQ(fitted[i], 1) << i;
+      ++checked;
+    }
+  }
+  EXPECT_GT(full, 0);
+  EXPECT_GT(diagonal, 0);  // the edges
+  EXPECT_EQ(checked, 2 * 16);
+}
+
 // Validation: static tension. A bar clamped over one horizon at x = 0 carries a traction sigma on
 // its last layer (force density sigma / lc); dynamic relaxation (viscous damping at about twice
 // the fundamental frequency) brings it to rest. An extensometer between the material planes at
