@@ -3,12 +3,12 @@
 
 #include <array>
 #include <chrono>
-#include <csignal>
-#include <cstdlib>
-#include <fstream>
 #include <cmath>
+#include <csignal>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
+#include <fstream>
 #include <iostream>
 #include <stdexcept>
 
@@ -26,7 +26,8 @@ namespace amalgam::cli {
 namespace {
 
 const char* kRunHelp =
-    "usage: amalgam run SCENE.json [--backend serial|openmp|tbb|threads] [--threads N] [--out DIR]\n"
+    "usage: amalgam run SCENE.json [--backend serial|openmp|tbb|threads] [--threads N] [--out "
+    "DIR]\n"
     "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--retries N]\n"
     "                  [--preview] [--quiet]\n"
     "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
@@ -39,21 +40,26 @@ const char* kRunHelp =
     "scene's \"preview\" block or fitted to the objects).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
     "uninterrupted run (frames may be raised to extend it).\n"
-    "Defaults: --backend openmp (threads: plain std::threads, for ThreadSanitizer runs), --threads =\n"
+    "Defaults: --backend openmp (threads: plain std::threads, for ThreadSanitizer runs), --threads "
+    "=\n"
     "all cores, --out = the scene's output.directory,\n"
     "--frames = the scene's simulation.frames, --checkpoint-every = output.checkpoint_every.\n";
-
 
 // Profiler seconds so far in the groups of the CSV columns: p2g, g2p, sort, grid.
 std::array<double, 5> kernel_groups(const exec::Profiler& p) {
   std::array<double, 5> g{};
   for (const auto& r : p.regions()) {
-    if (r.label == "mpm.p2g") g[0] += r.seconds;
-    else if (r.label == "mpm.g2p") g[1] += r.seconds;
-    else if (r.label.rfind("bin.", 0) == 0 || r.label == "particles.permute") g[2] += r.seconds;
-    else if (r.label.rfind("grid.", 0) == 0 || r.label == "mpm.grid_clear" || r.label == "mpm.grid_update")
+    if (r.label == "mpm.p2g")
+      g[0] += r.seconds;
+    else if (r.label == "mpm.g2p")
+      g[1] += r.seconds;
+    else if (r.label.rfind("bin.", 0) == 0 || r.label == "particles.permute")
+      g[2] += r.seconds;
+    else if (r.label.rfind("grid.", 0) == 0 || r.label == "mpm.grid_clear" ||
+             r.label == "mpm.grid_update")
       g[3] += r.seconds;
-    else if (r.label.rfind("implicit.", 0) == 0) g[4] += r.seconds;
+    else if (r.label.rfind("implicit.", 0) == 0)
+      g[4] += r.seconds;
   }
   return g;
 }
@@ -74,14 +80,19 @@ std::vector<std::string> earlier_rows(const std::string& csv, int first_frame) {
 }
 
 volatile std::sig_atomic_t g_signal = 0;
-extern "C" void on_signal(int sig) { g_signal = sig; }
+extern "C" void on_signal(int sig) {
+  g_signal = sig;
+}
 
 std::string format_seconds(double s) {
   char buf[64];
   if (s < 0 || !std::isfinite(s)) return "?";
-  if (s < 60) std::snprintf(buf, sizeof buf, "%.0fs", s);
-  else if (s < 3600) std::snprintf(buf, sizeof buf, "%dm%02ds", int(s) / 60, int(s) % 60);
-  else std::snprintf(buf, sizeof buf, "%dh%02dm", int(s) / 3600, (int(s) % 3600) / 60);
+  if (s < 60)
+    std::snprintf(buf, sizeof buf, "%.0fs", s);
+  else if (s < 3600)
+    std::snprintf(buf, sizeof buf, "%dm%02ds", int(s) / 60, int(s) % 60);
+  else
+    std::snprintf(buf, sizeof buf, "%dh%02dm", int(s) / 3600, (int(s) % 3600) / 60);
   return buf;
 }
 
@@ -100,7 +111,9 @@ exec::Space make_space(const Options& o, exec::Profiler* prof) {
 int run_command(const std::vector<std::string>& args) {
   Options o;
   try {
-    o = parse_options(args, {"--backend", "--threads", "--out", "--frames", "--checkpoint-every", "--resume", "--retries"},
+    o = parse_options(args,
+                      {"--backend", "--threads", "--out", "--frames", "--checkpoint-every",
+                       "--resume", "--retries"},
                       {"--quiet", "--help", "--preview"});
     if (o.flag("--help")) {
       std::cout << kRunHelp;
@@ -121,10 +134,12 @@ int run_command(const std::vector<std::string>& args) {
     std::error_code ec;
     std::filesystem::create_directories(out_dir, ec);
     if (ec) throw InputError(out_dir + ": cannot create output directory: " + ec.message());
-    if (scene.method == Method::Peridynamics) return run_peridynamics(scene, o, space, profiler, out_dir);
+    if (scene.method == Method::Peridynamics)
+      return run_peridynamics(scene, o, space, profiler, out_dir);
 
     int checkpoint_every = scene.output.checkpoint_every;
-    if (const auto* c = o.get("--checkpoint-every")) checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
+    if (const auto* c = o.get("--checkpoint-every"))
+      checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
     const std::string checkpoint_path = out_dir + "/checkpoint.amck";
 
     MpmSolver solver = build_solver(scene);
@@ -137,9 +152,11 @@ int run_command(const std::vector<std::string>& args) {
     }
     const size_t np = solver.particles().size();
     if (!quiet)
-      std::cout << "amalgam: scene '" << scene.name << "': " << np << " particles, dx = " << scene.mpm.dx
-                << ", transfer " << transfer_name(scene.mpm.transfer) << ", " << scene.frames << " frames at "
-                << scene.fps << " fps, backend " << space.describe() << ", precision " << real_name() << "\n"
+      std::cout << "amalgam: scene '" << scene.name << "': " << np
+                << " particles, dx = " << scene.mpm.dx << ", transfer "
+                << transfer_name(scene.mpm.transfer) << ", " << scene.frames << " frames at "
+                << scene.fps << " fps, backend " << space.describe() << ", precision "
+                << real_name() << "\n"
                 << "amalgam: writing to " << out_dir << "/\n";
     auto frame_path = [&](int f, const char* ext) {
       char name[64];
@@ -152,11 +169,14 @@ int run_command(const std::vector<std::string>& args) {
     auto write_frame = [&](int f) {
       if (preview)
         write_png(frame_path(f, "png").replace(frame_path(f, "png").rfind("frame_"), 6, "preview_"),
-                  render_particles(solver.particles(), solver.attributes(), camera, splat, scene.preview.width,
-                                   scene.preview.height, scene.preview.color_by, floor_y));
-      if (scene.output.ply) write_ply_points(frame_path(f, "ply"), solver.particles(), solver.attributes());
+                  render_particles(solver.particles(), solver.attributes(), camera, splat,
+                                   scene.preview.width, scene.preview.height,
+                                   scene.preview.color_by, floor_y));
+      if (scene.output.ply)
+        write_ply_points(frame_path(f, "ply"), solver.particles(), solver.attributes());
       if (scene.output.vdb_points)
-        write_vdb_points(frame_path(f, "vdb"), solver.particles(), solver.attributes(), double(scene.mpm.dx));
+        write_vdb_points(frame_path(f, "vdb"), solver.particles(), solver.attributes(),
+                         double(scene.mpm.dx));
       if (scene.output.grid_volumes && f > 0)  // the grid exists once a substep ran
         write_vdb_grid_fields(frame_path(f, "grid.vdb"), solver.grid(), double(scene.mpm.dx));
     };
@@ -178,7 +198,8 @@ int run_command(const std::vector<std::string>& args) {
         std::getline(in, line);
         while (std::getline(in, line)) {
           const size_t comma = line.find(',');
-          if (comma != std::string::npos && std::strtoull(line.c_str() + comma + 1, nullptr, 10) < solver.step_count())
+          if (comma != std::string::npos &&
+              std::strtoull(line.c_str() + comma + 1, nullptr, 10) < solver.step_count())
             kept += line + "\n";
         }
       }
@@ -195,7 +216,8 @@ int run_command(const std::vector<std::string>& args) {
     std::signal(SIGINT, on_signal);
     std::signal(SIGTERM, on_signal);
 
-    const int max_retries = o.get("--retries") ? parse_int("--retries", *o.get("--retries"), 0, 10) : 3;
+    const int max_retries =
+        o.get("--retries") ? parse_int("--retries", *o.get("--retries"), 0, 10) : 3;
     const Real cfl0 = scene.mpm.cfl;
     ParticleSet::Snapshot snapshot;
     const bool tty = isatty(fileno(stdout));
@@ -216,7 +238,8 @@ int run_command(const std::vector<std::string>& args) {
         try {
           // Tolerance covers the rounding of dt to Real; it is far below any physical substep.
           while (solver.time() < t_frame_end - 1e-7 / scene.fps) {
-            // Split what is left of the frame evenly into CFL-stable substeps (no sliver at the end).
+            // Split what is left of the frame evenly into CFL-stable substeps (no sliver at the
+            // end).
             const double remaining = t_frame_end - solver.time();
             const double n_left = std::ceil(remaining / double(solver.stable_dt(space)));
             dt = Real(remaining / std::max(1.0, n_left));
@@ -226,8 +249,9 @@ int run_command(const std::vector<std::string>& args) {
               const SolveStats& ls = solver.last_solve();
               char row[160];
               std::snprintf(row, sizeof row, "%d,%llu,%.9g,%.9g,%d,%.4g,%d,%d\n", f,
-                            (unsigned long long)(solver.step_count() - 1), solver.time(), double(dt), ls.iterations,
-                            ls.residual, ls.converged ? 1 : 0, ls.used_minres ? 1 : 0);
+                            (unsigned long long)(solver.step_count() - 1), solver.time(),
+                            double(dt), ls.iterations, ls.residual, ls.converged ? 1 : 0,
+                            ls.used_minres ? 1 : 0);
               step_rows += row;
             }
             if (g_signal) {  // interrupted: save the exact state mid-frame and stop
@@ -235,8 +259,9 @@ int run_command(const std::vector<std::string>& args) {
               write_checkpoint(checkpoint_path, solver, f, scene.fingerprint);
               flush_steps();
               if (tty && !quiet) std::cout << "\n";
-              std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM") << " received: checkpoint written to "
-                        << checkpoint_path << " (t = " << solver.time() << " s, frame " << f
+              std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
+                        << " received: checkpoint written to " << checkpoint_path
+                        << " (t = " << solver.time() << " s, frame " << f
                         << " in progress); continue with --resume " << checkpoint_path << "\n";
               return 128 + sig;
             }
@@ -246,9 +271,9 @@ int run_command(const std::vector<std::string>& args) {
           if (attempt >= max_retries) throw;
           const Real cfl = cfl0 * Real(std::pow(0.5, attempt + 1));
           if (tty && !quiet) std::cout << "\n";
-          std::cerr << "amalgam: warning: frame " << f << ": " << e.what() << "\namalgam: retrying frame " << f
-                    << " from its start with cfl = " << cfl << " (retry " << attempt + 1 << " of " << max_retries
-                    << ")\n";
+          std::cerr << "amalgam: warning: frame " << f << ": " << e.what()
+                    << "\namalgam: retrying frame " << f << " from its start with cfl = " << cfl
+                    << " (retry " << attempt + 1 << " of " << max_retries << ")\n";
           solver.particles().restore(snapshot);
           solver.restore_clock(t_frame_start, steps_frame_start);
           solver.set_cfl(cfl);
@@ -262,7 +287,8 @@ int run_command(const std::vector<std::string>& args) {
       flush_steps();
       const MpmDiagnostics d = solver.diagnostics(space);
       write_frame(f);
-      const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
+      const double wall =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
       DiagnosticsRow row{f, solver.time(), double(dt), wall, substeps, d, np};
       const std::array<double, 5> groups = kernel_groups(profiler);
       row.p2g_s = groups[0] - groups_before[0];
@@ -270,17 +296,18 @@ int run_command(const std::vector<std::string>& args) {
       row.sort_s = groups[2] - groups_before[2];
       row.grid_s = groups[3] - groups_before[3];
       row.solve_s = groups[4] - groups_before[4];
-      row.other_s =
-          std::max(0.0, (wall - wall_before) - row.p2g_s - row.g2p_s - row.sort_s - row.grid_s - row.solve_s);
+      row.other_s = std::max(0.0, (wall - wall_before) - row.p2g_s - row.g2p_s - row.sort_s -
+                                      row.grid_s - row.solve_s);
       const ImplicitCounters& ic = solver.implicit_counters();
       row.cg_iterations = (long long)ic.iterations;
       row.cg_max_iterations = ic.max_iterations;
       row.cg_max_residual = ic.max_residual;
       row.cg_unconverged = (long long)ic.unconverged;
       if (ic.unconverged > 0)
-        std::cerr << (tty && !quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": " << ic.unconverged
-                  << " implicit solve(s) stopped at max_iterations = " << scene.mpm.solver.max_iterations
-                  << " (worst relative residual " << ic.max_residual
+        std::cerr << (tty && !quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": "
+                  << ic.unconverged << " implicit solve(s) stopped at max_iterations = "
+                  << scene.mpm.solver.max_iterations << " (worst relative residual "
+                  << ic.max_residual
                   << "); raise simulation.implicit.max_iterations or lower max_dt\n";
       row.leaves = solver.grid().leaf_count();
       row.active_leaves = solver.grid().active_leaves().size();
@@ -301,25 +328,41 @@ int run_command(const std::vector<std::string>& args) {
         const double rate = double(np) * double(total_substeps) / std::max(wall, 1e-9);
         char cg[64] = "";
         if (scene.mpm.implicit)
-          std::snprintf(cg, sizeof cg, "  CG %.1f it/step", double(row.cg_iterations) / double(std::max(1LL, substeps)));
+          std::snprintf(cg, sizeof cg, "  CG %.1f it/step",
+                        double(row.cg_iterations) / double(std::max(1LL, substeps)));
         char line[320];
         std::snprintf(line, sizeof line,
-                      "frame %d/%d  t=%.4fs  substeps=%lld  dt=%.2e  KE=%.4g J  max|v|=%.3g m/s%s  %.2fM p-steps/s  "
+                      "frame %d/%d  t=%.4fs  substeps=%lld  dt=%.2e  KE=%.4g J  max|v|=%.3g m/s%s  "
+                      "%.2fM p-steps/s  "
                       "elapsed %s  ETA %s",
-                      f, scene.frames, solver.time(), substeps, double(dt), d.kinetic, d.max_speed, cg, rate * 1e-6,
-                      format_seconds(wall).c_str(), format_seconds(eta).c_str());
-        if (tty) std::cout << "\r" << line << "\033[K" << std::flush;
-        else std::cout << line << "\n";
+                      f, scene.frames, solver.time(), substeps, double(dt), d.kinetic, d.max_speed,
+                      cg, rate * 1e-6, format_seconds(wall).c_str(), format_seconds(eta).c_str());
+        if (tty)
+          std::cout << "\r" << line << "\033[K" << std::flush;
+        else
+          std::cout << line << "\n";
       }
     }
-    const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
+    const double wall =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
     if (!quiet) {
       if (tty) std::cout << "\n";
-      std::cout << "amalgam: done: " << scene.frames - first_frame + 1 << " frames, " << total_substeps << " substeps in "
-                << format_seconds(wall) << " (" << wall << " s), "
-                << double(np) * double(total_substeps) / wall * 1e-6 << "M particle-substeps/s\n"
+      std::cout << "amalgam: done: " << scene.frames - first_frame + 1 << " frames, "
+                << total_substeps << " substeps in " << format_seconds(wall) << " (" << wall
+                << " s), " << double(np) * double(total_substeps) / wall * 1e-6
+                << "M particle-substeps/s\n"
                 << "amalgam: per-kernel time:\n"
                 << profiler.report(wall);
+      // A-ULMPM: configuration resets per object and the time they (and the re-binning they
+      // force) took, against the whole run.
+      const ConfigurationMaps& maps = solver.configuration_maps();
+      for (int k = 0; k < maps.object_count(); ++k) {
+        const ConfigurationStats& st = maps.stats(k);
+        std::cout << "amalgam: object " << k << " ("
+                  << configuration_update_name(maps.policy(k).update) << "): " << st.updates
+                  << " configuration updates in " << st.steps << " substeps, " << st.update_seconds
+                  << " s updating (" << 100.0 * st.update_seconds / wall << " % of the run)\n";
+      }
     }
     return kOk;
   } catch (const InputError& e) {
@@ -329,8 +372,9 @@ int run_command(const std::vector<std::string>& args) {
     std::cerr << "amalgam run: " << e.what() << "\n";
     return kUsage;
   } catch (const SimulationError& e) {
-    std::cerr << "amalgam: simulation failed: " << e.what() << "\n"
-              << "amalgam: the last good checkpoint (if any was written) is in the output directory\n";
+    std::cerr
+        << "amalgam: simulation failed: " << e.what() << "\n"
+        << "amalgam: the last good checkpoint (if any was written) is in the output directory\n";
     return kSimulationFailed;
   }
 }
@@ -348,8 +392,8 @@ int validate_command(const std::vector<std::string>& args) {
       n += sample_object(obj, scene.mpm.dx, vol).size();
     }
     std::cout << args[0] << ": ok: " << scene.objects.size() << " objects, " << n << " particles, "
-              << scene.materials.size() << " materials, " << scene.colliders.size() << " colliders, "
-              << scene.frames << " frames\n";
+              << scene.materials.size() << " materials, " << scene.colliders.size()
+              << " colliders, " << scene.frames << " frames\n";
     return kOk;
   } catch (const InputError& e) {
     std::cerr << "amalgam: error: " << e.what() << "\n";

@@ -254,6 +254,20 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
   s.jitter = Real(o.number("jitter", peridynamics ? 0.0 : 0.5, 0, 1));
   s.seed = std::uint64_t(o.integer("seed", 1, 0, (1LL << 62)));
   s.temperature = Real(o.number("temperature", 293.15, 0, kHuge));
+  if (o.has("configuration")) {
+    if (peridynamics) o.fail("configuration", "configuration maps (A-ULMPM) are for MPM objects");
+    JsonObject c = o.object("configuration");
+    s.has_configuration = true;
+    const std::string u = c.choice("update", "adaptive", {"adaptive", "total_lagrangian", "eulerian"});
+    s.configuration.update = u == "adaptive"           ? ConfigurationUpdate::Adaptive
+                             : u == "total_lagrangian" ? ConfigurationUpdate::TotalLagrangian
+                                                       : ConfigurationUpdate::Eulerian;
+    s.configuration.epsilon = Real(c.number("epsilon", 0.5, 0, kHuge, true));
+    s.configuration.eta = Real(c.number("eta", 0.1, 0, 1));
+    if (u != "adaptive" && (c.has("epsilon") || c.has("eta")))
+      c.fail(c.has("epsilon") ? "epsilon" : "eta", "only used with \"update\": \"adaptive\"");
+    c.finish();
+  }
   o.finish();
   return s;
 }
@@ -413,6 +427,20 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   if (!top.has("objects")) top.fail("objects", "missing required array of objects");
   for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file, pd));
   if (s.objects.empty()) top.fail("objects", "define at least one object");
+  // A-ULMPM: objects in their own configuration maps do not share reference nodes, so they do
+  // not collide with each other (the global-grid contact of the paper's Sec. 7.1 is not
+  // implemented): mixing them with shared-grid objects would silently change the physics.
+  for (std::size_t k = 0; k < s.objects.size(); ++k)
+    if (s.objects[k].has_configuration != s.objects[0].has_configuration) {
+      const std::size_t bad = s.objects[0].has_configuration ? k : 0;
+      throw InputError(file + ": /objects/" + std::to_string(bad) +
+                       "/configuration: missing; when one object keeps a configuration map (A-ULMPM), every "
+                       "object must have a \"configuration\" block");
+    }
+  s.mpm.configuration_maps = s.objects[0].has_configuration;
+  if (s.mpm.configuration_maps && s.mpm.implicit)
+    throw InputError(file + ": /simulation/integrator: configuration maps (A-ULMPM) need \"explicit\" (the "
+                     "semi-implicit update of eqs. 24-26 is not implemented)");
   std::size_t tet_objects = 0;
   double edge_sum = 0, edge_count = 0;
   for (const auto& o : s.objects)
@@ -632,7 +660,8 @@ MpmSolver build_solver(const Scene& scene) {
   for (const auto& obj : scene.objects) {
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol);
-    solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol, obj.temperature);
+    solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol, obj.temperature,
+                         obj.configuration);
   }
   return solver;
 }

@@ -37,6 +37,9 @@ struct ObjectSpec {
   Real jitter = Real(0.5);  // fraction of the lattice spacing
   std::uint64_t seed = 1;
   Real temperature = Real(293.15);  // K, initial (used by melting materials)
+  // A-ULMPM: the object's own configuration map and its update policy ("configuration" block).
+  bool has_configuration = false;
+  ConfigurationPolicy configuration;
 };
 
 struct OutputSpec {

@@ -110,9 +110,19 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
       for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
         const Real plastic = p.plastic ? p.plastic[q] : Real(0);
         const Real temperature = p.temperature ? p.temperature[q] : Real(0);
-        const Mat3 tau = prm.materials[p.material[q]].kirchhoff(p.F[q], p.C[q], plastic, temperature);  // P F^T
-        p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau, p.mass[q], p.volume0[q], dx, inv_dx,
-                                   dt);
+        if (!p.X_ref) {
+          const Mat3 tau = prm.materials[p.material[q]].kirchhoff(p.F[q], p.C[q], plastic, temperature);  // P F^T
+          p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau, p.mass[q], p.volume0[q], dx, inv_dx,
+                                     dt);
+        } else {
+          // A-ULMPM eq. 20: P^0 (F^{0s})^T = tau (F^{sn})^{-T}; the material sees the spatial
+          // velocity gradient grad_s v (F^{sn})^{-1}.
+          const Mat3 Fs_inv = p.F_s[q].inverse();
+          const Mat3 tau =
+              prm.materials[p.material[q]].kirchhoff(p.F[q], p.C[q] * Fs_inv, plastic, temperature) * Fs_inv.transpose();
+          p2g_particle<Order, T, CH>(blk, origin, p.X_ref[q], p.v[q], p.C[q], tau, p.mass[q], p.volume0[q], dx,
+                                     inv_dx, dt);
+        }
       }
       // Flush into the 8 target leaves: leaf t covers block nodes [8 tx, 8 tx + 8) per axis.
       for (int t = 0; t < 8; ++t) {
@@ -145,9 +155,9 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
 
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
 template <int Order, Transfer T, int CH>
-inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3& x, Vec3& v, Mat3& C, Mat3& F,
-                         Real dx, Real inv_dx, Real dt, Real alpha) {
-  const Stencil<Order> st = Stencil<Order>::at(x, inv_dx);
+inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, const Vec3& xs, Vec3& v, Mat3& C,
+                         Mat3& grad_v, Vec3& v_pic_out, Real dx, Real inv_dx, Real alpha) {
+  const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
   // Hierarchical sums over k, then j, then i (4 lanes per node: velocity + zero pad):
@@ -201,7 +211,7 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3&
   }
   const Vec3 v_pic(S[0], S[1], S[2]);
   const Vec3 dv(dV[0], dV[1], dV[2]);
-  Mat3 Bm, grad_v;
+  Mat3 Bm;
   for (int c = 0; c < 3; ++c) {
     Bm(c, 0) = dx * (Si[c] - st.fx[0] * S[c]);
     Bm(c, 1) = dx * (Sj[c] - st.fx[1] * S[c]);
@@ -218,8 +228,7 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, Vec3&
     if constexpr (T == Transfer::Mls) grad_v = C;  // A-ULMPM Sec. 5.8: grad v_p = C_p
     v = v_pic;
   }
-  F = (Mat3::Identity() + dt * grad_v) * F;
-  x += dt * v_pic;
+  v_pic_out = v_pic;
 }
 
 template <int Order, Transfer T>
@@ -257,8 +266,22 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
           }
     }
     const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-    for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
-      g2p_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], p.F[q], dx, inv_dx, dt, alpha);
+    Mat3 grad_v;
+    Vec3 v_pic;
+    if (!p.X_ref) {
+      for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
+        g2p_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], grad_v, v_pic, dx, inv_dx, alpha);
+        p.F[q] = (Mat3::Identity() + dt * grad_v) * p.F[q];
+        p.x[q] += dt * v_pic;
+      }
+    } else {
+      for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
+        g2p_particle<Order, T, CH>(blk, origin, p.X_ref[q], p.v[q], p.C[q], grad_v, v_pic, dx, inv_dx, alpha);
+        p.F_s[q] += dt * grad_v;         // A-ULMPM eq. 30: F^{s(n+1)} = F^{sn} + dt grad_s v
+        p.F[q] = p.F_s[q] * p.F_0s[q];   // eq. 32: F^{0(n+1)} = F^{s(n+1)} F^{0s}
+        p.x[q] += dt * v_pic;            // eq. 28
+      }
+    }
   }, 1);
 }
 
@@ -292,7 +315,51 @@ struct G2P {
   }
 };
 
+template <int Order>
+void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, Real dx,
+                        Real* out) {
+  using Blk = Block<Order, 4>;
+  constexpr int B = Blk::B;
+  const Real inv_dx = Real(1) / dx;
+  const Mat3 zero = Mat3::Zero();
+  for (int c = 0; c < 8; ++c) {
+    const std::uint32_t c0 = g.colour_start[c], c1 = g.colour_start[c + 1];
+    exec::parallel_for(space, "aul.p2g_positions", exec::Index(c1 - c0), [&](exec::Index ci) {
+      const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
+      Blk blk;
+      std::memset(blk.data, 0, sizeof(blk.data));
+      const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+      // The APIC scatter with v -> x_p and C -> F_s: m w (x_p + F_s (X_i - X_p)), no stress.
+      for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
+        p2g_particle<Order, Transfer::Apic, 4>(blk, origin, p.X_ref[q], p.x[q], p.F_s[q], zero, p.mass[q], 0, dx,
+                                               inv_dx, 0);
+      for (int t = 0; t < 8; ++t) {
+        const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
+        Real* la = out + std::size_t(g.nbr8[b][size_t(t)]) * kLeafNodes * 4;
+        const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
+                  nk = tz ? B - kLeafDim : kLeafDim;
+        for (int i = 0; i < ni; ++i)
+          for (int j = 0; j < nj; ++j)
+            for (int k = 0; k < nk; ++k) {
+              const Real* s = blk.data + Blk::at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k);
+              Real* d = la + leaf_offset(i, j, k) * 4;
+              for (int e = 0; e < 4; ++e) d[e] += s[e];
+            }
+      }
+    }, 1);
+  }
+}
+
 }  // namespace
+
+void p2g_positions(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                   const MpmStepParams& prm, Real* out) {
+  exec::parallel_for(space, "aul.positions_clear", exec::Index(g.nactive), [&](exec::Index i) {
+    std::memset(out + std::size_t(g.active_leaves[i]) * kLeafNodes * 4, 0, kLeafNodes * 4 * sizeof(Real));
+  });
+  if (prm.order == 3) p2g_positions_impl<3>(space, p, g, prm.dx, out);
+  else p2g_positions_impl<2>(space, p, g, prm.dx, out);
+}
 
 void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
   const bool two = prm.transfer == Transfer::PicFlip;
@@ -337,7 +404,11 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
           Vec3 v = v_old + dv_gravity;
           if (flip) v += (dt * inv_m) * Vec3(lb[o + 1], lb[o + 2], lb[o + 3]);
           if (prm.ncolliders > 0) {
-            const Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
+            Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
+            if (g.q) {  // Lagrangian: the node's current position q_i (A-ULMPM eq. 12)
+              const Real* qn = g.q + leaf * kLeafNodes * 4 + o;
+              if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
+            }
             for (int c = 0; c < prm.ncolliders; ++c) prm.colliders[c].project(xi, t_end, v);
           }
           n[1] = v[0];

@@ -43,6 +43,13 @@ struct MpmParticleView {
   std::size_t n;
   Real* plastic = nullptr;      // per-particle plastic scalar, if any material has one
   Real* temperature = nullptr;  // per-particle temperature (K), if any material melts
+  // Adaptively updated Lagrangian mode (A-ULMPM Sec. 5), on when X_ref is set: weights and
+  // gradients are measured at the reference positions X^s (stencil positions), C_p holds
+  // grad_s v_p, F_s = F^{sn} and F_0s = F^{0s} with F = F^{0n} = F_s F_0s (eq. 32). P2G uses
+  // the stress P^0 (F^{0s})^T = tau F_s^{-T} (eq. 20); G2P updates F_s += dt grad_s v (eq. 30).
+  const Vec3* X_ref = nullptr;
+  Mat3* F_s = nullptr;
+  const Mat3* F_0s = nullptr;
 };
 
 // What they use of the grid: channel sets and tables from SparseGrid + BinTable.
@@ -58,6 +65,9 @@ struct MpmGridView {
   const std::int32_t* active_leaves;
   std::size_t nactive;
   const Vec3i* leaf_coord;
+  // Lagrangian mode only: [leaf][512][4] (m, m q) from p2g_positions, the nodes' current
+  // positions q_i (A-ULMPM eq. 12) at which colliders are tested; null: lattice positions.
+  const Real* q = nullptr;
 };
 
 struct MpmStepParams {
@@ -77,6 +87,11 @@ struct MpmStepParams {
 void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm);
 // Particle -> grid scatter of mass, momentum and (per scheme) force.
 void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm);
+// Lagrangian mode: scatters (m_p, m_p (x_p + F_s (X_i - X_p))) into `out` ([leaf][512][4]),
+// the mass-weighted affine extrapolation of the current positions to the reference grid nodes
+// (A-ULMPM eq. 12, with the APIC-style first-order term so that affine motion is exact).
+void p2g_positions(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                   const MpmStepParams& prm, Real* out);
 // Momentum -> velocity, forces, gravity, colliders, per active leaf.
 void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm);
 // Applies the colliders to the grid velocities (a = (m, v) after grid_update), keeping PIC/FLIP's

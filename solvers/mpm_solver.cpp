@@ -1,6 +1,7 @@
 #include "solvers/mpm_solver.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <climits>
 #include <cmath>
 #include <sstream>
@@ -29,11 +30,20 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
   }
   material_update_ |= melting && !heat_sources_.empty();
   attr_ = MpmAttributes::add_to(particles_, plastic, melting);
-  grid_.set_node4_channels(settings_.transfer == Transfer::PicFlip ? 2 : 1);
+  int sets = settings_.transfer == Transfer::PicFlip ? 2 : 1;
+  if (settings_.configuration_maps) {
+    if (settings_.implicit)
+      throw InputError("configuration maps (A-ULMPM) need the explicit integrator: the semi-implicit update "
+                       "(eqs. 24-26) is not implemented");
+    cattr_ = ConfigurationAttributes::add_to(particles_);
+    if (!colliders_.empty()) positions_set_ = sets++;
+  }
+  grid_.set_node4_channels(sets);
 }
 
 void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
-                                int material, Real volume_per_particle, Real temperature) {
+                                int material, Real volume_per_particle, Real temperature,
+                                const ConfigurationPolicy& policy) {
   if (material < 0 || size_t(material) >= materials_.size()) throw InputError("material index out of range");
   if (particles_.size() + x.size() > size_t(INT32_MAX)) throw InputError("more than 2^31 particles");
   const size_t n0 = particles_.size();
@@ -65,6 +75,20 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
     if (pplastic) pplastic[p] = mat.initial_plastic();
     if (ptemp) ptemp[p] = temperature;
   }
+  if (settings_.configuration_maps) {
+    const int k = maps_.add_object(policy, x.size());
+    const Vec3 offset = maps_.lane_offset(k, settings_.dx);
+    Vec3* Xs = particles_.vec3(cattr_.X_s);
+    Mat3* Fs = particles_.mat3(cattr_.F_s);
+    Mat3* F0s = particles_.mat3(cattr_.F_0s);
+    std::int32_t* obj = particles_.int32(cattr_.object);
+    for (size_t p = n0; p < particles_.size(); ++p) {
+      Xs[p] = px[p] + offset;
+      Fs[p] = F0s[p] = Mat3::Identity();
+      obj[p] = k;
+    }
+    bins_valid_ = false;
+  }
 }
 
 MpmParticleView MpmSolver::particle_view() {
@@ -73,6 +97,11 @@ MpmParticleView MpmSolver::particle_view() {
                     particles_.int32(attr_.material), particles_.size()};
   if (attr_.plastic >= 0) v.plastic = particles_.real(attr_.plastic);
   if (attr_.temperature >= 0) v.temperature = particles_.real(attr_.temperature);
+  if (settings_.configuration_maps) {
+    v.X_ref = particles_.vec3(cattr_.X_s);
+    v.F_s = particles_.mat3(cattr_.F_s);
+    v.F_0s = particles_.mat3(cattr_.F_0s);
+  }
   return v;
 }
 
@@ -120,7 +149,20 @@ MpmStepParams MpmSolver::step_params(Real dt) const {
 }
 
 void MpmSolver::sort_particles(const exec::Space& space) {
-  binning_.sort_and_bin(space, particles_, attr_.x, settings_.dx, settings_.order, bins_);
+  binning_.sort_and_bin(space, particles_, settings_.configuration_maps ? cattr_.X_s : attr_.x, settings_.dx,
+                        settings_.order, bins_);
+}
+
+void MpmSolver::update_configurations(const exec::Space& space) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const bool any = maps_.decide(space, particles_, cattr_, reset_flags_);
+  if (any) maps_.reset(space, particles_, cattr_, attr_.x, attr_.F, attr_.C, settings_.dx, reset_flags_);
+  if (any || !bins_valid_) {
+    sort_particles(space);
+    update_grid(space);
+    bins_valid_ = true;
+  }
+  maps_.account(reset_flags_, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
 }
 void MpmSolver::update_grid(const exec::Space& space) { grid_.update_topology(space, bins_); }
 
@@ -133,7 +175,12 @@ void MpmSolver::particle_to_grid(const exec::Space& space, Real dt) {
 void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
   MpmStepParams prm = step_params(dt);
   if (settings_.implicit) prm.ncolliders = 0;  // the implicit solve takes the colliders as constraints
-  grid_update(space, grid_view(), prm);
+  MpmGridView g = grid_view();
+  if (positions_set_ >= 0) {  // Lagrangian: colliders act at the nodes' current positions
+    p2g_positions(space, particle_view(), g, prm, grid_.node4(positions_set_));
+    g.q = grid_.node4(positions_set_);
+  }
+  grid_update(space, g, prm);
 }
 
 void MpmSolver::assemble_implicit(const exec::Space& space, Real dt) {
@@ -263,8 +310,12 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
     os << "step " << steps_ << ": time step must be positive and finite, got " << dt;
     throw SimulationError(os.str());
   }
-  sort_particles(space);
-  update_grid(space);
+  if (settings_.configuration_maps) {
+    update_configurations(space);
+  } else {
+    sort_particles(space);
+    update_grid(space);
+  }
   particle_to_grid(space, dt);
   update_grid_velocities(space, dt);
   if (settings_.implicit) solve_grid_velocities(space, dt);
@@ -273,7 +324,17 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
     const Real t_end = Real(time_) + dt;  // the grid update's end-of-substep time (same posed colliders)
     collide_particles(space, particle_view(), colliders_at(t_end), int(colliders_.size()), t_end);
   }
-  if (material_update_) update_materials(space, dt);
+  if (material_update_) {
+    update_materials(space, dt);
+    if (settings_.configuration_maps) {
+      // The return mapping changed F^{0n}: keep F = F_s F_0s (eq. 32) with F_s = F (F^{0s})^{-1}.
+      Mat3* F = particles_.mat3(attr_.F);
+      Mat3* Fs = particles_.mat3(cattr_.F_s);
+      const Mat3* F0s = particles_.mat3(cattr_.F_0s);
+      exec::parallel_for(space, "aul.sync_F_s", exec::Index(particles_.size()),
+                         [=](exec::Index i) { Fs[i] = F[i] * F0s[i].inverse(); });
+    }
+  }
   time_ += double(dt);
   ++steps_;
 }

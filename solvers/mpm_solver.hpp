@@ -27,6 +27,7 @@
 #include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"
 #include "sparse_grid/binning.hpp"
+#include "solvers/configuration_maps.hpp"
 #include "solvers/implicit_system.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
@@ -43,6 +44,9 @@ struct MpmSettings {
   Real max_speed = Real(1e4);  // stability guard: a faster particle is a blow-up (m/s)
   bool implicit = false;       // backward Euler velocity update instead of explicit
   ImplicitSettings solver;     // Krylov solver settings when implicit
+  // A-ULMPM: every object keeps its own reference configuration (solvers/configuration_maps.hpp)
+  // and the transfers run in the kernels' Lagrangian mode. Explicit only.
+  bool configuration_maps = false;
 };
 
 // Implicit solves since the counters were last reset (per frame in the runner).
@@ -79,8 +83,13 @@ class MpmSolver {
   // Appends particles at `x` with velocity v0 + omega x (x - centre), material index, and mass
   // and volume per particle; F = I, C = affine part of the rigid rotation, plastic state at
   // rest, and the given temperature (K; stored only if a material melts).
+  // With configuration maps, the particles form one object with the given update policy.
   void add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
-                     int material, Real volume_per_particle, Real temperature = 0);
+                     int material, Real volume_per_particle, Real temperature = 0,
+                     const ConfigurationPolicy& policy = {});
+  // A-ULMPM configuration maps (settings().configuration_maps): policies and statistics per object.
+  const ConfigurationMaps& configuration_maps() const { return maps_; }
+  const ConfigurationAttributes& configuration_attributes() const { return cattr_; }
 
   // Largest stable substep (CFL). Also the stability guard: throws SimulationError naming the
   // step, particle and quantity if any velocity or F is not finite or a speed exceeds max_speed.
@@ -91,6 +100,10 @@ class MpmSolver {
 
   // Phases of step(), public so tests and benchmarks can drive them one by one.
   void sort_particles(const exec::Space& space);
+  // A-ULMPM: eq. 33 per object, resets of the objects that need one, and re-binning at X^s
+  // when a reference changed (sort_particles + update_grid); nothing else while every object
+  // keeps its reference (the weights stay valid: what makes TL/A-UL cheaper than Eulerian).
+  void update_configurations(const exec::Space& space);
   void update_grid(const exec::Space& space);
   void particle_to_grid(const exec::Space& space, Real dt);
   void update_grid_velocities(const exec::Space& space, Real dt);
@@ -116,6 +129,7 @@ class MpmSolver {
   void restore_clock(double time, std::uint64_t steps) {
     time_ = time;
     steps_ = steps;
+    bins_valid_ = false;  // particles may have been replaced: re-bin before the next transfer
   }
 
   MpmParticleView particle_view();
@@ -138,6 +152,11 @@ class MpmSolver {
   bool material_update_ = false;
   ParticleSet particles_;
   MpmAttributes attr_;
+  ConfigurationAttributes cattr_;
+  ConfigurationMaps maps_;
+  std::vector<std::uint8_t> reset_flags_;
+  bool bins_valid_ = false;  // Lagrangian mode: bins and topology match X^s
+  int positions_set_ = -1;   // node4 set of the rasterised node positions (Lagrangian + colliders)
   ParticleBinning binning_;
   BinTable bins_;
   SparseGrid grid_;
