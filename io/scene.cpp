@@ -440,7 +440,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.mpm.configuration_maps = s.objects[0].has_configuration;
   if (s.mpm.configuration_maps && s.mpm.implicit)
     throw InputError(file + ": /simulation/integrator: configuration maps (A-ULMPM) need \"explicit\" (the "
-                     "semi-implicit update of eqs. 24-26 is not implemented)");
+                     "semi-implicit update of eqs. 24-26 has no Lagrangian kernels yet)");
   std::size_t tet_objects = 0;
   double edge_sum = 0, edge_count = 0;
   for (const auto& o : s.objects)

@@ -12,7 +12,7 @@
 // Objects live in disjoint lanes of the one reference grid: object k's X^s is its current
 // position at the last reset plus k * lane along x, so objects never share a reference node
 // and each keeps its own map (contact between objects then needs the global-grid coupling of
-// Sec. 7.1, which is not implemented: see docs/aulmpm.md).
+// Sec. 7.1, which this engine does not have yet: see docs/aulmpm.md).
 // A reset (eq. 32 read at s := n): X^s = x, F^{0s} = F^{0n}, F^{sn} = I, and the stored velocity
 // gradient is pushed to the new reference, grad_new v = grad_s v (F^{sn})^{-1}. The criterion is
 // evaluated from F^{sn} at the start of each substep, so it needs no state of its own and a run

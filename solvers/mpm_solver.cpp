@@ -34,7 +34,7 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
   if (settings_.configuration_maps) {
     if (settings_.implicit)
       throw InputError("configuration maps (A-ULMPM) need the explicit integrator: the semi-implicit update "
-                       "(eqs. 24-26) is not implemented");
+                       "(eqs. 24-26) has no Lagrangian kernels yet");
     cattr_ = ConfigurationAttributes::add_to(particles_);
     if (!colliders_.empty()) positions_set_ = sets++;
   }
