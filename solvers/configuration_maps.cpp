@@ -35,7 +35,6 @@ int ConfigurationMaps::add_object(const ConfigurationPolicy& policy, std::size_t
   policy_.push_back(policy);
   stats_.push_back({});
   count_.push_back(particles);
-  marked_.push_back(0);
   return int(policy_.size()) - 1;
 }
 
@@ -48,7 +47,6 @@ bool ConfigurationMaps::decide(const exec::Space& space, const ParticleSet& ps,
     adaptive |= policy_[size_t(k)].update == ConfigurationUpdate::Adaptive;
     if (policy_[size_t(k)].update == ConfigurationUpdate::Eulerian) reset[size_t(k)] = any = true;
   }
-  std::fill(marked_.begin(), marked_.end(), 0);
   if (!adaptive) return any;
   using Counts = std::array<std::uint64_t, kMaxObjects>;
   std::array<Real, kMaxObjects> eps{};
@@ -67,7 +65,6 @@ bool ConfigurationMaps::decide(const exec::Space& space, const ParticleSet& ps,
         return x;
       });
   for (int k = 0; k < nobj; ++k) {
-    marked_[size_t(k)] = marked[size_t(k)];
     const ConfigurationPolicy& p = policy_[size_t(k)];
     if (p.update != ConfigurationUpdate::Adaptive || count_[size_t(k)] == 0) continue;
     if (double(marked[size_t(k)]) >= double(p.eta) * double(count_[size_t(k)]))

@@ -73,14 +73,11 @@ class ConfigurationMaps {
              const std::vector<std::uint8_t>& reset);
   // Books a substep and the time its resets and re-binning took (split by particle count).
   void account(const std::vector<std::uint8_t>& reset, double seconds);
-  // Marked particles per object at the last decide() (for diagnostics).
-  const std::vector<std::uint64_t>& marked() const { return marked_; }
 
  private:
   std::vector<ConfigurationPolicy> policy_;
   std::vector<ConfigurationStats> stats_;
   std::vector<std::size_t> count_;
-  std::vector<std::uint64_t> marked_;
 };
 
 }  // namespace amalgam
