@@ -51,6 +51,7 @@ MaterialParams read_material(JsonObject o) {
     m.viscosity = Real(o.number("viscosity", 0, 0, kHuge));
   } else {
     read_elasticity(o, m);
+    m.viscosity = Real(o.number("viscosity", 0, 0, kHuge));  // Kelvin-Voigt damping
   }
   if (m.model == MaterialModel::Snow) {
     m.theta_c = Real(o.number("critical_compression", 2.5e-2, 0, 1, true));
@@ -334,9 +335,15 @@ void read_mesh_collider(JsonObject& o, Collider& c, const std::string& scene_fil
   if (has_velocity && !c.keys.empty()) o.fail("velocity", "give either velocity or keyframes, not both");
 }
 
+// `until` (s): the region acts up to this time only (a grip that lets go, a heater switched off).
+void read_until(JsonObject& o, Collider& c) {
+  if (o.has("until")) c.until = Real(o.required_number("until", 0, kHuge, true));
+}
+
 Collider read_collider(JsonObject o, const std::string& scene_file, Real dx) {
   Collider c = read_region(o, true);
   if (c.shape == ColliderShape::Mesh) read_mesh_collider(o, c, scene_file, dx);
+  read_until(o, c);
   const std::string b = o.choice("boundary", "separate", {"sticky", "slip", "separate"});
   c.boundary = b == "sticky" ? BoundaryType::Sticky : b == "slip" ? BoundaryType::Slip : BoundaryType::Separate;
   c.friction = Real(o.number("friction", 0, 0, 100));
@@ -347,6 +354,7 @@ Collider read_collider(JsonObject o, const std::string& scene_file, Real dx) {
 HeatSource read_heat_source(JsonObject o) {
   HeatSource h;
   h.region = read_region(o);
+  read_until(o, h.region);
   h.temperature = Real(o.required_number("temperature", 0, kHuge));
   h.rate = Real(o.required_number("rate", 0, kHuge, true));
   o.finish();

@@ -9,6 +9,7 @@
 #include <Eigen/Geometry>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <vector>
 
@@ -63,6 +64,7 @@ enum class ColliderShape { HalfSpace, Box, Sphere, Mesh };
 enum class BoundaryType { Sticky, Slip, Separate };
 
 struct Collider {
+  static constexpr Real kReleased = Real(1e30);  // phi of every point once the collider is released
   ColliderShape shape = ColliderShape::HalfSpace;
   BoundaryType boundary = BoundaryType::Separate;
   Real friction = 0;           // Coulomb coefficient mu
@@ -80,6 +82,8 @@ struct Collider {
   Mat3 rotation = Mat3::Identity();
   Vec3 translation = Vec3::Zero();
   Vec3 omega = Vec3::Zero();
+  // The collider acts up to this time and not after it (a grip that lets go); infinity: always.
+  Real until = std::numeric_limits<Real>::infinity();
 
   // Mesh pose at time t: rotation R, translation T and its rates (piecewise linear in T,
   // slerp in R between keyframes; constant before the first and after the last).
@@ -135,6 +139,7 @@ struct Collider {
 
   // Signed distance to the collider surface (negative inside the solid) at time t.
   Real phi(const Vec3& x, Real t) const {
+    if (t > until) return kReleased;  // released: every point is outside
     const Vec3 c = origin + t * velocity;
     switch (shape) {
       case ColliderShape::Mesh: {

@@ -26,6 +26,10 @@ void collide_particles(const exec::Space& space, const MpmParticleView& p, const
     for (int c = 0; c < n; ++c) {
       const Real phi = colliders[c].phi(p.x[i], time);
       if (phi >= 0) continue;
+      if (colliders[c].boundary == BoundaryType::Sticky) {  // a grip holds what it holds
+        p.v[i] = colliders[c].velocity_at(p.x[i], time);
+        continue;
+      }
       const Vec3 nrm = colliders[c].outward_normal(p.x[i], time);
       p.x[i] -= phi * nrm;
       colliders[c].project(p.x[i], time, p.v[i]);

@@ -35,8 +35,10 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p, c
 // Particle-level collision after advection: grid-based colliders stop a particle only once all
 // its stencil nodes are inside, so particles sink up to 1.5 cells into walls (measured: the
 // hydrostatic column widened by 12 % and lost 20 % of its height). A particle found inside a
-// collider at the end of the substep is moved back to its surface along the collider normal and
-// its velocity projected like a grid node's (sticky, slip or separate, with friction).
+// slip or separating collider at the end of the substep is moved back to its surface along the
+// collider normal and its velocity projected like a grid node's (with friction). A sticky
+// collider holds the particles inside it where they are, moving with it (a grip pulling a bar's
+// end would otherwise push that end out through its nearest face every substep).
 void collide_particles(const exec::Space& space, const MpmParticleView& p, const Collider* colliders, int n,
                        Real time);
 

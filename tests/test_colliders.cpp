@@ -47,6 +47,21 @@ TEST(Colliders, SignedDistances) {
   EXPECT_NEAR(double(h.phi(Vec3(5, 0.25, 7), 0)), -0.75, 1e-6);
 }
 
+// `until`: a released grip acts up to its release time and not after it.
+TEST(Colliders, ReleasedAfterUntil) {
+  Collider grip = floor_at(0, BoundaryType::Sticky, 0);
+  grip.until = Real(0.5);
+  const Vec3 inside(0, Real(-0.1), 0);
+  EXPECT_LT(grip.phi(inside, Real(0.5)), 0);
+  EXPECT_GT(grip.phi(inside, Real(0.5001)), Real(1e20));
+  Vec3 v(1, -2, 3);
+  grip.project(inside, Real(0.4), v);
+  expect_vec(v, Vec3::Zero());
+  v = Vec3(1, -2, 3);
+  grip.project(inside, Real(0.6), v);
+  expect_vec(v, Vec3(1, -2, 3));
+}
+
 TEST(Colliders, StickySlipSeparateAndFriction) {
   const Vec3 inside(0, Real(-0.1), 0), outside(0, Real(0.1), 0);
   // Sticky: takes the collider's velocity.

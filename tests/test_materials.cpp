@@ -176,6 +176,28 @@ TEST(Materials, WeaklyCompressibleFluid) {
   EXPECT_LT((G - std::cbrt(0.8) * Mat3d::Identity()).norm(), 1e-12);
 }
 
+// Kelvin-Voigt damping of solids: tau_v = J eta (L + L^T); zero for a rigid spin (L skew), so
+// it damps deformation, never rigid rotation; without viscosity the stress ignores L.
+TEST(Materials, SolidViscosityDampsDeformationNotRotation) {
+  MaterialParams m;
+  m.model = MaterialModel::NeoHookean;
+  m.mu = 1000, m.lambda = 2000, m.viscosity = 5;
+  Mat3 F;
+  F << 1.1, 0.05, 0, 0, 0.95, 0.02, 0.01, 0, 1.02;
+  const Mat3 elastic = m.solid_kirchhoff(F, 0);
+  Mat3 spin;
+  spin << 0, -3, 1, 3, 0, -2, -1, 2, 0;
+  EXPECT_LT((m.kirchhoff(F, spin, 0, 0) - elastic).norm(), 1e-3);
+  Mat3 L = Mat3::Zero();
+  L(0, 0) = 2, L(0, 1) = 1;
+  Mat3 expect = L + L.transpose();
+  expect *= F.determinant() * m.viscosity;
+  EXPECT_LT((m.kirchhoff(F, L, 0, 0) - elastic - expect).norm(), 1e-3);
+  m.viscosity = 0;
+  EXPECT_LT((m.kirchhoff(F, L, 0, 0) - elastic).norm(), 1e-6);
+  EXPECT_NEAR(double(MaterialParams{}.kinematic_viscosity()), 0.0, 0.0);
+}
+
 TEST(Materials, SnowHardenedElasticity) {
   const SnowT<double> s{400, 600, 0.025, 0.0075, 10};
   EXPECT_DOUBLE_EQ(s.hardening_factor(1.0), 1.0);

@@ -40,7 +40,7 @@ struct MaterialParams {
   bool volume_correction = true;
   // Von Mises
   Real yield_stress = 0, hardening_modulus = 0;
-  // Fluid (Tait EOS) and Newtonian viscosity
+  // Fluid (Tait EOS) and Newtonian viscosity; for solids, Kelvin-Voigt damping viscosity
   Real bulk = 0, gamma = 7, viscosity = 0;
   // Phase change: melting point (K) and the liquid it becomes; melting = false disables it
   bool melting = false;
@@ -62,6 +62,15 @@ struct MaterialParams {
   // particle's plastic scalar and temperature.
   Mat3 kirchhoff(const Mat3& F, const Mat3& L, Real plastic, Real temperature) const {
     if (melting && temperature >= melting_point) return liquid().kirchhoff(F, L);
+    if (model == MaterialModel::Fluid) return fluid().kirchhoff(F, L);
+    const Mat3 tau = solid_kirchhoff(F, plastic);
+    if (viscosity <= 0) return tau;
+    // Solids: Kelvin-Voigt damping sigma_v = eta (L + L^T), tau_v = J sigma_v. It vanishes for
+    // rigid motion (L skew), so a spinning or translating body keeps its momentum.
+    return tau + (F.determinant() * viscosity) * (L + L.transpose());
+  }
+  // The elastic Kirchhoff stress of a solid model (fluids: zero).
+  Mat3 solid_kirchhoff(const Mat3& F, Real plastic) const {
     switch (model) {
       case MaterialModel::FixedCorotated: return FixedCorotated{mu, lambda}.kirchhoff(F);
       case MaterialModel::NeoHookean: return NeoHookean{mu, lambda}.kirchhoff(F);
@@ -69,7 +78,7 @@ struct MaterialParams {
       case MaterialModel::DruckerPrager:
       case MaterialModel::VonMises: return StvkHencky{mu, lambda}.kirchhoff(F);
       case MaterialModel::Snow: return snow().elastic(plastic).kirchhoff(F);
-      case MaterialModel::Fluid: return fluid().kirchhoff(F, L);
+      case MaterialModel::Fluid: break;
     }
     return Mat3::Zero();
   }
@@ -159,7 +168,7 @@ struct MaterialParams {
   }
   // Kinematic viscosity eta / rho of the more viscous phase (explicit viscosity limits dt).
   Real kinematic_viscosity() const {
-    Real eta = model == MaterialModel::Fluid ? viscosity : Real(0);
+    Real eta = viscosity;  // fluid: Newtonian; solids: Kelvin-Voigt (the same explicit bound)
     if (melting) eta = std::max(eta, liquid_viscosity);
     return eta / density;
   }
