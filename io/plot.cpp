@@ -90,7 +90,7 @@ std::string num(double v) {
 
 // One panel in the box (x0, y0, w, h): frame, title, axis range labels, series, legend.
 void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, const std::string& xlabel,
-           const std::vector<Series>& series, bool log_y) {
+           const std::vector<Series>& series, bool log_y, bool log_x = false) {
   const Vec3d ink(0.1, 0.1, 0.1), grid(0.85, 0.85, 0.85);
   const int left = x0 + 70, right = x0 + w - 10, top = y0 + 24, bottom = y0 + h - 30;
   draw_text(img, x0 + 8, y0 + 4, title, ink, 2);
@@ -98,7 +98,7 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
   for (const auto& s : series)
     for (size_t i = 0; i < s.x->size() && i < s.y->size(); ++i) {
       const double yv = (*s.y)[i];
-      if (!std::isfinite(yv) || (log_y && yv <= 0)) continue;
+      if (!std::isfinite(yv) || (log_y && yv <= 0) || (log_x && !((*s.x)[i] > 0))) continue;
       xmin = std::min(xmin, (*s.x)[i]), xmax = std::max(xmax, (*s.x)[i]);
       ymin = std::min(ymin, yv), ymax = std::max(ymax, yv);
     }
@@ -110,8 +110,9 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
   if (xmax == xmin) xmax = xmin + 1;
   if (ymax == ymin) ymax = ymin + (log_y ? ymin : 1.0);
   auto Y = [&](double v) { return log_y ? std::log10(v) : v; };
+  auto X = [&](double v) { return log_x ? std::log10(v) : v; };
   const double ly0 = Y(ymin), ly1 = Y(ymax);
-  auto sx = [&](double v) { return left + (v - xmin) / (xmax - xmin) * (right - left); };
+  auto sx = [&](double v) { return left + (X(v) - X(xmin)) / (X(xmax) - X(xmin)) * (right - left); };
   auto sy = [&](double v) { return bottom - (Y(v) - ly0) / (ly1 - ly0) * (bottom - top); };
   for (int k = 0; k <= 4; ++k) {  // horizontal grid lines with labels
     const double yl = ly0 + (ly1 - ly0) * k / 4;
@@ -121,6 +122,15 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
   }
   for (int px = left; px <= right; ++px) img.set(px, bottom, ink), img.set(px, top, ink);
   for (int py = top; py <= bottom; ++py) img.set(left, py, ink), img.set(right, py, ink);
+  if (log_x)  // vertical grid lines at the x samples of the first series, labelled
+    for (size_t i = 0; !series.empty() && i < series[0].x->size(); ++i) {
+      const double xv = (*series[0].x)[i];
+      if (!(xv > xmin && xv < xmax)) continue;
+      const int px = int(std::lround(sx(xv)));
+      for (int py = top; py <= bottom; ++py) img.set(px, py, grid);
+      const std::string l = num(xv);
+      draw_text(img, px - int(l.size()) * 3, bottom + 6, l, ink);
+    }
   draw_text(img, left, bottom + 6, num(xmin), ink);
   const std::string xm = num(xmax);
   draw_text(img, right - int(xm.size()) * 6, bottom + 6, xm, ink);
@@ -132,6 +142,9 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
       if (!std::isfinite(a) || !std::isfinite(b) || (log_y && (a <= 0 || b <= 0))) continue;
       line(img, sx((*s.x)[i - 1]), sy(a), sx((*s.x)[i]), sy(b), s.color);
     }
+    for (size_t i = 0; log_x && i < s.x->size() && i < s.y->size(); ++i)  // markers at the samples
+      if (std::isfinite((*s.y)[i]) && (*s.y)[i] > 0)
+        for (int d = -3; d <= 3; ++d) line(img, sx((*s.x)[i]) - 3, sy((*s.y)[i]) + d, sx((*s.x)[i]) + 3, sy((*s.y)[i]) + d, s.color);
     if (s.x->size() == 1 && s.y->size() == 1 && std::isfinite((*s.y)[0]))
       line(img, sx((*s.x)[0]) - 2, sy((*s.y)[0]), sx((*s.x)[0]) + 2, sy((*s.y)[0]), s.color);
     line(img, lx, top + 10, lx + 16, top + 10, s.color);  // legend
@@ -141,6 +154,25 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
 }
 
 }  // namespace
+
+Image plot_loglog(const std::string& title, const std::vector<LogLogPanel>& panels) {
+  static const Vec3d palette[] = {{0.85, 0.2, 0.15}, {0.15, 0.35, 0.85}, {0.1, 0.1, 0.1},
+                                  {0.1, 0.6, 0.2},   {0.95, 0.55, 0.1}, {0.55, 0.25, 0.7}};
+  Image img;
+  img.width = 900;
+  img.height = 40 + int(panels.size()) * 340;
+  img.rgb.assign(size_t(img.width) * size_t(img.height) * 3, 255);
+  draw_text(img, 10, 10, title, Vec3d(0, 0, 0), 2);
+  for (size_t k = 0; k < panels.size(); ++k) {
+    std::vector<Series> series;
+    for (size_t i = 0; i < panels[k].series.size(); ++i) {
+      const PlotSeries& s = panels[k].series[i];
+      series.push_back({s.name, &s.x, &s.y, palette[i % 6]});
+    }
+    panel(img, 0, 40 + int(k) * 340, img.width, 340, panels[k].title, panels[k].xlabel, series, true, true);
+  }
+  return img;
+}
 
 Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols, const std::string& title) {
   auto col = [&](const std::string& n) -> const std::vector<double>& {

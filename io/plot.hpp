@@ -18,6 +18,18 @@ std::map<std::string, std::vector<double>> read_csv_columns(const std::string& t
 // frame in P2G, G2P, sort, grid and other vs frame.
 Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols, const std::string& title);
 
+// Log-log panels stacked vertically (convergence studies): each series a polyline with markers at
+// its samples and a legend entry; the x samples of a panel's first series label its x axis.
+struct PlotSeries {
+  std::string name;
+  std::vector<double> x, y;
+};
+struct LogLogPanel {
+  std::string title, xlabel;
+  std::vector<PlotSeries> series;
+};
+Image plot_loglog(const std::string& title, const std::vector<LogLogPanel>& panels);
+
 // Text in the 5x7 font, scaled by `scale`, top-left at (x, y).
 void draw_text(Image& img, int x, int y, const std::string& text, const Vec3d& color, int scale = 1);
 
