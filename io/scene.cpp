@@ -446,9 +446,6 @@ Scene parse_scene(const std::string& text, const std::string& file) {
                        "object must have a \"configuration\" block");
     }
   s.mpm.configuration_maps = s.objects[0].has_configuration;
-  if (s.mpm.configuration_maps && s.mpm.implicit)
-    throw InputError(file + ": /simulation/integrator: configuration maps (A-ULMPM) need \"explicit\" (the "
-                     "semi-implicit update of eqs. 24-26 has no Lagrangian kernels yet)");
   std::size_t tet_objects = 0;
   double edge_sum = 0, edge_count = 0;
   for (const auto& o : s.objects)

@@ -98,10 +98,15 @@ inline void scatter_gradient(GridBlock<Order, 4>& blk, const Vec3i& l, const Ste
 
 // For each colour, each bin: optionally gather `in` from its 8 leaves, compute a G per particle,
 // scatter G g_ip into a private block, add the block into `out`.
-template <int Order, class PerParticle>
-void colour_gather_scatter(const exec::Space& space, const char* label, const MpmParticleView& p,
-                           const MpmGridView& g, const ImplicitKernelParams& prm, const Real* in, Real* out,
-                           PerParticle per_particle) {
+// L (A-ULMPM Lagrangian mode, p.X_ref set): the stencil sits at the reference position X^s and
+// g^s_ip is the reference-configuration gradient. F(u) = (F^{sn} + sum_j u_j g^s_jp^T) F^{0s}
+// = (I + sum_j u_j g~_jp^T) F with g~ = (F^{sn})^{-T} g^s (eqs. 24-26), so the Eulerian formulas
+// hold with g~: the gathered gradient is right-multiplied by (F^{sn})^{-1} and the scattered G by
+// (F^{sn})^{-T} (the force then is -V0 P (F^{0s})^T g^s, eq. 20).
+template <int Order, bool L, class PerParticle>
+void colour_gather_scatter_impl(const exec::Space& space, const char* label, const MpmParticleView& p,
+                                const MpmGridView& g, const ImplicitKernelParams& prm, const Real* in, Real* out,
+                                PerParticle per_particle) {
   using Blk = GridBlock<Order, 4>;
   const Real inv_dx = Real(1) / prm.dx;
   const bool mls = prm.transfer == Transfer::Mls;
@@ -114,17 +119,33 @@ void colour_gather_scatter(const exec::Space& space, const char* label, const Mp
       acc.clear();
       const Vec3i origin = g.bin_leaf[b] * kLeafDim;
       for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
-        const Stencil<Order> st = gradient_stencil<Order>(p.x[q], inv_dx, mls);
-        const Vec3i l = st.base - origin;
-        const Mat3 grad = in ? gather_gradient<Order>(src, l, st) : Mat3::Zero();
-        scatter_gradient<Order>(acc, l, st, per_particle(q, grad));
+        if constexpr (L) {
+          const Stencil<Order> st = gradient_stencil<Order>(p.X_ref[q], inv_dx, mls);
+          const Vec3i l = st.base - origin;
+          const Mat3 Fs_inv = p.F_s[q].inverse();
+          const Mat3 grad = in ? Mat3(gather_gradient<Order>(src, l, st) * Fs_inv) : Mat3::Zero();
+          scatter_gradient<Order>(acc, l, st, per_particle(q, grad) * Fs_inv.transpose());
+        } else {
+          const Stencil<Order> st = gradient_stencil<Order>(p.x[q], inv_dx, mls);
+          const Vec3i l = st.base - origin;
+          const Mat3 grad = in ? gather_gradient<Order>(src, l, st) : Mat3::Zero();
+          scatter_gradient<Order>(acc, l, st, per_particle(q, grad));
+        }
       }
       acc.flush_add4(g.nbr8[b], out);
     }, 1);
   }
 }
 
-template <int Order>
+template <int Order, class PerParticle>
+void colour_gather_scatter(const exec::Space& space, const char* label, const MpmParticleView& p,
+                           const MpmGridView& g, const ImplicitKernelParams& prm, const Real* in, Real* out,
+                           PerParticle per_particle) {
+  if (p.X_ref) colour_gather_scatter_impl<Order, true>(space, label, p, g, prm, in, out, per_particle);
+  else colour_gather_scatter_impl<Order, false>(space, label, p, g, prm, in, out, per_particle);
+}
+
+template <int Order, bool L>
 void hessian_diagonal_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                            const ImplicitKernelParams& prm, const ParticleHessian* hess, Real scale, Real* diag) {
   using Blk = GridBlock<Order, 4>;
@@ -140,7 +161,7 @@ void hessian_diagonal_impl(const exec::Space& space, const MpmParticleView& p, c
       const Vec3i origin = g.bin_leaf[b] * kLeafDim;
       for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
         const ParticleHessian& ph = hess[q];
-        const Stencil<Order> st = gradient_stencil<Order>(p.x[q], inv_dx, mls);
+        const Stencil<Order> st = gradient_stencil<Order>(L ? p.X_ref[q] : p.x[q], inv_dx, mls);
         const Vec3i l = st.base - origin;
         // diag_c = M : frame(M) for M = u_c b^T, u_c = row c of U, b = S U^T g (eq. 18 in the
         // frame): a quadratic form in b, Q_c(i,i) = u_i^2 H_ii + sum_{j != i} c1_ij u_j^2,
@@ -159,6 +180,10 @@ void hessian_diagonal_impl(const exec::Space& space, const MpmParticleView& p, c
           Q(1, 2) = Q(2, 1) = u[1] * u[2] * (ph.h.H(1, 2) + c2[2]);
           const Mat3 US = ph.U * ph.sigma.asDiagonal();
           K[c] = (scale * ph.V0) * (US * Q * US.transpose());
+        }
+        if constexpr (L) {  // g~ = (F^{sn})^{-T} g^s: g~^T K g~ = g^s^T (F^{sn})^{-1} K (F^{sn})^{-T} g^s
+          const Mat3 Fs_inv = p.F_s[q].inverse();
+          for (int c = 0; c < 3; ++c) K[c] = Fs_inv * K[c] * Fs_inv.transpose();
         }
         for (int i = 0; i < N; ++i)
           for (int j = 0; j < N; ++j)
@@ -237,8 +262,13 @@ void mpm_hessian_action(const exec::Space& space, const MpmParticleView& p, cons
 
 void mpm_hessian_diagonal(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                           const ImplicitKernelParams& prm, const ParticleHessian* hess, Real scale, Real* diag) {
-  if (prm.order == 3) hessian_diagonal_impl<3>(space, p, g, prm, hess, scale, diag);
-  else hessian_diagonal_impl<2>(space, p, g, prm, hess, scale, diag);
+  if (p.X_ref) {
+    if (prm.order == 3) hessian_diagonal_impl<3, true>(space, p, g, prm, hess, scale, diag);
+    else hessian_diagonal_impl<2, true>(space, p, g, prm, hess, scale, diag);
+  } else {
+    if (prm.order == 3) hessian_diagonal_impl<3, false>(space, p, g, prm, hess, scale, diag);
+    else hessian_diagonal_impl<2, false>(space, p, g, prm, hess, scale, diag);
+  }
 }
 
 void mpm_elastic_forces(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,

@@ -10,6 +10,7 @@
 // scheme integrates. Per particle the Hessian is cached in the SVD frame of F = U S V^T once per
 // step; since F V = U S, with Ghat = U^T grad(du) U and R = frame(Ghat S):
 //   V_p^0 A_p F_p^T = V_p^0 U (R S) U^T          (no V needed; eq. 16 with the fix applied to R)
+// A-ULMPM (p.X_ref set): stencils at X^s, g_ip = (F^{sn})^{-T} g^s_ip (see implicit_mpm.cpp).
 // Vectors are 4 lanes per grid node, [leaf][512][4] (lane 3 unused), like the transfer channels.
 // The action is one pass per colour: each bin gathers du from its 8 leaves, computes its
 // particles' contributions into a private block and adds it into its 8 leaves of `out`. Same-

@@ -32,9 +32,6 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
   attr_ = MpmAttributes::add_to(particles_, plastic, melting);
   int sets = settings_.transfer == Transfer::PicFlip ? 2 : 1;
   if (settings_.configuration_maps) {
-    if (settings_.implicit)
-      throw InputError("configuration maps (A-ULMPM) need the explicit integrator: the semi-implicit update "
-                       "(eqs. 24-26) has no Lagrangian kernels yet");
     cattr_ = ConfigurationAttributes::add_to(particles_);
     if (!colliders_.empty()) positions_set_ = sets++;
   }
@@ -183,8 +180,24 @@ void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
   grid_update(space, g, prm);
 }
 
+namespace {
+// Where a node is tested against colliders: its lattice position, or in A-ULMPM its rasterised
+// current position q_i (eq. 12) when the grid view carries them.
+inline Vec3 node_position(const MpmGridView& g, std::size_t d, const Vec3& lattice) {
+  if (!g.q) return lattice;
+  const Real* q = g.q + d * 4;
+  return q[0] > 0 ? Vec3(q[1] / q[0], q[2] / q[0], q[3] / q[0]) : lattice;
+}
+}  // namespace
+
+MpmGridView MpmSolver::grid_view_with_positions() {
+  MpmGridView g = grid_view();
+  if (positions_set_ >= 0) g.q = grid_.node4(positions_set_);
+  return g;
+}
+
 void MpmSolver::assemble_implicit(const exec::Space& space, Real dt) {
-  const MpmGridView g = grid_view();
+  const MpmGridView g = grid_view_with_positions();
   const std::size_t ngrid = grid_.leaf_count() * std::size_t(kLeafNodes);
   implicit_.begin(ngrid, grid_.active_leaves());
   implicit_.finalize();
@@ -211,7 +224,7 @@ void MpmSolver::assemble_implicit(const exec::Space& space, Real dt) {
           for (int k = 0; k < kLeafDim; ++k) {
             const std::size_t d = leaf * kLeafNodes + std::size_t(leaf_offset(i, j, k));
             if (mass[d] <= 0) continue;
-            const Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
+            const Vec3 xi = node_position(g, d, (node0 + Vec3i(i, j, k)).cast<Real>() * dx);
             for (int c = 0; c < ncol; ++c)
               if (cols[c].phi(xi, t_end) <= 0) flag[d] = 1;
           }
@@ -222,7 +235,7 @@ void MpmSolver::assemble_implicit(const exec::Space& space, Real dt) {
       for (int o = 0; o < kLeafNodes; ++o) {
         const std::size_t d = std::size_t(leaf) * kLeafNodes + std::size_t(o);
         if (!flag[d]) continue;
-        const Vec3 xi = (node0 + Vec3i(o >> 6, (o >> 3) & 7, o & 7)).cast<Real>() * dx;
+        const Vec3 xi = node_position(g, d, (node0 + Vec3i(o >> 6, (o >> 3) & 7, o & 7)).cast<Real>() * dx);
         const Vec3 vs(vstar[d * 4], vstar[d * 4 + 1], vstar[d * 4 + 2]);
         for (int c = 0; c < ncol; ++c) {
           const Collider& col = cols[c];
@@ -285,7 +298,7 @@ void MpmSolver::solve_grid_velocities(const exec::Space& space, Real dt) {
     const Vec3 out = c.vc + vn * c.n + vt;
     vd[0] = out[0], vd[1] = out[1], vd[2] = out[2];
   }
-  const MpmGridView g = grid_view();
+  const MpmGridView g = grid_view_with_positions();
   dofs_to_grid_velocities(space, g, v);
   // Separating nodes left free by the solve may approach a collider now: one more projection.
   grid_apply_colliders(space, g, step_params(dt));

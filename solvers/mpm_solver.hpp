@@ -134,6 +134,9 @@ class MpmSolver {
 
   MpmParticleView particle_view();
   MpmGridView grid_view();
+  // grid_view() plus, in A-ULMPM with colliders, the rasterised node positions q_i of this
+  // substep (valid after update_grid_velocities).
+  MpmGridView grid_view_with_positions();
   MpmStepParams step_params(Real dt) const;
 
  private:
