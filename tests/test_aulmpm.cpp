@@ -112,6 +112,19 @@ DiscRun run_disc(const std::string& update, double omega, double seconds,
 }  // namespace
 
 namespace {
+// Gives every particle the stretching velocity field v = (a (x - 0.5), 0, 0) and its gradient.
+void stretch_about_centre(MpmSolver& s, double a) {
+  auto& ps = s.particles();
+  const Vec3* x = ps.vec3(s.attributes().x);
+  Vec3* v = ps.vec3(s.attributes().v);
+  Mat3* C = ps.mat3(s.attributes().C);
+  for (size_t p = 0; p < ps.size(); ++p) {
+    v[p] = Vec3(Real(a) * (x[p][0] - Real(0.5)), 0, 0);
+    C[p] = Mat3::Zero();
+    C[p](0, 0) = Real(a);
+  }
+}
+
 // A soft bar (0.3 x 0.04 x 0.04 m, one particle per cell) given the stretching velocity field
 // v = (a (x - 0.5), 0, 0): it extends to about twice its length and the elastic force pulls it
 // back. Returns the largest gap between consecutive particles along x at the end.
@@ -128,15 +141,8 @@ BarRun run_bar(const std::string& update, double a, double seconds, const exec::
                            update + R"("}}]
   })";
   MpmSolver s = build_solver(parse_scene(text, "bar.json"));
+  stretch_about_centre(s, a);
   auto& ps = s.particles();
-  Vec3* x = ps.vec3(s.attributes().x);
-  Vec3* v = ps.vec3(s.attributes().v);
-  Mat3* C = ps.mat3(s.attributes().C);
-  for (size_t p = 0; p < ps.size(); ++p) {
-    v[p] = Vec3(Real(a) * (x[p][0] - Real(0.5)), 0, 0);
-    C[p] = Mat3::Zero();
-    C[p](0, 0) = Real(a);
-  }
   while (s.time() < seconds)
     s.step(space, std::min(s.stable_dt(space), Real(seconds - s.time()) + Real(1e-9)));
   std::vector<double> xs;
@@ -201,15 +207,8 @@ TEST(AulMpm, AdaptiveCriterionResetsBetweenTotalLagrangianAndEulerian) {
                  "configuration": {"update": "adaptive")";
   for (const std::string& extra : {tight, std::string(R"(, "epsilon": 100)")}) {
     MpmSolver s = build_solver(parse_scene(text + extra + "}}]}", "bar.json"));
+    stretch_about_centre(s, 10);
     auto& ps = s.particles();
-    Vec3* x = ps.vec3(s.attributes().x);
-    Vec3* v = ps.vec3(s.attributes().v);
-    Mat3* C = ps.mat3(s.attributes().C);
-    for (size_t p = 0; p < ps.size(); ++p) {
-      v[p] = Vec3(10 * (x[p][0] - Real(0.5)), 0, 0);
-      C[p] = Mat3::Zero();
-      C[p](0, 0) = 10;
-    }
     for (int i = 0; i < 300; ++i) s.step(space, s.stable_dt(space));
     const ConfigurationStats& st = s.configuration_maps().stats(0);
     std::printf("epsilon %s: %llu resets in %llu substeps\n", extra.c_str(),
@@ -406,15 +405,7 @@ MpmSolver stretching_bar(const std::string& integrator, double E, double a, doub
     "objects": [{"shape": "box", "min": [0.35, 0.48, 0.48], "max": [0.65, 0.52, 0.52], "material": "rubber",
                  "jitter": 0, "configuration": {"update": "total_lagrangian"}}]})";
   MpmSolver s = build_solver(parse_scene(text, "bar.json"));
-  auto& ps = s.particles();
-  Vec3* x = ps.vec3(s.attributes().x);
-  Vec3* v = ps.vec3(s.attributes().v);
-  Mat3* C = ps.mat3(s.attributes().C);
-  for (size_t p = 0; p < ps.size(); ++p) {
-    v[p] = Vec3(Real(a) * (x[p][0] - Real(0.5)), 0, 0);
-    C[p] = Mat3::Zero();
-    C[p](0, 0) = Real(a);
-  }
+  stretch_about_centre(s, a);
   return s;
 }
 }  // namespace
