@@ -32,16 +32,25 @@ void backend_args(benchmark::internal::Benchmark* b) {
 }
 
 // A solver after one full substep, sorted and with topology built: ready for P2G/G2P.
-std::unique_ptr<MpmSolver> prepared(Transfer t, int order, const exec::Space& space) {
+// lagrangian: A-ULMPM, one total-Lagrangian object (binned by X^s once; Lagrangian-mode kernels).
+std::unique_ptr<MpmSolver> prepared(Transfer t, int order, const exec::Space& space, bool lagrangian = false,
+                                    ConfigurationUpdate update = ConfigurationUpdate::TotalLagrangian) {
   BenchSceneOptions o;
+  o.policy.update = update;
+  o.policy.epsilon = Real(100);  // adaptive: evaluates the criterion every substep, never resets
   o.particles = kParticles;
   o.dx = Real(std::cbrt(1e6 / double(kParticles)) / 128.0);  // same ppc as 1e6 at dx = 1/128
   o.transfer = t;
   o.order = order;
+  o.lagrangian = lagrangian;
   auto s = std::make_unique<MpmSolver>(make_bench_sphere(o));
   s->step(space, Real(1e-4));
-  s->sort_particles(space);
-  s->update_grid(space);
+  if (lagrangian) {
+    s->update_configurations(space);
+  } else {
+    s->sort_particles(space);
+    s->update_grid(space);
+  }
   s->particle_to_grid(space, Real(1e-4));
   s->update_grid_velocities(space, Real(1e-4));
   return s;
@@ -70,6 +79,40 @@ void BM_G2P(benchmark::State& st, Transfer t, int order) {
   // particle is the same as with dt > 0.
   for (auto _ : st) s->grid_to_particle(space, Real(0));
   set_items(st, kParticles, kG2PBytes);
+}
+
+// A-ULMPM: the Lagrangian-mode transfers (stencil at X^s, stress tau F_s^{-T}, F = F_s F_0s),
+// the grid update with the rasterised node positions q_i (p2g_positions, for the collider) and
+// the per-substep configuration check (eq. 33 criterion; a TL object never re-bins).
+void BM_AulP2G(benchmark::State& st, Transfer t) {
+  const exec::Space space = space_of(st);
+  auto s = prepared(t, 2, space, true);
+  for (auto _ : st) s->particle_to_grid(space, Real(1e-4));
+  set_items(st, kParticles, kP2GBytes + sizeof(Vec3) + sizeof(Mat3));
+}
+
+void BM_AulG2P(benchmark::State& st, Transfer t) {
+  const exec::Space space = space_of(st);
+  auto s = prepared(t, 2, space, true);
+  for (auto _ : st) s->grid_to_particle(space, Real(0));
+  set_items(st, kParticles, kG2PBytes + sizeof(Vec3) + 3 * sizeof(Mat3));
+}
+
+// Grid update including p2g_positions (the floor collider is tested at q_i): items are particles,
+// since the positions pass is a scatter over them.
+void BM_AulGridUpdateWithPositions(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = prepared(Transfer::Mls, 2, space, true);
+  for (auto _ : st) s->update_grid_velocities(space, Real(1e-4));
+  set_items(st, kParticles, sizeof(Vec3) * 2 + sizeof(Mat3) + sizeof(Real));
+}
+
+// The adaptive object's per-substep criterion (eq. 33: det F_s per particle, one reduction).
+void BM_AulConfigurationCheck(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = prepared(Transfer::Mls, 2, space, true, ConfigurationUpdate::Adaptive);
+  for (auto _ : st) s->update_configurations(space);
+  set_items(st, kParticles, sizeof(Mat3));
 }
 
 void BM_GridUpdate(benchmark::State& st) {
@@ -300,6 +343,12 @@ BENCHMARK_CAPTURE(BM_G2P, apic_quadratic, Transfer::Apic, 2)->Apply(backend_args
 BENCHMARK_CAPTURE(BM_G2P, flip_quadratic, Transfer::PicFlip, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_G2P, mls_cubic, Transfer::Mls, 3)->Apply(backend_args);
 BENCHMARK(BM_GridUpdate)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_AulP2G, mls_quadratic, Transfer::Mls)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_AulP2G, flip_quadratic, Transfer::PicFlip)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_AulG2P, mls_quadratic, Transfer::Mls)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_AulG2P, flip_quadratic, Transfer::PicFlip)->Apply(backend_args);
+BENCHMARK(BM_AulGridUpdateWithPositions)->Apply(backend_args);
+BENCHMARK(BM_AulConfigurationCheck)->Apply(backend_args);
 BENCHMARK(BM_ImplicitOperator)->Apply(backend_args);
 BENCHMARK(BM_CgIteration)->Apply(backend_args);
 BENCHMARK(BM_ImplicitAssemble)->Apply(backend_args);

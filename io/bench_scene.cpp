@@ -11,6 +11,7 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   s.order = o.order;
   s.transfer = o.transfer;
   s.implicit = o.implicit;
+  s.configuration_maps = o.lagrangian;
   MaterialParams m;
   const Lame l = Lame::from_young_poisson(o.youngs_modulus, 0.3);
   m.mu = l.mu;
@@ -31,7 +32,8 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
     if (p.squaredNorm() <= 1.0) x.push_back((Vec3d::Constant(0.5) + r * p).cast<Real>());
   }
   const Real vol = Real(4.0 / 3.0 * M_PI * r * r * r / double(o.particles));
-  solver.add_particles(x, Vec3(0, Real(-1), 0), Vec3(0, Real(2), Real(1)), Vec3::Constant(Real(0.5)), 0, vol);
+  solver.add_particles(x, Vec3(0, Real(-1), 0), Vec3(0, Real(2), Real(1)), Vec3::Constant(Real(0.5)), 0, vol, 0,
+                       o.policy);
   return solver;
 }
 

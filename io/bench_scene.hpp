@@ -14,6 +14,9 @@ struct BenchSceneOptions {
   int order = 2;
   bool implicit = false;  // backward Euler (CG) instead of explicit
   double youngs_modulus = 1e5;
+  // A-ULMPM: the sphere as one object with this configuration policy (Lagrangian-mode kernels)
+  bool lagrangian = false;
+  ConfigurationPolicy policy{ConfigurationUpdate::TotalLagrangian};
 };
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o);
