@@ -26,9 +26,13 @@ using Block = GridBlock<Order, CH>;
 constexpr int channels_of(Transfer t) { return t == Transfer::PicFlip ? 8 : 4; }
 
 // Per-particle P2G contribution into a block whose node (0,0,0) is `origin` (pure: no grid).
-template <int Order, Transfer T, int CH>
+// P (A-ULMPM, MLS/APIC only, CH = 8): lanes 4-7 also receive the node-position scatter of
+// p2g_positions, w (m, m (xq + Fq o)) with the same stencil (xq = x_p, Fq = F_s; o = X_i - X_p).
+template <int Order, Transfer T, int CH, bool P = false>
 inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3& x, const Vec3& v, const Mat3& C,
-                         const Mat3& tau, Real m, Real V0, Real dx, Real inv_dx, Real dt) {
+                         const Mat3& tau, Real m, Real V0, Real dx, Real inv_dx, Real dt,
+                         const Vec3& xq = Vec3::Zero(), const Mat3& Fq = Mat3::Zero()) {
+  static_assert(!P || (CH == 8 && T != Transfer::PicFlip), "fused positions: MLS/APIC with an 8-lane block");
   const Stencil<Order> st = Stencil<Order>::at(x, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
@@ -62,12 +66,26 @@ inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3&
     zk[k][2] = A(1, 2) * o;
     zk[k][3] = A(2, 2) * o;
   }
+  // Positions (P): the same separable affine form with v -> xq and A -> m Fq, no stress term.
+  const Mat3 Aq = m * Fq;
+  Real qk[N][4] = {};
+  if constexpr (P)
+    for (int k = 0; k < N; ++k) {
+      const Real o = (Real(k) - st.fx[2]) * dx;
+      qk[k][0] = m;
+      qk[k][1] = Aq(0, 2) * o;
+      qk[k][2] = Aq(1, 2) * o;
+      qk[k][3] = Aq(2, 2) * o;
+    }
   for (int i = 0; i < N; ++i) {
     const Real oi = (Real(i) - st.fx[0]) * dx;
     const Vec3 ai = m * v + A.col(0) * oi;
+    const Vec3 qi = m * xq + Aq.col(0) * oi;
     for (int j = 0; j < N; ++j) {
       const Real oj = (Real(j) - st.fx[1]) * dx;
       const Real aij[4] = {0, ai[0] + A(0, 1) * oj, ai[1] + A(1, 1) * oj, ai[2] + A(2, 1) * oj};
+      Real qij[4] = {};
+      if constexpr (P) qij[1] = qi[0] + Aq(0, 1) * oj, qij[2] = qi[1] + Aq(1, 1) * oj, qij[3] = qi[2] + Aq(2, 1) * oj;
       const Real wx = st.w[0][i], wy = st.w[1][j], wij = wx * wy;
       Real g0[4] = {}, g1[4] = {};
       if constexpr (kGrad) {
@@ -80,6 +98,7 @@ inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3&
         const Real w = wij * st.w[2][k], wz = st.w[2][k], dwz = st.dw[2][k];
         for (int c = 0; c < 4; ++c) {
           const Real mom = w * (aij[c] + zk[k][c]);
+          if constexpr (P) row[k * CH + 4 + c] += w * (qij[c] + qk[k][c]);
           if constexpr (T == Transfer::Mls) {
             row[k * CH + c] += mom;
           } else if constexpr (T == Transfer::Apic) {
@@ -94,9 +113,9 @@ inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3&
   }
 }
 
-template <int Order, Transfer T, bool L>
+template <int Order, Transfer T, bool L, bool P = false>
 void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
-  constexpr int CH = channels_of(T);
+  constexpr int CH = P ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
   constexpr int B = Blk::B;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
@@ -120,8 +139,8 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
           const Mat3 Fs_inv = p.F_s[q].inverse();
           const Mat3 tau =
               prm.materials[p.material[q]].kirchhoff(p.F[q], p.C[q] * Fs_inv, plastic, temperature) * Fs_inv.transpose();
-          p2g_particle<Order, T, CH>(blk, origin, p.X_ref[q], p.v[q], p.C[q], tau, p.mass[q], p.volume0[q], dx,
-                                     inv_dx, dt);
+          p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q], tau, p.mass[q], p.volume0[q], dx,
+                                        inv_dx, dt, p.x[q], p.F_s[q]);
         }
       }
       // Flush into the 8 target leaves: leaf t covers block nodes [8 tx, 8 tx + 8) per axis.
@@ -129,7 +148,7 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
         const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
         const std::size_t leaf = std::size_t(g.nbr8[b][size_t(t)]);
         Real* la = g.a + leaf * kLeafNodes * 4;
-        Real* lb = (CH == 8) ? g.b + leaf * kLeafNodes * 4 : nullptr;
+        Real* lb = (CH == 8) ? (P ? g.q_out : g.b) + leaf * kLeafNodes * 4 : nullptr;
         const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
                   nk = tz ? B - kLeafDim : kLeafDim;
         for (int i = 0; i < ni; ++i)
@@ -141,7 +160,13 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
               d[1] += s[1];
               d[2] += s[2];
               d[3] += s[3];
-              if constexpr (CH == 8) {
+              if constexpr (P) {  // (m, m q) into q_out
+                Real* e = lb + leaf_offset(i, j, k) * 4;
+                e[0] += s[4];
+                e[1] += s[5];
+                e[2] += s[6];
+                e[3] += s[7];
+              } else if constexpr (CH == 8) {  // PIC/FLIP's force lanes into b
                 Real* e = lb + leaf_offset(i, j, k) * 4;
                 e[1] += s[5];
                 e[2] += s[6];
@@ -307,6 +332,9 @@ void dispatch(int order, Transfer t, Args&&... args) {
 template <int O, Transfer T>
 struct P2G {
   static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+    if constexpr (T != Transfer::PicFlip) {
+      if (p.X_ref && g.q_out) return p2g_impl<O, T, true, true>(s, p, g, prm);
+    }
     if (p.X_ref) p2g_impl<O, T, true>(s, p, g, prm);
     else p2g_impl<O, T, false>(s, p, g, prm);
   }
@@ -358,9 +386,7 @@ void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, cons
 
 void p2g_positions(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                    const MpmStepParams& prm, Real* out) {
-  exec::parallel_for(space, "aul.positions_clear", exec::Index(g.nactive), [&](exec::Index i) {
-    std::memset(out + std::size_t(g.active_leaves[i]) * kLeafNodes * 4, 0, kLeafNodes * 4 * sizeof(Real));
-  });
+  clear_node4(space, g, out);
   if (prm.order == 3) p2g_positions_impl<3>(space, p, g, prm.dx, out);
   else p2g_positions_impl<2>(space, p, g, prm.dx, out);
 }
@@ -376,6 +402,12 @@ void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepPar
 
 void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
   dispatch<P2G>(prm.order, prm.transfer, space, p, g, prm);
+}
+
+void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out) {
+  exec::parallel_for(space, "aul.positions_clear", exec::Index(g.nactive), [&](exec::Index i) {
+    std::memset(out + std::size_t(g.active_leaves[i]) * kLeafNodes * 4, 0, kLeafNodes * 4 * sizeof(Real));
+  });
 }
 
 void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {

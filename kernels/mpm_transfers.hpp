@@ -68,6 +68,9 @@ struct MpmGridView {
   // Lagrangian mode only: [leaf][512][4] (m, m q) from p2g_positions, the nodes' current
   // positions q_i (A-ULMPM eq. 12) at which colliders are tested; null: lattice positions.
   const Real* q = nullptr;
+  // Lagrangian mode, MLS/APIC: when set, P2G also scatters (m, m q) into it (the node positions
+  // of p2g_positions, fused into the momentum scatter: one stencil, an 8-lane block).
+  Real* q_out = nullptr;
 };
 
 struct MpmStepParams {
@@ -87,6 +90,8 @@ struct MpmStepParams {
 void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm);
 // Particle -> grid scatter of mass, momentum and (per scheme) force.
 void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm);
+// Zeroes the active leaves of a [leaf][512][4] array (g.q_out before a fused P2G).
+void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out);
 // Lagrangian mode: scatters (m_p, m_p (x_p + F_s (X_i - X_p))) into `out` ([leaf][512][4]),
 // the mass-weighted affine extrapolation of the current positions to the reference grid nodes
 // (A-ULMPM eq. 12, with the APIC-style first-order term so that affine motion is exact).

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <string>
 #include <vector>
 
@@ -531,5 +532,37 @@ TEST(AulMpm, SemiImplicitBitwiseIdenticalOnEveryBackend) {
     }
     ASSERT_EQ(st.size(), ref.size());
     EXPECT_TRUE(test::bitwise_equal(st.data(), ref.data(), st.size())) << c.name();
+  }
+}
+
+// The node positions q_i that the MLS/APIC momentum P2G rasterises on the side (fused) are bit
+// for bit those of the separate p2g_positions pass (which PIC/FLIP still use).
+TEST(AulMpm, FusedNodePositionsEqualTheSeparatePass) {
+  for (const char* transfer : {"mls", "apic"}) {
+    const std::string text = std::string(R"({
+      "simulation": {"dx": 0.02, "frames": 1, "transfer": ")") + transfer + R"("},
+      "materials": {"jelly": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 3e4, "poisson_ratio": 0.3}},
+      "objects": [{"shape": "sphere", "center": [0.5, 0.45, 0.5], "radius": 0.1, "material": "jelly",
+                   "velocity": [0, -3, 0], "angular_velocity": [0, 4, 2], "configuration": {"update": "total_lagrangian"}}],
+      "colliders": [{"type": "half_space", "point": [0, 0.3, 0], "normal": [0, 1, 0]}]})";
+    MpmSolver s = build_solver(parse_scene(text, "fused.json"));
+    const exec::Space space(test::parallel_backend(), 2);
+    for (int i = 0; i < 10; ++i) s.step(space, s.stable_dt(space));  // deformed: F_s != I
+    ASSERT_TRUE(s.fused_positions());
+    const Real dt = s.stable_dt(space);
+    s.particle_to_grid(space, dt);
+    const MpmGridView g = s.grid_view_with_positions();
+    const size_t n = s.grid().leaf_count() * size_t(kLeafNodes) * 4;
+    std::vector<Real> separate(n, Real(0));
+    p2g_positions(space, s.particle_view(), g, s.step_params(dt), separate.data());
+    size_t checked = 0, differ = 0;
+    for (size_t li = 0; li < g.nactive; ++li)
+      for (size_t o = 0; o < size_t(kLeafNodes) * 4; ++o) {
+        const size_t d = size_t(g.active_leaves[li]) * kLeafNodes * 4 + o;
+        differ += std::memcmp(&separate[d], &g.q[d], sizeof(Real)) != 0 ? 1 : 0;
+        checked += separate[d] != 0 ? 1 : 0;
+      }
+    EXPECT_GT(checked, 1000u) << transfer;
+    EXPECT_EQ(differ, 0u) << transfer;
   }
 }
