@@ -351,7 +351,6 @@ template <int Order>
 void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, Real dx,
                         Real* out) {
   using Blk = Block<Order, 4>;
-  constexpr int B = Blk::B;
   const Real inv_dx = Real(1) / dx;
   const Mat3 zero = Mat3::Zero();
   for (int c = 0; c < 8; ++c) {
@@ -359,25 +358,13 @@ void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, cons
     exec::parallel_for(space, "aul.p2g_positions", exec::Index(c1 - c0), [&](exec::Index ci) {
       const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
       Blk blk;
-      std::memset(blk.data, 0, sizeof(blk.data));
+      blk.clear();
       const Vec3i origin = g.bin_leaf[b] * kLeafDim;
       // The APIC scatter with v -> x_p and C -> F_s: m w (x_p + F_s (X_i - X_p)), no stress.
       for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
         p2g_particle<Order, Transfer::Apic, 4>(blk, origin, p.X_ref[q], p.x[q], p.F_s[q], zero, p.mass[q], 0, dx,
                                                inv_dx, 0);
-      for (int t = 0; t < 8; ++t) {
-        const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
-        Real* la = out + std::size_t(g.nbr8[b][size_t(t)]) * kLeafNodes * 4;
-        const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
-                  nk = tz ? B - kLeafDim : kLeafDim;
-        for (int i = 0; i < ni; ++i)
-          for (int j = 0; j < nj; ++j)
-            for (int k = 0; k < nk; ++k) {
-              const Real* s = blk.data + Blk::at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k);
-              Real* d = la + leaf_offset(i, j, k) * 4;
-              for (int e = 0; e < 4; ++e) d[e] += s[e];
-            }
-      }
+      blk.flush_add4(g.nbr8[b], out);
     }, 1);
   }
 }
