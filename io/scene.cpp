@@ -407,6 +407,19 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     s.mpm.solver.definiteness_fix = imp.boolean("definiteness_fix", true);
     imp.finish();
   }
+  JsonObject contact = sim.object("contact");
+  const bool has_contact = sim.has("contact");
+  if (pd && has_contact) sim.fail("contact", "only for \"method\": \"mpm\" (peridynamics sets its contact in \"peridynamics\")");
+  {
+    const std::string mode = contact.choice("mode", "stick", {"stick", "separate", "none"});
+    s.mpm.contact.mode = mode == "stick"      ? ObjectContactMode::Stick
+                         : mode == "separate" ? ObjectContactMode::Separate
+                                              : ObjectContactMode::None;
+    s.mpm.contact.friction = Real(contact.number("friction", 0, 0, kHuge));
+    if (contact.has("friction") && mode != "separate")
+      contact.fail("friction", "only with \"mode\": \"separate\" (stick contact has no slip)");
+    contact.finish();
+  }
   {
     JsonObject p = sim.object("peridynamics");
     const double factor = p.number("horizon_factor", 3.015, 1, 8, true);
@@ -435,9 +448,10 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   if (!top.has("objects")) top.fail("objects", "missing required array of objects");
   for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file, pd));
   if (s.objects.empty()) top.fail("objects", "define at least one object");
-  // A-ULMPM: objects in their own configuration maps do not share reference nodes, so they do
-  // not collide with each other (the global-grid contact of the paper's Sec. 7.1 is not
-  // implemented): mixing them with shared-grid objects would silently change the physics.
+  // A-ULMPM: objects in their own configuration maps do not share reference nodes and touch
+  // through the global-grid contact (simulation/contact), shared-grid objects through their one
+  // grid: mixing the two would leave them passing through each other. (An object that should
+  // behave like plain MPM takes "configuration": {"update": "eulerian"}.)
   for (std::size_t k = 0; k < s.objects.size(); ++k)
     if (s.objects[k].has_configuration != s.objects[0].has_configuration) {
       const std::size_t bad = s.objects[0].has_configuration ? k : 0;
@@ -446,6 +460,9 @@ Scene parse_scene(const std::string& text, const std::string& file) {
                        "object must have a \"configuration\" block");
     }
   s.mpm.configuration_maps = s.objects[0].has_configuration;
+  if (has_contact && !s.mpm.configuration_maps)
+    sim.fail("contact", "only for objects with a \"configuration\" block (A-ULMPM); objects on the shared grid "
+                        "already interact through it");
   std::size_t tet_objects = 0;
   double edge_sum = 0, edge_count = 0;
   for (const auto& o : s.objects)

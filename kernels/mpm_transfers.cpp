@@ -461,7 +461,11 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g, const 
           if (n[0] <= 0) continue;
           const Vec3 v0(n[1], n[2], n[3]);
           Vec3 v = v0;
-          const Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
+          Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
+          if (g.q) {  // Lagrangian: the node's current position q_i, as in grid_update
+            const Real* qn = g.q + (leaf * kLeafNodes + std::size_t(leaf_offset(i, j, k))) * 4;
+            if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
+          }
           for (int c = 0; c < prm.ncolliders; ++c) prm.colliders[c].project(xi, t_end, v);
           for (int c = 0; c < 3; ++c) {
             n[1 + c] = v[c];

@@ -33,7 +33,7 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
   int sets = settings_.transfer == Transfer::PicFlip ? 2 : 1;
   if (settings_.configuration_maps) {
     cattr_ = ConfigurationAttributes::add_to(particles_);
-    if (!colliders_.empty()) positions_set_ = sets++;
+    if (!colliders_.empty() || settings_.contact.mode != ObjectContactMode::None) positions_set_ = sets++;
   }
   grid_.set_node4_channels(sets);
 }
@@ -157,6 +157,8 @@ void MpmSolver::update_configurations(const exec::Space& space) {
   if (any || !bins_valid_) {
     sort_particles(space);
     update_grid(space);
+    if (contact_active())
+      contact_.map_leaves(space, grid_, bins_, particles_.int32(cattr_.object));
     bins_valid_ = true;
   }
   maps_.account(reset_flags_, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
@@ -167,7 +169,15 @@ void MpmSolver::update_grid(const exec::Space& space) { grid_.update_topology(sp
 // P2G (one stencil; measured below); PIC/FLIP's 8-lane block already carries its force, so it
 // keeps the separate p2g_positions pass.
 bool MpmSolver::fused_positions() const {
-  return positions_set_ >= 0 && settings_.transfer != Transfer::PicFlip;
+  return positions_needed() && settings_.transfer != Transfer::PicFlip;
+}
+// The node positions q_i are needed for colliders and for contact between objects.
+bool MpmSolver::positions_needed() const {
+  return positions_set_ >= 0 && (!colliders_.empty() || contact_active());
+}
+bool MpmSolver::contact_active() const {
+  return settings_.configuration_maps && settings_.contact.mode != ObjectContactMode::None &&
+         maps_.object_count() > 1;
 }
 
 void MpmSolver::particle_to_grid(const exec::Space& space, Real dt) {
@@ -184,7 +194,7 @@ void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
   MpmStepParams prm = step_params(dt);
   if (settings_.implicit) prm.ncolliders = 0;  // the implicit solve takes the colliders as constraints
   MpmGridView g = grid_view();
-  if (positions_set_ >= 0) {  // Lagrangian: colliders act at the nodes' current positions
+  if (positions_needed()) {  // Lagrangian: colliders act at the nodes' current positions
     if (!fused_positions()) p2g_positions(space, particle_view(), g, prm, grid_.node4(positions_set_));
     g.q = grid_.node4(positions_set_);
   }
@@ -203,7 +213,7 @@ inline Vec3 node_position(const MpmGridView& g, std::size_t d, const Vec3& latti
 
 MpmGridView MpmSolver::grid_view_with_positions() {
   MpmGridView g = grid_view();
-  if (positions_set_ >= 0) g.q = grid_.node4(positions_set_);
+  if (positions_needed()) g.q = grid_.node4(positions_set_);
   return g;
 }
 
@@ -314,6 +324,12 @@ void MpmSolver::solve_grid_velocities(const exec::Space& space, Real dt) {
   // Separating nodes left free by the solve may approach a collider now: one more projection.
   grid_apply_colliders(space, g, step_params(dt));
 }
+void MpmSolver::couple_objects(const exec::Space& space, Real dt) {
+  if (!contact_active()) return;
+  MpmGridView g = grid_view();
+  contact_nodes_ += contact_.apply(space, g, grid_.node4(positions_set_), settings_.contact, settings_.dx, dt);
+}
+
 void MpmSolver::grid_to_particle(const exec::Space& space, Real dt) {
   g2p(space, particle_view(), grid_view(), step_params(dt));
 }
@@ -343,6 +359,7 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
   particle_to_grid(space, dt);
   update_grid_velocities(space, dt);
   if (settings_.implicit) solve_grid_velocities(space, dt);
+  couple_objects(space, dt);
   grid_to_particle(space, dt);
   if (!colliders_.empty()) {
     const Real t_end = Real(time_) + dt;  // the grid update's end-of-substep time (same posed colliders)

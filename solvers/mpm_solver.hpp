@@ -7,6 +7,8 @@
 //   update_grid_velocities  p/m, gravity, forces -> v*; colliders (explicit)  (kernels grid_update)
 //   solve_grid_velocities   implicit only: (M + dt^2 H) v = M v* with the colliders as
 //                    constraints, then friction and separation       (solvers/implicit_system)
+//   couple_objects   A-ULMPM with several objects: contact through a global grid at the
+//                    nodes' positions q_i^{n+1} (eq. 27)                (solvers/object_contact)
 //   grid_to_particle v, C, F update, advection                       (kernels g2p)
 //   collide_particles  push particles that entered a collider back out  (kernels material_update)
 //   update_materials heat sources, return mapping / F reset          (kernels material_update)
@@ -29,6 +31,7 @@
 #include "sparse_grid/binning.hpp"
 #include "solvers/configuration_maps.hpp"
 #include "solvers/implicit_system.hpp"
+#include "solvers/object_contact.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
 namespace amalgam {
@@ -47,6 +50,8 @@ struct MpmSettings {
   // A-ULMPM: every object keeps its own reference configuration (solvers/configuration_maps.hpp)
   // and the transfers run in the kernels' Lagrangian mode. Explicit only.
   bool configuration_maps = false;
+  // A-ULMPM: contact between objects through a global grid (solvers/object_contact.hpp).
+  ObjectContactSettings contact;
 };
 
 // Implicit solves since the counters were last reset (per frame in the runner).
@@ -108,7 +113,12 @@ class MpmSolver {
   void particle_to_grid(const exec::Space& space, Real dt);
   void update_grid_velocities(const exec::Space& space, Real dt);
   void solve_grid_velocities(const exec::Space& space, Real dt);
+  void couple_objects(const exec::Space& space, Real dt);
   void grid_to_particle(const exec::Space& space, Real dt);
+  // Whether couple_objects acts (configuration maps, contact mode not none, two objects or more),
+  // and the reference nodes whose velocity it changed since the start of the run.
+  bool contact_active() const;
+  std::uint64_t contact_nodes() const { return contact_nodes_; }
   void update_materials(const exec::Space& space, Real dt);
   // Whether update_materials has anything to do (plastic, fluid or melting material, heat source).
   bool has_material_update() const { return material_update_; }
@@ -138,6 +148,7 @@ class MpmSolver {
   // substep (valid after update_grid_velocities).
   MpmGridView grid_view_with_positions();
   bool fused_positions() const;  // q_i come out of the momentum P2G (MLS/APIC) instead of p2g_positions
+  bool positions_needed() const;  // q_i are rasterised this substep (colliders or contact)
   MpmStepParams step_params(Real dt) const;
 
  private:
@@ -160,7 +171,9 @@ class MpmSolver {
   ConfigurationMaps maps_;
   std::vector<std::uint8_t> reset_flags_;
   bool bins_valid_ = false;  // Lagrangian mode: bins and topology match X^s
-  int positions_set_ = -1;   // node4 set of the rasterised node positions (Lagrangian + colliders)
+  int positions_set_ = -1;   // node4 set of the rasterised node positions (Lagrangian + colliders/contact)
+  ObjectContact contact_;
+  std::uint64_t contact_nodes_ = 0;
   ParticleBinning binning_;
   BinTable bins_;
   SparseGrid grid_;

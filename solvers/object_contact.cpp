@@ -1,0 +1,99 @@
+#include "solvers/object_contact.hpp"
+
+#include <sstream>
+
+#include "core/errors.hpp"
+
+namespace amalgam {
+
+ObjectContact::ObjectContact() {
+  x_ = points_.add("x", AttrType::Real, 3);
+  v_ = points_.add("v", AttrType::Real, 3);
+  m_ = points_.add("m", AttrType::Real, 1);
+  object_ = points_.add("object", AttrType::Int32, 1);
+  leaf_ = points_.add("leaf", AttrType::Int32, 1);
+  offset_ = points_.add("offset", AttrType::Int32, 1);
+  grid_.set_node4_channels(2);  // (M, P), (K, var)
+}
+
+void ObjectContact::map_leaves(const exec::Space& space, const SparseGrid& ref, const BinTable& bins,
+                               const std::int32_t* particle_object) {
+  leaf_object_.assign(ref.leaf_count(), -1);
+  std::int32_t* lo = leaf_object_.data();
+  const auto& nbr8 = ref.nbr8();
+  const auto& cstart = ref.colour_start();
+  const auto& cbins = ref.colour_bins();
+  struct Conflict {
+    std::int64_t bin = -1;
+    int a = 0, b = 0;
+  };
+  // Same-colour bins reach disjoint leaves: each colour's bins write their leaves in parallel.
+  for (int c = 0; c < 8; ++c) {
+    const std::uint32_t c0 = cstart[size_t(c)], c1 = cstart[size_t(c) + 1];
+    const Conflict bad = exec::parallel_reduce(
+        space, "contact.map_leaves", exec::Index(c1 - c0), Conflict{},
+        [&](exec::Index ci, Conflict& acc) {
+          const std::uint32_t b = cbins[c0 + std::uint32_t(ci)];
+          const std::int32_t k = particle_object[bins.start[b]];
+          for (std::uint32_t p = bins.start[b] + 1; p < bins.start[b + 1]; ++p)
+            if (particle_object[p] != k && acc.bin < 0) acc = {std::int64_t(b), k, particle_object[p]};
+          for (const std::int32_t leaf : nbr8[b]) {
+            std::int32_t& owner = lo[leaf];
+            if (owner >= 0 && owner != k && acc.bin < 0) acc = {std::int64_t(b), owner, k};
+            owner = k;
+          }
+        },
+        [](Conflict x, const Conflict& y) { return x.bin >= 0 ? x : y; });
+    if (bad.bin >= 0) {
+      std::ostringstream os;
+      os << "objects " << bad.a << " and " << bad.b
+         << " reach the same reference-grid leaf: an object moved more than "
+         << "ConfigurationMaps::kLaneCells cells along x from where its configuration was last reset "
+         << "(each object's reference lives in its own lane of the reference grid)";
+      throw SimulationError(os.str());
+    }
+  }
+}
+
+std::size_t ObjectContact::apply(const exec::Space& space, const MpmGridView& ref, const Real* q,
+                                 const ObjectContactSettings& settings, Real dx, Real dt) {
+  if (settings.mode == ObjectContactMode::None) return 0;
+  // 1. collect: a deterministic compaction (count per active leaf, prefix sum, fill).
+  count_.resize(ref.nactive);
+  start_.resize(ref.nactive);
+  contact_count_points(space, ref, count_.data());
+  const std::uint32_t* cnt = count_.data();
+  const std::uint32_t total = exec::parallel_scan<std::uint32_t>(
+      space, "contact.scan", exec::Index(ref.nactive), [cnt](exec::Index i) { return cnt[i]; }, start_.data());
+  points_.resize(total);
+  ContactPointView pts{points_.vec3(x_),     points_.vec3(v_),      points_.real(m_), points_.int32(object_),
+                       points_.int32(leaf_), points_.int32(offset_), points_.size()};
+  contact_collect_points(space, ref, q, leaf_object_.data(), start_.data(), dt, pts);
+  // 2. bin the points by global leaf (quadratic stencils) and activate the global grid.
+  binning_.sort_and_bin(space, points_, x_, dx, 2, bins_);
+  grid_.update_topology(space, bins_);
+  pts = ContactPointView{points_.vec3(x_),     points_.vec3(v_),      points_.real(m_), points_.int32(object_),
+                         points_.int32(leaf_), points_.int32(offset_), points_.size()};
+  MpmGridView g;
+  g.a = grid_.node4(0);
+  g.b = grid_.node4(1);
+  g.nbr8 = grid_.nbr8().data();
+  g.bin_start = bins_.start.data();
+  g.bin_leaf = bins_.leaf.data();
+  g.nbins = bins_.count();
+  g.colour_bins = grid_.colour_bins().data();
+  g.colour_start = grid_.colour_start().data();
+  g.active_leaves = grid_.active_leaves().data();
+  g.nactive = grid_.active_leaves().size();
+  g.leaf_coord = grid_.leaf_coords().data();
+  ObjectContactParams prm;
+  prm.mode = settings.mode;
+  prm.friction = settings.friction;
+  prm.dx = dx;
+  prm.dt = dt;
+  // 3. scatter, 4. gather and correct.
+  contact_scatter(space, pts, g, prm);
+  return contact_gather(space, pts, g, ref, prm);
+}
+
+}  // namespace amalgam

@@ -1,0 +1,52 @@
+// Contact between A-ULMPM objects through a global grid (kernels/object_contact.hpp): owns the
+// contact points (one per reference node with mass), their binning and the global SparseGrid.
+// Per substep, after the grid velocities are final and before G2P:
+//   collect (reference nodes -> points at q^{n+1}) -> bin -> activate global leaves ->
+//   scatter -> gather and correct the reference velocities.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "core/exec/exec.hpp"
+#include "core/particles/particle_set.hpp"
+#include "kernels/object_contact.hpp"
+#include "sparse_grid/binning.hpp"
+#include "sparse_grid/sparse_grid.hpp"
+
+namespace amalgam {
+
+struct ObjectContactSettings {
+  ObjectContactMode mode = ObjectContactMode::Stick;
+  Real friction = 0;  // Coulomb coefficient between objects (separate)
+};
+
+class ObjectContact {
+ public:
+  ObjectContact();
+
+  // After the reference grid's topology changed: which object owns each reference leaf (from
+  // the particles of the bins that reach it). Throws SimulationError when two objects reach the
+  // same reference leaf (an object left its lane: ConfigurationMaps::kLaneCells).
+  void map_leaves(const exec::Space& space, const SparseGrid& ref, const BinTable& bins,
+                  const std::int32_t* particle_object);
+  // Couples the reference-grid velocities (ref.a = (m, v) after the grid update or the implicit
+  // solve; ref.b = v_new - v_old for PIC/FLIP, else null) of different objects. `q` holds the
+  // reference nodes' (m, m q^n). Returns the number of reference nodes whose velocity changed.
+  std::size_t apply(const exec::Space& space, const MpmGridView& ref, const Real* q,
+                    const ObjectContactSettings& settings, Real dx, Real dt);
+
+  const SparseGrid& global_grid() const { return grid_; }
+  std::size_t point_count() const { return points_.size(); }
+
+ private:
+  std::vector<std::int32_t> leaf_object_;
+  std::vector<std::uint32_t> count_, start_;
+  ParticleSet points_;
+  ParticleSet::Id x_ = -1, v_ = -1, m_ = -1, object_ = -1, leaf_ = -1, offset_ = -1;
+  ParticleBinning binning_;
+  BinTable bins_;
+  SparseGrid grid_;
+};
+
+}  // namespace amalgam
