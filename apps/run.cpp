@@ -363,6 +363,11 @@ int run_command(const std::vector<std::string>& args) {
                   << " configuration updates in " << st.steps << " substeps, " << st.update_seconds
                   << " s updating (" << 100.0 * st.update_seconds / wall << " % of the run)\n";
       }
+      if (solver.contact_active())
+        std::cout << "amalgam: contact between objects (" << object_contact_mode_name(scene.mpm.contact.mode)
+                  << ", friction " << scene.mpm.contact.friction << "): " << solver.contact_nodes()
+                  << " reference-node velocity corrections, " << solver.contact_seconds() << " s ("
+                  << 100.0 * solver.contact_seconds() / wall << " % of the run)\n";
     }
     return kOk;
   } catch (const InputError& e) {

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "core/math/bspline.hpp"
 #include "kernels/grid_block.hpp"
@@ -18,33 +19,77 @@ const char* object_contact_mode_name(ObjectContactMode m) {
   return "?";
 }
 
-void contact_count_points(const exec::Space& space, const MpmGridView& ref, std::uint32_t* count) {
+namespace {
+// The contact point of reference node o of a leaf: q_i^{n+1} = q_i^n + dt v_i^{n+1} (eq. 27).
+inline Vec3 point_position(const Real* n, const Real* qn, Real dt) {
+  return Vec3(qn[1], qn[2], qn[3]) / qn[0] + dt * Vec3(n[1], n[2], n[3]);
+}
+}  // namespace
+
+ContactBoxes contact_boxes(const exec::Space& space, const MpmGridView& ref, const Real* q,
+                           const std::int32_t* leaf_object, int objects, Real dt) {
+  ContactBoxes init;
+  init.n = std::min(objects, ContactBoxes::kMax);
+  for (int k = 0; k < init.n; ++k) {
+    init.lo[k] = Vec3::Constant(std::numeric_limits<Real>::max());
+    init.hi[k] = Vec3::Constant(std::numeric_limits<Real>::lowest());
+  }
+  return exec::parallel_reduce(
+      space, "contact.boxes", exec::Index(ref.nactive), init,
+      [&](exec::Index li, ContactBoxes& acc) {
+        const std::int32_t leaf = ref.active_leaves[li];
+        const int k = leaf_object[leaf];
+        const Real* a = ref.a + std::size_t(leaf) * kLeafNodes * 4;
+        const Real* ql = q + std::size_t(leaf) * kLeafNodes * 4;
+        for (int o = 0; o < kLeafNodes; ++o) {
+          if (!(a[o * 4] > 0)) continue;
+          const Vec3 x = point_position(a + o * 4, ql + o * 4, dt);
+          acc.lo[k] = acc.lo[k].cwiseMin(x);
+          acc.hi[k] = acc.hi[k].cwiseMax(x);
+        }
+      },
+      [](ContactBoxes x, const ContactBoxes& y) {
+        for (int k = 0; k < x.n; ++k) {
+          x.lo[k] = x.lo[k].cwiseMin(y.lo[k]);
+          x.hi[k] = x.hi[k].cwiseMax(y.hi[k]);
+        }
+        return x;
+      });
+}
+
+void contact_count_points(const exec::Space& space, const MpmGridView& ref, const Real* q,
+                          const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin, Real dt,
+                          std::uint32_t* count) {
   exec::parallel_for(space, "contact.count", exec::Index(ref.nactive), [&](exec::Index li) {
-    const Real* a = ref.a + std::size_t(ref.active_leaves[li]) * kLeafNodes * 4;
+    const std::int32_t leaf = ref.active_leaves[li];
+    const int k = leaf_object[leaf];
+    const Real* a = ref.a + std::size_t(leaf) * kLeafNodes * 4;
+    const Real* ql = q + std::size_t(leaf) * kLeafNodes * 4;
     std::uint32_t c = 0;
-    for (int o = 0; o < kLeafNodes; ++o) c += a[o * 4] > 0 ? 1u : 0u;
+    for (int o = 0; o < kLeafNodes; ++o)
+      if (a[o * 4] > 0 && boxes.near_other(point_position(a + o * 4, ql + o * 4, dt), k, margin)) ++c;
     count[li] = c;
   });
 }
 
 void contact_collect_points(const exec::Space& space, const MpmGridView& ref, const Real* q,
-                            const std::int32_t* leaf_object, const std::uint32_t* start, Real dt,
-                            const ContactPointView& out) {
+                            const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin, Real dt,
+                            const std::uint32_t* start, const ContactPointView& out) {
   exec::parallel_for(space, "contact.collect", exec::Index(ref.nactive), [&](exec::Index li) {
     const std::int32_t leaf = ref.active_leaves[li];
+    const int k = leaf_object[leaf];
     const Real* a = ref.a + std::size_t(leaf) * kLeafNodes * 4;
     const Real* ql = q + std::size_t(leaf) * kLeafNodes * 4;
     std::size_t p = start[li];
     for (int o = 0; o < kLeafNodes; ++o) {
       const Real* n = a + o * 4;
       if (!(n[0] > 0)) continue;
-      const Real* qn = ql + o * 4;
-      const Vec3 v(n[1], n[2], n[3]);
-      // eq. 27: q_i^{n+1} = q_i^n + dt v_i^{n+1}
-      out.x[p] = Vec3(qn[1], qn[2], qn[3]) / qn[0] + dt * v;
-      out.v[p] = v;
+      const Vec3 x = point_position(n, ql + o * 4, dt);
+      if (!boxes.near_other(x, k, margin)) continue;
+      out.x[p] = x;
+      out.v[p] = Vec3(n[1], n[2], n[3]);
       out.m[p] = n[0];
-      out.object[p] = leaf_object[leaf];
+      out.object[p] = k;
       out.leaf[p] = leaf;
       out.offset[p] = o;
       ++p;

@@ -326,8 +326,9 @@ void MpmSolver::solve_grid_velocities(const exec::Space& space, Real dt) {
 }
 void MpmSolver::couple_objects(const exec::Space& space, Real dt) {
   if (!contact_active()) return;
-  MpmGridView g = grid_view();
-  contact_nodes_ += contact_.apply(space, g, grid_.node4(positions_set_), settings_.contact, settings_.dx, dt);
+  const auto t0 = std::chrono::steady_clock::now();
+  contact_nodes_ += contact_.apply(space, grid_view(), grid_.node4(positions_set_), settings_.contact, settings_.dx, dt);
+  contact_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
 void MpmSolver::grid_to_particle(const exec::Space& space, Real dt) {

@@ -119,6 +119,7 @@ class MpmSolver {
   // and the reference nodes whose velocity it changed since the start of the run.
   bool contact_active() const;
   std::uint64_t contact_nodes() const { return contact_nodes_; }
+  double contact_seconds() const { return contact_seconds_; }  // wall time in couple_objects
   void update_materials(const exec::Space& space, Real dt);
   // Whether update_materials has anything to do (plastic, fluid or melting material, heat source).
   bool has_material_update() const { return material_update_; }
@@ -174,6 +175,7 @@ class MpmSolver {
   int positions_set_ = -1;   // node4 set of the rasterised node positions (Lagrangian + colliders/contact)
   ObjectContact contact_;
   std::uint64_t contact_nodes_ = 0;
+  double contact_seconds_ = 0;
   ParticleBinning binning_;
   BinTable bins_;
   SparseGrid grid_;

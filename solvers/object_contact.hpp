@@ -41,6 +41,11 @@ class ObjectContact {
 
  private:
   std::vector<std::int32_t> leaf_object_;
+  int objects_ = 0;  // 1 + the largest object index on the reference grid
+  // The reference grid's active leaves by coordinate: the points' order (hence the global
+  // scatter's summation order) must not depend on the leaf table's history, or a run resumed
+  // from a checkpoint (fresh leaf table) would differ in the last bits.
+  std::vector<std::int32_t> ordered_leaves_;
   std::vector<std::uint32_t> count_, start_;
   ParticleSet points_;
   ParticleSet::Id x_ = -1, v_ = -1, m_ = -1, object_ = -1, leaf_ = -1, offset_ = -1;
