@@ -34,8 +34,10 @@ void backend_args(benchmark::internal::Benchmark* b) {
 // A solver after one full substep, sorted and with topology built: ready for P2G/G2P.
 // lagrangian: A-ULMPM, one total-Lagrangian object (binned by X^s once; Lagrangian-mode kernels).
 std::unique_ptr<MpmSolver> prepared(Transfer t, int order, const exec::Space& space, bool lagrangian = false,
-                                    ConfigurationUpdate update = ConfigurationUpdate::TotalLagrangian) {
+                                    ConfigurationUpdate update = ConfigurationUpdate::TotalLagrangian,
+                                    int objects = 1) {
   BenchSceneOptions o;
+  o.objects = objects;
   o.policy.update = update;
   o.policy.epsilon = Real(100);  // adaptive: evaluates the criterion every substep, never resets
   o.particles = kParticles;
@@ -114,6 +116,18 @@ void BM_AulConfigurationCheck(benchmark::State& st) {
   auto s = prepared(Transfer::Mls, 2, space, true, ConfigurationUpdate::Adaptive);
   for (auto _ : st) s->update_configurations(space);
   set_items(st, kParticles, sizeof(Mat3));
+}
+
+// Contact between objects through the global grid (solvers/object_contact): the sphere split
+// into two total-Lagrangian halves touching at x = 0.5 (stick). One iteration = the whole
+// couple_objects phase (broad phase, collect, sort the points, activate the global grid,
+// scatter, gather); items are particles, to compare with the transfers.
+void BM_ObjectContact(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = prepared(Transfer::Mls, 2, space, true, ConfigurationUpdate::TotalLagrangian, 2);
+  for (auto _ : st) s->couple_objects(space, Real(1e-4));
+  st.counters["contact_points"] = double(s->contact_point_count());
+  set_items(st, kParticles, 0);
 }
 
 void BM_GridUpdate(benchmark::State& st) {
@@ -350,6 +364,7 @@ BENCHMARK_CAPTURE(BM_AulG2P, mls_quadratic, Transfer::Mls)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_AulG2P, flip_quadratic, Transfer::PicFlip)->Apply(backend_args);
 BENCHMARK(BM_AulGridUpdate)->Apply(backend_args);
 BENCHMARK(BM_AulConfigurationCheck)->Apply(backend_args);
+BENCHMARK(BM_ObjectContact)->Apply(backend_args);
 BENCHMARK(BM_ImplicitOperator)->Apply(backend_args);
 BENCHMARK(BM_CgIteration)->Apply(backend_args);
 BENCHMARK(BM_ImplicitAssemble)->Apply(backend_args);

@@ -32,8 +32,14 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
     if (p.squaredNorm() <= 1.0) x.push_back((Vec3d::Constant(0.5) + r * p).cast<Real>());
   }
   const Real vol = Real(4.0 / 3.0 * M_PI * r * r * r / double(o.particles));
-  solver.add_particles(x, Vec3(0, Real(-1), 0), Vec3(0, Real(2), Real(1)), Vec3::Constant(Real(0.5)), 0, vol, 0,
-                       o.policy);
+  const Vec3 v0(0, Real(-1), 0), omega(0, Real(2), Real(1)), centre = Vec3::Constant(Real(0.5));
+  if (o.lagrangian && o.objects == 2) {
+    std::vector<Vec3> halves[2];
+    for (const Vec3& p : x) halves[p[0] < Real(0.5) ? 0 : 1].push_back(p);
+    for (const auto& h : halves) solver.add_particles(h, v0, omega, centre, 0, vol, 0, o.policy);
+  } else {
+    solver.add_particles(x, v0, omega, centre, 0, vol, 0, o.policy);
+  }
   return solver;
 }
 

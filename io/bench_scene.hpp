@@ -17,6 +17,8 @@ struct BenchSceneOptions {
   // A-ULMPM: the sphere as one object with this configuration policy (Lagrangian-mode kernels)
   bool lagrangian = false;
   ConfigurationPolicy policy{ConfigurationUpdate::TotalLagrangian};
+  // A-ULMPM only: 2 splits the sphere at x = 0.5 into two objects in contact (same particles).
+  int objects = 1;
 };
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o);

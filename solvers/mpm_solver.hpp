@@ -120,6 +120,7 @@ class MpmSolver {
   bool contact_active() const;
   std::uint64_t contact_nodes() const { return contact_nodes_; }
   double contact_seconds() const { return contact_seconds_; }  // wall time in couple_objects
+  std::size_t contact_point_count() const { return contact_.point_count(); }  // points of the last substep
   void update_materials(const exec::Space& space, Real dt);
   // Whether update_materials has anything to do (plastic, fluid or melting material, heat source).
   bool has_material_update() const { return material_update_; }

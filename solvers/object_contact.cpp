@@ -89,13 +89,16 @@ std::size_t ObjectContact::apply(const exec::Space& space, const MpmGridView& re
   const std::uint32_t* cnt = count_.data();
   const std::uint32_t total = exec::parallel_scan<std::uint32_t>(
       space, "contact.scan", exec::Index(ref.nactive), [cnt](exec::Index i) { return cnt[i]; }, start_.data());
-  if (total == 0) return 0;  // objects apart: no global grid this substep
   points_.resize(total);
+  if (total == 0) return 0;  // objects apart: no global grid this substep
   ContactPointView pts{points_.vec3(x_),     points_.vec3(v_),      points_.real(m_), points_.int32(object_),
                        points_.int32(leaf_), points_.int32(offset_), points_.size()};
   contact_collect_points(space, ref, q, leaf_object_.data(), boxes, margin, dt, start_.data(), pts);
   // 2. bin the points by global leaf (quadratic stencils) and activate the global grid.
-  binning_.sort_and_bin(space, points_, x_, dx, 2, bins_);
+  {
+    exec::ScopedRegion region(space.profiler(), "contact.sort");
+    binning_.sort_and_bin(space, points_, x_, dx, 2, bins_);
+  }
   grid_.update_topology(space, bins_);
   pts = ContactPointView{points_.vec3(x_),     points_.vec3(v_),      points_.real(m_), points_.int32(object_),
                          points_.int32(leaf_), points_.int32(offset_), points_.size()};

@@ -112,6 +112,9 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
   hist_.resize(size_t(nchunks) * kRadix);
   for (int pass = 0; pass < passes; ++pass) {
     const int shift = pass * kDigitBits;
+    // Digits this pass can take (keys < nkeys): the histogram and its serial prefix cover only
+    // these, not all 2^11 (a small grid's sort was dominated by the 64 x 2048 prefix).
+    const std::uint32_t ndig = std::uint32_t(std::min<std::int64_t>(kRadix, ((nkeys - 1) >> shift) + 1));
     std::uint32_t* hist = hist_.data();
     const std::uint32_t* kin = keys_.data();
     const std::uint32_t* pin = perm_.data();
@@ -119,13 +122,13 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
     std::uint32_t* pout = perm_tmp_.data();
     exec::parallel_for(space, "bin.radix_hist", nchunks, [=](exec::Index c) {
       std::uint32_t* h = hist + size_t(c) * kRadix;
-      std::fill(h, h + kRadix, 0u);
+      std::fill(h, h + ndig, 0u);
       const exec::Index e = std::min(n, (c + 1) * chunk);
       for (exec::Index i = c * chunk; i < e; ++i) ++h[(kin[i] >> shift) & (kRadix - 1)];
     }, 1);
     // Exclusive offsets in (digit, chunk) order: stable.
     std::uint32_t running = 0;
-    for (std::uint32_t d = 0; d < kRadix; ++d)
+    for (std::uint32_t d = 0; d < ndig; ++d)
       for (exec::Index c = 0; c < nchunks; ++c) {
         std::uint32_t& h = hist[size_t(c) * kRadix + d];
         const std::uint32_t cnt = h;

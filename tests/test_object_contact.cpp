@@ -104,7 +104,9 @@ TEST(ObjectContact, HeadOnCubesCollideInsteadOfPassingThrough) {
     EXPECT_LT(max_px / p0, 1e-4) << what << ": momentum not conserved";
     EXPECT_LT(b.va, 0.0) << what << ": object 0 must move back after the impact";
     EXPECT_GT(b.vb, 0.0) << what;
-    if (std::string(c.mode) == "separate") EXPECT_GT(-b.va / c.v0, 0.4) << what << ": restitution";
+    if (std::string(c.mode) == "separate") {
+      EXPECT_GT(-b.va / c.v0, 0.4) << what << ": restitution";
+    }
   }
 }
 
