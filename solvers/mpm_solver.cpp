@@ -157,7 +157,9 @@ void MpmSolver::update_configurations(const exec::Space& space) {
   if (any || !bins_valid_) {
     sort_particles(space);
     update_grid(space);
-    if (contact_active())
+    // Which object owns each reference leaf (for the contact), and the check that no two
+    // objects share reference nodes (an object that left its lane), with or without contact.
+    if (maps_.object_count() > 1)
       contact_.map_leaves(space, grid_, bins_, particles_.int32(cattr_.object));
     bins_valid_ = true;
   }

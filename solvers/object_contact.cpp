@@ -5,6 +5,7 @@
 #include <stdexcept>
 
 #include "core/errors.hpp"
+#include "solvers/configuration_maps.hpp"
 
 namespace amalgam {
 
@@ -63,10 +64,12 @@ void ObjectContact::map_leaves(const exec::Space& space, const SparseGrid& ref, 
     objects_ = std::max(objects_, bad.objects);
     if (bad.bin >= 0) {
       std::ostringstream os;
-      os << "objects " << bad.a << " and " << bad.b
-         << " reach the same reference-grid leaf: an object moved more than "
-         << "ConfigurationMaps::kLaneCells cells along x from where its configuration was last reset "
-         << "(each object's reference lives in its own lane of the reference grid)";
+      os << "objects " << std::min(bad.a, bad.b) << " and " << std::max(bad.a, bad.b)
+         << " reach the same reference-grid leaf: each object's reference configuration lives in its "
+         << "own lane of " << ConfigurationMaps::kLaneCells
+         << " cells along x, and an object is now more than that from where its configuration was last "
+         << "reset (let it reset: \"update\": \"adaptive\" or \"eulerian\", or start the objects closer "
+         << "together)";
       throw SimulationError(os.str());
     }
   }

@@ -201,3 +201,27 @@ TEST(ObjectContact, SceneKeys) {
   EXPECT_THROW(head_on(R"({"mode": "stick", "friction": 0.3})"), InputError);
   EXPECT_THROW(head_on(R"({"friction": -1, "mode": "separate"})"), InputError);
 }
+
+// Objects keep their references in lanes 2048 cells apart along x: an object 2048 cells to the
+// left of another lands in the other's lane. That is an error naming both, with or without
+// contact (sharing reference nodes would couple them at their reference positions).
+TEST(ObjectContact, ObjectsSharingALaneAreAnError) {
+  for (const char* mode : {"stick", "none"}) {
+    const std::string text = std::string(R"({
+      "simulation": {"dx": 0.01, "frames": 1, "contact": {"mode": ")") + mode + R"("}},
+      "materials": {"rubber": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 2e4, "poisson_ratio": 0.3}},
+      "objects": [{"shape": "box", "min": [0.5, 0.5, 0.5], "max": [0.6, 0.6, 0.6], "material": "rubber",
+                   "configuration": {"update": "total_lagrangian"}},
+                  {"shape": "box", "min": [-19.96, 0.5, 0.5], "max": [-19.86, 0.6, 0.6], "material": "rubber",
+                   "configuration": {"update": "total_lagrangian"}}]})";
+    MpmSolver s = build_solver(parse_scene(text, "lanes.json"));
+    const exec::Space space(exec::Backend::Serial, 1);
+    try {
+      s.step(space, Real(1e-4));
+      ADD_FAILURE() << mode << ": expected a SimulationError";
+    } catch (const SimulationError& e) {
+      EXPECT_NE(std::string(e.what()).find("objects 0 and 1 reach the same reference-grid leaf"), std::string::npos)
+          << e.what();
+    }
+  }
+}
