@@ -17,6 +17,22 @@ const char* transfer_name(Transfer t) {
   return "?";
 }
 
+MpmGridView make_grid_view(const SparseGrid& grid, const BinTable& bins, Real* a, Real* b) {
+  MpmGridView g;
+  g.a = a;
+  g.b = b;
+  g.nbr8 = grid.nbr8().data();
+  g.bin_start = bins.start.data();
+  g.bin_leaf = bins.leaf.data();
+  g.nbins = bins.count();
+  g.colour_bins = grid.colour_bins().data();
+  g.colour_start = grid.colour_start().data();
+  g.active_leaves = grid.active_leaves().data();
+  g.nactive = grid.active_leaves().size();
+  g.leaf_coord = grid.leaf_coords().data();
+  return g;
+}
+
 namespace {
 
 // Private scatter/gather block of (8 + Order)^3 nodes x CH channels (kernels/grid_block.hpp).

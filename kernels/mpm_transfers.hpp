@@ -73,6 +73,10 @@ struct MpmGridView {
   Real* q_out = nullptr;
 };
 
+class SparseGrid;
+// The view of `grid`'s tables and `bins` with the given channel sets (b may be null).
+MpmGridView make_grid_view(const SparseGrid& grid, const BinTable& bins, Real* a, Real* b);
+
 struct MpmStepParams {
   Transfer transfer = Transfer::Mls;
   int order = 2;  // B-spline order: 2 quadratic, 3 cubic

@@ -103,19 +103,8 @@ MpmParticleView MpmSolver::particle_view() {
 }
 
 MpmGridView MpmSolver::grid_view() {
-  MpmGridView g;
-  g.a = grid_.node4(0);
-  g.b = settings_.transfer == Transfer::PicFlip ? grid_.node4(1) : nullptr;
-  g.nbr8 = grid_.nbr8().data();
-  g.bin_start = bins_.start.data();
-  g.bin_leaf = bins_.leaf.data();
-  g.nbins = bins_.count();
-  g.colour_bins = grid_.colour_bins().data();
-  g.colour_start = grid_.colour_start().data();
-  g.active_leaves = grid_.active_leaves().data();
-  g.nactive = grid_.active_leaves().size();
-  g.leaf_coord = grid_.leaf_coords().data();
-  return g;
+  return make_grid_view(grid_, bins_, grid_.node4(0),
+                        settings_.transfer == Transfer::PicFlip ? grid_.node4(1) : nullptr);
 }
 
 const Collider* MpmSolver::colliders_at(Real t) const {

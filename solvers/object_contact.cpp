@@ -75,6 +75,11 @@ void ObjectContact::map_leaves(const exec::Space& space, const SparseGrid& ref, 
   }
 }
 
+ContactPointView ObjectContact::point_view() {
+  return {points_.vec3(x_),     points_.vec3(v_),      points_.real(m_), points_.int32(object_),
+          points_.int32(leaf_), points_.int32(offset_), points_.size()};
+}
+
 std::size_t ObjectContact::apply(const exec::Space& space, const MpmGridView& ref_view, const Real* q,
                                  const ObjectContactSettings& settings, Real dx, Real dt) {
   if (settings.mode == ObjectContactMode::None) return 0;
@@ -94,8 +99,7 @@ std::size_t ObjectContact::apply(const exec::Space& space, const MpmGridView& re
       space, "contact.scan", exec::Index(ref.nactive), [cnt](exec::Index i) { return cnt[i]; }, start_.data());
   points_.resize(total);
   if (total == 0) return 0;  // objects apart: no global grid this substep
-  ContactPointView pts{points_.vec3(x_),     points_.vec3(v_),      points_.real(m_), points_.int32(object_),
-                       points_.int32(leaf_), points_.int32(offset_), points_.size()};
+  ContactPointView pts = point_view();
   contact_collect_points(space, ref, q, leaf_object_.data(), boxes, margin, dt, start_.data(), pts);
   // 2. bin the points by global leaf (quadratic stencils) and activate the global grid.
   {
@@ -103,20 +107,8 @@ std::size_t ObjectContact::apply(const exec::Space& space, const MpmGridView& re
     binning_.sort_and_bin(space, points_, x_, dx, 2, bins_);
   }
   grid_.update_topology(space, bins_);
-  pts = ContactPointView{points_.vec3(x_),     points_.vec3(v_),      points_.real(m_), points_.int32(object_),
-                         points_.int32(leaf_), points_.int32(offset_), points_.size()};
-  MpmGridView g;
-  g.a = grid_.node4(0);
-  g.b = grid_.node4(1);
-  g.nbr8 = grid_.nbr8().data();
-  g.bin_start = bins_.start.data();
-  g.bin_leaf = bins_.leaf.data();
-  g.nbins = bins_.count();
-  g.colour_bins = grid_.colour_bins().data();
-  g.colour_start = grid_.colour_start().data();
-  g.active_leaves = grid_.active_leaves().data();
-  g.nactive = grid_.active_leaves().size();
-  g.leaf_coord = grid_.leaf_coords().data();
+  pts = point_view();  // permuted by the sort
+  const MpmGridView g = make_grid_view(grid_, bins_, grid_.node4(0), grid_.node4(1));
   ObjectContactParams prm;
   prm.mode = settings.mode;
   prm.friction = settings.friction;

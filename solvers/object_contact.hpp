@@ -40,6 +40,7 @@ class ObjectContact {
   std::size_t point_count() const { return points_.size(); }
 
  private:
+  ContactPointView point_view();
   std::vector<std::int32_t> leaf_object_;
   int objects_ = 0;  // 1 + the largest object index on the reference grid
   // The reference grid's active leaves by coordinate: the points' order (hence the global
