@@ -69,7 +69,9 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
   const Real inv_dx = Real(1) / dx;
   const Vec3* x = ps.vec3(x_id);
 
-  const LeafBox box = order == 3 ? leaf_box<3>(space, x, n, inv_dx) : leaf_box<2>(space, x, n, inv_dx);
+  const LeafBox box = order == 3   ? leaf_box<3>(space, x, n, inv_dx)
+                      : order == 1 ? leaf_box<1>(space, x, n, inv_dx)
+                                   : leaf_box<2>(space, x, n, inv_dx);
   if (box.first_bad >= 0) {
     const Vec3 xb = x[box.first_bad];
     throw SimulationError("particle " + std::to_string(box.first_bad) + " has a non-finite or runaway position (" +
@@ -100,6 +102,7 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
       });
     };
     if (order == 3) key_pass(std::integral_constant<int, 3>{});
+    else if (order == 1) key_pass(std::integral_constant<int, 1>{});
     else key_pass(std::integral_constant<int, 2>{});
   }
 

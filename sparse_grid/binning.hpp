@@ -25,7 +25,7 @@ class ParticleBinning {
  public:
   // keys, keys_tmp, perm, perm_tmp, flags: five 32-bit words per particle.
   static constexpr std::size_t kScratchBytesPerParticle = 5 * sizeof(std::uint32_t);
-  // `order` is the B-spline order (2 or 3) whose stencil base defines the key.
+  // `order` is the B-spline order (1, 2 or 3) whose stencil base defines the key.
   // Sorts `ps` in place by leaf key (attribute `x_id` holds positions), fills `bins`.
   // Throws SimulationError naming the first particle whose position is not finite.
   void sort_and_bin(const exec::Space& space, ParticleSet& ps, ParticleSet::Id x_id, Real dx, int order,

@@ -10,6 +10,7 @@
 
 #include "core/errors.hpp"
 #include "io/scene.hpp"
+#include "test_shapes.hpp"
 #include "test_util.hpp"
 
 using namespace amalgam;
@@ -344,30 +345,8 @@ TEST(AulMpm, BitwiseIdenticalOnEveryBackend) {
 }
 
 namespace {
-// Mean distance of the particles from their rest positions after the best rigid alignment
-// (Kabsch: centroids matched, rotation from the SVD of the cross-covariance), by stable id.
-double rest_shape_deviation(const std::vector<Vec3d>& rest, const std::vector<Vec3d>& now) {
-  Vec3d cr = Vec3d::Zero(), cn = Vec3d::Zero();
-  for (size_t p = 0; p < rest.size(); ++p) cr += rest[p], cn += now[p];
-  cr /= double(rest.size()), cn /= double(rest.size());
-  Mat3d H = Mat3d::Zero();
-  for (size_t p = 0; p < rest.size(); ++p) H += (now[p] - cn) * (rest[p] - cr).transpose();
-  Eigen::JacobiSVD<Mat3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Mat3d D = Mat3d::Identity();
-  D(2, 2) = (svd.matrixV() * svd.matrixU().transpose()).determinant() < 0 ? -1 : 1;
-  const Mat3d R = svd.matrixV() * D * svd.matrixU().transpose();  // rotates now onto rest
-  double sum = 0;
-  for (size_t p = 0; p < rest.size(); ++p) sum += (R * (now[p] - cn) + cr - rest[p]).norm();
-  return sum / double(rest.size());
-}
-
-std::vector<Vec3d> positions_by_id(const MpmSolver& s) {
-  const auto& ps = s.particles();
-  std::vector<Vec3d> out(ps.size());
-  for (size_t p = 0; p < ps.size(); ++p)
-    out[size_t(ps.int32(s.attributes().id)[p])] = ps.vec3(s.attributes().x)[p].cast<double>();
-  return out;
-}
+using test::positions_by_id;
+using test::rest_shape_deviation;
 
 struct TwistRun {
   double deviation = 0, twisted = 0;  // mean rest-shape deviation at the end and at the release

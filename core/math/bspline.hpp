@@ -1,5 +1,7 @@
-// Quadratic and cubic B-spline interpolation stencils of MPM (course report, "inter_weight").
+// Linear, quadratic and cubic B-spline interpolation stencils of MPM (course report,
+// "inter_weight"; linear: enriched MPM eqs. 2-3, the domain corners' weights).
 // Node i sits at x_i = i dx. A particle's stencil covers nodes base .. base + Order per axis:
+//   linear    (Order 1): base = floor(x/dx),       2 nodes (no APIC/MLS scale: unused)
 //   quadratic (Order 2): base = floor(x/dx - 1/2), 3 nodes, D_p^{-1} = 4/dx^2 (APIC/MLS)
 //   cubic     (Order 3): base = floor(x/dx) - 1,   4 nodes, D_p^{-1} = 3/dx^2
 // Both keep the stencil inside the particle's leaf and its +1 neighbours (base & 7 <= 7, base+3
@@ -14,6 +16,20 @@ namespace amalgam {
 
 template <int Order>
 struct BSpline;
+
+template <>
+struct BSpline<1> {
+  static constexpr int kNodes = 2;
+  static constexpr Real kDinvScale = 0;  // not an APIC/MLS stencil
+  static int base(Real xs) { return int(std::floor(xs)); }
+  // fx = x/dx - base in [0, 1): hat function omega(x) = 1 - |x| (eq. 3).
+  static void eval(Real fx, Real* w, Real* dw) {
+    w[0] = 1 - fx;
+    w[1] = fx;
+    dw[0] = -1;
+    dw[1] = 1;
+  }
+};
 
 template <>
 struct BSpline<2> {
