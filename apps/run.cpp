@@ -49,9 +49,13 @@ const char* kRunHelp =
 std::array<double, 5> kernel_groups(const exec::Profiler& p) {
   std::array<double, 5> g{};
   for (const auto& r : p.regions()) {
-    if (r.label == "mpm.p2g")
+    // Particle domains: particle -> corner -> grid is the P2G side, grid -> corner -> particle
+    // (with the corner collisions and the advection) the G2P side.
+    if (r.label == "mpm.p2g" || r.label == "domain.p2c" || r.label == "domain.points_to_grid" ||
+        r.label == "domain.stress")
       g[0] += r.seconds;
-    else if (r.label == "mpm.g2p")
+    else if (r.label == "mpm.g2p" || r.label == "domain.grid_to_corners" || r.label == "domain.c2p" ||
+             r.label == "domain.collide_corners" || r.label.rfind("domain.advect", 0) == 0)
       g[1] += r.seconds;
     else if (r.label.rfind("bin.", 0) == 0 || r.label == "particles.permute")
       g[2] += r.seconds;
@@ -166,7 +170,23 @@ int run_command(const std::vector<std::string>& args) {
     const bool preview = o.flag("--preview");
     const Camera camera = preview_camera(scene);
     const double splat = preview_radius(scene), floor_y = preview_floor(scene);
+    std::vector<Vec3> surf_vertices;
+    std::vector<std::array<std::uint32_t, 3>> surf_triangles;
+    std::vector<std::uint8_t> surf_crack;
     auto write_frame = [&](int f) {
+      // Enriched MPM: the meshes embedded in the particle domains, deformed (Sec. 4.1).
+      if (solver.domains().has_surface() && (scene.output.surface_obj || scene.output.surface_ply)) {
+        solver.domains().surface(solver.particles().int32(solver.domain_attributes().corners), surf_vertices,
+                                 surf_triangles);
+        surf_crack.assign(surf_triangles.size(), 0);
+        char name[64];
+        for (const char* ext : {"obj", "ply"}) {
+          if (!(ext[0] == 'o' ? scene.output.surface_obj : scene.output.surface_ply)) continue;
+          std::snprintf(name, sizeof name, "/frame_%04d_surface.%s", f, ext);
+          if (ext[0] == 'o') write_surface_obj(out_dir + name, surf_vertices, surf_triangles, surf_crack);
+          else write_surface_ply(out_dir + name, surf_vertices, surf_triangles, surf_crack);
+        }
+      }
       if (preview)
         write_png(frame_path(f, "png").replace(frame_path(f, "png").rfind("frame_"), 6, "preview_"),
                   render_particles(solver.particles(), solver.attributes(), camera, splat,
@@ -219,12 +239,13 @@ int run_command(const std::vector<std::string>& args) {
     const int max_retries =
         o.get("--retries") ? parse_int("--retries", *o.get("--retries"), 0, 10) : 3;
     const Real cfl0 = scene.mpm.cfl;
-    ParticleSet::Snapshot snapshot;
+    MpmSolver::Snapshot snapshot;
     const bool tty = isatty(fileno(stdout));
     const auto t_start = std::chrono::steady_clock::now();
     long long total_substeps = 0;
     std::array<double, 5> groups_before = kernel_groups(profiler);
     double wall_before = 0;
+    double enriched_sum = 0, enriched_max = 0;  // particle domains: enriched particle fraction
     for (int f = first_frame; f <= scene.frames; ++f) {
       const double t_frame_end = double(f) / scene.fps;
       long long substeps = 0;
@@ -232,8 +253,9 @@ int run_command(const std::vector<std::string>& args) {
       // Adaptive retry: the frame's starting state, restored if the stability guard trips.
       const double t_frame_start = solver.time();
       const std::uint64_t steps_frame_start = solver.step_count();
-      if (max_retries > 0) solver.particles().save(snapshot);
+      if (max_retries > 0) solver.save(snapshot);
       solver.reset_implicit_counters();
+      solver.domains().reset_counters();
       for (int attempt = 0;; ++attempt) {
         try {
           // Tolerance covers the rounding of dt to Real; it is far below any physical substep.
@@ -274,10 +296,11 @@ int run_command(const std::vector<std::string>& args) {
           std::cerr << "amalgam: warning: frame " << f << ": " << e.what()
                     << "\namalgam: retrying frame " << f << " from its start with cfl = " << cfl
                     << " (retry " << attempt + 1 << " of " << max_retries << ")\n";
-          solver.particles().restore(snapshot);
+          solver.restore(snapshot);
           solver.restore_clock(t_frame_start, steps_frame_start);
           solver.set_cfl(cfl);
           solver.reset_implicit_counters();
+          solver.domains().reset_counters();
           step_rows.clear();
           substeps = 0;
         }
@@ -296,6 +319,15 @@ int run_command(const std::vector<std::string>& args) {
       row.sort_s = groups[2] - groups_before[2];
       row.grid_s = groups[3] - groups_before[3];
       row.solve_s = groups[4] - groups_before[4];
+      if (scene.mpm.domains.enabled) {
+        const DomainCounters& dc = solver.domains().counters();
+        row.enriched_fraction = dc.steps ? dc.enriched_fraction_sum / double(dc.steps) : 0.0;
+        row.transitional_fraction = dc.steps ? dc.transitional_fraction_sum / double(dc.steps) : 0.0;
+        row.max_enriched_fraction = dc.max_enriched_fraction;
+        row.enriched_corners = dc.last_enriched_corners;
+        enriched_sum += row.enriched_fraction;
+        enriched_max = std::max(enriched_max, dc.max_enriched_fraction);
+      }
       row.other_s = std::max(0.0, (wall - wall_before) - row.p2g_s - row.g2p_s - row.sort_s -
                                       row.grid_s - row.solve_s);
       const ImplicitCounters& ic = solver.implicit_counters();
@@ -363,6 +395,11 @@ int run_command(const std::vector<std::string>& args) {
                   << " configuration updates in " << st.steps << " substeps, " << st.update_seconds
                   << " s updating (" << 100.0 * st.update_seconds / wall << " % of the run)\n";
       }
+      if (scene.mpm.domains.enabled)
+        std::cout << "amalgam: particle domains: " << solver.domains().corner_count() << " corners; enriched "
+                  << "particles " << 100.0 * enriched_sum / double(std::max(1, scene.frames - first_frame + 1))
+                  << " % on average over frames, at most " << 100.0 * enriched_max << " % in a substep"
+                  << (scene.mpm.domains.enrichment ? "" : " (enrichment off)") << "\n";
       if (solver.contact_active())
         std::cout << "amalgam: contact between objects (" << object_contact_mode_name(scene.mpm.contact.mode)
                   << ", friction " << scene.mpm.contact.friction << "): " << solver.contact_nodes()

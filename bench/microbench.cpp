@@ -33,9 +33,9 @@ void backend_args(benchmark::internal::Benchmark* b) {
 
 // A solver after one full substep, sorted and with topology built: ready for P2G/G2P.
 // lagrangian: A-ULMPM, one total-Lagrangian object (binned by X^s once; Lagrangian-mode kernels).
-std::unique_ptr<MpmSolver> prepared(Transfer t, int order, const exec::Space& space, bool lagrangian = false,
-                                    ConfigurationUpdate update = ConfigurationUpdate::TotalLagrangian,
-                                    int objects = 1) {
+std::unique_ptr<MpmSolver> prepared(
+    Transfer t, int order, const exec::Space& space, bool lagrangian = false,
+    ConfigurationUpdate update = ConfigurationUpdate::TotalLagrangian, int objects = 1) {
   BenchSceneOptions o;
   o.objects = objects;
   o.policy.update = update;
@@ -130,6 +130,70 @@ void BM_ObjectContact(benchmark::State& st) {
   set_items(st, kParticles, 0);
 }
 
+// Enriched MPM (solvers/particle_domains) on the sphere sampled on a lattice with particle domains
+// (about kParticles particles, spacing dx / 2: 8 domains per cell), after two substeps.
+std::unique_ptr<MpmSolver> prepared_domains(const exec::Space& space, bool implicit = false) {
+  BenchSceneOptions o;
+  o.particles = kParticles;
+  o.dx = Real(2 * std::cbrt(4.0 / 3.0 * M_PI * 0.027 / double(kParticles)));
+  o.domains = true;
+  o.implicit = implicit;
+  auto s = std::make_unique<MpmSolver>(make_bench_sphere(o));
+  for (int k = 0; k < 2; ++k) s->step(space, Real(1e-4));
+  return s;
+}
+// Stress at the clamped F, enrichment marking, particle -> corner gather (mass, momentum, force).
+void BM_DomainParticlesToCorners(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = prepared_domains(space);
+  const DomainParticleView pv = s->domain_particle_view();
+  const DomainParams prm = s->domain_params(Real(1e-4));
+  for (auto _ : st) {
+    s->domains().stresses_and_enrichment(space, pv, prm, false, true);
+    s->domains().particles_to_corners(space, pv);
+  }
+  st.counters["corners"] = double(s->domains().corner_count());
+  set_items(st, pv.n, 0);
+}
+// Grid -> corner gather with corner collisions, then corner -> particle (v, F) and advection.
+void BM_DomainGridToParticles(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = prepared_domains(space);
+  const DomainParticleView pv = s->domain_particle_view();
+  const DomainParams prm = s->domain_params(Real(0));  // dt 0: positions stay, state repeatable
+  const MpmGridView g = s->grid_view();
+  for (auto _ : st) {
+    s->domains().grid_to_corners(space, g, pv, prm);
+    s->domains().corners_to_particles(space, pv, prm);
+  }
+  set_items(st, pv.n, 0);
+}
+// A whole explicit substep (the two above plus points, sort, topology, scatter, grid update).
+void BM_DomainStep(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = prepared_domains(space);
+  for (auto _ : st) s->step_domains(space, Real(1e-5));
+  set_items(st, s->particles().size(), 0);
+}
+// The implicit operator's domain term: grid -> corners -> dF -> dP -> corners -> grid.
+void BM_DomainHessianAction(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = prepared_domains(space, true);
+  const DomainParticleView pv = s->domain_particle_view();
+  const DomainParams prm = s->domain_params(Real(1e-4));
+  s->domains().stresses_and_enrichment(space, pv, prm, true, true);
+  s->domains().particles_to_corners(space, pv);
+  s->domains().number_enriched_dofs(space);
+  const MpmGridView g = s->grid_view();
+  const std::size_t ngrid = s->grid().leaf_count() * kLeafNodes * 4;
+  const std::size_t ncorner = 4 * s->domains().enriched_dof_count() + 4;
+  std::vector<Real> du(ngrid, Real(1e-3)), out(ngrid), duc(ncorner, Real(1e-3)), outc(ncorner);
+  for (auto _ : st)
+    s->domains().hessian_action(space, pv, g, s->settings().dx, du.data(), duc.data(), 1,
+                                out.data(), outc.data());
+  set_items(st, pv.n, 0);
+}
+
 void BM_GridUpdate(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared(Transfer::Mls, 2, space);
@@ -174,7 +238,8 @@ ImplicitRig implicit_rig(const exec::Space& space) {
   r.s->assemble_implicit(space, r.dt);
   const ImplicitSystem& sys = r.s->implicit_system();
   for (const auto& b : sys.blocks())
-    for (std::uint64_t d = b.first; d < b.first + b.count; ++d) r.dofs += r.s->grid().node4(0)[d * 4] > 0;
+    for (std::uint64_t d = b.first; d < b.first + b.count; ++d)
+      r.dofs += r.s->grid().node4(0)[d * 4] > 0;
   return r;
 }
 
@@ -271,7 +336,6 @@ void BM_Material(benchmark::State& st, MaterialModel model) {
   set_items(st, F.size(), sizeof(Mat3) * 3);
 }
 
-
 // Peridynamics: a 40^3 lattice block (64 000 particles, delta = 3.015 lc: 122 bonds in the bulk,
 // 7.2 M directed bonds), stretched 0.1 % and sheared so every bond carries a force; plastic and
 // fracture enabled (thresholds not reached) so the kernels run their full paths. Items are
@@ -292,11 +356,13 @@ std::unique_ptr<PdSolver> pd_block(const exec::Space& space) {
   std::vector<Vec3> x;
   for (int i = 0; i < 40; ++i)
     for (int j = 0; j < 40; ++j)
-      for (int k = 0; k < 40; ++k) x.push_back(Vec3(Real(0.01 * (i + 0.5)), Real(0.01 * (j + 0.5)), Real(0.01 * (k + 0.5))));
+      for (int k = 0; k < 40; ++k)
+        x.push_back(Vec3(Real(0.01 * (i + 0.5)), Real(0.01 * (j + 0.5)), Real(0.01 * (k + 0.5))));
   s->add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(1e-6));
   s->initialize(space);
   Vec3* px = s->particles().vec3(s->attributes().x);
-  for (std::size_t i = 0; i < s->particles().size(); ++i) px[i] += Vec3(Real(1e-3) * px[i][0] + Real(5e-4) * px[i][1], 0, 0);
+  for (std::size_t i = 0; i < s->particles().size(); ++i)
+    px[i] += Vec3(Real(1e-3) * px[i][0] + Real(5e-4) * px[i][1], 0, 0);
   return s;
 }
 
@@ -306,9 +372,10 @@ void BM_PdBuildBonds(benchmark::State& st) {
   const ParticleSet& ps = s->particles();
   PdBonds b;
   for (auto _ : st)
-    pd_build_bonds(space, ps.vec3(s->attributes().x0), ps.real(s->attributes().volume), ps.int32(s->attributes().material),
-                   ps.size(), s->params(), true, b);
-  set_items(st, s->bonds().size(), sizeof(std::uint32_t) + sizeof(std::uint64_t) + 4 * sizeof(Real) + 1);
+    pd_build_bonds(space, ps.vec3(s->attributes().x0), ps.real(s->attributes().volume),
+                   ps.int32(s->attributes().material), ps.size(), s->params(), true, b);
+  set_items(st, s->bonds().size(),
+            sizeof(std::uint32_t) + sizeof(std::uint64_t) + 4 * sizeof(Real) + 1);
 }
 
 void BM_PdDilatation(benchmark::State& st) {
@@ -324,9 +391,11 @@ void BM_PdForces(benchmark::State& st) {
   auto s = pd_block(space);
   s->compute_dilatation(space);
   for (auto _ : st) s->compute_forces(space);
-  // per bond: neighbour, reverse, length, omega (both ends), volume, plastic (both), intact; + x, x0, theta, a, b of j
+  // per bond: neighbour, reverse, length, omega (both ends), volume, plastic (both), intact; + x,
+  // x0, theta, a, b of j
   set_items(st, s->bonds().size(),
-            sizeof(std::uint32_t) + sizeof(std::uint64_t) + 6 * sizeof(Real) + 1 + 2 * sizeof(Vec3) + 3 * sizeof(Real));
+            sizeof(std::uint32_t) + sizeof(std::uint64_t) + 6 * sizeof(Real) + 1 +
+                2 * sizeof(Vec3) + 3 * sizeof(Real));
 }
 
 void BM_PdContact(benchmark::State& st) {
@@ -334,8 +403,10 @@ void BM_PdContact(benchmark::State& st) {
   auto s = pd_block(space);
   std::vector<Vec3> f(s->particles().size());
   PdContactList list;
-  pd_build_contact_list(space, s->particles().vec3(s->attributes().x), s->particles().size(), Real(0.014), list);
-  for (auto _ : st) pd_contact_forces(space, s->view(), s->bonds(), s->params(), Real(0.009), list, f.data());
+  pd_build_contact_list(space, s->particles().vec3(s->attributes().x), s->particles().size(),
+                        Real(0.014), list);
+  for (auto _ : st)
+    pd_contact_forces(space, s->view(), s->bonds(), s->params(), Real(0.009), list, f.data());
   set_items(st, s->particles().size(), 2 * sizeof(Vec3));
 }
 
@@ -343,7 +414,9 @@ void BM_PdContactList(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = pd_block(space);
   PdContactList list;
-  for (auto _ : st) pd_build_contact_list(space, s->particles().vec3(s->attributes().x), s->particles().size(), Real(0.014), list);
+  for (auto _ : st)
+    pd_build_contact_list(space, s->particles().vec3(s->attributes().x), s->particles().size(),
+                          Real(0.014), list);
   set_items(st, s->particles().size(), sizeof(Vec3));
 }
 
@@ -365,17 +438,25 @@ BENCHMARK_CAPTURE(BM_AulG2P, flip_quadratic, Transfer::PicFlip)->Apply(backend_a
 BENCHMARK(BM_AulGridUpdate)->Apply(backend_args);
 BENCHMARK(BM_AulConfigurationCheck)->Apply(backend_args);
 BENCHMARK(BM_ObjectContact)->Apply(backend_args);
+BENCHMARK(BM_DomainParticlesToCorners)->Apply(backend_args);
+BENCHMARK(BM_DomainGridToParticles)->Apply(backend_args);
+BENCHMARK(BM_DomainStep)->Apply(backend_args);
+BENCHMARK(BM_DomainHessianAction)->Apply(backend_args);
 BENCHMARK(BM_ImplicitOperator)->Apply(backend_args);
 BENCHMARK(BM_CgIteration)->Apply(backend_args);
 BENCHMARK(BM_ImplicitAssemble)->Apply(backend_args);
 BENCHMARK(BM_SortAndActivate)->Apply(backend_args);
 BENCHMARK(BM_Svd3)->Unit(benchmark::kNanosecond);
 BENCHMARK(BM_PolarFast)->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, fixed_corotated, MaterialModel::FixedCorotated)->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, neo_hookean, MaterialModel::NeoHookean)->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, stvk_hencky, MaterialModel::StvkHencky)->Unit(benchmark::kNanosecond);
+BENCHMARK_CAPTURE(BM_Material, fixed_corotated, MaterialModel::FixedCorotated)
+    ->Unit(benchmark::kNanosecond);
+BENCHMARK_CAPTURE(BM_Material, neo_hookean, MaterialModel::NeoHookean)
+    ->Unit(benchmark::kNanosecond);
+BENCHMARK_CAPTURE(BM_Material, stvk_hencky, MaterialModel::StvkHencky)
+    ->Unit(benchmark::kNanosecond);
 BENCHMARK_CAPTURE(BM_Material, snow, MaterialModel::Snow)->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, drucker_prager, MaterialModel::DruckerPrager)->Unit(benchmark::kNanosecond);
+BENCHMARK_CAPTURE(BM_Material, drucker_prager, MaterialModel::DruckerPrager)
+    ->Unit(benchmark::kNanosecond);
 BENCHMARK_CAPTURE(BM_Material, von_mises, MaterialModel::VonMises)->Unit(benchmark::kNanosecond);
 BENCHMARK_CAPTURE(BM_Material, fluid, MaterialModel::Fluid)->Unit(benchmark::kNanosecond);
 

@@ -3,6 +3,8 @@
 #include <cmath>
 #include <random>
 
+#include "io/lattice.hpp"
+
 namespace amalgam {
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
@@ -12,6 +14,7 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   s.transfer = o.transfer;
   s.implicit = o.implicit;
   s.configuration_maps = o.lagrangian;
+  s.domains.enabled = o.domains;
   MaterialParams m;
   const Lame l = Lame::from_young_poisson(o.youngs_modulus, 0.3);
   m.mu = l.mu;
@@ -22,17 +25,27 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   floor.normal = Vec3::UnitY();
   floor.friction = Real(0.2);
   MpmSolver solver(s, {m}, {floor});
+  const double r = 0.3;
+  const Vec3 v0(0, Real(-1), 0), omega(0, Real(2), Real(1)), centre = Vec3::Constant(Real(0.5));
+  if (o.domains) {  // a lattice of spacing h with about o.particles points inside the sphere
+    const double h = std::cbrt(4.0 / 3.0 * M_PI * r * r * r / double(o.particles));
+    const long long n = (long long)std::ceil(2 * r / h), dims[3] = {n, n, n};
+    const std::vector<Vec3> x = sample_lattice(
+        Vec3d::Constant(0.5 - r), dims, h, 0.0, 1,
+        [&](const Vec3d& p) { return (p - Vec3d::Constant(0.5)).squaredNorm() <= r * r; });
+    solver.add_particles(x, v0, omega, centre, 0, Real(h * h * h));
+    solver.add_particle_domains(0, Real(h));
+    return solver;
+  }
   std::mt19937_64 rng(12345);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   std::vector<Vec3> x;
   x.reserve(o.particles);
-  const double r = 0.3;
   while (x.size() < o.particles) {
     const Vec3d p(u(rng), u(rng), u(rng));
     if (p.squaredNorm() <= 1.0) x.push_back((Vec3d::Constant(0.5) + r * p).cast<Real>());
   }
   const Real vol = Real(4.0 / 3.0 * M_PI * r * r * r / double(o.particles));
-  const Vec3 v0(0, Real(-1), 0), omega(0, Real(2), Real(1)), centre = Vec3::Constant(Real(0.5));
   if (o.lagrangian && o.objects == 2) {
     std::vector<Vec3> halves[2];
     for (const Vec3& p : x) halves[p[0] < Real(0.5) ? 0 : 1].push_back(p);

@@ -19,6 +19,9 @@ struct BenchSceneOptions {
   ConfigurationPolicy policy{ConfigurationUpdate::TotalLagrangian};
   // A-ULMPM only: 2 splits the sphere at x = 0.5 into two objects in contact (same particles).
   int objects = 1;
+  // Enriched MPM: the sphere sampled on a lattice (about `particles` points) with particle
+  // domains (PIC/FLIP on linear weights; `transfer` and `order` unused); enrichment on.
+  bool domains = false;
 };
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o);

@@ -176,15 +176,24 @@ std::vector<Section> pd_sections(const PdSolver& solver) {
       out.push_back({"crack_mesh" + std::to_string(k) + "." + a.name, a.data, a.bytes});
   return out;
 }
+// Enriched MPM: the particle-domain corners' positions (the rest of the corner state is rebuilt
+// every substep from the particles).
+std::vector<Section> mpm_sections(const MpmSolver& solver) {
+  if (!solver.settings().domains.enabled) return {};
+  MpmSolver& s = const_cast<MpmSolver&>(solver);  // written from, or read into
+  return {{"domains.corner_x", reinterpret_cast<char*>(s.domains().corner_positions()),
+           s.domains().corner_count() * sizeof(Vec3)}};
+}
 }  // namespace
 
 void write_checkpoint(const std::string& path, const MpmSolver& solver, int next_frame,
                       std::uint64_t scene_fingerprint) {
-  write_state(path, solver.particles(), solver.time(), solver.step_count(), next_frame, scene_fingerprint, {});
+  write_state(path, solver.particles(), solver.time(), solver.step_count(), next_frame, scene_fingerprint,
+              mpm_sections(solver));
 }
 
 CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint) {
-  const CheckpointState st = read_state(path, solver.particles(), scene_fingerprint, {});
+  const CheckpointState st = read_state(path, solver.particles(), scene_fingerprint, mpm_sections(solver));
   solver.restore_clock(st.time, st.steps);
   return st;
 }

@@ -185,7 +185,7 @@ std::shared_ptr<const TetMesh> read_tet_object(JsonObject& o, const std::string&
 }
 
 ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials, const std::string& scene_file,
-                       bool peridynamics) {
+                       bool peridynamics, bool domains) {
   ObjectSpec s;
   const std::string shape = o.choice("shape", "", {"box", "sphere", "cylinder", "torus", "mesh", "tet_mesh"});
   if (shape == "tet_mesh") {
@@ -252,7 +252,9 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
   s.angular_velocity = o.vec3("angular_velocity", Vec3::Zero());
   // Peridynamics wants a regular lattice (its bond families and constants assume one).
   s.particles_per_cell = int(o.integer("particles_per_cell", peridynamics ? 1 : 8, 1, 64));
-  s.jitter = Real(o.number("jitter", peridynamics ? 0.0 : 0.5, 0, 1));
+  s.jitter = Real(o.number("jitter", peridynamics || domains ? 0.0 : 0.5, 0, 1));
+  // Particle domains are the lattice cells around the particles: corners are shared only on a lattice.
+  if (domains && s.jitter != 0) o.fail("jitter", "must be 0 with particle domains (/simulation/domains)");
   s.seed = std::uint64_t(o.integer("seed", 1, 0, (1LL << 62)));
   s.temperature = Real(o.number("temperature", 293.15, 0, kHuge));
   if (o.has("configuration")) {
@@ -420,6 +422,22 @@ Scene parse_scene(const std::string& text, const std::string& file) {
       contact.fail("friction", "only with \"mode\": \"separate\" (stick contact has no slip)");
     contact.finish();
   }
+  if (sim.has("domains")) {
+    if (pd) sim.fail("domains", "only for \"method\": \"mpm\"");
+    JsonObject d = sim.object("domains");
+    s.mpm.domains.enabled = true;
+    s.mpm.domains.enrichment = d.boolean("enrichment", true);
+    s.mpm.domains.epsilon = Real(d.number("epsilon", 0.6, 0, 1));
+    if (d.has("epsilon") && !s.mpm.domains.enrichment) d.fail("epsilon", "only with \"enrichment\": true");
+    s.mpm.domains.clamp = Real(d.number("inversion_clamp", 0.15, 0, 1, true));
+    s.mpm.domains.elasticity_from = Real(d.number("elasticity_from", 0, 0, kHuge));
+    s.mpm.domains.gauss_quadrature = d.choice("quadrature", "gauss", {"gauss", "one_point"}) == "gauss";
+    d.finish();
+    if (sim.has("transfer") && tr != "flip" && tr != "pic")
+      sim.fail("transfer", "particle domains transfer by PIC/FLIP on linear weights: \"flip\" (flip_alpha, default "
+                           "0.95) or \"pic\"");
+    if (sim.has("order")) sim.fail("order", "particle domains use linear grid weights (enriched MPM eq. 3)");
+  }
   {
     JsonObject p = sim.object("peridynamics");
     const double factor = p.number("horizon_factor", 3.015, 1, 8, true);
@@ -446,7 +464,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     s.material_names.push_back(name);
   }
   if (!top.has("objects")) top.fail("objects", "missing required array of objects");
-  for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file, pd));
+  for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file, pd, s.mpm.domains.enabled));
   if (s.objects.empty()) top.fail("objects", "define at least one object");
   // A-ULMPM: objects in their own configuration maps do not share reference nodes and touch
   // through the global-grid contact (simulation/contact), shared-grid objects through their one
@@ -460,6 +478,8 @@ Scene parse_scene(const std::string& text, const std::string& file) {
                        "object must have a \"configuration\" block");
     }
   s.mpm.configuration_maps = s.objects[0].has_configuration;
+  if (s.mpm.domains.enabled && s.mpm.configuration_maps)
+    sim.fail("domains", "particle domains cannot be combined with configuration maps (objects' \"configuration\")");
   if (has_contact && !s.mpm.configuration_maps)
     sim.fail("contact", "only for objects with a \"configuration\" block (A-ULMPM); objects on the shared grid "
                         "already interact through it");
@@ -507,6 +527,11 @@ Scene parse_scene(const std::string& text, const std::string& file) {
       s.materials.push_back(mp);
     } else {
       s.materials.push_back(read_material(mats.object(name)));
+      const MaterialParams& m = s.materials.back();
+      if (s.mpm.domains.enabled && (m.model == MaterialModel::Fluid || m.has_plastic_state() || m.viscosity > 0))
+        throw InputError(file + ": /materials/" + name +
+                         ": particle domains (/simulation/domains) need an elastic solid (fixed_corotated, "
+                         "neo_hookean or stvk_hencky, no viscosity; it may melt)");
     }
   }
   mats.finish();
@@ -682,8 +707,16 @@ MpmSolver build_solver(const Scene& scene) {
   for (const auto& obj : scene.objects) {
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol);
+    const std::size_t first = solver.particles().size();
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol, obj.temperature,
                          obj.configuration);
+    if (scene.mpm.domains.enabled) {
+      const Real h = Real(double(scene.mpm.dx) / std::cbrt(double(obj.particles_per_cell)));
+      if (obj.mesh)  // the mesh is embedded in the domains and written deformed every frame (Sec. 4.1)
+        solver.add_particle_domains(first, h, &obj.mesh->vertices, &obj.mesh->triangles);
+      else
+        solver.add_particle_domains(first, h);
+    }
   }
   return solver;
 }

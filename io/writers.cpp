@@ -54,6 +54,15 @@ PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a) {
     const Real* r = ps.real(attr);
     p.extra.emplace_back(name, std::vector<float>(r, r + p.n));
   }
+  // Enriched MPM: the particle's enrichment state (-1 domain disabled, 0 unenriched,
+  // 1 transitional, 2 enriched; enriched MPM Fig. 3), for colour-mapping as in Figs. 6 and 10.
+  const ParticleSet::Id ds = ps.find("domain_state");
+  if (ds >= 0) {
+    const std::int32_t* st = ps.int32(ds);
+    std::vector<float> e(p.n);
+    for (std::size_t i = 0; i < p.n; ++i) e[i] = float(st[i]);
+    p.extra.emplace_back("enrichment", std::move(e));
+  }
   return p;
 }
 
@@ -90,7 +99,7 @@ void write_ply_points(const std::string& path, const PointFields& p) {
 
 void write_surface_obj(const std::string& path, const std::vector<Vec3>& vertices,
                        const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack) {
-  std::string out = "# written by Amalgam: peridynamic body surface with crack faces\n";
+  std::string out = "# written by Amalgam: deformed surface (group crack: peridynamic crack faces)\n";
   out.reserve(out.size() + vertices.size() * 40 + triangles.size() * 30);
   char line[96];
   for (const Vec3& v : vertices) {
@@ -137,7 +146,8 @@ void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertice
 std::string diagnostics_csv_header() {
   return "frame,time_s,last_dt_s,substeps,kinetic_J,elastic_J,momentum_x,momentum_y,momentum_z,max_speed_m_s,"
          "particles,wall_s,p2g_s,g2p_s,sort_s,grid_s,other_s,leaves,active_leaves,rss_mb,solve_s,cg_iterations,"
-         "cg_max_iterations,cg_max_residual,cg_unconverged\n";
+         "cg_max_iterations,cg_max_residual,cg_unconverged,enriched_fraction,transitional_fraction,"
+         "max_enriched_fraction,enriched_corners\n";
 }
 
 std::string diagnostics_csv_line(const DiagnosticsRow& r) {
@@ -148,7 +158,8 @@ std::string diagnostics_csv_line(const DiagnosticsRow& r) {
      << r.particles << ',' << r.wall_seconds << ',' << r.p2g_s << ',' << r.g2p_s << ',' << r.sort_s << ','
      << r.grid_s << ',' << r.other_s << ',' << r.leaves << ',' << r.active_leaves << ',' << r.rss_mb << ','
      << r.solve_s << ',' << r.cg_iterations << ',' << r.cg_max_iterations << ',' << r.cg_max_residual << ','
-     << r.cg_unconverged << '\n';
+     << r.cg_unconverged << ',' << r.enriched_fraction << ',' << r.transitional_fraction << ','
+     << r.max_enriched_fraction << ',' << r.enriched_corners << '\n';
   return os.str();
 }
 

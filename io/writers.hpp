@@ -23,7 +23,8 @@ struct PointFields {
   const std::int32_t* id = nullptr;
   std::vector<std::pair<std::string, std::vector<float>>> primary, extra;
 };
-// MPM particles: primary J (= det F); extra plastic and temperature when the scene has them.
+// MPM particles: primary J (= det F); extra plastic and temperature when the scene has them, and
+// enrichment (the domain state) with particle domains.
 PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a);
 
 // Binary little-endian PLY point cloud with x y z, vx vy vz, the primary attributes, material, id
@@ -66,6 +67,11 @@ struct DiagnosticsRow {
   // Memory: grid leaves allocated and active this frame, resident set size of the process (MB).
   std::size_t leaves = 0, active_leaves = 0;
   double rss_mb = 0;
+  // Particle domains (enriched MPM): mean fraction of enriched and transitional particles over
+  // the frame's substeps, the largest enriched fraction in one substep, enriched corners at the
+  // last substep. Zero without domains.
+  double enriched_fraction = 0, transitional_fraction = 0, max_enriched_fraction = 0;
+  std::size_t enriched_corners = 0;
 };
 // Resident set size of this process in MB (Linux /proc/self/statm; 0 if unavailable).
 double resident_mb();

@@ -4,7 +4,7 @@
 # validation, the default scene, the SIGINT and tet-mesh restarts, the implicit physics runs and
 # the CLI implicit scene, the peridynamics dynamics, moduli, homogeneous-deformation, hydrostatic
 # plasticity and bar-validation runs, the A-ULMPM disc, bar, twisted-bar and semi-implicit
-# physics runs), which take half a minute to two minutes each under ASan and exercise the
+# physics runs, the enriched-MPM twisted-bar, stretched-bar and implicit-vs-explicit runs), which take half a minute to two minutes each under ASan and exercise the
 # same kernels and I/O code as the unit and CLI tests that do run. Any sanitizer report fails
 # the test.
 set -euo pipefail
@@ -18,4 +18,4 @@ AMALGAM_BUILD_DIR="${AMALGAM_ASAN_DIR:-$root/build-asan}" "$root/scripts/build.s
   -DAMALGAM_SANITIZE=address,undefined -DAMALGAM_BUILD_BENCH=OFF
 cd "${AMALGAM_ASAN_DIR:-$root/build-asan}"
 ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-  ctest --output-on-failure -j2 -E "AxialBar|MaterialValidation|default_scene|restart_after_sigint|ImplicitPhysics|PdDynamics|AulMpm.Spinning|AulMpm.FastSpinning|AulMpm.Stretched|AulMpm.Twisted|AulMpm.SemiImplicitLagrangian|ObjectContact.HeadOn|ObjectContact.Sliding|PdValidation|PdModuli|pd_tet_mesh_restart|implicit_scene_reports_cg|PdForms.HomogeneousDeformation|PdPlasticity.HydrostaticLoad" "$@"
+  ctest --output-on-failure -j2 -E "AxialBar|MaterialValidation|default_scene|restart_after_sigint|ImplicitPhysics|PdDynamics|AulMpm.Spinning|AulMpm.FastSpinning|AulMpm.Stretched|AulMpm.Twisted|AulMpm.SemiImplicitLagrangian|ObjectContact.HeadOn|ObjectContact.Sliding|PdValidation|PdModuli|pd_tet_mesh_restart|implicit_scene_reports_cg|PdForms.HomogeneousDeformation|PdPlasticity.HydrostaticLoad|ParticleDomains.TwistCompress|ParticleDomains.StretchedBar|ParticleDomains.ImplicitMatches" "$@"

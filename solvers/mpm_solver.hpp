@@ -12,6 +12,10 @@
 //   grid_to_particle v, C, F update, advection                       (kernels g2p)
 //   collide_particles  push particles that entered a collider back out  (kernels material_update)
 //   update_materials heat sources, return mapping / F reset          (kernels material_update)
+// With particle domains (dynamically enriched MPM, settings.domains) a substep is instead
+//   mark_enrichment, particles_to_corners, corners_to_grid, update_grid_velocities (+ enriched
+//   corners), solve_grid_velocities (grid + enriched corners as extra DOFs), grid_to_corners,
+//   corners_to_particles                                              (solvers/particle_domains)
 // The time step comes from a CFL condition on particle speed plus the elastic wave speed (the
 // wave speed only when explicit), and the explicit viscosity limit dx^2 / (6 nu) when a
 // material is viscous (viscosity stays explicit in the implicit integrator).
@@ -28,10 +32,11 @@
 #include "kernels/implicit_mpm.hpp"
 #include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"
-#include "sparse_grid/binning.hpp"
 #include "solvers/configuration_maps.hpp"
 #include "solvers/implicit_system.hpp"
 #include "solvers/object_contact.hpp"
+#include "solvers/particle_domains.hpp"
+#include "sparse_grid/binning.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
 namespace amalgam {
@@ -42,8 +47,8 @@ struct MpmSettings {
   Transfer transfer = Transfer::Mls;
   Real flip_alpha = Real(0.95);
   Vec3 gravity = Vec3(0, Real(-9.81), 0);
-  Real cfl = Real(0.5);      // dt <= cfl dx / (max |v_p| + c_max)
-  Real max_dt = Real(1e-2);  // upper bound on a substep
+  Real cfl = Real(0.5);        // dt <= cfl dx / (max |v_p| + c_max)
+  Real max_dt = Real(1e-2);    // upper bound on a substep
   Real max_speed = Real(1e4);  // stability guard: a faster particle is a blow-up (m/s)
   bool implicit = false;       // backward Euler velocity update instead of explicit
   ImplicitSettings solver;     // Krylov solver settings when implicit
@@ -52,6 +57,8 @@ struct MpmSettings {
   bool configuration_maps = false;
   // A-ULMPM: contact between objects through a global grid (solvers/object_contact.hpp).
   ObjectContactSettings contact;
+  // Dynamically enriched MPM: particles carry connected hexahedral domains (explicit or implicit).
+  DomainSettings domains;
 };
 
 // Implicit solves since the counters were last reset (per frame in the runner).
@@ -70,8 +77,8 @@ struct MpmDiagnostics {
 
 class MpmSolver {
  public:
-  MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials, std::vector<Collider> colliders,
-              std::vector<HeatSource> heat_sources = {});
+  MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials,
+            std::vector<Collider> colliders, std::vector<HeatSource> heat_sources = {});
 
   ParticleSet& particles() { return particles_; }
   const ParticleSet& particles() const { return particles_; }
@@ -83,15 +90,27 @@ class MpmSolver {
   double time() const { return time_; }
   std::uint64_t step_count() const { return steps_; }
   // Sort scratch (keys, permutation, run flags) per particle.
-  static constexpr std::size_t binning_bytes_per_particle() { return ParticleBinning::kScratchBytesPerParticle; }
+  static constexpr std::size_t binning_bytes_per_particle() {
+    return ParticleBinning::kScratchBytesPerParticle;
+  }
 
   // Appends particles at `x` with velocity v0 + omega x (x - centre), material index, and mass
   // and volume per particle; F = I, C = affine part of the rigid rotation, plastic state at
   // rest, and the given temperature (K; stored only if a material melts).
   // With configuration maps, the particles form one object with the given update policy.
-  void add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega, const Vec3& centre,
-                     int material, Real volume_per_particle, Real temperature = 0,
-                     const ConfigurationPolicy& policy = {});
+  void add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega,
+                     const Vec3& centre, int material, Real volume_per_particle,
+                     Real temperature = 0, const ConfigurationPolicy& policy = {});
+  // Particle domains (settings().domains) for the particles from index `first` on, one object
+  // sampled on a lattice of spacing h with jitter 0, optionally with an embedded surface mesh.
+  void add_particle_domains(
+      std::size_t first, Real h, const std::vector<Vec3d>* surface_vertices = nullptr,
+      const std::vector<std::array<std::int32_t, 3>>* surface_triangles = nullptr);
+  const ParticleDomains& domains() const { return domains_; }
+  ParticleDomains& domains() { return domains_; }
+  const DomainAttributes& domain_attributes() const { return dattr_; }
+  DomainParticleView domain_particle_view();
+  DomainParams domain_params(Real dt) const;
   // A-ULMPM configuration maps (settings().configuration_maps): policies and statistics per object.
   const ConfigurationMaps& configuration_maps() const { return maps_; }
   const ConfigurationAttributes& configuration_attributes() const { return cattr_; }
@@ -102,6 +121,9 @@ class MpmSolver {
   // One explicit substep of length dt.
   void step(const exec::Space& space, Real dt);
   MpmDiagnostics diagnostics(const exec::Space& space) const;
+  // Particle positions in the order the particles were added (by stable id; sorting permutes the
+  // storage), for comparisons between runs and against a rest shape.
+  std::vector<Vec3d> positions_by_id() const;
 
   // Phases of step(), public so tests and benchmarks can drive them one by one.
   void sort_particles(const exec::Space& space);
@@ -120,8 +142,12 @@ class MpmSolver {
   bool contact_active() const;
   std::uint64_t contact_nodes() const { return contact_nodes_; }
   double contact_seconds() const { return contact_seconds_; }  // wall time in couple_objects
-  std::size_t contact_point_count() const { return contact_.point_count(); }  // points of the last substep
+  std::size_t contact_point_count() const {
+    return contact_.point_count();
+  }  // points of the last substep
   void update_materials(const exec::Space& space, Real dt);
+  // The particle-domain substep (enriched MPM Algorithm 1).
+  void step_domains(const exec::Space& space, Real dt);
   // Whether update_materials has anything to do (plastic, fluid or melting material, heat source).
   bool has_material_update() const { return material_update_; }
 
@@ -135,6 +161,13 @@ class MpmSolver {
   // elastic term) without solving: what solve_grid_velocities does before its solve.
   void assemble_implicit(const exec::Space& space, Real dt);
 
+  // The whole evolving state (particles, and the domain corners' positions), to retry a frame.
+  struct Snapshot {
+    ParticleSet::Snapshot particles;
+    std::vector<Vec3> corners;
+  };
+  void save(Snapshot& s) const;
+  void restore(const Snapshot& s);
   // CFL number used by stable_dt (lowered while retrying a failed frame).
   void set_cfl(Real cfl) { settings_.cfl = cfl; }
   // Restores the clock after particles were loaded from a checkpoint.
@@ -149,7 +182,8 @@ class MpmSolver {
   // grid_view() plus, in A-ULMPM with colliders, the rasterised node positions q_i of this
   // substep (valid after update_grid_velocities).
   MpmGridView grid_view_with_positions();
-  bool fused_positions() const;  // q_i come out of the momentum P2G (MLS/APIC) instead of p2g_positions
+  bool fused_positions()
+      const;  // q_i come out of the momentum P2G (MLS/APIC) instead of p2g_positions
   bool positions_needed() const;  // q_i are rasterised this substep (colliders or contact)
   MpmStepParams step_params(Real dt) const;
 
@@ -165,7 +199,7 @@ class MpmSolver {
   const Collider* colliders_at(Real t) const;
   Real max_wave_speed_ = 0;
   Real max_kinematic_viscosity_ = 0;
-  bool hardening_ = false;        // some material's wave speed depends on its plastic state
+  bool hardening_ = false;  // some material's wave speed depends on its plastic state
   bool material_update_ = false;
   ParticleSet particles_;
   MpmAttributes attr_;
@@ -173,8 +207,16 @@ class MpmSolver {
   ConfigurationMaps maps_;
   std::vector<std::uint8_t> reset_flags_;
   bool bins_valid_ = false;  // Lagrangian mode: bins and topology match X^s
-  int positions_set_ = -1;   // node4 set of the rasterised node positions (Lagrangian + colliders/contact)
+  int positions_set_ =
+      -1;  // node4 set of the rasterised node positions (Lagrangian + colliders/contact)
   ObjectContact contact_;
+  DomainAttributes dattr_;
+  ParticleDomains domains_;
+  std::unique_ptr<ImplicitTerm> domain_term_;
+  void add_collider_constraints(const exec::Space& space, const MpmGridView& g, Real dt);
+  void apply_friction(Real* v) const;
+  void solve_and_count(const exec::Space& space, Real dt);
+  void solve_domain_velocities(const exec::Space& space, Real dt);
   std::uint64_t contact_nodes_ = 0;
   double contact_seconds_ = 0;
   ParticleBinning binning_;
