@@ -20,6 +20,7 @@ int info_command(const std::vector<std::string>&) {
             << "Eigen " << EIGEN_WORLD_VERSION << "." << EIGEN_MAJOR_VERSION << "." << EIGEN_MINOR_VERSION
             << ", oneTBB " << TBB_VERSION_MAJOR << "." << TBB_VERSION_MINOR << ", OpenVDB " << AMALGAM_OPENVDB_VERSION
             << "\n";
+  if (exec::backend_compiled(exec::Backend::Kokkos)) std::cout << exec::kokkos_version() << "\n";
   return kOk;
 }
 

@@ -26,7 +26,7 @@ namespace amalgam::cli {
 namespace {
 
 const char* kRunHelp =
-    "usage: amalgam run SCENE.json [--backend serial|openmp|tbb|threads] [--threads N] [--out "
+    "usage: amalgam run SCENE.json [--backend serial|openmp|tbb|threads|kokkos] [--threads N] [--out "
     "DIR]\n"
     "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--retries N]\n"
     "                  [--preview] [--quiet]\n"

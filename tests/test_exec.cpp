@@ -75,4 +75,12 @@ TEST(Exec, ParseBackendRejectsUnknownNames) {
   EXPECT_EQ(exec::parse_backend("openmp"), exec::Backend::OpenMP);
   EXPECT_THROW(exec::parse_backend("cuda"), std::invalid_argument);
   EXPECT_THROW(exec::Space(exec::Backend::OpenMP, 0), std::invalid_argument);
+  if (exec::backend_compiled(exec::Backend::Kokkos)) {
+    EXPECT_EQ(exec::parse_backend("Kokkos"), exec::Backend::Kokkos);
+    EXPECT_EQ(exec::available_backends().back(), exec::Backend::Kokkos);
+    EXPECT_NE(exec::kokkos_version().find("Kokkos "), std::string::npos);
+  } else {
+    EXPECT_THROW(exec::parse_backend("kokkos"), std::invalid_argument);
+    EXPECT_THROW(exec::Space(exec::Backend::Kokkos, 1), std::invalid_argument);
+  }
 }

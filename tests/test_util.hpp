@@ -29,8 +29,9 @@ inline exec::Backend parallel_backend() {
   return backend_enabled(exec::Backend::TBB) ? exec::Backend::TBB : exec::Backend::Threads;
 }
 
-// Serial first (the reference), then OpenMP and TBB with 1 and 2 threads (and std::threads with
-// 2 when AMALGAM_TEST_BACKENDS names them).
+// Serial first (the reference), then OpenMP and TBB with 1 and 2 threads, Kokkos when built (its
+// host space's concurrency: 1 with Debian's Serial-only Kokkos), and std::threads with 2 when
+// AMALGAM_TEST_BACKENDS names them.
 inline std::vector<Config> all_configs() {
   std::vector<Config> out;
   for (const Config& c : std::vector<Config>{{exec::Backend::Serial, 1},
@@ -38,8 +39,10 @@ inline std::vector<Config> all_configs() {
                                              {exec::Backend::OpenMP, 2},
                                              {exec::Backend::TBB, 1},
                                              {exec::Backend::TBB, 2},
+                                             {exec::Backend::Kokkos, 1},
                                              {exec::Backend::Threads, 2}})
-    if (c.backend == exec::Backend::Serial || (c.backend == exec::Backend::Threads ? std::getenv("AMALGAM_TEST_BACKENDS") &&
+    if (!exec::backend_compiled(c.backend)) continue;
+    else if (c.backend == exec::Backend::Serial || (c.backend == exec::Backend::Threads ? std::getenv("AMALGAM_TEST_BACKENDS") &&
                                                                                        backend_enabled(c.backend)
                                                                                  : backend_enabled(c.backend)))
       out.push_back(c);

@@ -1,4 +1,5 @@
-// Backends of the exec layer. The only file of the project with OpenMP pragmas and TBB calls.
+// Backends of the exec layer. The only file of the project with OpenMP pragmas and TBB calls
+// (Kokkos calls are in exec_kokkos.cpp, compiled when CMake found Kokkos).
 #include "core/exec/exec.hpp"
 
 #include <omp.h>
@@ -15,6 +16,13 @@
 namespace amalgam::exec {
 
 namespace detail {
+#ifdef AMALGAM_HAVE_KOKKOS
+// exec_kokkos.cpp
+void kokkos_run_chunks(Index nchunks, ChunkFn fn, void* ctx);
+int kokkos_concurrency();
+std::string kokkos_version();
+#endif
+
 struct BackendState {
   Backend backend;
   int threads;
@@ -22,7 +30,8 @@ struct BackendState {
 };
 
 void run_chunks(const BackendState& s, Index nchunks, ChunkFn fn, void* ctx) {
-  if (nchunks == 1 || s.threads == 1 || s.backend == Backend::Serial) {
+  // Kokkos runs even one thread through Kokkos, so its path is the one measured and tested.
+  if (s.backend != Backend::Kokkos && (nchunks == 1 || s.threads == 1 || s.backend == Backend::Serial)) {
     for (Index c = 0; c < nchunks; ++c) fn(ctx, c);
     return;
   }
@@ -56,6 +65,11 @@ void run_chunks(const BackendState& s, Index nchunks, ChunkFn fn, void* ctx) {
       for (auto& th : pool) th.join();
       break;
     }
+    case Backend::Kokkos:
+#ifdef AMALGAM_HAVE_KOKKOS
+      detail::kokkos_run_chunks(nchunks, fn, ctx);
+#endif
+      break;
   }
 }
 }  // namespace detail
@@ -66,6 +80,7 @@ const char* backend_name(Backend b) {
     case Backend::OpenMP: return "openmp";
     case Backend::TBB: return "tbb";
     case Backend::Threads: return "threads";
+    case Backend::Kokkos: return "kokkos";
   }
   return "?";
 }
@@ -77,10 +92,37 @@ Backend parse_backend(const std::string& name) {
   if (s == "openmp" || s == "omp") return Backend::OpenMP;
   if (s == "tbb") return Backend::TBB;
   if (s == "threads") return Backend::Threads;
-  throw std::invalid_argument("unknown backend '" + name + "' (expected serial, openmp, tbb or threads)");
+  if (s == "kokkos") {
+    if (!backend_compiled(Backend::Kokkos))
+      throw std::invalid_argument("backend 'kokkos' is not in this build (CMake did not find Kokkos; install "
+                                  "libtrilinos-kokkos-dev and reconfigure)");
+    return Backend::Kokkos;
+  }
+  throw std::invalid_argument("unknown backend '" + name + "' (expected serial, openmp, tbb, threads or kokkos)");
 }
 
-std::vector<Backend> available_backends() { return {Backend::Serial, Backend::OpenMP, Backend::TBB}; }
+bool backend_compiled(Backend b) {
+#ifdef AMALGAM_HAVE_KOKKOS
+  (void)b;
+  return true;
+#else
+  return b != Backend::Kokkos;
+#endif
+}
+
+std::vector<Backend> available_backends() {
+  std::vector<Backend> out{Backend::Serial, Backend::OpenMP, Backend::TBB};
+  if (backend_compiled(Backend::Kokkos)) out.push_back(Backend::Kokkos);
+  return out;
+}
+
+std::string kokkos_version() {
+#ifdef AMALGAM_HAVE_KOKKOS
+  return detail::kokkos_version();
+#else
+  return "";
+#endif
+}
 
 int hardware_threads() {
   const unsigned n = std::thread::hardware_concurrency();
@@ -90,6 +132,10 @@ int hardware_threads() {
 Space::Space(Backend backend, int threads, Profiler* profiler)
     : backend_(backend), threads_(backend == Backend::Serial ? 1 : threads), profiler_(profiler) {
   if (threads < 1) throw std::invalid_argument("thread count must be >= 1, got " + std::to_string(threads));
+  if (!backend_compiled(backend)) throw std::invalid_argument("backend 'kokkos' is not in this build");
+#ifdef AMALGAM_HAVE_KOKKOS
+  if (backend_ == Backend::Kokkos) threads_ = std::min(threads_, detail::kokkos_concurrency());
+#endif
   state_ = std::make_shared<detail::BackendState>();
   state_->backend = backend_;
   state_->threads = threads_;

@@ -1,5 +1,6 @@
 // Data-parallel execution layer: parallel_for / parallel_reduce / parallel_scan with labels,
-// dispatched at run time to the Serial, OpenMP or TBB backend with a chosen thread count.
+// dispatched at run time to the Serial, OpenMP or TBB backend with a chosen thread count (or to
+// Kokkos's host execution space, when the build found Kokkos: AMALGAM_KOKKOS).
 // Every labelled region is timed by the Space's profiler (when one is attached).
 //
 // Determinism contract: the work of parallel_for(n) is split into chunks whose boundaries
@@ -26,13 +27,23 @@ using Index = std::int64_t;
 // Slower (thread start-up per region); it exists so ThreadSanitizer, which cannot see inside the
 // uninstrumented libgomp and libtbb of Debian, can check the kernels for data races
 // (scripts/test_tsan.sh). Not listed by available_backends().
-enum class Backend { Serial, OpenMP, TBB, Threads };
+//
+// Kokkos: the chunks run as one Kokkos::parallel_for over Kokkos::DefaultHostExecutionSpace
+// (core/exec/exec_kokkos.cpp). Debian's Kokkos 3.4.1 (libtrilinos-kokkos-dev) enables only the
+// Serial execution space, so there the backend runs one thread; its thread count is capped at
+// the execution space's concurrency. Compiled only when CMake found Kokkos.
+enum class Backend { Serial, OpenMP, TBB, Threads, Kokkos };
 
 const char* backend_name(Backend b);
-// Parses "serial", "openmp", "tbb" (case-insensitive); throws std::invalid_argument otherwise.
+// Parses "serial", "openmp", "tbb", "threads", "kokkos" (case-insensitive); throws
+// std::invalid_argument otherwise (also for "kokkos" in a build without it, saying so).
 Backend parse_backend(const std::string& name);
-// Backends compiled into this build, in a fixed order.
+// Backends compiled into this build and listed to users, in a fixed order (Kokkos last, when
+// built; Threads, a TSan aid, is not listed).
 std::vector<Backend> available_backends();
+bool backend_compiled(Backend b);
+// "Kokkos 3.4.1 (Serial)" when built with Kokkos, "" otherwise.
+std::string kokkos_version();
 int hardware_threads();
 
 namespace detail {
