@@ -7,6 +7,7 @@
 
 #include "apps/commands.hpp"
 #include "core/exec/exec.hpp"
+#include "core/errors.hpp"
 #include "io/bench_scene.hpp"
 
 namespace amalgam::cli {
@@ -21,7 +22,20 @@ const char* kBenchHelp =
     "run with the median (min, max) particle-substeps per second and per-kernel ns per particle.\n"
     "--implicit: the same sphere stiffened to E = 1e7 with the implicit integrator, dx scaled so\n"
     "particles per cell stay those of 1e6 at 1/128, dt = 10x the explicit CFL step of that\n"
-    "resolution (or --dt); adds CG iterations per substep (mean, max) and the solve's share.\n";
+    "resolution (or --dt); adds CG iterations per substep (mean, max) and the solve's share.\n"
+    "\n"
+    "usage: amalgam bench --report DIR [--scale X] [--reps R] [--steps S] [--warmup W]\n"
+    "                     [--threads LIST] [--backends LIST] [--cases LIST] [--compare CSV]\n"
+    "                     [--commit TEXT]\n"
+    "Runs the standard cases (explicit MPM with each transfer, implicit MPM, A-ULMPM, enriched\n"
+    "MPM, peridynamics) on every backend and thread count: W warm-up steps (default 2), then R\n"
+    "repetitions (default 5) of S steps (default 8; 4 for implicit and peridynamics), interleaved\n"
+    "across configurations. Writes DIR/results.csv, DIR/kernels.csv, DIR/report.md (medians,\n"
+    "min/max, spread, speed-up, parallel efficiency, bytes per item, per-kernel breakdown, STREAM\n"
+    "bandwidth) and DIR/scaling.png, DIR/breakdown.png. --scale multiplies every case's size\n"
+    "(1: 2^18-particle spheres, a 40^3 peridynamics block). --compare CSV adds a repeatability\n"
+    "section against an earlier run's results.csv. scripts/bench_report.sh regenerates\n"
+    "docs/bench_report/ (two runs, the second compared with the first).\n";
 
 std::vector<std::string> split(const std::string& s) {
   std::vector<std::string> out;
@@ -105,12 +119,28 @@ int bench_command(const std::vector<std::string>& args) {
   bool implicit = false;
   double fixed_dt = 0;
   try {
-    const Options o = parse_options(
-        args, {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer", "--dt"}, {"--help", "--implicit"});
+    const Options o = parse_options(args,
+                                    {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer", "--dt",
+                                     "--report", "--scale", "--warmup", "--cases", "--compare", "--commit"},
+                                    {"--help", "--implicit"});
     if (o.flag("--help")) {
       std::cout << kBenchHelp;
       return kOk;
     }
+    if (o.get("--report")) {
+      for (const char* k : {"--particles", "--transfer", "--dt"})
+        if (o.get(k)) throw std::invalid_argument(std::string(k) + " does not apply to --report");
+      if (o.flag("--implicit")) throw std::invalid_argument("--implicit does not apply to --report");
+      if (!o.positional.empty()) throw std::invalid_argument("unexpected argument " + o.positional[0]);
+      try {
+        return bench_report(o);
+      } catch (const InputError& e) {
+        std::cerr << "amalgam bench: " << e.what() << "\n";
+        return kBadInput;
+      }
+    }
+    for (const char* k : {"--scale", "--warmup", "--cases", "--compare", "--commit"})
+      if (o.get(k)) throw std::invalid_argument(std::string(k) + " needs --report");
     if (!o.positional.empty()) throw std::invalid_argument("unexpected argument " + o.positional[0]);
     if (auto* v = o.get("--particles")) so.particles = size_t(parse_int("--particles", *v, 1000, 200000000));
     if (auto* v = o.get("--steps")) steps = parse_int("--steps", *v, 1, 100000);

@@ -27,6 +27,9 @@ struct Options {
 };
 Options parse_options(const std::vector<std::string>& args, const std::vector<std::string>& value_keys,
                       const std::vector<std::string>& flag_keys);
+// `amalgam bench --report DIR ...` (apps/bench_report.cpp). Throws std::invalid_argument on a
+// bad option, InputError on an unreadable --compare file.
+int bench_report(const Options& o);
 int parse_int(const std::string& key, const std::string& value, int lo, int hi);
 double parse_double(const std::string& key, const std::string& value, double lo, double hi);
 

@@ -1,5 +1,6 @@
 // Google Benchmark microbenchmarks of the hot kernels of explicit MPM, per backend and thread
-// count. Arguments of every transfer benchmark: {backend (0 serial, 1 openmp, 2 tbb), threads}.
+// count. Arguments of every transfer benchmark: {backend (0 serial, 1 openmp, 2 tbb, 4 kokkos),
+// threads}.
 // Items are particles (or grid nodes for the grid update); items/s is the throughput.
 // Scene: the standard sphere (io/bench_scene) with 2^18 particles at dx chosen for the same
 // ~4.2 particles per cell as the 1e6 benchmark.
@@ -25,9 +26,12 @@ exec::Space space_of(const benchmark::State& st) {
   return exec::Space(static_cast<exec::Backend>(st.range(0)), int(st.range(1)));
 }
 
+// Serial, OpenMP and TBB at 1 and 2 threads, and Kokkos (backend 4) when this build has it
+// (Debian's Kokkos runs its Serial execution space: 1 thread).
 void backend_args(benchmark::internal::Benchmark* b) {
   b->ArgNames({"backend", "threads"});
   b->Args({0, 1})->Args({1, 1})->Args({1, 2})->Args({2, 1})->Args({2, 2});
+  if (exec::backend_compiled(exec::Backend::Kokkos)) b->Args({int(exec::Backend::Kokkos), 1});
   b->UseRealTime()->Unit(benchmark::kMillisecond);
 }
 
@@ -313,9 +317,11 @@ void BM_PolarFast(benchmark::State& st) {
 
 // Per particle: Kirchhoff stress (what P2G evaluates) plus the state update after G2P (return
 // mapping or F reset; nothing for the hyperelastic models). F near I with +-0.3 perturbations,
-// so the plastic models mostly project.
+// so the plastic models mostly project. 2^16 particles in a parallel_for, per backend.
 void BM_Material(benchmark::State& st, MaterialModel model) {
-  const std::vector<Mat3> F = random_F(4096);
+  const exec::Space space = space_of(st);
+  std::vector<Mat3> F = random_F(1u << 16), out(F.size());
+  std::vector<Real> plastic_out(F.size());
   const Lame l = Lame::from_young_poisson(1e5, 0.3);
   MaterialParams m{model, l.mu, l.lambda, 1000};
   m.friction_alpha = DruckerPragerT<Real>::friction_alpha(Real(0.5236));
@@ -324,47 +330,62 @@ void BM_Material(benchmark::State& st, MaterialModel model) {
   m.bulk = Real(1e5);
   m.viscosity = Real(1e-3);
   const Mat3 L = Mat3::Identity() * Real(0.1);
-  for (auto _ : st)
-    for (const auto& f : F) {
-      Mat3 g = f;
+  for (auto _ : st) {
+    exec::parallel_for(space, "bench.material", exec::Index(F.size()), [&](exec::Index i) {
+      Mat3 g = F[size_t(i)];
       Real plastic = m.initial_plastic();
-      benchmark::DoNotOptimize(m.kirchhoff(g, L, plastic, 0));
+      const Mat3 tau = m.kirchhoff(g, L, plastic, 0);
       m.project(g, plastic, 0);
-      benchmark::DoNotOptimize(g);
-      benchmark::DoNotOptimize(plastic);
-    }
+      out[size_t(i)] = g + tau;
+      plastic_out[size_t(i)] = plastic;
+    });
+    benchmark::DoNotOptimize(out.data());
+    benchmark::DoNotOptimize(plastic_out.data());
+  }
   set_items(st, F.size(), sizeof(Mat3) * 3);
+}
+
+// Roofline ceilings. STREAM triad a = b + s c over 3 x 2^24 floats (192 MiB, far beyond the
+// caches), bytes counted 3 x 4 per item (no write-allocate, as STREAM counts).
+void BM_StreamTriad(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  const exec::Index n = exec::Index(1) << 24;
+  std::vector<float> a(size_t(n), 0.f), b(size_t(n), 1.f), c(size_t(n), 2.f);
+  for (auto _ : st) {
+    exec::parallel_for(space, "bench.triad", n, [&](exec::Index i) { a[size_t(i)] = b[size_t(i)] + 0.5f * c[size_t(i)]; });
+    benchmark::DoNotOptimize(a.data());
+  }
+  set_items(st, size_t(n), 12);
+}
+
+// Arithmetic peak of the code this build generates: 16 independent multiply-add chains of Real
+// per item, which the portable build compiles to SSE (4 floats per instruction, separate multiply
+// and add: no FMA without -march). Items are flops (2 per multiply-add); one item per core-ns
+// is 1 GFLOP/s. Per backend, 1 and 2 threads (each chunk its own chains).
+void BM_PeakFlops(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  constexpr int kLanes = 16, kIters = 4096;
+  const exec::Index chunks = 256;
+  std::vector<Real> sink(size_t(chunks) * kLanes);
+  for (auto _ : st) {
+    exec::parallel_for(space, "bench.flops", chunks, [&](exec::Index c) {
+      Real acc[kLanes];
+      for (int l = 0; l < kLanes; ++l) acc[l] = Real(1) + Real(l) * Real(1e-3) + Real(c) * Real(1e-6);
+      const Real m = Real(0.999999), a = Real(1e-7);
+      for (int it = 0; it < kIters; ++it)
+        for (int l = 0; l < kLanes; ++l) acc[l] = acc[l] * m + a;
+      for (int l = 0; l < kLanes; ++l) sink[size_t(c) * kLanes + size_t(l)] = acc[l];
+    }, 1);
+    benchmark::DoNotOptimize(sink.data());
+  }
+  st.SetItemsProcessed(std::int64_t(st.iterations()) * chunks * kLanes * kIters * 2);
 }
 
 // Peridynamics: a 40^3 lattice block (64 000 particles, delta = 3.015 lc: 122 bonds in the bulk,
 // 7.2 M directed bonds), stretched 0.1 % and sheared so every bond carries a force; plastic and
 // fracture enabled (thresholds not reached) so the kernels run their full paths. Items are
 // directed bonds (each visited from both ends, as LAMMPS counts them).
-std::unique_ptr<PdSolver> pd_block(const exec::Space& space) {
-  PdMaterial m;
-  m.bulk = Real(3.3e7);
-  m.shear = Real(2e7);
-  m.density = 2200;
-  m.psi0 = pd_psi0_from_yield_stress(Real(1e9), Real(0.03015));
-  m.plastic_cap = Real(0.2);
-  m.critical_stretch = Real(0.05);
-  PdSettings ps;
-  ps.spacing = Real(0.01);
-  ps.horizon = Real(0.03015);
-  ps.contact = false;
-  auto s = std::make_unique<PdSolver>(ps, std::vector<PdMaterial>{m});
-  std::vector<Vec3> x;
-  for (int i = 0; i < 40; ++i)
-    for (int j = 0; j < 40; ++j)
-      for (int k = 0; k < 40; ++k)
-        x.push_back(Vec3(Real(0.01 * (i + 0.5)), Real(0.01 * (j + 0.5)), Real(0.01 * (k + 0.5))));
-  s->add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(1e-6));
-  s->initialize(space);
-  Vec3* px = s->particles().vec3(s->attributes().x);
-  for (std::size_t i = 0; i < s->particles().size(); ++i)
-    px[i] += Vec3(Real(1e-3) * px[i][0] + Real(5e-4) * px[i][1], 0, 0);
-  return s;
-}
+std::unique_ptr<PdSolver> pd_block(const exec::Space& space) { return make_bench_pd_block(40, space); }
 
 void BM_PdBuildBonds(benchmark::State& st) {
   const exec::Space space = space_of(st);
@@ -446,19 +467,17 @@ BENCHMARK(BM_ImplicitOperator)->Apply(backend_args);
 BENCHMARK(BM_CgIteration)->Apply(backend_args);
 BENCHMARK(BM_ImplicitAssemble)->Apply(backend_args);
 BENCHMARK(BM_SortAndActivate)->Apply(backend_args);
+BENCHMARK(BM_StreamTriad)->Apply(backend_args);
+BENCHMARK(BM_PeakFlops)->Apply(backend_args);
 BENCHMARK(BM_Svd3)->Unit(benchmark::kNanosecond);
 BENCHMARK(BM_PolarFast)->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, fixed_corotated, MaterialModel::FixedCorotated)
-    ->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, neo_hookean, MaterialModel::NeoHookean)
-    ->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, stvk_hencky, MaterialModel::StvkHencky)
-    ->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, snow, MaterialModel::Snow)->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, drucker_prager, MaterialModel::DruckerPrager)
-    ->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, von_mises, MaterialModel::VonMises)->Unit(benchmark::kNanosecond);
-BENCHMARK_CAPTURE(BM_Material, fluid, MaterialModel::Fluid)->Unit(benchmark::kNanosecond);
+BENCHMARK_CAPTURE(BM_Material, fixed_corotated, MaterialModel::FixedCorotated)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_Material, neo_hookean, MaterialModel::NeoHookean)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_Material, stvk_hencky, MaterialModel::StvkHencky)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_Material, snow, MaterialModel::Snow)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_Material, drucker_prager, MaterialModel::DruckerPrager)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_Material, von_mises, MaterialModel::VonMises)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_Material, fluid, MaterialModel::Fluid)->Apply(backend_args);
 
 BENCHMARK(BM_PdBuildBonds)->Apply(backend_args);
 BENCHMARK(BM_PdDilatation)->Apply(backend_args);

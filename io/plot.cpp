@@ -155,6 +155,120 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
 
 }  // namespace
 
+namespace {
+const Vec3d kPalette[] = {{0.85, 0.2, 0.15}, {0.15, 0.35, 0.85}, {0.1, 0.6, 0.2},    {0.95, 0.55, 0.1},
+                          {0.55, 0.25, 0.7}, {0.1, 0.65, 0.7},  {0.35, 0.2, 0.1},   {0.75, 0.5, 0.3},
+                          {0.9, 0.4, 0.7},   {0.4, 0.4, 0.1},   {0.25, 0.25, 0.45}, {0.5, 0.8, 0.4}};
+constexpr int kPaletteSize = int(sizeof kPalette / sizeof kPalette[0]);
+
+Image blank(int w, int h) {
+  Image img;
+  img.width = w, img.height = h;
+  img.rgb.assign(size_t(w) * size_t(h) * 3, 255);
+  return img;
+}
+
+void fill(Image& img, int x0, int y0, int x1, int y1, const Vec3d& c) {
+  for (int y = std::max(0, std::min(y0, y1)); y <= std::min(img.height - 1, std::max(y0, y1)); ++y)
+    for (int x = std::max(0, std::min(x0, x1)); x <= std::min(img.width - 1, std::max(x0, x1)); ++x) img.set(x, y, c);
+}
+}  // namespace
+
+Image plot_bars(const BarChart& chart) {
+  const Vec3d ink(0.1, 0.1, 0.1), grid(0.85, 0.85, 0.85);
+  const int ng = int(chart.groups.size()), ns = int(chart.series.size());
+  const int width = std::max(900, 120 + ng * (ns * 16 + 30)), height = 520;
+  Image img = blank(width, height);
+  draw_text(img, 10, 10, chart.title, ink, 2);
+  const int left = 70, right = width - 20, top = 70, bottom = height - 60;
+  double ymax = chart.reference;
+  for (int g = 0; g < ng; ++g)
+    for (int k = 0; k < ns; ++k) {
+      if (size_t(k) < chart.values[g].size()) ymax = std::max(ymax, chart.values[g][k]);
+      if (size_t(g) < chart.high.size() && size_t(k) < chart.high[g].size()) ymax = std::max(ymax, chart.high[g][k]);
+    }
+  if (!(ymax > 0)) ymax = 1;
+  ymax *= 1.08;
+  auto sy = [&](double v) { return int(std::lround(bottom - v / ymax * (bottom - top))); };
+  for (int k = 0; k <= 5; ++k) {
+    const double v = ymax * k / 5;
+    const int py = sy(v);
+    for (int px = left; px <= right; ++px) img.set(px, py, grid);
+    draw_text(img, 6, py - 3, num(v), ink);
+  }
+  draw_text(img, 6, top - 16, chart.ylabel, ink);
+  for (int px = left; px <= right; ++px) img.set(px, bottom, ink);
+  for (int py = top; py <= bottom; ++py) img.set(left, py, ink);
+  int lx = left;  // legend
+  for (int k = 0; k < ns; ++k) {
+    fill(img, lx, 40, lx + 12, 50, kPalette[k % kPaletteSize]);
+    draw_text(img, lx + 16, 42, chart.series[size_t(k)], ink);
+    lx += 16 + int(chart.series[size_t(k)].size()) * 6 + 18;
+  }
+  const double gw = double(right - left) / std::max(1, ng);
+  const int bw = std::max(4, std::min(24, int((gw - 20) / std::max(1, ns))));
+  for (int g = 0; g < ng; ++g) {
+    const int gx = int(left + g * gw + (gw - bw * ns) / 2);
+    for (int k = 0; k < ns && size_t(k) < chart.values[g].size(); ++k) {
+      const double v = chart.values[g][k];
+      if (!std::isfinite(v)) continue;
+      const int x0 = gx + k * bw, x1 = x0 + bw - 3;
+      fill(img, x0, sy(v), x1, bottom - 1, kPalette[k % kPaletteSize]);
+      if (size_t(g) < chart.low.size() && size_t(k) < chart.low[g].size() && size_t(g) < chart.high.size() &&
+          size_t(k) < chart.high[g].size()) {
+        const int xm = (x0 + x1) / 2, ylo = sy(chart.low[g][k]), yhi = sy(chart.high[g][k]);
+        fill(img, xm, yhi, xm, ylo, ink);
+        fill(img, xm - 3, yhi, xm + 3, yhi, ink);
+        fill(img, xm - 3, ylo, xm + 3, ylo, ink);
+      }
+    }
+    const std::string& name = chart.groups[size_t(g)];
+    draw_text(img, int(left + g * gw + gw / 2) - int(name.size()) * 3, bottom + 8 + (g % 2) * 12, name, ink);
+  }
+  if (chart.reference > 0) {
+    const int py = sy(chart.reference);
+    for (int px = left; px <= right; px += 8) fill(img, px, py, std::min(right, px + 4), py + 1, ink);
+  }
+  return img;
+}
+
+Image plot_breakdown(const std::string& title, const std::vector<BreakdownBar>& bars) {
+  const Vec3d ink(0.1, 0.1, 0.1);
+  std::vector<std::string> labels;  // colour of a segment label: order of first appearance
+  auto colour = [&](const std::string& l) {
+    if (l == "other") return Vec3d(0.72, 0.72, 0.72);
+    auto it = std::find(labels.begin(), labels.end(), l);
+    if (it == labels.end()) it = labels.insert(labels.end(), l);
+    return kPalette[(it - labels.begin()) % kPaletteSize];
+  };
+  const int width = 1100, row = 72, left = 10, right = width - 10;
+  Image img = blank(width, 40 + row * int(bars.size()));
+  draw_text(img, 10, 10, title, ink, 2);
+  for (size_t b = 0; b < bars.size(); ++b) {
+    const int y = 40 + int(b) * row;
+    draw_text(img, left, y, bars[b].label, ink);
+    double total = 0;
+    for (const auto& s : bars[b].segments) total += std::max(0.0, s.second);
+    if (!(total > 0)) continue;
+    double acc = 0;
+    int lx = left, ly = y + 36;
+    for (const auto& s : bars[b].segments) {
+      const Vec3d c = colour(s.first);
+      const int x0 = left + int(std::lround(acc / total * (right - left)));
+      acc += std::max(0.0, s.second);
+      const int x1 = left + int(std::lround(acc / total * (right - left)));
+      if (x1 > x0) fill(img, x0, y + 12, x1 - 1, y + 30, c);
+      const std::string text = s.first + " " + num(100 * s.second / total) + "%";
+      const int w = 16 + int(text.size()) * 6 + 12;
+      if (lx + w > right) lx = left, ly += 11;
+      fill(img, lx, ly, lx + 10, ly + 7, c);
+      draw_text(img, lx + 14, ly, text, ink);
+      lx += w;
+    }
+  }
+  return img;
+}
+
 Image plot_loglog(const std::string& title, const std::vector<LogLogPanel>& panels) {
   static const Vec3d palette[] = {{0.85, 0.2, 0.15}, {0.15, 0.35, 0.85}, {0.1, 0.1, 0.1},
                                   {0.1, 0.6, 0.2},   {0.95, 0.55, 0.1}, {0.55, 0.25, 0.7}};

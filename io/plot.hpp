@@ -30,6 +30,26 @@ struct LogLogPanel {
 };
 Image plot_loglog(const std::string& title, const std::vector<LogLogPanel>& panels);
 
+// Grouped vertical bars (benchmark scaling): one group per entry of `groups`, one bar per
+// series inside each group, values[g][s] with optional whiskers low/high (same shape; empty:
+// none) and a dashed horizontal reference line (<= 0: none). Linear y axis from 0.
+struct BarChart {
+  std::string title, ylabel;
+  std::vector<std::string> groups, series;
+  std::vector<std::vector<double>> values, low, high;
+  double reference = 0;
+};
+Image plot_bars(const BarChart& chart);
+
+// Horizontal stacked bars (time breakdown), one per entry, each normalised to its own total;
+// a segment keeps one colour for its label across bars, and each bar lists its segments with
+// their shares below it.
+struct BreakdownBar {
+  std::string label;
+  std::vector<std::pair<std::string, double>> segments;  // label, value (> 0)
+};
+Image plot_breakdown(const std::string& title, const std::vector<BreakdownBar>& bars);
+
 // Text in the 5x7 font, scaled by `scale`, top-left at (x, y).
 void draw_text(Image& img, int x, int y, const std::string& text, const Vec3d& color, int scale = 1);
 
