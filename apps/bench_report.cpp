@@ -386,6 +386,14 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
        << "|---|---|---:|---:|---:|---:|---|\n"
        << rows.str() << "\n";
   }
+  const auto micro = std::filesystem::path(o.dir) / "microbench.md";
+  if (std::filesystem::exists(micro)) {
+    std::ifstream in(micro);
+    std::stringstream ss;
+    ss << in.rdbuf();
+    md << "## Microbenchmarks: every solver's hot kernels per backend (bench/microbench_table.py)\n\n"
+       << ss.str() << "\n";
+  }
   const auto peer = std::filesystem::path(o.dir) / "peer_lammps.md";
   if (std::filesystem::exists(peer)) {
     std::ifstream in(peer);

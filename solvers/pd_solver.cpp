@@ -37,7 +37,6 @@ PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials
   params_.horizon = settings_.horizon;
   params_.spacing = settings_.spacing;
   params_.deviatoric = settings_.deviatoric;
-  params_.materials = materials_.data();
   params_.consistent = settings_.surface_correction;
 }
 
@@ -134,8 +133,8 @@ PdView PdSolver::view() {
 void PdSolver::initialize(const exec::Space& space) {
   const std::size_t n = particles_.size();
   pd_build_bonds(space, particles_.vec3(attr_.x0), particles_.real(attr_.volume), particles_.int32(attr_.material), n,
-                 params_, settings_.partial_volume, bonds_);
-  pd_constants(space, particles_.vec3(attr_.x0), particles_.int32(attr_.material), bonds_, params_,
+                 params(), settings_.partial_volume, bonds_);
+  pd_constants(space, particles_.vec3(attr_.x0), particles_.int32(attr_.material), bonds_, params(),
                settings_.surface_correction, constants_);
   // Pre-cracks break bonds after the constants: the material around a crack is the same material,
   // only disconnected (its damage is > 0 from the start).
@@ -182,7 +181,7 @@ Real PdSolver::critical_dt(const exec::Space& space) {
   // fracture: the probe only reads forces.
   std::vector<PdMaterial> elastic = materials_;
   for (PdMaterial& m : elastic) m.psi0 = std::numeric_limits<Real>::infinity();
-  PdParams prm = params_;
+  PdParams prm = params();
   prm.materials = elastic.data();
   const PdView p = view();
   std::vector<Vec3> f0(n), f(n), v(n);
@@ -288,10 +287,10 @@ void PdSolver::apply_colliders(const exec::Space& space, Real t) {
   });
 }
 
-void PdSolver::compute_dilatation(const exec::Space& space) { pd_dilatation(space, view(), bonds_, params_); }
+void PdSolver::compute_dilatation(const exec::Space& space) { pd_dilatation(space, view(), bonds_, params()); }
 
 void PdSolver::compute_forces(const exec::Space& space) {
-  pd_forces(space, view(), bonds_, params_, settings_.fracture, force_.data(), nullptr);
+  pd_forces(space, view(), bonds_, params(), settings_.fracture, force_.data(), nullptr);
 }
 
 void PdSolver::contact_forces(const exec::Space& space) {
@@ -303,7 +302,7 @@ void PdSolver::contact_forces(const exec::Space& space) {
     pd_build_contact_list(space, x, particles_.size(), d + skin, contact_list_);
     ++contact_builds_;
   }
-  pd_contact_forces(space, view(), bonds_, params_, d, contact_list_, force_.data());
+  pd_contact_forces(space, view(), bonds_, params(), d, contact_list_, force_.data());
 }
 
 void PdSolver::update_damage(const exec::Space& space) { intact_ = pd_damage(space, view(), bonds_); }
@@ -345,7 +344,7 @@ void PdSolver::step(const exec::Space& space, Real dt) {
 void PdSolver::compute_stress(const exec::Space& space, std::vector<Mat3>& stress) {
   stress.resize(particles_.size());
   std::vector<Vec3> f(particles_.size());
-  pd_forces(space, view(), bonds_, params_, false, f.data(), stress.data());
+  pd_forces(space, view(), bonds_, params(), false, f.data(), stress.data());
 }
 
 PdDiagnostics PdSolver::diagnostics(const exec::Space& space) const {

@@ -108,7 +108,13 @@ class PdSolver {
   const PdBonds& bonds() const { return bonds_; }
   PdBonds& bonds() { return bonds_; }
   const std::vector<PdMaterial>& materials() const { return materials_; }
-  const PdParams& params() const { return params_; }
+  // The model parameters with `materials` pointing at this solver's materials (bound on each
+  // call, so a copied solver never points into its source).
+  PdParams params() const {
+    PdParams p = params_;
+    p.materials = materials_.data();
+    return p;
+  }
   const PdConstants& constants() const { return constants_; }
   PdView view();
   // Force densities of the last step (N/m^3), and the stress of each particle recomputed now.

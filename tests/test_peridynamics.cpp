@@ -408,6 +408,44 @@ TEST(PdBackends, FractureRunIsBitwiseIdentical) {
   }
 }
 
+// A copied solver is independent of its source (the benchmarks build one block and copy it per
+// configuration): the source destroyed, the copy steps bitwise like an uncopied twin. Before
+// params() bound the materials on each call, the copy kept a pointer into the source's materials.
+TEST(PdSolverCopy, CopyStepsLikeTheOriginalAfterTheSourceIsGone) {
+  PdMaterial m;
+  m.bulk = Real(2e6);
+  m.shear = Real(1.2e6);
+  m.density = 1000;
+  m.critical_stretch = Real(0.02);
+  const exec::Space space;
+  auto make = [&](Real bulk) {
+    PdMaterial mm = m;
+    mm.bulk = bulk;
+    auto s = std::make_unique<PdSolver>(make_block(6, settings(PdDeviatoric::Paper, true), mm, space));
+    s->prescribe_velocity(Vec3(-1, -1, -1), Vec3(Real(0.015), 1, 1), Vec3(-2, 0, 0));
+    return s;
+  };
+  auto twin = make(m.bulk);
+  auto source = make(m.bulk);
+  PdSolver copy(*source);
+  {  // what a stale pointer would read before the memory goes (materials_ is not const: defined)
+    PdMaterial& sm = const_cast<PdMaterial&>(source->materials().front());
+    sm.bulk = sm.shear = Real(9e9);
+    sm.critical_stretch = Real(1e-9);
+  }
+  source.reset();
+  const Real dt = twin->stable_dt(space);
+  for (int k = 0; k < 20; ++k) {
+    twin->step(space, dt);
+    copy.step(space, dt);
+  }
+  const auto& a = twin->particles();
+  const auto& b = copy.particles();
+  for (int i = 0; i < a.attribute_count(); ++i)
+    EXPECT_TRUE(test::bitwise_equal(a.words(i), b.words(i), a.size() * std::size_t(a.words_per_particle(i)))) << a.name(i);
+  EXPECT_GT(copy.diagnostics(space).kinetic, 0.0);
+}
+
 // Free flight without gravity: momentum is conserved and the elastic vibration of a spinning,
 // prestrained block stays bounded at the estimated stable time step.
 TEST(PdDynamics, VerletAtTheStableStepConservesMomentumAndStaysBounded) {
