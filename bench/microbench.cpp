@@ -14,6 +14,8 @@
 #include "core/materials/material.hpp"
 #include "core/math/svd3.hpp"
 #include "io/bench_scene.hpp"
+#include "kernels/implicit_mpm.hpp"
+#include "kernels/particle_domains.hpp"
 #include "solvers/pd_solver.hpp"
 
 using namespace amalgam;
@@ -131,7 +133,7 @@ void BM_ObjectContact(benchmark::State& st) {
   auto s = prepared(Transfer::Mls, 2, space, true, ConfigurationUpdate::TotalLagrangian, 2);
   for (auto _ : st) s->couple_objects(space, Real(1e-4));
   st.counters["contact_points"] = double(s->contact_point_count());
-  set_items(st, kParticles, 0);
+  set_items(st, kParticles, 2 * sizeof(Vec3) + sizeof(Real));  // x, v, m of each particle read
 }
 
 // Enriched MPM (solvers/particle_domains) on the sphere sampled on a lattice with particle domains
@@ -157,7 +159,7 @@ void BM_DomainParticlesToCorners(benchmark::State& st) {
     s->domains().particles_to_corners(space, pv);
   }
   st.counters["corners"] = double(s->domains().corner_count());
-  set_items(st, pv.n, 0);
+  set_items(st, pv.n, 2 * sizeof(Mat3) + 2 * sizeof(Real) + 8 * 4 + sizeof(Vec3) + 4);  // F, P, m, V0, corners, h, state
 }
 // Grid -> corner gather with corner collisions, then corner -> particle (v, F) and advection.
 void BM_DomainGridToParticles(benchmark::State& st) {
@@ -170,14 +172,14 @@ void BM_DomainGridToParticles(benchmark::State& st) {
     s->domains().grid_to_corners(space, g, pv, prm);
     s->domains().corners_to_particles(space, pv, prm);
   }
-  set_items(st, pv.n, 0);
+  set_items(st, pv.n, 8 * 4 + 2 * sizeof(Mat3) + 4 * sizeof(Vec3));  // corners; F r/w; v, x; corner v, x
 }
 // A whole explicit substep (the two above plus points, sort, topology, scatter, grid update).
 void BM_DomainStep(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared_domains(space);
   for (auto _ : st) s->step_domains(space, Real(1e-5));
-  set_items(st, s->particles().size(), 0);
+  set_items(st, s->particles().size(), s->particles().bytes_per_particle());  // resident particle state
 }
 // The implicit operator's domain term: grid -> corners -> dF -> dP -> corners -> grid.
 void BM_DomainHessianAction(benchmark::State& st) {
@@ -195,7 +197,7 @@ void BM_DomainHessianAction(benchmark::State& st) {
   for (auto _ : st)
     s->domains().hessian_action(space, pv, g, s->settings().dx, du.data(), duc.data(), 1,
                                 out.data(), outc.data());
-  set_items(st, pv.n, 0);
+  set_items(st, pv.n, 8 * 4 + sizeof(DomainHessian));  // corner ids + the Hessian cache
 }
 
 void BM_GridUpdate(benchmark::State& st) {
@@ -254,7 +256,7 @@ void BM_ImplicitOperator(benchmark::State& st) {
   ImplicitSystem& sys = r.s->implicit_system();
   std::vector<Real> out(sys.dof_count() * 4);
   for (auto _ : st) sys.apply(space, r.dt, sys.rhs(), out.data());
-  set_items(st, kParticles, 0);
+  set_items(st, kParticles, sizeof(ParticleHessian) + sizeof(Vec3) + sizeof(Real));  // cache, x, V0
   st.counters["dofs"] = double(r.dofs);
 }
 
@@ -276,7 +278,11 @@ void BM_CgIteration(benchmark::State& st) {
     st.ResumeTiming();
     sys.solve(space, r.dt, cfg);
   }
-  set_items(st, r.dofs * 10, 0);
+  // per DOF-iteration: the CG vectors (x, r, z, p, q, mass, inverse diagonal: 4 lanes each) and
+  // the operator's share of the particle Hessian cache
+  set_items(st, r.dofs * 10,
+            std::size_t(7 * 4 * sizeof(Real) +
+                        double(kParticles) / double(r.dofs) * double(sizeof(ParticleHessian) + sizeof(Vec3) + sizeof(Real))));
   st.counters["dofs"] = double(r.dofs);
 }
 
@@ -289,7 +295,7 @@ void BM_ImplicitAssemble(benchmark::State& st) {
     r.s->assemble_implicit(space, r.dt);
     r.s->implicit_system().prepare(space, r.dt);
   }
-  set_items(st, kParticles, 0);
+  set_items(st, kParticles, sizeof(ParticleHessian) + sizeof(Mat3) + sizeof(Vec3));  // cache written, F, x
 }
 
 std::vector<Mat3> random_F(std::size_t n) {
