@@ -431,6 +431,61 @@ void BM_PdForces(benchmark::State& st) {
                 2 * sizeof(Vec3) + 3 * sizeof(Real));
 }
 
+// Bond compaction (issue 5: "periodic compaction of broken bonds if it pays"): the dilatation +
+// force passes of the block with a fraction of its bonds broken (pairs chosen by a hash, both
+// directions), left in the CSR arrays (args: compacted 0) or removed by pd_compact_bonds first
+// (compacted 1). Items are the directed bonds of the *unbroken* block, so items/s compare the
+// same physical work. BM_PdCompact times the compaction itself.
+std::unique_ptr<PdSolver> pd_block_broken(int percent) {
+  auto s = pd_block(exec::Space());
+  PdBonds& b = s->bonds();
+  for (std::size_t i = 0; i < b.particles(); ++i)
+    for (std::uint64_t k = b.offsets[i]; k < b.offsets[i + 1]; ++k) {
+      const std::uint32_t j = b.neighbor[k];
+      if (j < i) continue;
+      std::uint64_t h = (std::uint64_t(i) << 32 | j) * 0x9E3779B97F4A7C15ull;
+      h ^= h >> 29;
+      if (h % 100 < std::uint64_t(percent)) b.intact[k] = b.intact[b.reverse[k]] = 0;
+    }
+  return s;
+}
+
+void BM_PdBrokenStep(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = pd_block_broken(int(st.range(2)));
+  const std::size_t all = s->bonds().size();
+  if (st.range(3)) pd_compact_bonds(space, s->bonds());
+  for (auto _ : st) {
+    s->compute_dilatation(space);
+    s->compute_forces(space);
+  }
+  set_items(st, all, 0);
+  st.counters["stored_bonds"] = double(s->bonds().size());
+}
+
+void BM_PdCompact(benchmark::State& st) {
+  const exec::Space space = space_of(st);
+  auto s = pd_block_broken(int(st.range(2)));
+  const PdBonds full = s->bonds();
+  for (auto _ : st) {
+    st.PauseTiming();
+    s->bonds() = full;
+    st.ResumeTiming();
+    pd_compact_bonds(space, s->bonds());
+  }
+  set_items(st, full.size(), 0);
+}
+
+void broken_args(benchmark::internal::Benchmark* b, bool both) {
+  b->ArgNames({"backend", "threads", "broken_pct", "compacted"});
+  for (int pct : {0, 25, 50, 75, 90})
+    for (int c = 0; c <= (both ? 1 : 0); ++c) {
+      b->Args({0, 1, pct, both ? c : 1});
+      b->Args({1, 2, pct, both ? c : 1});
+    }
+  b->UseRealTime()->Unit(benchmark::kMillisecond);
+}
+
 void BM_PdContact(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = pd_block(space);
@@ -495,6 +550,8 @@ BENCHMARK(BM_PdBuildBonds)->Apply(backend_args);
 BENCHMARK(BM_PdDilatation)->Apply(backend_args);
 BENCHMARK(BM_PdForces)->Apply(backend_args);
 BENCHMARK(BM_PdContact)->Apply(backend_args);
+BENCHMARK(BM_PdBrokenStep)->Apply([](benchmark::internal::Benchmark* b) { broken_args(b, true); });
+BENCHMARK(BM_PdCompact)->Apply([](benchmark::internal::Benchmark* b) { broken_args(b, false); });
 BENCHMARK(BM_PdContactList)->Apply(backend_args);
 
 BENCHMARK_MAIN();
