@@ -259,6 +259,18 @@ std::string kernels_csv(const std::vector<Result>& all) {
 
 std::string rate(double v) { return fmt("%.3g", v); }
 
+// A case's Serial result and its fastest 2-thread one (either may be null).
+std::pair<const Result*, const Result*> serial_and_best2(const std::vector<Result>& all, const std::string& name) {
+  const Result* serial = nullptr;
+  const Result* best2 = nullptr;
+  for (const Result& r : all) {
+    if (r.case_name != name) continue;
+    if (r.config.backend == exec::Backend::Serial) serial = &r;
+    if (r.config.threads == 2 && (!best2 || r.median > best2->median)) best2 = &r;
+  }
+  return {serial, best2};
+}
+
 // The kernels of a result that make up at least 90 % of its profiled time (at most 8), the rest
 // summed as "other".
 std::vector<KernelRow> top_kernels(const Result& r) {
@@ -336,12 +348,9 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
     md << "## " << bc.name << ": " << bc.method << "\n\n" << bc.scene << ".\n\n"
        << "| configuration | " << bc.unit << " | spread | ns/item | speed-up | efficiency | bytes/item | "
        << "floor ns/item | notes |\n|---|---:|---:|---:|---:|---:|---:|---:|---|\n";
-    const Result* serial = nullptr;
-    const Result* best2 = nullptr;
+    const auto [serial, best2] = serial_and_best2(all, bc.name);
     for (const Result& r : all) {
       if (r.case_name != bc.name) continue;
-      if (r.config.backend == exec::Backend::Serial) serial = &r;
-      if (r.config.threads == 2 && (!best2 || r.median > best2->median)) best2 = &r;
       const auto bw = bandwidth.find(r.config.threads);
       const double floor = bw != bandwidth.end() && bw->second > 0 ? r.bytes_per_item / bw->second : 0;
       md << "| " << r.config.name() << " | " << rate(r.median) << " [" << rate(r.min) << ", " << rate(r.max) << "] | "
@@ -429,13 +438,7 @@ Image scaling_plot(const std::vector<Result>& all, const std::vector<BenchCase>&
 Image breakdown_plot(const std::vector<Result>& all, const std::vector<BenchCase>& cases) {
   std::vector<BreakdownBar> bars;
   for (const BenchCase& bc : cases) {
-    const Result* serial = nullptr;
-    const Result* best2 = nullptr;
-    for (const Result& r : all) {
-      if (r.case_name != bc.name) continue;
-      if (r.config.backend == exec::Backend::Serial) serial = &r;
-      if (r.config.threads == 2 && (!best2 || r.median > best2->median)) best2 = &r;
-    }
+    const auto [serial, best2] = serial_and_best2(all, bc.name);
     for (const Result* r : {serial, best2}) {
       if (!r) continue;
       BreakdownBar b;
