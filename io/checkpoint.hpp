@@ -2,8 +2,9 @@
 //
 // The grid is rebuilt from the particles every substep and no node value depends on the leaf
 // table's history, so the state is the particle attributes plus the clock (time, substep count)
-// and the frame being computed; peridynamics adds its per-bond state (the bond list itself is
-// rebuilt from the reference positions, deterministically). Format (little-endian), version 2:
+// and the frame being computed; peridynamics adds its bond layout (the rows left after compaction:
+// offsets and neighbours) and per-bond state; the per-bond constants are rebuilt from the
+// reference positions, deterministically, and restricted to the stored rows. Format (little-endian), version 2:
 //   "AMALGAM-CKPT\n" (13 bytes) | u32 version | u32 sizeof(Real) | u64 scene fingerprint
 //   | f64 time | u64 steps | i32 next_frame | u64 particles | u32 attributes
 //   | per attribute: u32 name length, name, u32 type, u32 width, u32 words/particle, words
@@ -34,9 +35,10 @@ void write_checkpoint(const std::string& path, const MpmSolver& solver, int next
 // Loads particles and clock into `solver` (built from the same scene); returns the state.
 CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint);
 
-// Peridynamics: particles, clock, the bonds' plastic extensions and intact flags, and embedded
-// crack meshes (vertex positions, split tetrahedra, crack faces). Reading
-// needs an initialised solver of the same scene (same bond list).
+// Peridynamics: particles, clock, the bond rows (compacted or not), the bonds' plastic extensions
+// and intact flags, and embedded crack meshes (vertex positions, split tetrahedra, crack faces).
+// Reading needs an initialised solver of the same scene; a bond list that is not a subset of its
+// bonds is an InputError.
 void write_checkpoint(const std::string& path, const PdSolver& solver, int next_frame,
                       std::uint64_t scene_fingerprint);
 CheckpointState read_checkpoint(const std::string& path, PdSolver& solver, std::uint64_t scene_fingerprint);

@@ -448,6 +448,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     s.pd.contact = p.boolean("contact", true);
     const double contact = p.number("contact_distance", 0.9, 0, 3, true);
     s.pd.damping = Real(p.number("damping", 0, 0, 1e12));
+    s.pd.compact_fraction = Real(p.number("compact_fraction", 0.1, 0, 1));
     p.finish();
     s.pd.horizon = Real(factor);  // times the spacing, set once the objects are known
     s.pd.contact_distance = Real(contact);

@@ -605,17 +605,24 @@ std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds
       [](std::uint64_t a, std::uint64_t b) { return a + b; });
 }
 
-void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
+namespace {
+
+// Keeps the bonds with keep[k] != 0 (rows keep their order, every per-bond array is copied,
+// reverse indices rebuilt). Returns the number removed.
+std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdBonds& bonds,
+                           const std::vector<std::uint8_t>& keep) {
   const std::size_t n = bonds.particles();
   std::vector<std::uint64_t> count(n), off(n + 1);
   exec::parallel_for(space, "pd.compact_count", exec::Index(n), [&](exec::Index i) {
     std::uint64_t c = 0;
-    for (std::uint64_t k = bonds.offsets[std::size_t(i)]; k < bonds.offsets[std::size_t(i) + 1]; ++k) c += bonds.intact[k];
+    for (std::uint64_t k = bonds.offsets[std::size_t(i)]; k < bonds.offsets[std::size_t(i) + 1]; ++k) c += keep[k] != 0;
     count[std::size_t(i)] = c;
   });
   const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
       space, "pd.compact_scan", exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, off.data());
   off[n] = total;
+  const std::uint64_t removed = bonds.size() - total;
+  if (removed == 0) return 0;
   PdBonds out;
   out.offsets = off;
   out.neighbor.resize(total);
@@ -624,23 +631,64 @@ void pd_compact_bonds(const exec::Space& space, PdBonds& bonds) {
   out.shear_omega.resize(total);
   out.volume.resize(total);
   out.plastic.resize(total);
-  out.intact.assign(total, 1);
-  exec::parallel_for(space, "pd.compact_copy", exec::Index(n), [&](exec::Index ii) {
+  out.intact.resize(total);
+  exec::parallel_for(space, label_copy, exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     std::uint64_t o = off[i];
     for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) {
-      if (!bonds.intact[k]) continue;
+      if (!keep[k]) continue;
       out.neighbor[o] = bonds.neighbor[k];
       out.length[o] = bonds.length[k];
       out.omega[o] = bonds.omega[k];
       out.shear_omega[o] = bonds.shear_omega[k];
       out.volume[o] = bonds.volume[k];
       out.plastic[o] = bonds.plastic[k];
+      out.intact[o] = bonds.intact[k];
       ++o;
     }
   });
   fill_reverse(space, "pd.compact_reverse", out.offsets, out.neighbor, out.reverse);
   bonds = std::move(out);
+  return removed;
+}
+
+}  // namespace
+
+std::uint64_t pd_compact_bonds(const exec::Space& space, PdBonds& bonds, Real contact_distance) {
+  std::vector<std::uint8_t> keep(bonds.size());
+  exec::parallel_for(space, "pd.compact_mark", exec::Index(bonds.size()), [&](exec::Index k) {
+    keep[std::size_t(k)] = bonds.intact[std::size_t(k)] || Real(0.9) * bonds.length[std::size_t(k)] < contact_distance;  // as pd_contact_forces
+  });
+  return select_bonds(space, "pd.compact_copy", bonds, keep);
+}
+
+bool pd_restrict_bonds(const exec::Space& space, PdBonds& bonds, const std::vector<std::uint64_t>& offsets,
+                       const std::vector<std::uint32_t>& neighbor) {
+  const std::size_t n = bonds.particles();
+  if (offsets.size() != n + 1 || offsets[0] != 0 || offsets[n] != neighbor.size()) return false;
+  for (std::size_t i = 0; i < n; ++i)
+    if (offsets[i] > offsets[i + 1]) return false;
+  std::vector<std::uint8_t> keep(bonds.size(), 0);
+  // Row by row, a merge of the sorted rows: every given neighbour must be in the full row.
+  const std::uint64_t bad = exec::parallel_reduce(
+      space, "pd.restrict_mark", exec::Index(n), std::uint64_t(0),
+      [&](exec::Index ii, std::uint64_t& acc) {
+        const std::size_t i = std::size_t(ii);
+        std::uint64_t k = bonds.offsets[i];
+        const std::uint64_t k1 = bonds.offsets[i + 1];
+        for (std::uint64_t c = offsets[i]; c < offsets[i + 1]; ++c) {
+          while (k < k1 && bonds.neighbor[k] < neighbor[c]) ++k;
+          if (k == k1 || bonds.neighbor[k] != neighbor[c]) {
+            ++acc;
+            return;
+          }
+          keep[k++] = 1;
+        }
+      },
+      [](std::uint64_t a, std::uint64_t b) { return a + b; });
+  if (bad) return false;
+  select_bonds(space, "pd.restrict_copy", bonds, keep);
+  return true;
 }
 
 }  // namespace amalgam

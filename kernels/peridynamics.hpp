@@ -189,8 +189,18 @@ void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds&
 std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds& bonds);
 
 
-// Removes broken bonds from the CSR arrays (rows keep their order; reverse indices rebuilt).
-// Worth it only once many bonds are broken (measured in docs/benchmarks.md).
-void pd_compact_bonds(const exec::Space& space, PdBonds& bonds);
+// Removes broken bonds from the CSR arrays (rows keep their order, every per-bond array is
+// copied, reverse indices rebuilt) and returns how many. Broken bonds with 0.9 L below
+// contact_distance stay (0: none): pd_contact_forces lets such a pair touch only below 0.9 L,
+// so removing its bond would change the physics. Every kernel skips broken bonds, so a compacted list gives the same sums in the
+// same order: the run continues bitwise as without compaction. Pays once many bonds are broken
+// (measured in docs/benchmarks.md).
+std::uint64_t pd_compact_bonds(const exec::Space& space, PdBonds& bonds, Real contact_distance = 0);
+
+// Restricts `bonds` (the full list built from the reference configuration) to the rows given by
+// offsets/neighbor (a compacted layout read from a checkpoint): each given row must be a sorted
+// subsequence of the full row; returns false (bonds unchanged) if not.
+bool pd_restrict_bonds(const exec::Space& space, PdBonds& bonds, const std::vector<std::uint64_t>& offsets,
+                       const std::vector<std::uint32_t>& neighbor);
 
 }  // namespace amalgam

@@ -72,19 +72,32 @@ void PdCrackMesh::rebuild_incidence() {
     for (std::uint32_t v : tets_[t]) incident_[v].push_back(t);
 }
 
+std::uint64_t PdCrackMesh::find_bond(const PdBonds& bonds, const Face& f) const {
+  const std::uint32_t i = first_particle_ + f.tet[0], j = first_particle_ + f.tet[1];
+  if (std::size_t(i) >= bonds.particles() || std::size_t(j) >= bonds.particles())
+    throw std::logic_error("PdCrackMesh: tetrahedron without a particle");
+  const std::uint32_t* b = bonds.neighbor.data() + bonds.offsets[i];
+  const std::uint32_t* e = bonds.neighbor.data() + bonds.offsets[i + 1];
+  const std::uint32_t* p = std::lower_bound(b, e, j);
+  return p != e && *p == j ? bonds.offsets[i] + std::uint64_t(p - b) : kNone;
+}
+
 void PdCrackMesh::attach(const PdBonds& bonds) {
-  for (Face& f : faces_) {
-    f.bond = kNone;
-    if (f.tet[1] == ~std::uint32_t(0)) continue;
-    const std::uint32_t i = first_particle_ + f.tet[0], j = first_particle_ + f.tet[1];
-    if (std::size_t(i) >= bonds.particles() || std::size_t(j) >= bonds.particles())
-      throw std::logic_error("PdCrackMesh: tetrahedron without a particle");
-    const std::uint32_t* b = bonds.neighbor.data() + bonds.offsets[i];
-    const std::uint32_t* e = bonds.neighbor.data() + bonds.offsets[i + 1];
-    const std::uint32_t* p = std::lower_bound(b, e, j);
-    if (p != e && *p == j) f.bond = bonds.offsets[i] + std::uint64_t(p - b);
-  }
+  for (Face& f : faces_) f.bond = f.tet[1] == ~std::uint32_t(0) ? kNone : find_bond(bonds, f);
   update_topology(bonds);
+}
+
+void PdCrackMesh::reattach(const PdBonds& bonds) {
+  for (std::size_t k = 0; k < faces_.size(); ++k) {
+    Face& f = faces_[k];
+    if (f.bond == kNone) continue;  // a boundary face, or a pair without a bond: never cracks
+    if (cracked_[k]) {
+      f.bond = kNone;  // done with it (its bond may be gone)
+      continue;
+    }
+    f.bond = find_bond(bonds, f);
+    if (f.bond == kNone) throw std::logic_error("PdCrackMesh: an uncracked face lost its bond");
+  }
 }
 
 std::size_t PdCrackMesh::update_topology(const PdBonds& bonds) {

@@ -34,6 +34,10 @@ class PdCrackMesh {
   // Finds each face's bond (after the solver built its bonds), and marks faces whose bond is
   // already broken (pre-cracks) as cracked.
   void attach(const PdBonds& bonds);
+  // After the bond arrays changed layout (compaction, or a checkpoint's rows restored): finds the
+  // bond of every face that is not cracked again (it must still be stored: compaction keeps intact
+  // bonds, and a broken one cracked its face in the step it broke).
+  void reattach(const PdBonds& bonds);
   // Adds the faces whose bond broke since the last call to the crack set and splits vertices.
   // Returns the number of vertices created.
   std::size_t update_topology(const PdBonds& bonds);
@@ -71,6 +75,7 @@ class PdCrackMesh {
   };
   static constexpr std::uint64_t kNone = ~std::uint64_t(0);
   void split_vertex(std::uint32_t v);
+  std::uint64_t find_bond(const PdBonds& bonds, const Face& f) const;  // kNone: no bond joins the pair
 
   std::uint32_t first_particle_;
   std::vector<std::array<std::uint32_t, 4>> tets_;         // current vertex indices (split copies)

@@ -160,6 +160,7 @@ void PdSolver::initialize(const exec::Space& space) {
   force_.assign(n, Vec3::Zero());
   q_.assign(n, Real(0));
   for (PdCrackMesh& m : meshes_) m.attach(bonds_);
+  bonds_initial_ = bonds_.size();
   initialized_ = true;
   crit_dt_ = critical_dt(space);
   // Initial accelerations (velocity Verlet needs a^0).
@@ -293,9 +294,13 @@ void PdSolver::compute_forces(const exec::Space& space) {
   pd_forces(space, view(), bonds_, params(), settings_.fracture, force_.data(), nullptr);
 }
 
+Real PdSolver::contact_distance() const {
+  return settings_.contact_distance > 0 ? settings_.contact_distance : Real(0.9) * settings_.spacing;
+}
+
 void PdSolver::contact_forces(const exec::Space& space) {
   if (!settings_.contact) return;
-  const Real d = settings_.contact_distance > 0 ? settings_.contact_distance : Real(0.9) * settings_.spacing;
+  const Real d = contact_distance();
   const Real skin = settings_.contact_skin > 0 ? settings_.contact_skin : Real(0.5) * settings_.spacing;
   const Vec3* x = particles_.vec3(attr_.x);
   if (contact_list_.x_built.size() != particles_.size() || pd_max_displacement(space, x, contact_list_) > skin / 2) {
@@ -306,6 +311,36 @@ void PdSolver::contact_forces(const exec::Space& space) {
 }
 
 void PdSolver::update_damage(const exec::Space& space) { intact_ = pd_damage(space, view(), bonds_); }
+
+void PdSolver::compact_bonds(const exec::Space& space) {
+  if (!(settings_.compact_fraction > 0)) return;
+  const std::uint64_t stored = bonds_.size();
+  const std::uint64_t removable = stored - intact_ - kept_broken_;  // broken since the last compaction
+  if (!(double(removable) > double(settings_.compact_fraction) * double(stored))) return;
+  pd_compact_bonds(space, bonds_, settings_.contact ? contact_distance() : Real(0));
+  kept_broken_ = bonds_.size() - intact_;
+  ++compactions_;
+  for (PdCrackMesh& m : meshes_) m.reattach(bonds_);
+}
+
+bool PdSolver::restore_bonds(const std::vector<std::uint64_t>& offsets, const std::vector<std::uint32_t>& neighbor,
+                             const std::vector<Real>& plastic, const std::vector<std::uint8_t>& intact) {
+  if (!initialized_) throw std::logic_error("PdSolver: restore_bonds() before initialize()");
+  if (plastic.size() != neighbor.size() || intact.size() != neighbor.size()) return false;
+  const exec::Space serial;
+  if (!pd_restrict_bonds(serial, bonds_, offsets, neighbor)) return false;
+  bonds_.plastic = plastic;
+  bonds_.intact = intact;
+  const Real d = settings_.contact ? contact_distance() : Real(0);
+  intact_ = kept_broken_ = 0;
+  for (std::size_t k = 0; k < bonds_.size(); ++k) {
+    intact_ += bonds_.intact[k];
+    kept_broken_ += !bonds_.intact[k] && Real(0.9) * bonds_.length[k] < d;  // what compaction would keep
+  }
+  meshes_intact_ = intact_;
+  for (PdCrackMesh& m : meshes_) m.reattach(bonds_);
+  return true;
+}
 
 void PdSolver::kick(const exec::Space& space, Real dt) {
   Vec3* v = particles_.vec3(attr_.v);
@@ -334,8 +369,10 @@ void PdSolver::step(const exec::Space& space, Real dt) {
   compute_dilatation(space);
   compute_forces(space);
   contact_forces(space);
+  bond_updates_ += bonds_.size();
   update_damage(space);
   split_meshes();
+  compact_bonds(space);
   kick(space, dt);
   time_ += double(dt);
   ++steps_;
@@ -379,7 +416,9 @@ PdDiagnostics PdSolver::diagnostics(const exec::Space& space) const {
   d.momentum = r.p;
   d.max_speed = r.vmax;
   d.max_damage = r.dmax;
-  d.bonds = bonds_.size();
+  d.bonds = bonds_initial_;
+  d.stored = bonds_.size();
+  d.compactions = compactions_;
   std::uint64_t intact = 0;
   for (std::uint8_t b : bonds_.intact) intact += b;
   d.intact = intact;

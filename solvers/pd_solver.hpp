@@ -5,7 +5,7 @@
 //
 // step() = kick_drift -> move_meshes -> apply_colliders -> compute_dilatation (with the plastic
 // return) -> compute_forces (with fracture) -> contact_forces -> update_damage -> split_meshes ->
-// kick. (move_meshes and split_meshes act on embedded tetrahedral meshes, Sec. 5.2.)
+// compact_bonds -> kick. (move_meshes and split_meshes act on embedded tetrahedral meshes, Sec. 5.2.)
 #pragma once
 
 #include <cstdint>
@@ -38,6 +38,11 @@ struct PdSettings {
   // Viscous damping (1/s): each half kick multiplies velocities by exp(-damping dt / 2). For dynamic
   // relaxation to a static state (quasi-static loading); 0 = none (the papers' dynamics).
   Real damping = 0;
+  // Bond compaction: once the bonds broken since the last compaction exceed this fraction of the
+  // stored ones, they are removed from the CSR arrays (pd_compact_bonds; the run continues
+  // bitwise as without). 0 = never. 10 %: measured to pay back within a few steps
+  // (docs/benchmarks.md, "Bond compaction").
+  Real compact_fraction = Real(0.1);
 };
 
 // Particle attributes of a peridynamic body.
@@ -54,7 +59,9 @@ struct PdDiagnostics {
   Vec3d momentum = Vec3d::Zero();
   double max_speed = 0;
   double max_damage = 0;
-  std::uint64_t bonds = 0, intact = 0;  // directed bonds
+  std::uint64_t bonds = 0, intact = 0;  // directed bonds: at the start, and intact now
+  std::uint64_t stored = 0;             // directed bonds in the CSR arrays (bonds minus those compacted away)
+  std::uint64_t compactions = 0;
 };
 
 class PdSolver {
@@ -131,7 +138,17 @@ class PdSolver {
   void update_damage(const exec::Space& space);
   void move_meshes(Real dt);
   void split_meshes();
+  void compact_bonds(const exec::Space& space);
   void kick(const exec::Space& space, Real dt);
+
+  // Directed bonds processed by the dilatation and force passes since initialize() (the stored
+  // bonds, summed over steps): the numerator of bond-updates/s.
+  std::uint64_t bond_updates() const { return bond_updates_; }
+  // A checkpoint's bond rows and per-bond state (see read_checkpoint): restricts the bonds built
+  // from the reference configuration to the given rows and takes the state. Returns false
+  // (nothing changed) when the rows are not a subset of this solver's bonds.
+  bool restore_bonds(const std::vector<std::uint64_t>& offsets, const std::vector<std::uint32_t>& neighbor,
+                     const std::vector<Real>& plastic, const std::vector<std::uint8_t>& intact);
 
  private:
   PdSettings settings_;
@@ -159,6 +176,10 @@ class PdSolver {
   std::vector<Precrack> precracks_;
   std::vector<PdCrackMesh> meshes_;
   std::uint64_t intact_ = 0, meshes_intact_ = 0;  // intact directed bonds: now, and when the meshes last split
+  std::uint64_t bonds_initial_ = 0;  // directed bonds at initialize()
+  std::uint64_t kept_broken_ = 0;    // broken bonds the last compaction kept (short ones, for contact)
+  std::uint64_t compactions_ = 0, bond_updates_ = 0;
+  Real contact_distance() const;
   Real crit_dt_ = 0;  // critical Verlet step of the reference configuration (critical_dt)
   double time_ = 0;
   std::uint64_t steps_ = 0;

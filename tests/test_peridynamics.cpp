@@ -8,6 +8,7 @@
 #include <random>
 
 #include "core/errors.hpp"
+#include "io/checkpoint.hpp"
 #include "kernels/peridynamics.hpp"
 #include "solvers/pd_solver.hpp"
 #include "test_util.hpp"
@@ -365,6 +366,37 @@ TEST(PdBonds, CsrIsSymmetricSortedAndCompactionKeepsIntactBonds) {
       ASSERT_NE(b.neighbor[k], 0u);
       ASSERT_EQ(b.neighbor[b.reverse[k]], i);
     }
+  // With contact at distance lc, broken bonds with 0.9 L < lc stay (the contact rule reads their
+  // length): of the centre particle's broken bonds, its 6 nearest neighbours' remain.
+  const std::size_t p = centre_particle(7);
+  const std::size_t before2 = b.size(), row = b.offsets[p + 1] - b.offsets[p];
+  for (std::uint64_t k = b.offsets[p]; k < b.offsets[p + 1]; ++k) b.intact[k] = b.intact[b.reverse[k]] = 0;
+  EXPECT_EQ(pd_compact_bonds(space, b, Real(kLc)), 2 * (row - 6));
+  EXPECT_EQ(b.size(), before2 - 2 * (row - 6));
+  ASSERT_EQ(b.offsets[p + 1] - b.offsets[p], 6u);
+  for (std::uint64_t k = b.offsets[p]; k < b.offsets[p + 1]; ++k) {
+    EXPECT_EQ(b.intact[k], 0);
+    EXPECT_NEAR(double(b.length[k]), kLc, 1e-6);
+    EXPECT_EQ(b.neighbor[b.reverse[k]], p);
+    EXPECT_EQ(b.intact[b.reverse[k]], 0);
+  }
+  // Restricting a full list to a compacted layout reproduces the compacted arrays.
+  PdSolver full = make_block(7, settings(PdDeviatoric::Paper, true), m, space);
+  PdBonds f = full.bonds();
+  ASSERT_TRUE(pd_restrict_bonds(space, f, b.offsets, b.neighbor));
+  EXPECT_EQ(f.neighbor, b.neighbor);
+  EXPECT_EQ(f.reverse, b.reverse);
+  EXPECT_EQ(f.omega, b.omega);
+  EXPECT_EQ(f.shear_omega, b.shear_omega);
+  EXPECT_EQ(f.length, b.length);
+  // ... and refuses rows that are not a subset (here: particle 0 regains a bond).
+  std::vector<std::uint64_t> off = b.offsets;
+  std::vector<std::uint32_t> nb = b.neighbor;
+  nb.insert(nb.begin(), 1u);
+  for (std::size_t i = 1; i < off.size(); ++i) ++off[i];
+  PdBonds g = f;
+  EXPECT_TRUE(pd_restrict_bonds(space, g, off, nb) == false);
+  EXPECT_EQ(g.neighbor, f.neighbor);
 }
 
 // A bar pulled apart at both ends breaks; every backend and thread count gives the same bits.
@@ -779,6 +811,144 @@ TEST(PdCrackMesh, VerticesFollowTheParticles) {
     worst = std::max(worst, double((c - x[t]).norm()));
   }
   EXPECT_LT(worst, 0.5 * h);
+}
+
+// Bond compaction (PdSettings::compact_fraction) must not change the run: every kernel skips
+// broken bonds and a compacted row keeps its order, so sums are the same in the same order, and
+// broken bonds the contact rule still reads (0.9 L < contact distance) are kept.
+void expect_same_state(const PdSolver& a, const PdSolver& b, const std::string& what) {
+  const ParticleSet &pa = a.particles(), &pb = b.particles();
+  for (int k = 0; k < pa.attribute_count(); ++k)
+    EXPECT_TRUE(test::bitwise_equal(pa.words(k), pb.words(k), pa.size() * std::size_t(pa.words_per_particle(k))))
+        << what << ": attribute " << pa.name(k);
+  EXPECT_TRUE(test::bitwise_equal(a.forces().data(), b.forces().data(), a.forces().size())) << what << ": forces";
+}
+
+PdMaterial breakable() {
+  PdMaterial m;
+  m.bulk = Real(2e6);
+  m.shear = Real(1.2e6);
+  m.density = 1000;
+  m.critical_stretch = Real(0.02);
+  m.alpha = Real(0.5);
+  m.psi0 = pd_psi0_from_yield_stress(Real(2e5), Real(kDelta));
+  m.plastic_cap = Real(0.05);
+  return m;
+}
+
+// A 24 x 6 x 6 bar with plasticity, fracture and contact, its ends pulled apart at 3 m/s.
+PdSolver pulled_bar(const exec::Space& space, Real compact_fraction) {
+  PdSettings s = settings(PdDeviatoric::Paper, true);
+  s.contact = true;
+  s.compact_fraction = compact_fraction;
+  PdSolver solver(s, {breakable()});
+  std::vector<Vec3> x;
+  for (int i = 0; i < 24; ++i)
+    for (int j = 0; j < 6; ++j)
+      for (int k = 0; k < 6; ++k) x.push_back((kLc * Vec3d(i + 0.5, j + 0.5, k + 0.5)).cast<Real>());
+  solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
+  solver.prescribe_velocity(Vec3(-1, -1, -1), Vec3(Real(0.03), 1, 1), Vec3(-3, 0, 0));
+  solver.prescribe_velocity(Vec3(Real(0.21), -1, -1), Vec3(1, 1, 1), Vec3(3, 0, 0));
+  solver.initialize(space);
+  return solver;
+}
+
+TEST(PdCompaction, ABreakingBarRunsBitwiseAsWithout) {
+  const exec::Space space(test::parallel_backend(), 2);
+  PdSolver ref = pulled_bar(space, 0);
+  const Real dt = ref.stable_dt(space);
+  for (int k = 0; k < 80; ++k) ref.step(space, dt);
+  const PdDiagnostics dr = ref.diagnostics(space);
+  EXPECT_EQ(dr.compactions, 0u);
+  EXPECT_EQ(dr.stored, dr.bonds);
+  EXPECT_LT(dr.intact, dr.bonds * 95 / 100);  // more than 5 % broke
+  for (const Real fraction : {Real(0.005), Real(0.1)}) {
+    PdSolver c = pulled_bar(space, fraction);
+    for (int k = 0; k < 80; ++k) c.step(space, dt);
+    const PdDiagnostics d = c.diagnostics(space);
+    const std::string what = "compact_fraction " + std::to_string(fraction);
+    EXPECT_GT(d.compactions, fraction < Real(0.01) ? 2u : 0u) << what;
+    EXPECT_LT(d.stored, dr.bonds) << what;
+    EXPECT_EQ(d.intact, dr.intact) << what;
+    EXPECT_EQ(d.bonds, dr.bonds) << what;
+    expect_same_state(ref, c, what);
+  }
+}
+
+// Tetrahedron barycentres lie closer than the contact distance, so broken bonds are kept for the
+// contact rule; the crack mesh's faces find their bonds again after each compaction.
+TEST(PdCompaction, TetMeshCracksAndSurfaceAreUnchanged) {
+  const exec::Space space(test::parallel_backend(), 2);
+  const double h = 0.01;
+  auto run = [&](Real fraction) {
+    PdSettings s = settings(PdDeviatoric::Paper, true);
+    s.spacing = Real(0.5 * h);
+    s.horizon = Real(1.5 * h);
+    s.contact = true;
+    s.compact_fraction = fraction;
+    PdMaterial m = glass();
+    m.critical_stretch = Real(2e-3);
+    PdSolver solver = tet_solver(4, h, s, m);
+    solver.prescribe_velocity(Vec3::Constant(-1), Vec3(Real(0.8 * h), 1, 1), Vec3(-20, 0, 0));
+    solver.prescribe_velocity(Vec3(Real(3.2 * h), -1, -1), Vec3::Constant(1), Vec3(20, 0, 0));
+    solver.initialize(space);
+    const Real dt = solver.stable_dt(space);
+    for (int k = 0; k < 200; ++k) solver.step(space, dt);
+    return solver;
+  };
+  const PdSolver ref = run(0), c = run(Real(0.01));
+  const PdDiagnostics dr = ref.diagnostics(space), d = c.diagnostics(space);
+  EXPECT_GT(d.compactions, 0u);
+  EXPECT_LT(d.stored, dr.stored);
+  EXPECT_GT(d.stored, d.intact);  // short broken bonds kept for contact
+  expect_same_state(ref, c, "tet mesh");
+  const PdCrackMesh &mr = ref.crack_meshes()[0], &mc = c.crack_meshes()[0];
+  EXPECT_GT(mr.crack_faces(), 0u);
+  EXPECT_EQ(mr.crack_faces(), mc.crack_faces());
+  EXPECT_EQ(mr.vertices(), mc.vertices());
+  EXPECT_EQ(mr.tets(), mc.tets());
+  EXPECT_TRUE(test::bitwise_equal(mr.positions().data(), mc.positions().data(), mr.vertices()));
+}
+
+// A checkpoint of a compacted run stores its bond rows; a fresh solver (full bond list) restricts
+// its bonds to them and continues bitwise like the uninterrupted run (and like one that never
+// compacted). A checkpoint whose rows are not a subset of the scene's bonds is an InputError.
+TEST(PdCompaction, CheckpointOfACompactedRunResumesBitwise) {
+  const exec::Space space(test::parallel_backend(), 2);
+  const std::string path = ::testing::TempDir() + "pd_compacted.amck";
+  PdSolver a = pulled_bar(space, Real(0.005)), never = pulled_bar(space, 0);
+  const Real dt = a.stable_dt(space);
+  for (int k = 0; k < 50; ++k) a.step(space, dt), never.step(space, dt);
+  ASSERT_GT(a.diagnostics(space).compactions, 0u);
+  ASSERT_LT(a.bonds().size(), never.bonds().size());
+  write_checkpoint(path, a, 7, 42);
+  PdSolver b = pulled_bar(space, Real(0.005));
+  const CheckpointState st = read_checkpoint(path, b, 42);
+  EXPECT_EQ(st.next_frame, 7);
+  EXPECT_EQ(b.bonds().neighbor, a.bonds().neighbor);
+  EXPECT_EQ(b.bonds().reverse, a.bonds().reverse);
+  EXPECT_EQ(b.bonds().omega, a.bonds().omega);
+  EXPECT_EQ(b.bonds().intact, a.bonds().intact);
+  EXPECT_EQ(b.bonds().plastic, a.bonds().plastic);
+  for (int k = 0; k < 30; ++k) a.step(space, dt), b.step(space, dt), never.step(space, dt);
+  expect_same_state(a, b, "resumed");
+  expect_same_state(never, b, "resumed vs never compacted");
+  // The same lattice with a smaller horizon has fewer bonds per row: not a superset.
+  PdSettings s = settings(PdDeviatoric::Paper, true);
+  s.contact = true;
+  s.horizon = Real(2.2 * kLc);
+  PdSolver other(s, {breakable()});
+  other.add_particles(std::vector<Vec3>(a.particles().vec3(a.attributes().x0),
+                                        a.particles().vec3(a.attributes().x0) + a.particles().size()),
+                      Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
+  other.initialize(space);
+  try {
+    read_checkpoint(path, other, 42);
+    ADD_FAILURE() << "a foreign bond list was accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("not a subset of this scene's bonds"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find(path), std::string::npos) << e.what();
+  }
 }
 
 }  // namespace
