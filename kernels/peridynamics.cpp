@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <type_traits>
 #include <unordered_map>
 
 #include <Eigen/QR>
@@ -24,11 +25,14 @@ struct BondGeometry {
   Real l, e, lambda;
 };
 inline bool bond_geometry(const Vec3& xi, const Vec3& eta, Real L, BondGeometry& g) {
-  g.l = eta.norm();
-  if (!(g.l > 0)) return false;  // coincident particles: no direction, no force
-  g.dir = eta / g.l;
+  const Real l2 = eta.squaredNorm();
+  if (!(l2 > 0)) return false;  // coincident particles: no direction, no force
+  g.l = std::sqrt(l2);
+  // One division per bond: r = 1 / (l L) gives both 1 / l = r L and Lambda = (eta . xi) r.
+  const Real r = Real(1) / (g.l * L);
+  g.dir = eta * (r * L);
   g.e = g.l - L;
-  g.lambda = g.dir.dot(xi) / L;
+  g.lambda = eta.dot(xi) * r;
   return true;
 }
 
@@ -438,6 +442,20 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
       bonds.shear_omega[k] = bonds.shear_omega[q];
     }
   });
+  pd_mirror_bonds(space, bonds);
+}
+
+void pd_mirror_bonds(const exec::Space& space, PdBonds& bonds) {
+  const std::size_t nb = bonds.size();
+  bonds.omega_r.resize(nb);
+  bonds.shear_omega_r.resize(nb);
+  bonds.plastic_r.resize(nb);
+  exec::parallel_for(space, "pd.mirror", exec::Index(nb), [&](exec::Index kk) {
+    const std::size_t k = std::size_t(kk), r = std::size_t(bonds.reverse[k]);
+    bonds.omega_r[k] = bonds.omega[r];
+    bonds.shear_omega_r[k] = bonds.shear_omega[r];
+    bonds.plastic_r[k] = bonds.plastic[r];
+  });
 }
 
 void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm) {
@@ -456,7 +474,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const Real L = bonds.length[k];
       BondGeometry g;
       if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
-      sum += bonds.omega[k] * (g.e / L) * g.lambda * L * bonds.volume[k];  // omega s Lambda |xi| V (eq. 5)
+      sum += bonds.omega[k] * g.e * g.lambda * bonds.volume[k];  // omega s Lambda |xi| V (eq. 5), s = e / |xi|
       if (consistent) {
         const Real d = paper ? kap * g.lambda : L / Real(3), w = bonds.shear_omega[k] * bonds.volume[k] * d;
         s1 += w * g.e;
@@ -489,59 +507,135 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       }
       const Real cap = mat.plastic_cap * L;  // eq. 15
       if (std::abs(ep) > cap) ep = std::copysign(cap, ep);
-      bonds.plastic[k] = ep;
+      if (ep != bonds.plastic[k]) {  // yielding: row j's force pass reads it from plastic_r
+        bonds.plastic[k] = ep;
+        bonds.plastic_r[bonds.reverse[k]] = ep;
+      }
       Q += bonds.shear_omega[k] * (ed - ep) * (paper ? kap * g.lambda : L / Real(3)) * bonds.volume[k];
     }
     if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
   });
 }
 
+namespace {
+
+// The force pass works on a row in blocks of kBlock bonds: a scalar gather into local arrays (the
+// neighbour's position, reference position and constants), then one branch-free loop over the
+// block that the compiler vectorises (sqrt and division included: IEEE-exact in SIMD), then the
+// sum over the row in bond order. Broken bonds add exact zeros (x + 0 = x, and +0 + -0 = +0 from
+// the +0 start), so the sums equal those that skip them: results do not depend on the backend,
+// the thread count or whether broken bonds were compacted away. Padding entries (up to a
+// multiple of kLanes, for whole vectors) carry live = 0.
+constexpr int kBlock = 64;
+constexpr int kLanes = 8;
+static_assert(kBlock % kLanes == 0, "blocks hold whole lane groups");
+
+struct ForceBlock {
+  alignas(64) Real ex[kBlock], ey[kBlock], ez[kBlock];  // eta = y_j - y_i
+  alignas(64) Real xx[kBlock], xy[kBlock], xz[kBlock];  // xi = x0_j - x0_i
+  alignas(64) Real L[kBlock], omega[kBlock], shear[kBlock], vol[kBlock], epi[kBlock];
+  alignas(64) Real omega_r[kBlock], shear_r[kBlock], epj[kBlock], live[kBlock];
+  alignas(64) Real dil_j[kBlock], b_j[kBlock], c_j[kBlock], crit_j[kBlock];
+  alignas(64) Real c[kBlock];                  // out: pair force magnitude / l (0 for dead bonds)
+  alignas(64) Real fx[kBlock], fy[kBlock], fz[kBlock];  // out: pair force density c eta
+  alignas(64) std::uint8_t broken[kBlock];     // out: eq. 18 holds (fracture)
+};
+
+// Per particle i: the terms of A_ij that depend on i only.
+struct ForceRow {
+  Real dil, b, c, crit;  // a theta - q; b; ed = e - c g (g = Lambda: paper, L: LPS); critical stretch
+};
+
+template <bool Paper, bool Fracture>
+void force_block(ForceBlock& B, int n, const ForceRow& r, Real delta) {
+  for (int m = 0; m < n; ++m) {  // vectorised: no branches, no gathers
+    const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
+    const bool ok = (l2 > 0) & (B.live[m] != 0);  // coincident particles: no direction, no force
+    const Real l = std::sqrt(ok ? l2 : Real(1));
+    const Real L = B.L[m];
+    const Real inv = Real(1) / (l * L);  // r = 1 / (l L): 1 / l = r L, Lambda = (eta . xi) r
+    const Real e = l - L;
+    const Real lambda = (B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) * inv;
+    const Real g = Paper ? lambda : L;
+    // eqs. 3, 7, 11 from each end of the bond
+    const Real aij = Real(4) * (B.omega[m] * lambda * r.dil + B.shear[m] * r.b * (e - r.c * g - B.epi[m]));
+    const Real aji = Real(4) * (B.omega_r[m] * lambda * B.dil_j[m] + B.shear_r[m] * B.b_j[m] * (e - B.c_j[m] * g - B.epj[m]));
+    const Real c = ok ? Real(0.5) * (aij + aji) * B.vol[m] * (inv * L) : Real(0);  // eq. 1 with eq. 2, / l
+    B.c[m] = c;
+    B.fx[m] = c * B.ex[m], B.fy[m] = c * B.ey[m], B.fz[m] = c * B.ez[m];
+    if (Fracture)  // eq. 18, from both ends (symmetric decision)
+      B.broken[m] = ok & (((e - B.epi[m]) / delta > r.crit) | ((e - B.epj[m]) / delta > B.crit_j[m]));
+  }
+}
+
+}  // namespace
+
 void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, bool fracture,
                Vec3* force, Mat3* stress) {
   const Real delta = prm.horizon;
-  const PdDeviatoric dev = prm.deviatoric;
+  const bool paper = prm.deviatoric == PdDeviatoric::Paper;
   const PdMaterial* mats = prm.materials;
-  exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
+  const bool consistent = prm.consistent;
+  // Per particle: the far end's terms, gathered once per bond below.
+  std::vector<ForceRow> rows(p.n);
+  exec::parallel_for(space, "pd.forces_rows", exec::Index(p.n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
-    const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-    const Vec3 x0i = p.x0[i], xi_ = p.x[i];
-    const Real ti = p.theta[i], ai = p.a[i], bi = p.b[i];
-    const bool consistent = prm.consistent;
-    const Real dil_i = ai * ti - (consistent ? p.q[i] : Real(0));  // a theta (- q: consistent term)
     const PdMaterial& mi = mats[p.material[i]];
-    const Real crit_i = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
-    Vec3 f = Vec3::Zero();
-    Mat3 s = Mat3::Zero();
-    for (std::uint64_t k = k0; k < k1; ++k) {
-      if (!bonds.intact[k]) continue;
-      const std::uint32_t j = bonds.neighbor[k];
-      const std::uint64_t kr = bonds.reverse[k];
-      const Real L = bonds.length[k];
-      const Vec3 xi = p.x0[j] - x0i;
-      BondGeometry g;
-      if (!bond_geometry(xi, p.x[j] - xi_, L, g)) continue;
-      const Real tj = p.theta[j];
-      const Real epi = bonds.plastic[k], epj = bonds.plastic[kr];
-      // eqs. 3, 7, 11 from each end of the bond
-      const Real dil_j = p.a[j] * tj - (consistent ? p.q[j] : Real(0));
-      const Real aij = Real(4) * (bonds.omega[k] * g.lambda * dil_i +
-                                  bonds.shear_omega[k] * bi *
-                                      (deviatoric_extension(dev, g.e, g.lambda, ti, L, p.kappa[i]) - epi));
-      const Real aji = Real(4) * (bonds.omega[kr] * g.lambda * dil_j +
-                                  bonds.shear_omega[kr] * p.b[j] *
-                                      (deviatoric_extension(dev, g.e, g.lambda, tj, L, p.kappa[j]) - epj));
-      const Vec3 fij = (Real(0.5) * (aij + aji) * bonds.volume[k]) * g.dir;  // eq. 1 with eq. 2
-      f += fij;
-      if (stress) s += Real(0.5) * fij * xi.transpose();
-      if (fracture) {  // eq. 18, from both ends (symmetric decision)
-        const PdMaterial& mj = mats[p.material[j]];
-        const Real crit_j = mj.critical_stretch * (Real(1) + mj.alpha * p.damage[j]);
-        if ((g.e - epi) / delta > crit_i || (g.e - epj) / delta > crit_j) bonds.intact[k] = 0;
-      }
-    }
-    force[i] = f;
-    if (stress) stress[i] = s;
+    const Real ti = p.theta[i];
+    rows[i] = {p.a[i] * ti - (consistent ? p.q[i] : Real(0)),  // a theta (- q: consistent term)
+               p.b[i], paper ? p.kappa[i] * ti : ti / Real(3),
+               mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i])};
   });
+  auto kernel = [&](auto paper_c, auto fracture_c) {
+    constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
+    exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
+      const std::size_t i = std::size_t(ii);
+      const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
+      const Vec3 x0i = p.x0[i], yi = p.x[i];
+      const ForceRow ri = rows[i];
+      Real fx = 0, fy = 0, fz = 0;
+      Mat3 s = Mat3::Zero();
+      ForceBlock B;
+      for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
+        const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
+        const int padded = (n + kLanes - 1) / kLanes * kLanes;
+        for (int m = 0; m < n; ++m) {  // gather
+          const std::uint64_t k = kb + std::uint64_t(m);
+          const std::uint32_t j = bonds.neighbor[k];
+          const Vec3 eta = p.x[j] - yi, xi = p.x0[j] - x0i;
+          B.ex[m] = eta[0], B.ey[m] = eta[1], B.ez[m] = eta[2];
+          B.xx[m] = xi[0], B.xy[m] = xi[1], B.xz[m] = xi[2];
+          B.L[m] = bonds.length[k];
+          B.omega[m] = bonds.omega[k], B.shear[m] = bonds.shear_omega[k], B.vol[m] = bonds.volume[k];
+          B.epi[m] = bonds.plastic[k];
+          B.omega_r[m] = bonds.omega_r[k], B.shear_r[m] = bonds.shear_omega_r[k], B.epj[m] = bonds.plastic_r[k];
+          B.live[m] = bonds.intact[k];
+          const ForceRow& rj = rows[j];
+          B.dil_j[m] = rj.dil, B.b_j[m] = rj.b, B.c_j[m] = rj.c, B.crit_j[m] = rj.crit;
+        }
+        for (int m = n; m < padded; ++m) {  // padding: a harmless dead bond
+          B.ex[m] = B.ey[m] = B.ez[m] = B.xx[m] = B.xy[m] = B.xz[m] = 0;
+          B.L[m] = 1, B.omega[m] = B.shear[m] = B.vol[m] = B.epi[m] = 0;
+          B.omega_r[m] = B.shear_r[m] = B.epj[m] = B.live[m] = 0;
+          B.dil_j[m] = B.b_j[m] = B.c_j[m] = B.crit_j[m] = 0;
+        }
+        force_block<Paper, Fracture>(B, padded, ri, delta);
+        for (int m = 0; m < n; ++m) fx += B.fx[m], fy += B.fy[m], fz += B.fz[m];  // bond order
+        if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
+          for (int m = 0; m < n; ++m)
+            s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) * Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
+        if (Fracture)
+          for (int m = 0; m < n; ++m)
+            if (B.broken[m]) bonds.intact[kb + std::uint64_t(m)] = 0;
+      }
+      force[i] = Vec3(fx, fy, fz);
+      if (stress) stress[i] = s;
+    });
+  };
+  using T = std::true_type;
+  using F = std::false_type;
+  if (paper) fracture ? kernel(T{}, T{}) : kernel(T{}, F{});
+  else fracture ? kernel(F{}, T{}) : kernel(F{}, F{});
 }
 
 void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius, PdContactList& list) {
@@ -649,6 +743,7 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
   });
   fill_reverse(space, "pd.compact_reverse", out.offsets, out.neighbor, out.reverse);
   bonds = std::move(out);
+  pd_mirror_bonds(space, bonds);
   return removed;
 }
 

@@ -331,6 +331,7 @@ bool PdSolver::restore_bonds(const std::vector<std::uint64_t>& offsets, const st
   if (!pd_restrict_bonds(serial, bonds_, offsets, neighbor)) return false;
   bonds_.plastic = plastic;
   bonds_.intact = intact;
+  pd_mirror_bonds(serial, bonds_);
   const Real d = settings_.contact ? contact_distance() : Real(0);
   intact_ = kept_broken_ = 0;
   for (std::size_t k = 0; k < bonds_.size(); ++k) {
