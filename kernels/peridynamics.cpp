@@ -13,29 +13,6 @@ const char* pd_deviatoric_name(PdDeviatoric d) { return d == PdDeviatoric::Paper
 
 namespace {
 
-// Deviatoric extension (eq. 8, or the LPS form; see PdDeviatoric).
-// kappa: the paper's delta / 4, or its discrete counterpart with the surface correction.
-inline Real deviatoric_extension(PdDeviatoric d, Real e, Real lambda, Real theta, Real L, Real kappa) {
-  return d == PdDeviatoric::Paper ? e - kappa * lambda * theta : e - theta * L / Real(3);
-}
-
-// Current bond of row i: eta, its length, extension and Lambda (eqs. 3, 6).
-struct BondGeometry {
-  Vec3 dir;
-  Real l, e, lambda;
-};
-inline bool bond_geometry(const Vec3& xi, const Vec3& eta, Real L, BondGeometry& g) {
-  const Real l2 = eta.squaredNorm();
-  if (!(l2 > 0)) return false;  // coincident particles: no direction, no force
-  g.l = std::sqrt(l2);
-  // One division per bond: r = 1 / (l L) gives both 1 / l = r L and Lambda = (eta . xi) r.
-  const Real r = Real(1) / (g.l * L);
-  g.dir = eta * (r * L);
-  g.e = g.l - L;
-  g.lambda = eta.dot(xi) * r;
-  return true;
-}
-
 // Cell binning for the neighbour search: sorted (cell key, particle) pairs, a cell's particles
 // found by binary search (no dense cell array, so far-apart objects cost nothing).
 struct CellIndex {
@@ -458,77 +435,150 @@ void pd_mirror_bonds(const exec::Space& space, PdBonds& bonds) {
   });
 }
 
-void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm) {
-  const PdDeviatoric dev = prm.deviatoric;
-  const bool consistent = prm.consistent;
-  exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
-    const std::size_t i = std::size_t(ii);
-    const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-    const Vec3 x0i = p.x0[i], xi_ = p.x[i];
-    const bool paper = dev == PdDeviatoric::Paper;
-    const Real kap = p.kappa[i];
-    Real sum = 0, s1 = 0, s2 = 0, s3 = 0;  // s1..s3: the consistent term's sums (see header)
-    for (std::uint64_t k = k0; k < k1; ++k) {
-      if (!bonds.intact[k]) continue;
-      const std::uint32_t j = bonds.neighbor[k];
-      const Real L = bonds.length[k];
-      BondGeometry g;
-      if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
-      sum += bonds.omega[k] * g.e * g.lambda * bonds.volume[k];  // omega s Lambda |xi| V (eq. 5), s = e / |xi|
-      if (consistent) {
-        const Real d = paper ? kap * g.lambda : L / Real(3), w = bonds.shear_omega[k] * bonds.volume[k] * d;
-        s1 += w * g.e;
-        s2 += w * d;
-        s3 += w * bonds.plastic[k];
-      }
-    }
-    const Real theta = Real(3) * sum / p.m[i];
-    p.theta[i] = theta;
-    const Real qscale = p.b[i] * Real(3) / p.m[i];
-    if (consistent) p.q[i] = qscale * (s1 - theta * s2 - s3);
+namespace {
 
-    const PdMaterial& mat = prm.materials[p.material[i]];
-    if (!(mat.psi0 < std::numeric_limits<Real>::infinity())) return;
-    Real Q = 0;
-    const Real ac = std::sqrt(Real(2) * mat.psi0), bi = p.b[i];
-    for (std::uint64_t k = k0; k < k1; ++k) {
-      if (!bonds.intact[k]) continue;
-      const std::uint32_t j = bonds.neighbor[k];
-      const Real L = bonds.length[k];
-      BondGeometry g;
-      if (!bond_geometry(p.x0[j] - x0i, p.x[j] - xi_, L, g)) continue;
-      const Real ed = deviatoric_extension(dev, g.e, g.lambda, theta, L, p.kappa[i]);
-      const Real stiff = Real(4) * bonds.shear_omega[k] * bi;
-      Real ep = bonds.plastic[k];
-      const Real adev = stiff * (ed - ep);  // eq. 11
-      if (Real(0.5) * adev * adev > mat.psi0) {  // eq. 12
-        const Real target = std::copysign(ac, adev);  // eq. 13
-        ep += (adev - target) / stiff;                // eq. 14 (exact return, see header)
+// Bond blocks (the force pass below and the dilatation pass): a row is processed in blocks; a
+// scalar loop gathers the neighbours' data into local arrays, a branch-free loop over the block
+// is vectorised by the compiler (sqrt and division included: IEEE-exact in SIMD), then sums run
+// over the row in bond order. Broken bonds add exact zeros (x + 0 = x, and +0 + -0 = +0 from the
+// +0 start), so every sum equals the one that skips them: results do not depend on the backend,
+// the thread count or whether broken bonds were compacted away. Padding entries (up to a
+// multiple of kLanes, for whole vectors) carry live = 0.
+constexpr int kBlock = 64;      // force pass
+constexpr int kDilBlock = 256;  // dilatation pass: a whole row of up to 256 bonds (delta < 3.9 lc)
+constexpr int kLanes = 8;       // stays in one block for the plastic return
+static_assert(kBlock % kLanes == 0 && kDilBlock % kLanes == 0, "blocks hold whole lane groups");
+
+struct DilBlock {
+  alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];  // eta = y_j - y_i
+  alignas(64) Real xx[kDilBlock], xy[kDilBlock], xz[kDilBlock];  // xi = x0_j - x0_i
+  alignas(64) Real L[kDilBlock], omega[kDilBlock], shear[kDilBlock], vol[kDilBlock], ep[kDilBlock];
+  alignas(64) Real live[kDilBlock];
+  alignas(64) Real e[kDilBlock], lambda[kDilBlock], ok[kDilBlock];  // geometry (0 for dead bonds)
+  alignas(64) Real t[kDilBlock], w1[kDilBlock], w2[kDilBlock], w3[kDilBlock];  // terms of the sums
+  alignas(64) Real ep_new[kDilBlock];  // plastic return
+};
+
+void gather_dilatation(const PdView& p, const PdBonds& bonds, std::uint64_t kb, int n, const Vec3& x0i,
+                       const Vec3& yi, DilBlock& B) {
+  for (int m = 0; m < n; ++m) {
+    const std::uint64_t k = kb + std::uint64_t(m);
+    const std::uint32_t j = bonds.neighbor[k];
+    const Vec3 eta = p.x[j] - yi, xi = p.x0[j] - x0i;
+    B.ex[m] = eta[0], B.ey[m] = eta[1], B.ez[m] = eta[2];
+    B.xx[m] = xi[0], B.xy[m] = xi[1], B.xz[m] = xi[2];
+    B.L[m] = bonds.length[k];
+    B.omega[m] = bonds.omega[k], B.shear[m] = bonds.shear_omega[k], B.vol[m] = bonds.volume[k];
+    B.ep[m] = bonds.plastic[k];
+    B.live[m] = bonds.intact[k];
+  }
+  const int padded = (n + kLanes - 1) / kLanes * kLanes;
+  for (int m = n; m < padded; ++m) {
+    B.ex[m] = B.ey[m] = B.ez[m] = B.xx[m] = B.xy[m] = B.xz[m] = 0;
+    B.L[m] = 1, B.omega[m] = B.shear[m] = B.vol[m] = B.ep[m] = B.live[m] = 0;
+  }
+}
+
+// e, Lambda (eqs. 3, 6) and the terms of theta (eq. 5) and of the consistent sums (see header):
+// w = shear_omega V d with d = kappa Lambda (paper) or L / 3 (LPS).
+template <bool Paper>
+void dilatation_block(DilBlock& B, int n, Real kappa) {
+  for (int m = 0; m < n; ++m) {  // vectorised
+    const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
+    const bool ok = (l2 > 0) & (B.live[m] != 0);  // coincident particles: no direction
+    const Real l = std::sqrt(ok ? l2 : Real(1));
+    const Real L = B.L[m];
+    const Real e = ok ? l - L : Real(0);
+    const Real lambda = ok ? (B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) / (l * L) : Real(0);
+    B.e[m] = e, B.lambda[m] = lambda, B.ok[m] = ok ? Real(1) : Real(0);
+    B.t[m] = B.omega[m] * e * lambda * B.vol[m];  // omega s Lambda |xi| V (eq. 5), s = e / |xi|
+    const Real d = Paper ? kappa * lambda : L / Real(3);
+    const Real w = ok ? B.shear[m] * B.vol[m] * d : Real(0);
+    B.w1[m] = w * e, B.w2[m] = w * d, B.w3[m] = w * B.ep[m];
+  }
+}
+
+// The plastic return (eqs. 11-15) of every live bond of the block: B.ep_new the new plastic
+// extension, B.t the term of Q (see header). (Not in place: a conditional store would stop the
+// vectorisation.)
+template <bool Paper>
+void plastic_block(DilBlock& B, int n, Real theta, Real kappa, Real stiff_i, Real psi0, Real ac, Real cap_ratio) {
+  for (int m = 0; m < n; ++m) {  // vectorised
+    const Real e = B.e[m], lambda = B.lambda[m], L = B.L[m];
+    const Real ed = Paper ? e - kappa * lambda * theta : e - theta * L / Real(3);  // eq. 8 / LPS
+    const Real stiff = stiff_i * B.shear[m];  // 4 omega b
+    const Real ep = B.ep[m];
+    const Real adev = stiff * (ed - ep);  // eq. 11
+    const bool yield = Real(0.5) * adev * adev > psi0;  // eq. 12
+    const Real flow = (adev - std::copysign(ac, adev)) / stiff;  // eqs. 13-14 (exact return)
+    const Real ep1 = yield ? ep + flow : ep;
+    const Real cap = cap_ratio * L;  // eq. 15
+    const Real ep2 = std::copysign(std::min(std::abs(ep1), cap), ep1);
+    const bool ok = B.ok[m] != 0;
+    B.ep_new[m] = ok ? ep2 : ep;
+    B.t[m] = ok ? B.shear[m] * (ed - ep2) * (Paper ? kappa * lambda : L / Real(3)) * B.vol[m] : Real(0);
+  }
+}
+
+}  // namespace
+
+void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm) {
+  const bool consistent = prm.consistent;
+  auto kernel = [&](auto paper_c) {
+    constexpr bool Paper = decltype(paper_c)::value;
+    exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
+      const std::size_t i = std::size_t(ii);
+      const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
+      const Vec3 x0i = p.x0[i], yi = p.x[i];
+      const Real kap = p.kappa[i];
+      const bool one_block = k1 - k0 <= std::uint64_t(kDilBlock);
+      DilBlock B;
+      auto load = [&](std::uint64_t kb) {
+        const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
+        const int padded = (n + kLanes - 1) / kLanes * kLanes;
+        gather_dilatation(p, bonds, kb, n, x0i, yi, B);
+        dilatation_block<Paper>(B, padded, kap);
+        return n;
+      };
+      Real sum = 0, s1 = 0, s2 = 0, s3 = 0;  // s1..s3: the consistent term's sums (see header)
+      for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
+        const int n = load(kb);
+        for (int m = 0; m < n; ++m) sum += B.t[m];  // bond order
+        if (consistent)
+          for (int m = 0; m < n; ++m) s1 += B.w1[m], s2 += B.w2[m], s3 += B.w3[m];
       }
-      const Real cap = mat.plastic_cap * L;  // eq. 15
-      if (std::abs(ep) > cap) ep = std::copysign(cap, ep);
-      if (ep != bonds.plastic[k]) {  // yielding: row j's force pass reads it from plastic_r
-        bonds.plastic[k] = ep;
-        bonds.plastic_r[bonds.reverse[k]] = ep;
+      const Real theta = Real(3) * sum / p.m[i];
+      p.theta[i] = theta;
+      const Real qscale = p.b[i] * Real(3) / p.m[i];
+      if (consistent) p.q[i] = qscale * (s1 - theta * s2 - s3);
+
+      const PdMaterial& mat = prm.materials[p.material[i]];
+      if (!(mat.psi0 < std::numeric_limits<Real>::infinity())) return;
+      Real Q = 0;
+      const Real ac = std::sqrt(Real(2) * mat.psi0);
+      for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
+        const int n = one_block ? int(k1 - k0) : load(kb);  // one block: still loaded
+        const int padded = (n + kLanes - 1) / kLanes * kLanes;
+        plastic_block<Paper>(B, padded, theta, kap, Real(4) * p.b[i], mat.psi0, ac, mat.plastic_cap);
+        for (int m = 0; m < n; ++m) {
+          const std::uint64_t k = kb + std::uint64_t(m);
+          if (B.ep_new[m] != bonds.plastic[k]) {  // yielded: row j's force pass reads it from plastic_r
+            bonds.plastic[k] = B.ep_new[m];
+            bonds.plastic_r[bonds.reverse[k]] = B.ep_new[m];
+          }
+          Q += B.t[m];
+        }
       }
-      Q += bonds.shear_omega[k] * (ed - ep) * (paper ? kap * g.lambda : L / Real(3)) * bonds.volume[k];
-    }
-    if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
-  });
+      if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
+    });
+  };
+  if (prm.deviatoric == PdDeviatoric::Paper) kernel(std::true_type{});
+  else kernel(std::false_type{});
 }
 
 namespace {
 
-// The force pass works on a row in blocks of kBlock bonds: a scalar gather into local arrays (the
-// neighbour's position, reference position and constants), then one branch-free loop over the
-// block that the compiler vectorises (sqrt and division included: IEEE-exact in SIMD), then the
-// sum over the row in bond order. Broken bonds add exact zeros (x + 0 = x, and +0 + -0 = +0 from
-// the +0 start), so the sums equal those that skip them: results do not depend on the backend,
-// the thread count or whether broken bonds were compacted away. Padding entries (up to a
-// multiple of kLanes, for whole vectors) carry live = 0.
-constexpr int kBlock = 64;
-constexpr int kLanes = 8;
-static_assert(kBlock % kLanes == 0, "blocks hold whole lane groups");
+// The force pass: blocks of kBlock bonds (see the bond blocks above).
 
 struct ForceBlock {
   alignas(64) Real ex[kBlock], ey[kBlock], ez[kBlock];  // eta = y_j - y_i
