@@ -438,63 +438,57 @@ void pd_mirror_bonds(const exec::Space& space, PdBonds& bonds) {
 namespace {
 
 // Bond blocks (the force pass below and the dilatation pass): a row is processed in blocks; a
-// scalar loop gathers the neighbours' data into local arrays, a branch-free loop over the block
-// is vectorised by the compiler (sqrt and division included: IEEE-exact in SIMD), then sums run
-// over the row in bond order. Broken bonds add exact zeros (x + 0 = x, and +0 + -0 = +0 from the
-// +0 start), so every sum equals the one that skips them: results do not depend on the backend,
-// the thread count or whether broken bonds were compacted away. Padding entries (up to a
-// multiple of kLanes, for whole vectors) carry live = 0.
+// scalar loop gathers what the neighbour j indexes (positions, its constants) into local arrays,
+// a branch-free loop over the block, reading the per-bond arrays in place, is vectorised by the
+// compiler (sqrt and division included: IEEE-exact in SIMD), then sums run over the row in bond
+// order. Broken bonds add exact zeros (x + 0 = x, and +0 + -0 = +0 from the +0 start), so every
+// sum equals the one that skips them: results do not depend on the backend, the thread count or
+// whether broken bonds were compacted away.
 constexpr int kBlock = 64;      // force pass
 constexpr int kDilBlock = 256;  // dilatation pass: a whole row of up to 256 bonds (delta < 3.9 lc)
-constexpr int kLanes = 8;       // stays in one block for the plastic return
-static_assert(kBlock % kLanes == 0 && kDilBlock % kLanes == 0, "blocks hold whole lane groups");
+                                // stays in one block for the plastic return
 
+// Gathered per block: the neighbour's current and reference position; the per-bond arrays are
+// read in place (DilSlice).
 struct DilBlock {
   alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];  // eta = y_j - y_i
   alignas(64) Real xx[kDilBlock], xy[kDilBlock], xz[kDilBlock];  // xi = x0_j - x0_i
-  alignas(64) Real L[kDilBlock], omega[kDilBlock], shear[kDilBlock], vol[kDilBlock], ep[kDilBlock];
-  alignas(64) Real live[kDilBlock];
   alignas(64) Real e[kDilBlock], lambda[kDilBlock], ok[kDilBlock];  // geometry (0 for dead bonds)
   alignas(64) Real t[kDilBlock], w1[kDilBlock], w2[kDilBlock], w3[kDilBlock];  // terms of the sums
   alignas(64) Real ep_new[kDilBlock];  // plastic return
+};
+struct DilSlice {
+  const Real *L, *omega, *shear, *vol, *ep;
+  const std::uint8_t* live;
 };
 
 void gather_dilatation(const PdView& p, const PdBonds& bonds, std::uint64_t kb, int n, const Vec3& x0i,
                        const Vec3& yi, DilBlock& B) {
   for (int m = 0; m < n; ++m) {
-    const std::uint64_t k = kb + std::uint64_t(m);
-    const std::uint32_t j = bonds.neighbor[k];
+    const std::uint32_t j = bonds.neighbor[kb + std::uint64_t(m)];
     const Vec3 eta = p.x[j] - yi, xi = p.x0[j] - x0i;
     B.ex[m] = eta[0], B.ey[m] = eta[1], B.ez[m] = eta[2];
     B.xx[m] = xi[0], B.xy[m] = xi[1], B.xz[m] = xi[2];
-    B.L[m] = bonds.length[k];
-    B.omega[m] = bonds.omega[k], B.shear[m] = bonds.shear_omega[k], B.vol[m] = bonds.volume[k];
-    B.ep[m] = bonds.plastic[k];
-    B.live[m] = bonds.intact[k];
-  }
-  const int padded = (n + kLanes - 1) / kLanes * kLanes;
-  for (int m = n; m < padded; ++m) {
-    B.ex[m] = B.ey[m] = B.ez[m] = B.xx[m] = B.xy[m] = B.xz[m] = 0;
-    B.L[m] = 1, B.omega[m] = B.shear[m] = B.vol[m] = B.ep[m] = B.live[m] = 0;
   }
 }
 
 // e, Lambda (eqs. 3, 6) and the terms of theta (eq. 5) and of the consistent sums (see header):
 // w = shear_omega V d with d = kappa Lambda (paper) or L / 3 (LPS).
 template <bool Paper>
-void dilatation_block(DilBlock& B, int n, Real kappa) {
+void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
   for (int m = 0; m < n; ++m) {  // vectorised
     const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
-    const bool ok = (l2 > 0) & (B.live[m] != 0);  // coincident particles: no direction
+    const bool ok = (l2 > 0) & (S.live[m] != 0);  // coincident particles: no direction
     const Real l = std::sqrt(ok ? l2 : Real(1));
-    const Real L = B.L[m];
-    const Real e = ok ? l - L : Real(0);
-    const Real lambda = ok ? (B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) / (l * L) : Real(0);
-    B.e[m] = e, B.lambda[m] = lambda, B.ok[m] = ok ? Real(1) : Real(0);
-    B.t[m] = B.omega[m] * e * lambda * B.vol[m];  // omega s Lambda |xi| V (eq. 5), s = e / |xi|
+    const Real L = S.L[m];
+    const Real live = ok ? Real(1) : Real(0);  // times 0, not a select (see force_block)
+    const Real e = live * (l - L);
+    const Real lambda = live * ((B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) / (l * L));
+    B.e[m] = e, B.lambda[m] = lambda, B.ok[m] = live;
+    B.t[m] = S.omega[m] * e * lambda * S.vol[m];  // omega s Lambda |xi| V (eq. 5), s = e / |xi|
     const Real d = Paper ? kappa * lambda : L / Real(3);
-    const Real w = ok ? B.shear[m] * B.vol[m] * d : Real(0);
-    B.w1[m] = w * e, B.w2[m] = w * d, B.w3[m] = w * B.ep[m];
+    const Real w = live * (S.shear[m] * S.vol[m] * d);
+    B.w1[m] = w * e, B.w2[m] = w * d, B.w3[m] = w * S.ep[m];
   }
 }
 
@@ -502,12 +496,13 @@ void dilatation_block(DilBlock& B, int n, Real kappa) {
 // extension, B.t the term of Q (see header). (Not in place: a conditional store would stop the
 // vectorisation.)
 template <bool Paper>
-void plastic_block(DilBlock& B, int n, Real theta, Real kappa, Real stiff_i, Real psi0, Real ac, Real cap_ratio) {
+void plastic_block(DilBlock& B, const DilSlice& S, int n, Real theta, Real kappa, Real stiff_i, Real psi0, Real ac,
+                   Real cap_ratio) {
   for (int m = 0; m < n; ++m) {  // vectorised
-    const Real e = B.e[m], lambda = B.lambda[m], L = B.L[m];
+    const Real e = B.e[m], lambda = B.lambda[m], L = S.L[m];
     const Real ed = Paper ? e - kappa * lambda * theta : e - theta * L / Real(3);  // eq. 8 / LPS
-    const Real stiff = stiff_i * B.shear[m];  // 4 omega b
-    const Real ep = B.ep[m];
+    const Real stiff = stiff_i * S.shear[m];  // 4 omega b
+    const Real ep = S.ep[m];
     const Real adev = stiff * (ed - ep);  // eq. 11
     const bool yield = Real(0.5) * adev * adev > psi0;  // eq. 12
     const Real flow = (adev - std::copysign(ac, adev)) / stiff;  // eqs. 13-14 (exact return)
@@ -516,7 +511,7 @@ void plastic_block(DilBlock& B, int n, Real theta, Real kappa, Real stiff_i, Rea
     const Real ep2 = std::copysign(std::min(std::abs(ep1), cap), ep1);
     const bool ok = B.ok[m] != 0;
     B.ep_new[m] = ok ? ep2 : ep;
-    B.t[m] = ok ? B.shear[m] * (ed - ep2) * (Paper ? kappa * lambda : L / Real(3)) * B.vol[m] : Real(0);
+    B.t[m] = B.ok[m] * (S.shear[m] * (ed - ep2) * (Paper ? kappa * lambda : L / Real(3)) * S.vol[m]);
   }
 }
 
@@ -533,11 +528,14 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const Real kap = p.kappa[i];
       const bool one_block = k1 - k0 <= std::uint64_t(kDilBlock);
       DilBlock B;
+      auto slice = [&](std::uint64_t kb) {
+        return DilSlice{bonds.length.data() + kb, bonds.omega.data() + kb, bonds.shear_omega.data() + kb,
+                        bonds.volume.data() + kb, bonds.plastic.data() + kb, bonds.intact.data() + kb};
+      };
       auto load = [&](std::uint64_t kb) {
         const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
-        const int padded = (n + kLanes - 1) / kLanes * kLanes;
         gather_dilatation(p, bonds, kb, n, x0i, yi, B);
-        dilatation_block<Paper>(B, padded, kap);
+        dilatation_block<Paper>(B, slice(kb), n, kap);
         return n;
       };
       Real sum = 0, s1 = 0, s2 = 0, s3 = 0;  // s1..s3: the consistent term's sums (see header)
@@ -558,8 +556,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const Real ac = std::sqrt(Real(2) * mat.psi0);
       for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
         const int n = one_block ? int(k1 - k0) : load(kb);  // one block: still loaded
-        const int padded = (n + kLanes - 1) / kLanes * kLanes;
-        plastic_block<Paper>(B, padded, theta, kap, Real(4) * p.b[i], mat.psi0, ac, mat.plastic_cap);
+        plastic_block<Paper>(B, slice(kb), n, theta, kap, Real(4) * p.b[i], mat.psi0, ac, mat.plastic_cap);
         for (int m = 0; m < n; ++m) {
           const std::uint64_t k = kb + std::uint64_t(m);
           if (B.ep_new[m] != bonds.plastic[k]) {  // yielded: row j's force pass reads it from plastic_r
@@ -580,15 +577,14 @@ namespace {
 
 // The force pass: blocks of kBlock bonds (see the bond blocks above).
 
+// Gathered per block: only what is indexed by the neighbour j (the per-bond arrays are read in
+// place, contiguous from the block's first bond).
 struct ForceBlock {
   alignas(64) Real ex[kBlock], ey[kBlock], ez[kBlock];  // eta = y_j - y_i
   alignas(64) Real xx[kBlock], xy[kBlock], xz[kBlock];  // xi = x0_j - x0_i
-  alignas(64) Real L[kBlock], omega[kBlock], shear[kBlock], vol[kBlock], epi[kBlock];
-  alignas(64) Real omega_r[kBlock], shear_r[kBlock], epj[kBlock], live[kBlock];
   alignas(64) Real dil_j[kBlock], b_j[kBlock], c_j[kBlock], crit_j[kBlock];
-  alignas(64) Real c[kBlock];                  // out: pair force magnitude / l (0 for dead bonds)
-  alignas(64) Real fx[kBlock], fy[kBlock], fz[kBlock];  // out: pair force density c eta
-  alignas(64) std::uint8_t broken[kBlock];     // out: eq. 18 holds (fracture)
+  alignas(64) Real fx[kBlock], fy[kBlock], fz[kBlock];  // out: pair force density (0 for dead bonds)
+  alignas(64) std::uint8_t broken[kBlock];              // out: eq. 18 holds (fracture)
 };
 
 // Per particle i: the terms of A_ij that depend on i only.
@@ -596,25 +592,33 @@ struct ForceRow {
   Real dil, b, c, crit;  // a theta - q; b; ed = e - c g (g = Lambda: paper, L: LPS); critical stretch
 };
 
+// The block's bonds k = kb .. kb + n - 1 of particle i (arrays offset by kb).
+struct BondSlice {
+  const Real *L, *omega, *shear, *vol, *epi, *omega_r, *shear_r, *epj;
+  const std::uint8_t* live;
+};
+
 template <bool Paper, bool Fracture>
-void force_block(ForceBlock& B, int n, const ForceRow& r, Real delta) {
+void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Real delta) {
   for (int m = 0; m < n; ++m) {  // vectorised: no branches, no gathers
     const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
-    const bool ok = (l2 > 0) & (B.live[m] != 0);  // coincident particles: no direction, no force
+    const bool ok = (l2 > 0) & (S.live[m] != 0);  // coincident particles: no direction, no force
     const Real l = std::sqrt(ok ? l2 : Real(1));
-    const Real L = B.L[m];
+    const Real L = S.L[m];
     const Real inv = Real(1) / (l * L);  // r = 1 / (l L): 1 / l = r L, Lambda = (eta . xi) r
     const Real e = l - L;
     const Real lambda = (B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) * inv;
     const Real g = Paper ? lambda : L;
     // eqs. 3, 7, 11 from each end of the bond
-    const Real aij = Real(4) * (B.omega[m] * lambda * r.dil + B.shear[m] * r.b * (e - r.c * g - B.epi[m]));
-    const Real aji = Real(4) * (B.omega_r[m] * lambda * B.dil_j[m] + B.shear_r[m] * B.b_j[m] * (e - B.c_j[m] * g - B.epj[m]));
-    const Real c = ok ? Real(0.5) * (aij + aji) * B.vol[m] * (inv * L) : Real(0);  // eq. 1 with eq. 2, / l
-    B.c[m] = c;
+    const Real aij = Real(4) * (S.omega[m] * lambda * r.dil + S.shear[m] * r.b * (e - r.c * g - S.epi[m]));
+    const Real aji = Real(4) * (S.omega_r[m] * lambda * B.dil_j[m] + S.shear_r[m] * B.b_j[m] * (e - B.c_j[m] * g - S.epj[m]));
+    // Dead bonds: times 0 (not a select, which would make the per-bond loads conditional and stop
+    // the vectorisation); their operands are finite (l = 1 stands in when l2 = 0).
+    const Real live = ok ? Real(1) : Real(0);
+    const Real c = live * (Real(0.5) * (aij + aji) * S.vol[m] * (inv * L));  // eq. 1 with eq. 2, / l
     B.fx[m] = c * B.ex[m], B.fy[m] = c * B.ey[m], B.fz[m] = c * B.ez[m];
     if (Fracture)  // eq. 18, from both ends (symmetric decision)
-      B.broken[m] = ok & (((e - B.epi[m]) / delta > r.crit) | ((e - B.epj[m]) / delta > B.crit_j[m]));
+      B.broken[m] = ok & (((e - S.epi[m]) / delta > r.crit) | ((e - S.epj[m]) / delta > B.crit_j[m]));
   }
 }
 
@@ -648,28 +652,18 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
       ForceBlock B;
       for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
         const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
-        const int padded = (n + kLanes - 1) / kLanes * kLanes;
         for (int m = 0; m < n; ++m) {  // gather
-          const std::uint64_t k = kb + std::uint64_t(m);
-          const std::uint32_t j = bonds.neighbor[k];
+          const std::uint32_t j = bonds.neighbor[kb + std::uint64_t(m)];
           const Vec3 eta = p.x[j] - yi, xi = p.x0[j] - x0i;
           B.ex[m] = eta[0], B.ey[m] = eta[1], B.ez[m] = eta[2];
           B.xx[m] = xi[0], B.xy[m] = xi[1], B.xz[m] = xi[2];
-          B.L[m] = bonds.length[k];
-          B.omega[m] = bonds.omega[k], B.shear[m] = bonds.shear_omega[k], B.vol[m] = bonds.volume[k];
-          B.epi[m] = bonds.plastic[k];
-          B.omega_r[m] = bonds.omega_r[k], B.shear_r[m] = bonds.shear_omega_r[k], B.epj[m] = bonds.plastic_r[k];
-          B.live[m] = bonds.intact[k];
           const ForceRow& rj = rows[j];
           B.dil_j[m] = rj.dil, B.b_j[m] = rj.b, B.c_j[m] = rj.c, B.crit_j[m] = rj.crit;
         }
-        for (int m = n; m < padded; ++m) {  // padding: a harmless dead bond
-          B.ex[m] = B.ey[m] = B.ez[m] = B.xx[m] = B.xy[m] = B.xz[m] = 0;
-          B.L[m] = 1, B.omega[m] = B.shear[m] = B.vol[m] = B.epi[m] = 0;
-          B.omega_r[m] = B.shear_r[m] = B.epj[m] = B.live[m] = 0;
-          B.dil_j[m] = B.b_j[m] = B.c_j[m] = B.crit_j[m] = 0;
-        }
-        force_block<Paper, Fracture>(B, padded, ri, delta);
+        const BondSlice S{bonds.length.data() + kb,     bonds.omega.data() + kb,   bonds.shear_omega.data() + kb,
+                          bonds.volume.data() + kb,     bonds.plastic.data() + kb, bonds.omega_r.data() + kb,
+                          bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb, bonds.intact.data() + kb};
+        force_block<Paper, Fracture>(B, S, n, ri, delta);
         for (int m = 0; m < n; ++m) fx += B.fx[m], fy += B.fy[m], fz += B.fz[m];  // bond order
         if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
           for (int m = 0; m < n; ++m)
