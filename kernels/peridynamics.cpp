@@ -538,20 +538,23 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
         dilatation_block<Paper>(B, slice(kb), n, kap);
         return n;
       };
-      Real sum = 0, s1 = 0, s2 = 0, s3 = 0;  // s1..s3: the consistent term's sums (see header)
+      const PdMaterial& mat = prm.materials[p.material[i]];
+      const bool plastic = mat.psi0 < std::numeric_limits<Real>::infinity();
+      // s1..s3: the consistent term's sums (see header); a plastic particle's q comes from the
+      // plastic return below instead.
+      const bool sums = consistent && !plastic;
+      Real sum = 0, s1 = 0, s2 = 0, s3 = 0;
       for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
         const int n = load(kb);
         for (int m = 0; m < n; ++m) sum += B.t[m];  // bond order
-        if (consistent)
+        if (sums)
           for (int m = 0; m < n; ++m) s1 += B.w1[m], s2 += B.w2[m], s3 += B.w3[m];
       }
       const Real theta = Real(3) * sum / p.m[i];
       p.theta[i] = theta;
       const Real qscale = p.b[i] * Real(3) / p.m[i];
-      if (consistent) p.q[i] = qscale * (s1 - theta * s2 - s3);
-
-      const PdMaterial& mat = prm.materials[p.material[i]];
-      if (!(mat.psi0 < std::numeric_limits<Real>::infinity())) return;
+      if (sums) p.q[i] = qscale * (s1 - theta * s2 - s3);
+      if (!plastic) return;
       Real Q = 0;
       const Real ac = std::sqrt(Real(2) * mat.psi0);
       for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
