@@ -44,7 +44,7 @@ PdTimes pd_times(const exec::Profiler& p) {
   PdTimes t;
   for (const auto& r : p.regions()) {
     if (r.label == "pd.dilatation") t.dilatation += r.seconds;
-    else if (r.label == "pd.forces") t.force += r.seconds;
+    else if (r.label.rfind("pd.forces", 0) == 0) t.force += r.seconds;  // with pd.forces_rows
     else if (r.label.rfind("pd.contact", 0) == 0 || r.label == "pd.cell_keys") t.contact += r.seconds;
   }
   return t;

@@ -415,8 +415,9 @@ void BM_PdDilatation(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = pd_block(space);
   for (auto _ : st) s->compute_dilatation(space);
-  // per bond: neighbour index, length, omega, volume, plastic (r/w), intact; + a gathered position
-  set_items(st, s->bonds().size(), sizeof(std::uint32_t) + 5 * sizeof(Real) + 1 + sizeof(Vec3));
+  // per bond streamed: neighbour index, length, omega, shear_omega, volume, plastic, intact; +
+  // the neighbour's position and reference position (gathered, mostly cache hits)
+  set_items(st, s->bonds().size(), sizeof(std::uint32_t) + 5 * sizeof(Real) + 1 + 2 * sizeof(Vec3));
 }
 
 void BM_PdForces(benchmark::State& st) {
@@ -424,11 +425,11 @@ void BM_PdForces(benchmark::State& st) {
   auto s = pd_block(space);
   s->compute_dilatation(space);
   for (auto _ : st) s->compute_forces(space);
-  // per bond: neighbour, reverse, length, omega (both ends), volume, plastic (both), intact; + x,
-  // x0, theta, a, b of j
+  // per bond streamed: neighbour, length, omega, shear_omega, volume, plastic, their mirrors of
+  // the reverse bond (omega_r, shear_omega_r, plastic_r), intact; + x, x0 and the 16-byte
+  // per-particle coefficients of j (gathered)
   set_items(st, s->bonds().size(),
-            sizeof(std::uint32_t) + sizeof(std::uint64_t) + 6 * sizeof(Real) + 1 +
-                2 * sizeof(Vec3) + 3 * sizeof(Real));
+            sizeof(std::uint32_t) + 8 * sizeof(Real) + 1 + 2 * sizeof(Vec3) + 4 * sizeof(Real));
 }
 
 // Bond compaction (issue 5: "periodic compaction of broken bonds if it pays"): the dilatation +

@@ -671,9 +671,13 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
         if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
           for (int m = 0; m < n; ++m)
             s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) * Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
-        if (Fracture)
-          for (int m = 0; m < n; ++m)
-            if (B.broken[m]) bonds.intact[kb + std::uint64_t(m)] = 0;
+        if (Fracture) {
+          unsigned any = 0;  // vectorised OR first: bonds rarely break
+          for (int m = 0; m < n; ++m) any |= B.broken[m];
+          if (any)
+            for (int m = 0; m < n; ++m)
+              if (B.broken[m]) bonds.intact[kb + std::uint64_t(m)] = 0;
+        }
       }
       force[i] = Vec3(fx, fy, fz);
       if (stress) stress[i] = s;
