@@ -2,10 +2,15 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstddef>
 #include <type_traits>
 #include <unordered_map>
 
 #include <Eigen/QR>
+
+#if defined(__SSE2__)
+#include <xmmintrin.h>
+#endif
 
 namespace amalgam {
 
@@ -448,11 +453,42 @@ constexpr int kBlock = 64;      // force pass
 constexpr int kDilBlock = 256;  // dilatation pass: a whole row of up to 256 bonds (delta < 3.9 lc)
                                 // stays in one block for the plastic return
 
+// Gathers per neighbour: 16-byte quads of per-particle records, four neighbours at a time.
+// out_q[m] = rec(idx[m]).quad[q] - sub[q] for m < n, the quad being the 4 Reals at byte offset
+// `quad` of each record (records `stride` bytes apart, 16-byte aligned). SSE: four records per
+// step loaded whole and transposed (4 loads, 8 shuffles, 4 stores for 16 values instead of 16
+// scalar loads and stores); the same values as the scalar loop.
+void gather_quads(const void* records, std::size_t stride, std::size_t quad, const std::uint32_t* idx, int n,
+                  const Real sub[4], Real* o0, Real* o1, Real* o2, Real* o3) {
+  const char* base = static_cast<const char*>(records) + quad;
+  int m = 0;
+#if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
+  const __m128 sv = _mm_loadu_ps(sub);
+  auto at = [&](int k) { return _mm_sub_ps(_mm_load_ps(reinterpret_cast<const float*>(base + idx[k] * stride)), sv); };
+  for (; m + 4 <= n; m += 4) {
+    __m128 a = at(m), b = at(m + 1), c = at(m + 2), d = at(m + 3);
+    _MM_TRANSPOSE4_PS(a, b, c, d);
+    _mm_storeu_ps(o0 + m, a), _mm_storeu_ps(o1 + m, b), _mm_storeu_ps(o2 + m, c), _mm_storeu_ps(o3 + m, d);
+  }
+#endif
+  for (; m < n; ++m) {
+    const Real* r = reinterpret_cast<const Real*>(base + idx[m] * stride);
+    o0[m] = r[0] - sub[0], o1[m] = r[1] - sub[1], o2[m] = r[2] - sub[2], o3[m] = r[3] - sub[3];
+  }
+}
+
+// What the dilatation pass gathers per neighbour.
+struct alignas(16) PosRec {
+  Real y[4];   // current position, 0
+  Real x0[4];  // reference position, 0
+};
+
 // Gathered per block: the neighbour's current and reference position; the per-bond arrays are
 // read in place (DilSlice).
 struct DilBlock {
   alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];  // eta = y_j - y_i
   alignas(64) Real xx[kDilBlock], xy[kDilBlock], xz[kDilBlock];  // xi = x0_j - x0_i
+  alignas(64) Real pad[kDilBlock];                                // the gathers' unused lane
   alignas(64) Real e[kDilBlock], lambda[kDilBlock], ok[kDilBlock];  // geometry (0 for dead bonds)
   alignas(64) Real t[kDilBlock], w1[kDilBlock], w2[kDilBlock], w3[kDilBlock];  // terms of the sums
   alignas(64) Real ep_new[kDilBlock];  // plastic return
@@ -462,14 +498,11 @@ struct DilSlice {
   const std::uint8_t* live;
 };
 
-void gather_dilatation(const PdView& p, const PdBonds& bonds, std::uint64_t kb, int n, const Vec3& x0i,
-                       const Vec3& yi, DilBlock& B) {
-  for (int m = 0; m < n; ++m) {
-    const std::uint32_t j = bonds.neighbor[kb + std::uint64_t(m)];
-    const Vec3 eta = p.x[j] - yi, xi = p.x0[j] - x0i;
-    B.ex[m] = eta[0], B.ey[m] = eta[1], B.ez[m] = eta[2];
-    B.xx[m] = xi[0], B.xy[m] = xi[1], B.xz[m] = xi[2];
-  }
+void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t kb, int n, const Real sub_y[4],
+                       const Real sub_x0[4], DilBlock& B) {
+  const std::uint32_t* nb = bonds.neighbor.data() + kb;
+  gather_quads(recs, sizeof(PosRec), offsetof(PosRec, y), nb, n, sub_y, B.ex, B.ey, B.ez, B.pad);
+  gather_quads(recs, sizeof(PosRec), offsetof(PosRec, x0), nb, n, sub_x0, B.xx, B.xy, B.xz, B.pad);
 }
 
 // e, Lambda (eqs. 3, 6) and the terms of theta (eq. 5) and of the consistent sums (see header):
@@ -519,12 +552,17 @@ void plastic_block(DilBlock& B, const DilSlice& S, int n, Real theta, Real kappa
 
 void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm) {
   const bool consistent = prm.consistent;
+  std::vector<PosRec> recs(p.n);
+  exec::parallel_for(space, "pd.dilatation_rows", exec::Index(p.n), [&](exec::Index i) {
+    recs[std::size_t(i)] = {{p.x[i][0], p.x[i][1], p.x[i][2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
+  });
   auto kernel = [&](auto paper_c) {
     constexpr bool Paper = decltype(paper_c)::value;
     exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-      const Vec3 x0i = p.x0[i], yi = p.x[i];
+      const Real sub_y[4] = {p.x[i][0], p.x[i][1], p.x[i][2], 0};
+      const Real sub_x0[4] = {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0};
       const Real kap = p.kappa[i];
       const bool one_block = k1 - k0 <= std::uint64_t(kDilBlock);
       DilBlock B;
@@ -534,7 +572,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       };
       auto load = [&](std::uint64_t kb) {
         const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
-        gather_dilatation(p, bonds, kb, n, x0i, yi, B);
+        gather_dilatation(recs.data(), bonds, kb, n, sub_y, sub_x0, B);
         dilatation_block<Paper>(B, slice(kb), n, kap);
         return n;
       };
@@ -586,6 +624,7 @@ struct ForceBlock {
   alignas(64) Real ex[kBlock], ey[kBlock], ez[kBlock];  // eta = y_j - y_i
   alignas(64) Real xx[kBlock], xy[kBlock], xz[kBlock];  // xi = x0_j - x0_i
   alignas(64) Real dil_j[kBlock], b_j[kBlock], c_j[kBlock], crit_j[kBlock];
+  alignas(64) Real pad0[kBlock], pad1[kBlock];  // the gathers' unused lanes
   alignas(64) Real fx[kBlock], fy[kBlock], fz[kBlock];  // out: pair force density (0 for dead bonds)
   alignas(64) std::uint8_t broken[kBlock];              // out: eq. 18 holds (fracture)
 };
@@ -593,6 +632,13 @@ struct ForceBlock {
 // Per particle i: the terms of A_ij that depend on i only.
 struct ForceRow {
   Real dil, b, c, crit;  // a theta - q; b; ed = e - c g (g = Lambda: paper, L: LPS); critical stretch
+};
+
+// What the force pass gathers per neighbour, in three 16-byte quads (gather_quads).
+struct alignas(16) ForceRec {
+  Real y[4];   // current position, a theta - q
+  Real x0[4];  // reference position, b
+  Real cc[4];  // c, critical stretch, 0, 0
 };
 
 // The block's bonds k = kb .. kb + n - 1 of particle i (arrays offset by kb).
@@ -633,36 +679,37 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
   const bool paper = prm.deviatoric == PdDeviatoric::Paper;
   const PdMaterial* mats = prm.materials;
   const bool consistent = prm.consistent;
-  // Per particle: the far end's terms, gathered once per bond below.
+  // Per particle: the far end's terms and positions, gathered once per bond below.
   std::vector<ForceRow> rows(p.n);
+  std::vector<ForceRec> recs(p.n);
   exec::parallel_for(space, "pd.forces_rows", exec::Index(p.n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     const PdMaterial& mi = mats[p.material[i]];
     const Real ti = p.theta[i];
-    rows[i] = {p.a[i] * ti - (consistent ? p.q[i] : Real(0)),  // a theta (- q: consistent term)
-               p.b[i], paper ? p.kappa[i] * ti : ti / Real(3),
-               mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i])};
+    const ForceRow r{p.a[i] * ti - (consistent ? p.q[i] : Real(0)),  // a theta (- q: consistent term)
+                     p.b[i], paper ? p.kappa[i] * ti : ti / Real(3),
+                     mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i])};
+    rows[i] = r;
+    recs[i] = {{p.x[i][0], p.x[i][1], p.x[i][2], r.dil}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], r.b}, {r.c, r.crit, 0, 0}};
   });
   auto kernel = [&](auto paper_c, auto fracture_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
     exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-      const Vec3 x0i = p.x0[i], yi = p.x[i];
+      const Real sub_y[4] = {p.x[i][0], p.x[i][1], p.x[i][2], 0};
+      const Real sub_x0[4] = {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}, sub_0[4] = {0, 0, 0, 0};
       const ForceRow ri = rows[i];
       Real fx = 0, fy = 0, fz = 0;
       Mat3 s = Mat3::Zero();
       ForceBlock B;
       for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
         const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
-        for (int m = 0; m < n; ++m) {  // gather
-          const std::uint32_t j = bonds.neighbor[kb + std::uint64_t(m)];
-          const Vec3 eta = p.x[j] - yi, xi = p.x0[j] - x0i;
-          B.ex[m] = eta[0], B.ey[m] = eta[1], B.ez[m] = eta[2];
-          B.xx[m] = xi[0], B.xy[m] = xi[1], B.xz[m] = xi[2];
-          const ForceRow& rj = rows[j];
-          B.dil_j[m] = rj.dil, B.b_j[m] = rj.b, B.c_j[m] = rj.c, B.crit_j[m] = rj.crit;
-        }
+        const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
+        const ForceRec* rec = recs.data();
+        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, y), nb, n, sub_y, B.ex, B.ey, B.ez, B.dil_j);
+        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, x0), nb, n, sub_x0, B.xx, B.xy, B.xz, B.b_j);
+        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, cc), nb, n, sub_0, B.c_j, B.crit_j, B.pad0, B.pad1);
         const BondSlice S{bonds.length.data() + kb,     bonds.omega.data() + kb,   bonds.shear_omega.data() + kb,
                           bonds.volume.data() + kb,     bonds.plastic.data() + kb, bonds.omega_r.data() + kb,
                           bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb, bonds.intact.data() + kb};
