@@ -4,7 +4,10 @@
 // matrix G in the influence weight (eq. 16), fracture by a critical stretch with damage (eqs.
 // 17-18). Bonds in CSR form (DESIGN.md "Peridynamics storage"). Every kernel gathers per particle
 // over its own row (no scatter), so results are bitwise identical on every backend and thread
-// count; the pair force uses both directed bonds i->j and j->i, read from both rows.
+// count; the pair force uses both directed bonds i->j and j->i, the far end's per-bond values
+// mirrored into row i (PdBonds::omega_r, shear_omega_r, plastic_r). Rows are processed in blocks
+// whose arithmetic the compiler vectorises; sums run in bond order, broken bonds adding exact
+// zeros, so compacting broken bonds away does not change a bit (see peridynamics.cpp).
 //
 // Notation: xi = x0_j - x0_i (reference bond), eta = y_j - y_i (current), L = |xi|, l = |eta|,
 // e = l - L (extension), Lambda = (eta / l) . (xi / L), omega_ij = delta / |G_i xi| (eq. 16; G = I:
