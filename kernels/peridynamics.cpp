@@ -679,18 +679,17 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
   const bool paper = prm.deviatoric == PdDeviatoric::Paper;
   const PdMaterial* mats = prm.materials;
   const bool consistent = prm.consistent;
-  // Per particle: the far end's terms and positions, gathered once per bond below.
-  std::vector<ForceRow> rows(p.n);
+  // Per particle: the far end's terms and positions, gathered once per bond below (and a row's
+  // own terms read back from its record).
   std::vector<ForceRec> recs(p.n);
   exec::parallel_for(space, "pd.forces_rows", exec::Index(p.n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     const PdMaterial& mi = mats[p.material[i]];
     const Real ti = p.theta[i];
-    const ForceRow r{p.a[i] * ti - (consistent ? p.q[i] : Real(0)),  // a theta (- q: consistent term)
-                     p.b[i], paper ? p.kappa[i] * ti : ti / Real(3),
-                     mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i])};
-    rows[i] = r;
-    recs[i] = {{p.x[i][0], p.x[i][1], p.x[i][2], r.dil}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], r.b}, {r.c, r.crit, 0, 0}};
+    const Real dil = p.a[i] * ti - (consistent ? p.q[i] : Real(0));  // a theta (- q: consistent term)
+    const Real c = paper ? p.kappa[i] * ti : ti / Real(3);
+    const Real crit = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
+    recs[i] = {{p.x[i][0], p.x[i][1], p.x[i][2], dil}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]}, {c, crit, 0, 0}};
   });
   auto kernel = [&](auto paper_c, auto fracture_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
@@ -699,7 +698,8 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
       const Real sub_y[4] = {p.x[i][0], p.x[i][1], p.x[i][2], 0};
       const Real sub_x0[4] = {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}, sub_0[4] = {0, 0, 0, 0};
-      const ForceRow ri = rows[i];
+      const ForceRec& own = recs[i];
+      const ForceRow ri{own.y[3], own.x0[3], own.cc[0], own.cc[1]};
       Real fx = 0, fy = 0, fz = 0;
       Mat3 s = Mat3::Zero();
       ForceBlock B;
@@ -773,7 +773,7 @@ void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds&
         // A broken bond: contact below 0.9 of its reference length (LAMMPS's min(0.9 r0, d)),
         // so pairs that started closer than `distance` (tetrahedron barycentres) are not pushed
         // apart the moment their bond breaks.
-        dij = std::min(distance, Real(0.9) * bonds.length[k]);
+        dij = pd_broken_pair_distance(bonds.length[k], distance);
         if (!(r2 < dij * dij)) continue;
       }
       const Real r = std::sqrt(r2);
@@ -850,7 +850,7 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
 std::uint64_t pd_compact_bonds(const exec::Space& space, PdBonds& bonds, Real contact_distance) {
   std::vector<std::uint8_t> keep(bonds.size());
   exec::parallel_for(space, "pd.compact_mark", exec::Index(bonds.size()), [&](exec::Index k) {
-    keep[std::size_t(k)] = bonds.intact[std::size_t(k)] || Real(0.9) * bonds.length[std::size_t(k)] < contact_distance;  // as pd_contact_forces
+    keep[std::size_t(k)] = bonds.intact[std::size_t(k)] || pd_contact_reads_broken_bond(bonds.length[std::size_t(k)], contact_distance);
   });
   return select_bonds(space, "pd.compact_copy", bonds, keep);
 }

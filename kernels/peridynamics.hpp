@@ -14,6 +14,7 @@
 // eq. 4), V_j the neighbour's volume times the partial-volume factor nu_ij.
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <limits>
 #include <vector>
@@ -186,6 +187,10 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
 // particles that started closer (tetrahedron barycentres) are not pushed apart when it breaks.
 // Candidates come from a Verlet list: every pair within distance + skin at the last
 // build (CSR, rows sorted), rebuilt by the caller once some particle moved more than skin / 2.
+// A pair whose bond broke touches below min(distance, 0.9 L) (LAMMPS's rule). Such a bond must
+// stay stored while 0.9 L < distance (pd_compact_bonds), since the contact reads its length.
+inline Real pd_broken_pair_distance(Real L, Real distance) { return std::min(distance, Real(0.9) * L); }
+inline bool pd_contact_reads_broken_bond(Real L, Real distance) { return Real(0.9) * L < distance; }
 struct PdContactList {
   std::vector<std::uint64_t> offsets;
   std::vector<std::uint32_t> neighbor;

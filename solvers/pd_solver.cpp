@@ -336,7 +336,7 @@ bool PdSolver::restore_bonds(const std::vector<std::uint64_t>& offsets, const st
   intact_ = kept_broken_ = 0;
   for (std::size_t k = 0; k < bonds_.size(); ++k) {
     intact_ += bonds_.intact[k];
-    kept_broken_ += !bonds_.intact[k] && Real(0.9) * bonds_.length[k] < d;  // what compaction would keep
+    kept_broken_ += !bonds_.intact[k] && pd_contact_reads_broken_bond(bonds_.length[k], d);  // what compaction keeps
   }
   meshes_intact_ = intact_;
   for (PdCrackMesh& m : meshes_) m.reattach(bonds_);

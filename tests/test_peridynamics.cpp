@@ -399,42 +399,57 @@ TEST(PdBonds, CsrIsSymmetricSortedAndCompactionKeepsIntactBonds) {
   EXPECT_EQ(g.neighbor, f.neighbor);
 }
 
+void expect_same_state(const PdSolver& a, const PdSolver& b, const std::string& what) {
+  const ParticleSet &pa = a.particles(), &pb = b.particles();
+  for (int k = 0; k < pa.attribute_count(); ++k)
+    EXPECT_TRUE(test::bitwise_equal(pa.words(k), pb.words(k), pa.size() * std::size_t(pa.words_per_particle(k))))
+        << what << ": attribute " << pa.name(k);
+  EXPECT_TRUE(test::bitwise_equal(a.forces().data(), b.forces().data(), a.forces().size())) << what << ": forces";
+}
+
+PdMaterial breakable() {
+  PdMaterial m;
+  m.bulk = Real(2e6);
+  m.shear = Real(1.2e6);
+  m.density = 1000;
+  m.critical_stretch = Real(0.02);
+  m.alpha = Real(0.5);
+  m.psi0 = pd_psi0_from_yield_stress(Real(2e5), Real(kDelta));
+  m.plastic_cap = Real(0.05);
+  return m;
+}
+
+// A 24 x 6 x 6 bar with plasticity, fracture and contact, its ends pulled apart at 3 m/s.
+PdSolver pulled_bar(const exec::Space& space, Real compact_fraction) {
+  PdSettings s = settings(PdDeviatoric::Paper, true);
+  s.contact = true;
+  s.compact_fraction = compact_fraction;
+  PdSolver solver(s, {breakable()});
+  std::vector<Vec3> x;
+  for (int i = 0; i < 24; ++i)
+    for (int j = 0; j < 6; ++j)
+      for (int k = 0; k < 6; ++k) x.push_back((kLc * Vec3d(i + 0.5, j + 0.5, k + 0.5)).cast<Real>());
+  solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
+  solver.prescribe_velocity(Vec3(-1, -1, -1), Vec3(Real(0.03), 1, 1), Vec3(-3, 0, 0));
+  solver.prescribe_velocity(Vec3(Real(0.21), -1, -1), Vec3(1, 1, 1), Vec3(3, 0, 0));
+  solver.initialize(space);
+  return solver;
+}
+
 // A bar pulled apart at both ends breaks; every backend and thread count gives the same bits.
 TEST(PdBackends, FractureRunIsBitwiseIdentical) {
   auto run = [](const exec::Space& space) {
-    PdMaterial m;
-    m.bulk = Real(2e6);
-    m.shear = Real(1.2e6);
-    m.density = 1000;
-    m.critical_stretch = Real(0.02);
-    m.alpha = Real(0.5);
-    m.psi0 = pd_psi0_from_yield_stress(Real(2e5), Real(kDelta));
-    m.plastic_cap = Real(0.05);
-    PdSettings s = settings(PdDeviatoric::Paper, true);
-    s.contact = true;
-    PdSolver solver(s, {m});
-    std::vector<Vec3> x;
-    for (int i = 0; i < 24; ++i)
-      for (int j = 0; j < 6; ++j)
-        for (int k = 0; k < 6; ++k) x.push_back((kLc * Vec3d(i + 0.5, j + 0.5, k + 0.5)).cast<Real>());
-    solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
-    solver.prescribe_velocity(Vec3(-1, -1, -1), Vec3(Real(0.03), 1, 1), Vec3(-3, 0, 0));
-    solver.prescribe_velocity(Vec3(Real(0.21), -1, -1), Vec3(1, 1, 1), Vec3(3, 0, 0));
-    solver.initialize(space);
+    PdSolver solver = pulled_bar(space, PdSettings().compact_fraction);
     const Real dt = solver.stable_dt(space);
-    for (int s2 = 0; s2 < 60; ++s2) solver.step(space, dt);
+    for (int k = 0; k < 60; ++k) solver.step(space, dt);
     return solver;
   };
   const PdSolver ref = run(exec::Space());
   const PdDiagnostics d = ref.diagnostics(exec::Space());
   EXPECT_LT(d.intact, d.bonds);  // it did fracture
-  const auto& ps0 = ref.particles();
   for (const test::Config& c : test::all_configs()) {
     const PdSolver other = run(exec::Space(c.backend, c.threads));
-    const auto& ps = other.particles();
-    for (int a = 0; a < ps0.attribute_count(); ++a)
-      EXPECT_TRUE(test::bitwise_equal(ps0.words(a), ps.words(a), ps0.size() * std::size_t(ps0.words_per_particle(a))))
-          << c.name() << " attribute " << ps0.name(a);
+    expect_same_state(ref, other, c.name());
     EXPECT_EQ(ref.bonds().intact, other.bonds().intact) << c.name();
     EXPECT_EQ(ref.bonds().plastic, other.bonds().plastic) << c.name();
   }
@@ -816,43 +831,6 @@ TEST(PdCrackMesh, VerticesFollowTheParticles) {
 // Bond compaction (PdSettings::compact_fraction) must not change the run: every kernel skips
 // broken bonds and a compacted row keeps its order, so sums are the same in the same order, and
 // broken bonds the contact rule still reads (0.9 L < contact distance) are kept.
-void expect_same_state(const PdSolver& a, const PdSolver& b, const std::string& what) {
-  const ParticleSet &pa = a.particles(), &pb = b.particles();
-  for (int k = 0; k < pa.attribute_count(); ++k)
-    EXPECT_TRUE(test::bitwise_equal(pa.words(k), pb.words(k), pa.size() * std::size_t(pa.words_per_particle(k))))
-        << what << ": attribute " << pa.name(k);
-  EXPECT_TRUE(test::bitwise_equal(a.forces().data(), b.forces().data(), a.forces().size())) << what << ": forces";
-}
-
-PdMaterial breakable() {
-  PdMaterial m;
-  m.bulk = Real(2e6);
-  m.shear = Real(1.2e6);
-  m.density = 1000;
-  m.critical_stretch = Real(0.02);
-  m.alpha = Real(0.5);
-  m.psi0 = pd_psi0_from_yield_stress(Real(2e5), Real(kDelta));
-  m.plastic_cap = Real(0.05);
-  return m;
-}
-
-// A 24 x 6 x 6 bar with plasticity, fracture and contact, its ends pulled apart at 3 m/s.
-PdSolver pulled_bar(const exec::Space& space, Real compact_fraction) {
-  PdSettings s = settings(PdDeviatoric::Paper, true);
-  s.contact = true;
-  s.compact_fraction = compact_fraction;
-  PdSolver solver(s, {breakable()});
-  std::vector<Vec3> x;
-  for (int i = 0; i < 24; ++i)
-    for (int j = 0; j < 6; ++j)
-      for (int k = 0; k < 6; ++k) x.push_back((kLc * Vec3d(i + 0.5, j + 0.5, k + 0.5)).cast<Real>());
-  solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
-  solver.prescribe_velocity(Vec3(-1, -1, -1), Vec3(Real(0.03), 1, 1), Vec3(-3, 0, 0));
-  solver.prescribe_velocity(Vec3(Real(0.21), -1, -1), Vec3(1, 1, 1), Vec3(3, 0, 0));
-  solver.initialize(space);
-  return solver;
-}
-
 TEST(PdCompaction, ABreakingBarRunsBitwiseAsWithout) {
   const exec::Space space(test::parallel_backend(), 2);
   PdSolver ref = pulled_bar(space, 0);
