@@ -7,7 +7,7 @@
 //   of the run after the arrival), bond_updates_per_s.
 //
 // amalgam_pd_wave --nx 100 --ny 10 --nz 10 --dt 5e-7 --backend openmp --threads 2
-//                 [--form paper|lps] [--correction 0|1] [--steps N] [--timing-steps M --repeats R]
+//                 [--form paper|lps] [--correction 0|1] [--steps N] [--timing-steps M --repeats R [--profile]]
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -30,6 +30,7 @@ struct Options {
   std::string backend = "serial", form = "paper";
   int threads = 1, steps = 0, timing_steps = 0, repeats = 3;
   bool correction = true;
+  bool profile = false;  // --profile: per-region times of the timed steps
 };
 
 Options parse(int argc, char** argv) {
@@ -53,6 +54,7 @@ Options parse(int argc, char** argv) {
     else if (a == "--steps") o.steps = std::atoi(next());
     else if (a == "--timing-steps") o.timing_steps = std::atoi(next());
     else if (a == "--repeats") o.repeats = std::atoi(next());
+    else if (a == "--profile") o.profile = true;
     else throw std::invalid_argument("unknown option " + a);
   }
   if (o.nx < 8 || o.ny < 1 || o.nz < 1 || !(o.dt > 0) || o.threads < 1 || o.repeats < 1)
@@ -108,10 +110,13 @@ int main(int argc, char** argv) try {
   std::printf("particles = %zu\nbonds = %zu\ndt_s = %.6g\nsetup_s = %.4f\narrival_s = %.6g\nsteps = %d\n", x.size(),
               solver.bonds().size(), o.dt, setup_s, arrival, step);
   if (o.timing_steps > 0) {
+    exec::Profiler profiler;  // --profile: per-region times of the timed steps
+    exec::Space timed = space;
+    if (o.profile) timed.set_profiler(&profiler);
     std::vector<double> per_step;
     for (int r = 0; r < o.repeats; ++r) {
       const auto t0 = std::chrono::steady_clock::now();
-      for (int k = 0; k < o.timing_steps; ++k) solver.step(space, dt);
+      for (int k = 0; k < o.timing_steps; ++k) solver.step(timed, dt);
       per_step.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() /
                          o.timing_steps);
     }
@@ -120,6 +125,7 @@ int main(int argc, char** argv) try {
     std::printf("seconds_per_step = %.6g\nseconds_per_step_min = %.6g\nseconds_per_step_max = %.6g\n"
                 "bond_updates_per_s = %.4g\n",
                 med, per_step.front(), per_step.back(), double(solver.bonds().size()) / med);
+    if (o.profile) std::printf("%s", profiler.report().c_str());
   }
   return 0;
 } catch (const std::exception& e) {

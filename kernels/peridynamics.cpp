@@ -154,6 +154,8 @@ void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume
   bonds.volume.resize(total);
   bonds.plastic.assign(total, Real(0));
   bonds.intact.assign(total, 1);
+  bonds.lane.resize(total);
+  bonds.dense.assign(n, 1);
   const std::uint64_t* off = bonds.offsets.data();
   exec::parallel_for(space, "pd.bond_geometry", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
@@ -167,6 +169,7 @@ void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume
       Real nu = 1;
       if (partial_volume && L > delta - lc / 2) nu = std::min(Real(1), (delta + lc / 2 - L) / lc);
       bonds.volume[k] = nu * volume[j];
+      bonds.lane[k] = std::uint8_t((k - off[i]) % kSumLanes);
     }
   });
   fill_reverse(space, "pd.bond_reverse", bonds.offsets, bonds.neighbor, bonds.reverse);
@@ -445,13 +448,14 @@ namespace {
 // Bond blocks (the force pass below and the dilatation pass): a row is processed in blocks; a
 // scalar loop gathers what the neighbour j indexes (positions, its constants) into local arrays,
 // a branch-free loop over the block, reading the per-bond arrays in place, is vectorised by the
-// compiler (sqrt and division included: IEEE-exact in SIMD), then sums run over the row in bond
-// order. Broken bonds add exact zeros (x + 0 = x, and +0 + -0 = +0 from the +0 start), so every
-// sum equals the one that skips them: results do not depend on the backend, the thread count or
-// whether broken bonds were compacted away.
+// compiler (sqrt and division included: IEEE-exact in SIMD), then sums run over the row in lanes
+// (PdBonds::lane), each lane in bond order. Broken bonds add exact zeros (x + 0 = x, and +0 + -0 =
+// +0 from the +0 start), so every lane sum equals the one that skips them: results do not depend
+// on the backend, the thread count or whether broken bonds were compacted away.
 constexpr int kBlock = 64;      // force pass
 constexpr int kDilBlock = 256;  // dilatation pass: a whole row of up to 256 bonds (delta < 3.9 lc)
                                 // stays in one block for the plastic return
+static_assert(kBlock % kSumLanes == 0 && kDilBlock % kSumLanes == 0, "blocks start on lane 0");
 
 // Gathers per neighbour: 16-byte quads of per-particle records, four neighbours at a time.
 // out_q[m] = rec(idx[m]).quad[q] - sub[q] for m < n, the quad being the 4 Reals at byte offset
@@ -475,6 +479,28 @@ void gather_quads(const void* records, std::size_t stride, std::size_t quad, con
     const Real* r = reinterpret_cast<const Real*>(base + idx[m] * stride);
     o0[m] = r[0] - sub[0], o1[m] = r[1] - sub[1], o2[m] = r[2] - sub[2], o3[m] = r[3] - sub[3];
   }
+}
+
+// Lane sums (PdBonds::lane): acc[lane] += t[m] over a block of n terms, in bond order within each
+// lane. Dense rows: lane = position mod kSumLanes (blocks start at multiples of kSumLanes), 8
+// independent chains the compiler vectorises. Compacted rows: the stored lanes (scalar).
+inline void lane_sum(const Real* t, int n, Real* acc) {
+  int m = 0;
+  for (; m + kSumLanes <= n; m += kSumLanes)
+    for (int l = 0; l < kSumLanes; ++l) acc[l] += t[m + l];
+  for (int l = 0; m + l < n; ++l) acc[l] += t[m + l];
+}
+inline void lane_sum(const Real* t, const std::uint8_t* lane, int n, Real* acc) {
+  for (int m = 0; m < n; ++m) acc[lane[m]] += t[m];
+}
+inline void lane_sum(const Real* t, const std::uint8_t* lane, bool dense, int n, Real* acc) {
+  if (dense) lane_sum(t, n, acc);
+  else lane_sum(t, lane, n, acc);
+}
+// The lanes combined in a fixed order.
+inline Real lane_total(const Real* a) {
+  static_assert(kSumLanes == 8, "lane_total combines 8 lanes");
+  return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7]));
 }
 
 // What the dilatation pass gathers per neighbour.
@@ -581,13 +607,15 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       // s1..s3: the consistent term's sums (see header); a plastic particle's q comes from the
       // plastic return below instead.
       const bool sums = consistent && !plastic;
-      Real sum = 0, s1 = 0, s2 = 0, s3 = 0;
+      const bool dense = bonds.dense[i] != 0;
+      alignas(32) Real a0[kSumLanes] = {}, a1[kSumLanes] = {}, a2[kSumLanes] = {}, a3[kSumLanes] = {};
       for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
         const int n = load(kb);
-        for (int m = 0; m < n; ++m) sum += B.t[m];  // bond order
-        if (sums)
-          for (int m = 0; m < n; ++m) s1 += B.w1[m], s2 += B.w2[m], s3 += B.w3[m];
+        const std::uint8_t* lane = bonds.lane.data() + kb;
+        lane_sum(B.t, lane, dense, n, a0);
+        if (sums) lane_sum(B.w1, lane, dense, n, a1), lane_sum(B.w2, lane, dense, n, a2), lane_sum(B.w3, lane, dense, n, a3);
       }
+      const Real sum = lane_total(a0), s1 = lane_total(a1), s2 = lane_total(a2), s3 = lane_total(a3);
       const Real theta = Real(3) * sum / p.m[i];
       p.theta[i] = theta;
       const Real qscale = p.b[i] * Real(3) / p.m[i];
@@ -700,7 +728,8 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
       const Real sub_x0[4] = {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}, sub_0[4] = {0, 0, 0, 0};
       const ForceRec& own = recs[i];
       const ForceRow ri{own.y[3], own.x0[3], own.cc[0], own.cc[1]};
-      Real fx = 0, fy = 0, fz = 0;
+      const bool dense = bonds.dense[i] != 0;
+      alignas(32) Real ax[kSumLanes] = {}, ay[kSumLanes] = {}, az[kSumLanes] = {};
       Mat3 s = Mat3::Zero();
       ForceBlock B;
       for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
@@ -714,7 +743,8 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
                           bonds.volume.data() + kb,     bonds.plastic.data() + kb, bonds.omega_r.data() + kb,
                           bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb, bonds.intact.data() + kb};
         force_block<Paper, Fracture>(B, S, n, ri, delta);
-        for (int m = 0; m < n; ++m) fx += B.fx[m], fy += B.fy[m], fz += B.fz[m];  // bond order
+        const std::uint8_t* lane = bonds.lane.data() + kb;
+        lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay), lane_sum(B.fz, lane, dense, n, az);
         if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
           for (int m = 0; m < n; ++m)
             s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) * Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
@@ -726,7 +756,7 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
               if (B.broken[m]) bonds.intact[kb + std::uint64_t(m)] = 0;
         }
       }
-      force[i] = Vec3(fx, fy, fz);
+      force[i] = Vec3(lane_total(ax), lane_total(ay), lane_total(az));
       if (stress) stress[i] = s;
     });
   };
@@ -824,6 +854,8 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
   out.volume.resize(total);
   out.plastic.resize(total);
   out.intact.resize(total);
+  out.lane.resize(total);
+  out.dense.resize(n);
   exec::parallel_for(space, label_copy, exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     std::uint64_t o = off[i];
@@ -836,8 +868,10 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
       out.volume[o] = bonds.volume[k];
       out.plastic[o] = bonds.plastic[k];
       out.intact[o] = bonds.intact[k];
+      out.lane[o] = bonds.lane[k];
       ++o;
     }
+    out.dense[i] = bonds.dense[i] && o - off[i] == bonds.offsets[i + 1] - bonds.offsets[i];
   });
   fill_reverse(space, "pd.compact_reverse", out.offsets, out.neighbor, out.reverse);
   bonds = std::move(out);

@@ -6,8 +6,9 @@
 // over its own row (no scatter), so results are bitwise identical on every backend and thread
 // count; the pair force uses both directed bonds i->j and j->i, the far end's per-bond values
 // mirrored into row i (PdBonds::omega_r, shear_omega_r, plastic_r). Rows are processed in blocks
-// whose arithmetic the compiler vectorises; sums run in bond order, broken bonds adding exact
-// zeros, so compacting broken bonds away does not change a bit (see peridynamics.cpp).
+// whose arithmetic the compiler vectorises; sums run in lanes fixed per bond (PdBonds::lane), in
+// bond order within a lane, broken bonds adding exact zeros, so compacting broken bonds away does
+// not change a bit (see peridynamics.cpp).
 //
 // Notation: xi = x0_j - x0_i (reference bond), eta = y_j - y_i (current), L = |xi|, l = |eta|,
 // e = l - L (extension), Lambda = (eta / l) . (xi / L), omega_ij = delta / |G_i xi| (eq. 16; G = I:
@@ -57,6 +58,8 @@ inline Real pd_psi0_from_yield_stress(Real sigma_y, Real delta) {
 }
 
 // Bonds of directed pairs i -> j (row i), rows sorted by j.
+constexpr int kSumLanes = 8;
+
 struct PdBonds {
   std::vector<std::uint64_t> offsets;    // n + 1
   std::vector<std::uint32_t> neighbor;   // j
@@ -73,6 +76,15 @@ struct PdBonds {
   // (pd_mirror_bonds); plastic_r is kept in step by pd_dilatation, which writes the slot
   // reverse[k] whenever plastic[k] changes (each slot has one writer: deterministic).
   std::vector<Real> omega_r, shear_omega_r, plastic_r;
+  // Sum lanes. The passes sum a row's terms in kSumLanes independent chains (a single chain in
+  // bond order was a 3-cycle add latency per bond: ~15 % of a step), then combine the lanes in a
+  // fixed order. A bond's lane is its position in its row *as built*, mod kSumLanes, and stays
+  // with it through compaction (lane), so a compacted row sums its bonds in the same lanes in the
+  // same order; the removed bonds were broken, whose terms are exact zeros, so the sums are
+  // bitwise those of the uncompacted row. dense[i] = 1 while row i still holds every bond it was
+  // built with (lane = position mod kSumLanes: the vectorised path).
+  std::vector<std::uint8_t> lane;   // per bond
+  std::vector<std::uint8_t> dense;  // per row
   std::size_t size() const { return neighbor.size(); }
   std::size_t particles() const { return offsets.empty() ? 0 : offsets.size() - 1; }
 };
@@ -210,9 +222,10 @@ std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds
 // Removes broken bonds from the CSR arrays (rows keep their order, every per-bond array is
 // copied, reverse indices rebuilt) and returns how many. Broken bonds with 0.9 L below
 // contact_distance stay (0: none): pd_contact_forces lets such a pair touch only below 0.9 L,
-// so removing its bond would change the physics. Every kernel skips broken bonds, so a compacted list gives the same sums in the
-// same order: the run continues bitwise as without compaction. Pays once many bonds are broken
-// (measured in docs/benchmarks.md).
+// so removing its bond would change the physics. Broken bonds add exact zeros to every sum and
+// keep their lanes (PdBonds::lane), so a compacted list gives the same sums in the same order: the
+// run continues bitwise as without compaction. Pays once many bonds are broken (measured in
+// docs/benchmarks.md).
 std::uint64_t pd_compact_bonds(const exec::Space& space, PdBonds& bonds, Real contact_distance = 0);
 
 // Restricts `bonds` (the full list built from the reference configuration) to the rows given by
