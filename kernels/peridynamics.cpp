@@ -533,7 +533,7 @@ void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t k
 
 // e, Lambda (eqs. 3, 6) and the terms of theta (eq. 5) and of the consistent sums (see header):
 // w = shear_omega V d with d = kappa Lambda (paper) or L / 3 (LPS).
-template <bool Paper>
+template <bool Paper, bool Plastic>
 void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
   for (int m = 0; m < n; ++m) {  // vectorised
     const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
@@ -547,7 +547,8 @@ void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
     B.t[m] = S.omega[m] * e * lambda * S.vol[m];  // omega s Lambda |xi| V (eq. 5), s = e / |xi|
     const Real d = Paper ? kappa * lambda : L / Real(3);
     const Real w = live * (S.shear[m] * S.vol[m] * d);
-    B.w1[m] = w * e, B.w2[m] = w * d, B.w3[m] = w * S.ep[m];
+    B.w1[m] = w * e, B.w2[m] = w * d;
+    if (Plastic) B.w3[m] = w * S.ep[m];  // else every ep = 0: the sum s3 is +0
   }
 }
 
@@ -582,8 +583,8 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
   exec::parallel_for(space, "pd.dilatation_rows", exec::Index(p.n), [&](exec::Index i) {
     recs[std::size_t(i)] = {{p.x[i][0], p.x[i][1], p.x[i][2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
   });
-  auto kernel = [&](auto paper_c) {
-    constexpr bool Paper = decltype(paper_c)::value;
+  auto kernel = [&](auto paper_c, auto plastic_c) {
+    constexpr bool Paper = decltype(paper_c)::value, Plastic = decltype(plastic_c)::value;
     exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
@@ -599,11 +600,11 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       auto load = [&](std::uint64_t kb) {
         const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
         gather_dilatation(recs.data(), bonds, kb, n, sub_y, sub_x0, B);
-        dilatation_block<Paper>(B, slice(kb), n, kap);
+        dilatation_block<Paper, Plastic>(B, slice(kb), n, kap);
         return n;
       };
       const PdMaterial& mat = prm.materials[p.material[i]];
-      const bool plastic = mat.psi0 < std::numeric_limits<Real>::infinity();
+      const bool plastic = Plastic && mat.psi0 < std::numeric_limits<Real>::infinity();
       // s1..s3: the consistent term's sums (see header); a plastic particle's q comes from the
       // plastic return below instead.
       const bool sums = consistent && !plastic;
@@ -613,7 +614,8 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
         const int n = load(kb);
         const std::uint8_t* lane = bonds.lane.data() + kb;
         lane_sum(B.t, lane, dense, n, a0);
-        if (sums) lane_sum(B.w1, lane, dense, n, a1), lane_sum(B.w2, lane, dense, n, a2), lane_sum(B.w3, lane, dense, n, a3);
+        if (sums) lane_sum(B.w1, lane, dense, n, a1), lane_sum(B.w2, lane, dense, n, a2);
+        if (sums && Plastic) lane_sum(B.w3, lane, dense, n, a3);
       }
       const Real sum = lane_total(a0), s1 = lane_total(a1), s2 = lane_total(a2), s3 = lane_total(a3);
       const Real theta = Real(3) * sum / p.m[i];
@@ -638,8 +640,10 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
     });
   };
-  if (prm.deviatoric == PdDeviatoric::Paper) kernel(std::true_type{});
-  else kernel(std::false_type{});
+  using T = std::true_type;
+  using F = std::false_type;
+  if (prm.deviatoric == PdDeviatoric::Paper) prm.plastic ? kernel(T{}, T{}) : kernel(T{}, F{});
+  else prm.plastic ? kernel(F{}, T{}) : kernel(F{}, F{});
 }
 
 namespace {
@@ -675,9 +679,10 @@ struct BondSlice {
   const std::uint8_t* live;
 };
 
-template <bool Paper, bool Fracture>
+template <bool Paper, bool Fracture, bool Plastic>
 void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Real delta) {
   for (int m = 0; m < n; ++m) {  // vectorised: no branches, no gathers
+    const Real epi = Plastic ? S.epi[m] : Real(0), epj = Plastic ? S.epj[m] : Real(0);
     const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
     const bool ok = (l2 > 0) & (S.live[m] != 0);  // coincident particles: no direction, no force
     const Real l = std::sqrt(ok ? l2 : Real(1));
@@ -687,15 +692,15 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
     const Real lambda = (B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) * inv;
     const Real g = Paper ? lambda : L;
     // eqs. 3, 7, 11 from each end of the bond
-    const Real aij = Real(4) * (S.omega[m] * lambda * r.dil + S.shear[m] * r.b * (e - r.c * g - S.epi[m]));
-    const Real aji = Real(4) * (S.omega_r[m] * lambda * B.dil_j[m] + S.shear_r[m] * B.b_j[m] * (e - B.c_j[m] * g - S.epj[m]));
+    const Real aij = Real(4) * (S.omega[m] * lambda * r.dil + S.shear[m] * r.b * (e - r.c * g - epi));
+    const Real aji = Real(4) * (S.omega_r[m] * lambda * B.dil_j[m] + S.shear_r[m] * B.b_j[m] * (e - B.c_j[m] * g - epj));
     // Dead bonds: times 0 (not a select, which would make the per-bond loads conditional and stop
     // the vectorisation); their operands are finite (l = 1 stands in when l2 = 0).
     const Real live = ok ? Real(1) : Real(0);
     const Real c = live * (Real(0.5) * (aij + aji) * S.vol[m] * (inv * L));  // eq. 1 with eq. 2, / l
     B.fx[m] = c * B.ex[m], B.fy[m] = c * B.ey[m], B.fz[m] = c * B.ez[m];
     if (Fracture)  // eq. 18, from both ends (symmetric decision)
-      B.broken[m] = ok & (((e - S.epi[m]) / delta > r.crit) | ((e - S.epj[m]) / delta > B.crit_j[m]));
+      B.broken[m] = ok & (((e - epi) / delta > r.crit) | ((e - epj) / delta > B.crit_j[m]));
   }
 }
 
@@ -719,8 +724,9 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
     const Real crit = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
     recs[i] = {{p.x[i][0], p.x[i][1], p.x[i][2], dil}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]}, {c, crit, 0, 0}};
   });
-  auto kernel = [&](auto paper_c, auto fracture_c) {
+  auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
+    constexpr bool Plastic = decltype(plastic_c)::value;
     exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
@@ -742,7 +748,7 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
         const BondSlice S{bonds.length.data() + kb,     bonds.omega.data() + kb,   bonds.shear_omega.data() + kb,
                           bonds.volume.data() + kb,     bonds.plastic.data() + kb, bonds.omega_r.data() + kb,
                           bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb, bonds.intact.data() + kb};
-        force_block<Paper, Fracture>(B, S, n, ri, delta);
+        force_block<Paper, Fracture, Plastic>(B, S, n, ri, delta);
         const std::uint8_t* lane = bonds.lane.data() + kb;
         lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay), lane_sum(B.fz, lane, dense, n, az);
         if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
@@ -762,8 +768,12 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
   };
   using T = std::true_type;
   using F = std::false_type;
-  if (paper) fracture ? kernel(T{}, T{}) : kernel(T{}, F{});
-  else fracture ? kernel(F{}, T{}) : kernel(F{}, F{});
+  auto with_plastic = [&](auto paper_c, auto fracture_c) {
+    if (prm.plastic) kernel(paper_c, fracture_c, T{});
+    else kernel(paper_c, fracture_c, F{});
+  };
+  if (paper) fracture ? with_plastic(T{}, T{}) : with_plastic(T{}, F{});
+  else fracture ? with_plastic(F{}, T{}) : with_plastic(F{}, F{});
 }
 
 void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius, PdContactList& list) {

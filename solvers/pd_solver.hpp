@@ -120,6 +120,8 @@ class PdSolver {
   PdParams params() const {
     PdParams p = params_;
     p.materials = materials_.data();
+    p.plastic = false;
+    for (const PdMaterial& m : materials_) p.plastic |= m.psi0 < std::numeric_limits<Real>::infinity();
     return p;
   }
   const PdConstants& constants() const { return constants_; }
