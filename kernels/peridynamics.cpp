@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <new>
 #include <type_traits>
 #include <unordered_map>
 
@@ -575,13 +576,25 @@ void plastic_block(DilBlock& B, const DilSlice& S, int n, Real theta, Real kappa
   }
 }
 
+// n records of type Rec in the caller's scratch (reused, not zeroed: every record is written
+// before it is read), or in `local` when there is none.
+template <class Rec>
+Rec* scratch_records(PdScratch* scratch, std::vector<Real>& local, std::size_t n) {
+  static_assert(sizeof(Rec) % sizeof(Real) == 0 && alignof(Rec) <= __STDCPP_DEFAULT_NEW_ALIGNMENT__, "Real storage");
+  std::vector<Real>& v = scratch ? scratch->records : local;
+  const std::size_t need = n * (sizeof(Rec) / sizeof(Real));
+  if (v.size() < need) v.resize(need);
+  return reinterpret_cast<Rec*>(v.data());
+}
+
 }  // namespace
 
-void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm) {
+void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, PdScratch* scratch) {
   const bool consistent = prm.consistent;
-  std::vector<PosRec> recs(p.n);
+  std::vector<Real> local;
+  PosRec* const recs = scratch_records<PosRec>(scratch, local, p.n);
   exec::parallel_for(space, "pd.dilatation_rows", exec::Index(p.n), [&](exec::Index i) {
-    recs[std::size_t(i)] = {{p.x[i][0], p.x[i][1], p.x[i][2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
+    ::new (static_cast<void*>(recs + i)) PosRec{{p.x[i][0], p.x[i][1], p.x[i][2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
   });
   auto kernel = [&](auto paper_c, auto plastic_c) {
     constexpr bool Paper = decltype(paper_c)::value, Plastic = decltype(plastic_c)::value;
@@ -599,7 +612,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       };
       auto load = [&](std::uint64_t kb) {
         const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
-        gather_dilatation(recs.data(), bonds, kb, n, sub_y, sub_x0, B);
+        gather_dilatation(recs, bonds, kb, n, sub_y, sub_x0, B);
         dilatation_block<Paper, Plastic>(B, slice(kb), n, kap);
         return n;
       };
@@ -707,14 +720,15 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
 }  // namespace
 
 void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, bool fracture,
-               Vec3* force, Mat3* stress) {
+               Vec3* force, Mat3* stress, PdScratch* scratch) {
   const Real delta = prm.horizon;
   const bool paper = prm.deviatoric == PdDeviatoric::Paper;
   const PdMaterial* mats = prm.materials;
   const bool consistent = prm.consistent;
   // Per particle: the far end's terms and positions, gathered once per bond below (and a row's
   // own terms read back from its record).
-  std::vector<ForceRec> recs(p.n);
+  std::vector<Real> local;
+  ForceRec* const recs = scratch_records<ForceRec>(scratch, local, p.n);
   exec::parallel_for(space, "pd.forces_rows", exec::Index(p.n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     const PdMaterial& mi = mats[p.material[i]];
@@ -722,7 +736,8 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
     const Real dil = p.a[i] * ti - (consistent ? p.q[i] : Real(0));  // a theta (- q: consistent term)
     const Real c = paper ? p.kappa[i] * ti : ti / Real(3);
     const Real crit = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
-    recs[i] = {{p.x[i][0], p.x[i][1], p.x[i][2], dil}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]}, {c, crit, 0, 0}};
+    ::new (static_cast<void*>(recs + i))
+        ForceRec{{p.x[i][0], p.x[i][1], p.x[i][2], dil}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]}, {c, crit, 0, 0}};
   });
   auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
@@ -741,7 +756,7 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
       for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
         const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
         const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
-        const ForceRec* rec = recs.data();
+        const ForceRec* rec = recs;
         gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, y), nb, n, sub_y, B.ex, B.ey, B.ez, B.dil_j);
         gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, x0), nb, n, sub_x0, B.xx, B.xy, B.xz, B.b_j);
         gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, cc), nb, n, sub_0, B.c_j, B.crit_j, B.pad0, B.pad1);

@@ -184,7 +184,13 @@ void pd_mirror_bonds(const exec::Space& space, PdBonds& bonds);
 // (e^d - e^p) d_j V_j, d_j = -de^d/dtheta (kappa Lambda, paper; L / 3, LPS): the deviatoric
 // energy b sum shear_omega (e^d - e^p)^2 V depends on every bond through theta, and its
 // derivative adds -4 omega Lambda q_i to every A_ij of the row.
-void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm);
+// scratch (optional): per-particle records of the passes, kept by the caller so that a step does
+// not allocate and zero them (n x 32 and n x 48 bytes) on every call.
+struct PdScratch {
+  std::vector<Real> records;
+};
+void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
+                   PdScratch* scratch = nullptr);
 
 // Pair force per bond (eqs. 1-3, 7, 11): A_ij = 4 omega_ij (a_i Lambda theta_i + b_i (e^d_ij -
 // e^p_ij)), and the force density on i is sum_j (A_ij + A_ji) / 2 (eta / l) V_j (the paper's
@@ -193,7 +199,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
 // criterion (eq. 18) holds from either end break; both rows decide alike, so breaking stays
 // symmetric. Returns nothing; force is a density (N/m^3).
 void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, bool fracture,
-               Vec3* force, Mat3* stress);
+               Vec3* force, Mat3* stress, PdScratch* scratch = nullptr);
 
 // Short-range contact (fragments, or bodies, meeting), as LAMMPS's peri styles do: particles
 // closer than `distance` that share no intact bond repel with force density

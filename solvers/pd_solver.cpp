@@ -288,10 +288,10 @@ void PdSolver::apply_colliders(const exec::Space& space, Real t) {
   });
 }
 
-void PdSolver::compute_dilatation(const exec::Space& space) { pd_dilatation(space, view(), bonds_, params()); }
+void PdSolver::compute_dilatation(const exec::Space& space) { pd_dilatation(space, view(), bonds_, params(), &scratch_); }
 
 void PdSolver::compute_forces(const exec::Space& space) {
-  pd_forces(space, view(), bonds_, params(), settings_.fracture, force_.data(), nullptr);
+  pd_forces(space, view(), bonds_, params(), settings_.fracture, force_.data(), nullptr, &scratch_);
 }
 
 Real PdSolver::contact_distance() const {

@@ -171,6 +171,7 @@ class PdSolver {
   // critical step of a corrected 8^3 block, i.e. that many more steps for nothing.
   Real critical_dt(const exec::Space& space);
   std::vector<Vec3> force_;
+  PdScratch scratch_;  // the passes' per-particle records, reused every step
   std::vector<Real> q_;  // consistent term per particle (PdView::q), recomputed every step
   struct Precrack {
     Vec3 point, n, lo, hi;
