@@ -576,6 +576,13 @@ void plastic_block(DilBlock& B, const DilSlice& S, int n, Real theta, Real kappa
   }
 }
 
+// fn(std::true_type{}) or fn(std::false_type{}): a run-time flag as a template argument.
+template <class Fn>
+void with_flag(bool flag, Fn&& fn) {
+  if (flag) fn(std::true_type{});
+  else fn(std::false_type{});
+}
+
 // n records of type Rec in the caller's scratch (reused, not zeroed: every record is written
 // before it is read), or in `local` when there is none.
 template <class Rec>
@@ -653,10 +660,8 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
     });
   };
-  using T = std::true_type;
-  using F = std::false_type;
-  if (prm.deviatoric == PdDeviatoric::Paper) prm.plastic ? kernel(T{}, T{}) : kernel(T{}, F{});
-  else prm.plastic ? kernel(F{}, T{}) : kernel(F{}, F{});
+  with_flag(prm.deviatoric == PdDeviatoric::Paper,
+            [&](auto paper_c) { with_flag(prm.plastic, [&](auto plastic_c) { kernel(paper_c, plastic_c); }); });
 }
 
 namespace {
@@ -781,14 +786,11 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
       if (stress) stress[i] = s;
     });
   };
-  using T = std::true_type;
-  using F = std::false_type;
-  auto with_plastic = [&](auto paper_c, auto fracture_c) {
-    if (prm.plastic) kernel(paper_c, fracture_c, T{});
-    else kernel(paper_c, fracture_c, F{});
-  };
-  if (paper) fracture ? with_plastic(T{}, T{}) : with_plastic(T{}, F{});
-  else fracture ? with_plastic(F{}, T{}) : with_plastic(F{}, F{});
+  with_flag(paper, [&](auto paper_c) {
+    with_flag(fracture, [&](auto fracture_c) {
+      with_flag(prm.plastic, [&](auto plastic_c) { kernel(paper_c, fracture_c, plastic_c); });
+    });
+  });
 }
 
 void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius, PdContactList& list) {

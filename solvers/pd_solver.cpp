@@ -186,8 +186,8 @@ Real PdSolver::critical_dt(const exec::Space& space) {
   prm.materials = elastic.data();
   const PdView p = view();
   std::vector<Vec3> f0(n), f(n), v(n);
-  pd_dilatation(space, p, bonds_, prm);
-  pd_forces(space, p, bonds_, prm, false, f0.data(), nullptr);
+  pd_dilatation(space, p, bonds_, prm, &scratch_);
+  pd_forces(space, p, bonds_, prm, false, f0.data(), nullptr, &scratch_);
   std::mt19937 rng(20261123);  // a fixed start vector: the estimate is reproducible
   std::uniform_real_distribution<double> u(-1, 1);
   for (std::size_t i = 0; i < n; ++i) v[i] = fixed[i] ? Vec3::Zero() : Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
@@ -202,8 +202,8 @@ Real PdSolver::critical_dt(const exec::Space& space) {
       vv += double(v[i].squaredNorm());
       x[i] = x_start[i] + amp * v[i];
     }
-    pd_dilatation(space, p, bonds_, prm);
-    pd_forces(space, p, bonds_, prm, false, f.data(), nullptr);
+    pd_dilatation(space, p, bonds_, prm, &scratch_);
+    pd_forces(space, p, bonds_, prm, false, f.data(), nullptr, &scratch_);
     double aa = 0;
     for (std::size_t i = 0; i < n; ++i) {
       v[i] = fixed[i] ? Vec3::Zero() : Vec3(-(f[i] - f0[i]) / (amp * materials_[std::size_t(mat[i])].density));
@@ -382,7 +382,7 @@ void PdSolver::step(const exec::Space& space, Real dt) {
 void PdSolver::compute_stress(const exec::Space& space, std::vector<Mat3>& stress) {
   stress.resize(particles_.size());
   std::vector<Vec3> f(particles_.size());
-  pd_forces(space, view(), bonds_, params(), false, f.data(), stress.data());
+  pd_forces(space, view(), bonds_, params(), false, f.data(), stress.data(), &scratch_);
 }
 
 PdDiagnostics PdSolver::diagnostics(const exec::Space& space) const {
