@@ -3,6 +3,7 @@
 #include <cstring>
 
 #include "core/math/bspline.hpp"
+#include "core/math/simd4.hpp"
 #include "kernels/grid_block.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
@@ -74,55 +75,47 @@ inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3&
     A.setZero();
     G = V0 * tau;
   }
-  Real zk[N][4];  // (m, A.col(2) o2[k])
-  for (int k = 0; k < N; ++k) {
-    const Real o = (Real(k) - st.fx[2]) * dx;
-    zk[k][0] = m;
-    zk[k][1] = A(0, 2) * o;
-    zk[k][2] = A(1, 2) * o;
-    zk[k][3] = A(2, 2) * o;
-  }
+  // Node rows are 4-lane vectors (simd::V4); every lane op is the scalar op of the same lane.
+  using simd::V4;
+  const V4 em{m, 0, 0, 0}, mv = simd::row4(0, m * v);
+  const V4 a0 = simd::col4(A, 0), a1 = simd::col4(A, 1), a2 = simd::col4(A, 2);
+  V4 zk[N];  // (m, A.col(2) o2[k])
+  for (int k = 0; k < N; ++k) zk[k] = em + a2 * ((Real(k) - st.fx[2]) * dx);
   // Positions (P): the same separable affine form with v -> xq and A -> m Fq, no stress term.
   const Mat3 Aq = m * Fq;
-  Real qk[N][4] = {};
+  const V4 mq = simd::row4(0, m * xq);
+  const V4 q0 = simd::col4(Aq, 0), q1 = simd::col4(Aq, 1), q2 = simd::col4(Aq, 2);
+  V4 qk[N] = {};
   if constexpr (P)
-    for (int k = 0; k < N; ++k) {
-      const Real o = (Real(k) - st.fx[2]) * dx;
-      qk[k][0] = m;
-      qk[k][1] = Aq(0, 2) * o;
-      qk[k][2] = Aq(1, 2) * o;
-      qk[k][3] = Aq(2, 2) * o;
-    }
+    for (int k = 0; k < N; ++k) qk[k] = em + q2 * ((Real(k) - st.fx[2]) * dx);
+  const V4 g0c = simd::col4(G, 0), g1c = simd::col4(G, 1), g2c = simd::col4(G, 2);
   for (int i = 0; i < N; ++i) {
     const Real oi = (Real(i) - st.fx[0]) * dx;
-    const Vec3 ai = m * v + A.col(0) * oi;
-    const Vec3 qi = m * xq + Aq.col(0) * oi;
+    const V4 ai = mv + a0 * oi;
+    const V4 qi = mq + q0 * oi;
     for (int j = 0; j < N; ++j) {
       const Real oj = (Real(j) - st.fx[1]) * dx;
-      const Real aij[4] = {0, ai[0] + A(0, 1) * oj, ai[1] + A(1, 1) * oj, ai[2] + A(2, 1) * oj};
-      Real qij[4] = {};
-      if constexpr (P) qij[1] = qi[0] + Aq(0, 1) * oj, qij[2] = qi[1] + Aq(1, 1) * oj, qij[3] = qi[2] + Aq(2, 1) * oj;
+      const V4 aij = ai + a1 * oj;
+      const V4 qij = qi + q1 * oj;
       const Real wx = st.w[0][i], wy = st.w[1][j], wij = wx * wy;
-      Real g0[4] = {}, g1[4] = {};
+      V4 g0{}, g1{};
       if constexpr (kGrad) {
-        const Vec3 g0v = G.col(0) * (st.dw[0][i] * wy) + G.col(1) * (wx * st.dw[1][j]);
-        const Vec3 g1v = G.col(2) * wij;
-        for (int c = 0; c < 3; ++c) g0[c + 1] = g0v[c], g1[c + 1] = g1v[c];
+        g0 = g0c * (st.dw[0][i] * wy) + g1c * (wx * st.dw[1][j]);
+        g1 = g2c * wij;
       }
       Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
       for (int k = 0; k < N; ++k) {
         const Real w = wij * st.w[2][k], wz = st.w[2][k], dwz = st.dw[2][k];
-        for (int c = 0; c < 4; ++c) {
-          const Real mom = w * (aij[c] + zk[k][c]);
-          if constexpr (P) row[k * CH + 4 + c] += w * (qij[c] + qk[k][c]);
-          if constexpr (T == Transfer::Mls) {
-            row[k * CH + c] += mom;
-          } else if constexpr (T == Transfer::Apic) {
-            row[k * CH + c] += mom - (wz * g0[c] + dwz * g1[c]);
-          } else {
-            row[k * CH + c] += mom;
-            row[k * CH + 4 + c] -= wz * g0[c] + dwz * g1[c];
-          }
+        Real* r = row + k * CH;
+        const V4 mom = w * (aij + zk[k]);
+        if constexpr (P) simd::store4(r + 4, simd::load4(r + 4) + w * (qij + qk[k]));
+        if constexpr (T == Transfer::Mls) {
+          simd::store4(r, simd::load4(r) + mom);
+        } else if constexpr (T == Transfer::Apic) {
+          simd::store4(r, simd::load4(r) + (mom - (wz * g0 + dwz * g1)));
+        } else {
+          simd::store4(r, simd::load4(r) + mom);
+          simd::store4(r + 4, simd::load4(r + 4) - (wz * g0 + dwz * g1));
         }
       }
     }
@@ -172,21 +165,11 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
             for (int k = 0; k < nk; ++k) {
               const Real* s = blk.data + Blk::at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k);
               Real* d = la + leaf_offset(i, j, k) * 4;
-              d[0] += s[0];
-              d[1] += s[1];
-              d[2] += s[2];
-              d[3] += s[3];
-              if constexpr (P) {  // (m, m q) into q_out
+              simd::store4(d, simd::load4(d) + simd::load4(s));
+              // P: (m, m q) into q_out; PIC/FLIP: the force lanes into b (lane 0 is 0: b's stays 0)
+              if constexpr (CH == 8) {
                 Real* e = lb + leaf_offset(i, j, k) * 4;
-                e[0] += s[4];
-                e[1] += s[5];
-                e[2] += s[6];
-                e[3] += s[7];
-              } else if constexpr (CH == 8) {  // PIC/FLIP's force lanes into b
-                Real* e = lb + leaf_offset(i, j, k) * 4;
-                e[1] += s[5];
-                e[2] += s[6];
-                e[3] += s[7];
+                simd::store4(e, simd::load4(e) + simd::load4(s + 4));
               }
             }
       }
@@ -203,65 +186,62 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, const
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
-  // Hierarchical sums over k, then j, then i (4 lanes per node: velocity + zero pad):
+  // Hierarchical sums over k, then j, then i (4 lanes per node, the grid's (m, v) rows):
   //   S = sum w v;  S_a = sum w v idx_a  ->  B.col(a) = sum w v o_a = dx (S_a - fx_a S)  (MLS, APIC)
   //   D_a = sum v dw/dx_a                ->  grad v = [D_0 D_1 D_2]                  (APIC, PIC/FLIP)
   //   dV = sum w dv                                                                  (FLIP)
   constexpr bool kB = (T != Transfer::PicFlip), kGrad = (T != Transfer::Mls), kFlip = (T == Transfer::PicFlip);
-  Real S[4] = {}, Si[4] = {}, Sj[4] = {}, Sk[4] = {}, D0[4] = {}, D1[4] = {}, D2[4] = {}, dV[4] = {};
+  using simd::V4;
+  V4 S{}, Si{}, Sj{}, Sk{}, D0{}, D1{}, D2{}, dV{};
   for (int i = 0; i < N; ++i) {
-    Real Ti[4] = {}, Tj[4] = {}, Tk[4] = {}, Tdy[4] = {}, Tdz[4] = {}, TdV[4] = {};
+    V4 Ti{}, Tj{}, Tk{}, Tdy{}, Tdz{}, TdV{};
     for (int j = 0; j < N; ++j) {
-      Real U[4] = {}, Uk[4] = {}, Ud[4] = {}, UdV[4] = {};
+      V4 U{}, Uk{}, Ud{}, UdV{};
       const Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
-      for (int k = 0; k < N; ++k)
-        for (int c = 0; c < 4; ++c) {
-          const Real vk = row[k * CH + c];
-          U[c] += st.w[2][k] * vk;
-          if constexpr (kB) Uk[c] += (Real(k) * st.w[2][k]) * vk;
-          if constexpr (kGrad) Ud[c] += st.dw[2][k] * vk;
-          if constexpr (kFlip) UdV[c] += st.w[2][k] * row[k * CH + 4 + c];
-        }
-      const Real wy = st.w[1][j], jwy = Real(j) * wy, dwy = st.dw[1][j];
-      for (int c = 0; c < 4; ++c) {
-        Ti[c] += wy * U[c];
-        if constexpr (kB) {
-          Tj[c] += jwy * U[c];
-          Tk[c] += wy * Uk[c];
-        }
-        if constexpr (kGrad) {
-          Tdy[c] += dwy * U[c];
-          Tdz[c] += wy * Ud[c];
-        }
-        if constexpr (kFlip) TdV[c] += wy * UdV[c];
+      for (int k = 0; k < N; ++k) {
+        const V4 vk = simd::load4(row + k * CH);
+        U += st.w[2][k] * vk;
+        if constexpr (kB) Uk += (Real(k) * st.w[2][k]) * vk;
+        if constexpr (kGrad) Ud += st.dw[2][k] * vk;
+        if constexpr (kFlip) UdV += st.w[2][k] * simd::load4(row + k * CH + 4);
       }
-    }
-    const Real wx = st.w[0][i], iwx = Real(i) * wx, dwx = st.dw[0][i];
-    for (int c = 0; c < 4; ++c) {
-      S[c] += wx * Ti[c];
+      const Real wy = st.w[1][j], jwy = Real(j) * wy, dwy = st.dw[1][j];
+      Ti += wy * U;
       if constexpr (kB) {
-        Si[c] += iwx * Ti[c];
-        Sj[c] += wx * Tj[c];
-        Sk[c] += wx * Tk[c];
+        Tj += jwy * U;
+        Tk += wy * Uk;
       }
       if constexpr (kGrad) {
-        D0[c] += dwx * Ti[c];
-        D1[c] += wx * Tdy[c];
-        D2[c] += wx * Tdz[c];
+        Tdy += dwy * U;
+        Tdz += wy * Ud;
       }
-      if constexpr (kFlip) dV[c] += wx * TdV[c];
+      if constexpr (kFlip) TdV += wy * UdV;
     }
+    const Real wx = st.w[0][i], iwx = Real(i) * wx, dwx = st.dw[0][i];
+    S += wx * Ti;
+    if constexpr (kB) {
+      Si += iwx * Ti;
+      Sj += wx * Tj;
+      Sk += wx * Tk;
+    }
+    if constexpr (kGrad) {
+      D0 += dwx * Ti;
+      D1 += wx * Tdy;
+      D2 += wx * Tdz;
+    }
+    if constexpr (kFlip) dV += wx * TdV;
   }
-  const Vec3 v_pic(S[0], S[1], S[2]);
-  const Vec3 dv(dV[0], dV[1], dV[2]);
+  // Lane 0 summed the nodes' masses (unused); velocity component c is lane c + 1.
+  const Vec3 v_pic(S[1], S[2], S[3]);
+  const Vec3 dv(dV[1], dV[2], dV[3]);
   Mat3 Bm, grad_v;
   for (int c = 0; c < 3; ++c) {
-    Bm(c, 0) = dx * (Si[c] - st.fx[0] * S[c]);
-    Bm(c, 1) = dx * (Sj[c] - st.fx[1] * S[c]);
-    Bm(c, 2) = dx * (Sk[c] - st.fx[2] * S[c]);
-    grad_v(c, 0) = D0[c];
-    grad_v(c, 1) = D1[c];
-    grad_v(c, 2) = D2[c];
+    Bm(c, 0) = dx * (Si[c + 1] - st.fx[0] * S[c + 1]);
+    Bm(c, 1) = dx * (Sj[c + 1] - st.fx[1] * S[c + 1]);
+    Bm(c, 2) = dx * (Sk[c + 1] - st.fx[2] * S[c + 1]);
+    grad_v(c, 0) = D0[c + 1];
+    grad_v(c, 1) = D1[c + 1];
+    grad_v(c, 2) = D2[c + 1];
   }
   if constexpr (T == Transfer::PicFlip) {
     v = alpha * (v + dv) + (1 - alpha) * v_pic;
@@ -282,7 +262,7 @@ inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, const
 
 template <int Order, Transfer T, bool L>
 void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
-  constexpr int CH = (T == Transfer::PicFlip) ? 8 : 4;  // (v_new, 0) (+ (dv, 0)): 4-lane rows
+  constexpr int CH = (T == Transfer::PicFlip) ? 8 : 4;  // (m, v_new) (+ (-, dv)): the grid's rows
   using Blk = Block<Order, CH>;
   constexpr int B = Blk::B;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
@@ -300,18 +280,8 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
         for (int j = 0; j < nj; ++j)
           for (int k = 0; k < nk; ++k) {
             Real* d = blk.data + Blk::at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k);
-            const Real* s = la + leaf_offset(i, j, k) * 4;
-            d[0] = s[1];
-            d[1] = s[2];
-            d[2] = s[3];
-            d[3] = 0;
-            if constexpr (CH == 8) {
-              const Real* e = lb + leaf_offset(i, j, k) * 4;
-              d[4] = e[1];
-              d[5] = e[2];
-              d[6] = e[3];
-              d[7] = 0;
-            }
+            simd::store4(d, simd::load4(la + leaf_offset(i, j, k) * 4));  // (m, v_new)
+            if constexpr (CH == 8) simd::store4(d + 4, simd::load4(lb + leaf_offset(i, j, k) * 4));  // (-, dv)
           }
     }
     const Vec3i origin = g.bin_leaf[b] * kLeafDim;
