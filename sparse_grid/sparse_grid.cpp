@@ -4,6 +4,7 @@
 #include <openvdb/openvdb.h>
 
 #include <algorithm>
+#include <functional>
 
 namespace amalgam {
 
@@ -39,11 +40,21 @@ void SparseGrid::grow_channels() {
 std::int32_t SparseGrid::touch_leaf(const Vec3i& lc) {
   const openvdb::Coord origin(lc[0] * kLeafDim, lc[1] * kLeafDim, lc[2] * kLeafDim);
   if (const auto* leaf = tree_->acc.probeConstLeaf(origin)) return leaf->getFirstValue();
-  const std::int32_t idx = std::int32_t(leaf_coord_.size());
+  std::int32_t idx;
+  if (!free_.empty()) {  // reuse the lowest retired slot
+    idx = free_.back();
+    free_.pop_back();
+    leaf_coord_[size_t(idx)] = lc;
+    leaf_used_[size_t(idx)] = 0;
+    leaf_idle_[size_t(idx)] = 0;
+  } else {
+    idx = std::int32_t(leaf_coord_.size());
+    leaf_coord_.push_back(lc);
+    leaf_used_.push_back(0);
+    leaf_idle_.push_back(0);
+  }
   auto* leaf = tree_->acc.touchLeaf(origin);
   leaf->fill(idx, true);
-  leaf_coord_.push_back(lc);
-  leaf_used_.push_back(0);
   nbr27_stale_ = true;
   return idx;
 }
@@ -59,8 +70,26 @@ void SparseGrid::clear_topology() {
   tree_->tree.clear();
   leaf_coord_.clear();
   leaf_used_.clear();
+  leaf_idle_.clear();
+  free_.clear();
   nbr27_stale_ = true;
   ++rebuilds_;
+}
+
+void SparseGrid::retire_idle_leaves() {
+  using Leaf = openvdb::Int32Tree::LeafNodeType;
+  const std::size_t before = free_.size();
+  for (std::size_t li = 0; li < leaf_idle_.size(); ++li) {
+    if (leaf_idle_[li] == kRetired || leaf_idle_[li] < kRetireAfter) continue;
+    const Vec3i o = leaf_coord_[li] * kLeafDim;
+    delete tree_->tree.stealNode<Leaf>(openvdb::Coord(o[0], o[1], o[2]), -1, false);
+    leaf_idle_[li] = kRetired;
+    free_.push_back(std::int32_t(li));
+  }
+  if (free_.size() == before) return;
+  tree_->acc.clear();
+  std::sort(free_.begin(), free_.end(), std::greater<std::int32_t>());
+  nbr27_stale_ = true;
 }
 
 void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins) {
@@ -81,10 +110,17 @@ void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins)
   build();
   size_t used = 0;
   for (auto u : leaf_used_) used += u;
-  if (used * 2 < leaf_coord_.size()) {  // compact: rebuild indices in bin order
+  // Compact (rebuild indices in bin order) once fewer than a quarter of the slots are in use: the
+  // body shrank a lot. Retirement keeps the table near what is in use otherwise, and a moving
+  // body's wake (up to 2 kRetireAfter updates) does not trigger it.
+  if (used * 4 < leaf_coord_.size()) {
     clear_topology();
     build();
   }
+  for (size_t i = 0; i < leaf_idle_.size(); ++i)
+    if (leaf_used_[i]) leaf_idle_[i] = 0;
+    else if (leaf_idle_[i] != kRetired) ++leaf_idle_[i];
+  if (++updates_ % kRetireAfter == 0) retire_idle_leaves();
   grow_channels();
 
   active_.clear();
@@ -103,6 +139,10 @@ void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins)
   if (nbr27_stale_) {
     nbr27_.resize(leaf_coord_.size());
     for (size_t li = 0; li < leaf_coord_.size(); ++li) {
+      if (leaf_idle_[li] == kRetired) {
+        nbr27_[li].fill(-1);
+        continue;
+      }
       int t = 0;
       for (int dx = -1; dx <= 1; ++dx)
         for (int dy = -1; dy <= 1; ++dy)

@@ -8,7 +8,11 @@
 // (SoA [leaf][512] channels for implicit-solver vectors belong here too, added with their solver.)
 // Topology per substep: for each bin, its leaf and the +x/+y/+z neighbours (the stencil reaches
 // at most base+3 <= 10 < 16). Only new leaves are created (serially), existing leaf indices stay
-// put; when fewer than half of the leaves are in use the table is rebuilt compactly in bin order.
+// put. Leaves no bin has touched for kRetireAfter topology updates are retired (checked every
+// kRetireAfter updates): removed from the tree, their table slots kept for the next new leaves
+// (lowest slot first), so a moving body's table stays at the size of what it occupies instead
+// of growing with everywhere it has been. When fewer than a quarter of the slots are in use the
+// table is rebuilt compactly in bin order.
 // Tables: nbr8[bin][8] (the 8 leaves a bin scatters to), nbr27[leaf][27] (grid stencils, -1 for
 // absent), active leaves (those some bin touches), and bins grouped by the parity colour of their
 // leaf coordinate: same-colour bins' 8-leaf footprints never overlap, so each colour's bins can
@@ -47,7 +51,14 @@ class SparseGrid {
   // (OpenVDB topology edits are not thread-safe); only new leaves are created.
   void update_topology(const exec::Space& space, const BinTable& bins);
 
+  static constexpr std::uint32_t kRetireAfter = 32;
+  // Slots of the leaf table (live leaves and retired slots awaiting reuse): the size of every
+  // leaf-indexed array.
   std::size_t leaf_count() const { return leaf_coord_.size(); }
+  // Leaves in the tree (slots minus retired ones).
+  std::size_t live_leaf_count() const { return leaf_coord_.size() - free_.size(); }
+  // A retired slot: no leaf of the tree maps to it (its coordinates and nbr27 row are stale / -1).
+  bool leaf_retired(std::size_t li) const { return leaf_idle_[li] == kRetired; }
   const std::vector<Vec3i>& leaf_coords() const { return leaf_coord_; }
   const std::vector<std::int32_t>& active_leaves() const { return active_; }
   const std::vector<std::array<std::int32_t, 8>>& nbr8() const { return nbr8_; }
@@ -69,6 +80,10 @@ class SparseGrid {
   std::vector<Vec3i> leaf_coord_;
   std::vector<std::int32_t> active_;
   std::vector<std::uint8_t> leaf_used_;
+  static constexpr std::uint32_t kRetired = ~std::uint32_t(0);
+  std::vector<std::uint32_t> leaf_idle_;  // updates since a bin last touched the leaf; kRetired
+  std::vector<std::int32_t> free_;        // retired slots, highest first (reuse takes the lowest)
+  std::uint64_t updates_ = 0;
   std::vector<std::array<std::int32_t, 8>> nbr8_;
   std::vector<std::array<std::int32_t, 27>> nbr27_;
   std::vector<std::uint32_t> colour_bins_;
@@ -79,6 +94,7 @@ class SparseGrid {
 
   std::int32_t touch_leaf(const Vec3i& lc);
   void clear_topology();
+  void retire_idle_leaves();
   void grow_channels();
 };
 
