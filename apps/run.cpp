@@ -288,6 +288,10 @@ int run_command(const std::vector<std::string>& args) {
               return 128 + sig;
             }
           }
+          // The guard runs on a substep's starting state, so a blow-up in the frame's last
+          // substep would otherwise surface in the next frame, whose retries cannot undo it:
+          // check the end state here, before the frame is written.
+          (void)solver.stable_dt(space);
           break;
         } catch (const SimulationError& e) {
           if (attempt >= max_retries) throw;
