@@ -10,6 +10,7 @@
 #include <cstdint>
 #include <cstring>
 
+#include "core/math/simd4.hpp"
 #include "core/math/types.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
@@ -40,15 +41,14 @@ struct GridBlock {
   // 4-lane node vectors [leaf][512][4] (the implicit solver's layout): block <- grid (CH == 4).
   void gather4(const std::array<std::int32_t, 8>& nbr8, const Real* grid) {
     for_each_node(nbr8, [grid](Real* d, std::size_t leaf, int off) {
-      const Real* s = grid + (leaf * kLeafNodes + std::size_t(off)) * 4;
-      d[0] = s[0], d[1] = s[1], d[2] = s[2], d[3] = s[3];
+      simd::store4(d, simd::load4(grid + (leaf * kLeafNodes + std::size_t(off)) * 4));
     });
   }
   // grid += block (CH == 4). Race-free when same-colour bins run in parallel.
   void flush_add4(const std::array<std::int32_t, 8>& nbr8, Real* grid) {
-    for_each_node(nbr8, [grid](Real* s, std::size_t leaf, int off) {
+    for_each_node(nbr8, [grid](const Real* s, std::size_t leaf, int off) {
       Real* d = grid + (leaf * kLeafNodes + std::size_t(off)) * 4;
-      d[0] += s[0], d[1] += s[1], d[2] += s[2], d[3] += s[3];
+      simd::store4(d, simd::load4(d) + simd::load4(s));
     });
   }
 };

@@ -126,7 +126,6 @@ template <int Order, Transfer T, bool L, bool P = false>
 void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
   constexpr int CH = P ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
-  constexpr int B = Blk::B;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
   for (int c = 0; c < 8; ++c) {
     const std::uint32_t c0 = g.colour_start[c], c1 = g.colour_start[c + 1];
@@ -152,27 +151,14 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
                                         inv_dx, dt, p.x[q], p.F_s[q]);
         }
       }
-      // Flush into the 8 target leaves: leaf t covers block nodes [8 tx, 8 tx + 8) per axis.
-      for (int t = 0; t < 8; ++t) {
-        const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
-        const std::size_t leaf = std::size_t(g.nbr8[b][size_t(t)]);
-        Real* la = g.a + leaf * kLeafNodes * 4;
-        Real* lb = (CH == 8) ? (P ? g.q_out : g.b) + leaf * kLeafNodes * 4 : nullptr;
-        const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
-                  nk = tz ? B - kLeafDim : kLeafDim;
-        for (int i = 0; i < ni; ++i)
-          for (int j = 0; j < nj; ++j)
-            for (int k = 0; k < nk; ++k) {
-              const Real* s = blk.data + Blk::at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k);
-              Real* d = la + leaf_offset(i, j, k) * 4;
-              simd::store4(d, simd::load4(d) + simd::load4(s));
-              // P: (m, m q) into q_out; PIC/FLIP: the force lanes into b (lane 0 is 0: b's stays 0)
-              if constexpr (CH == 8) {
-                Real* e = lb + leaf_offset(i, j, k) * 4;
-                simd::store4(e, simd::load4(e) + simd::load4(s + 4));
-              }
-            }
-      }
+      // Flush into the 8 target leaves; P: (m, m q) into q_out, PIC/FLIP: the force lanes into b
+      // (their lane 0 is 0, so b's stays 0).
+      Real* second = P ? g.q_out : g.b;
+      blk.for_each_node(g.nbr8[b], [&](const Real* s, std::size_t leaf, int off) {
+        const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
+        simd::store4(g.a + n, simd::load4(g.a + n) + simd::load4(s));
+        if constexpr (CH == 8) simd::store4(second + n, simd::load4(second + n) + simd::load4(s + 4));
+      });
     }, 1);
   }
 }
@@ -264,26 +250,15 @@ template <int Order, Transfer T, bool L>
 void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
   constexpr int CH = (T == Transfer::PicFlip) ? 8 : 4;  // (m, v_new) (+ (-, dv)): the grid's rows
   using Blk = Block<Order, CH>;
-  constexpr int B = Blk::B;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
   exec::parallel_for(space, "mpm.g2p", exec::Index(g.nbins), [&](exec::Index bi) {
     const std::size_t b = std::size_t(bi);
-    Blk blk;
-    for (int t = 0; t < 8; ++t) {
-      const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
-      const std::size_t leaf = std::size_t(g.nbr8[b][size_t(t)]);
-      const Real* la = g.a + leaf * kLeafNodes * 4;
-      const Real* lb = (CH == 8) ? g.b + leaf * kLeafNodes * 4 : nullptr;
-      const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
-                nk = tz ? B - kLeafDim : kLeafDim;
-      for (int i = 0; i < ni; ++i)
-        for (int j = 0; j < nj; ++j)
-          for (int k = 0; k < nk; ++k) {
-            Real* d = blk.data + Blk::at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k);
-            simd::store4(d, simd::load4(la + leaf_offset(i, j, k) * 4));  // (m, v_new)
-            if constexpr (CH == 8) simd::store4(d + 4, simd::load4(lb + leaf_offset(i, j, k) * 4));  // (-, dv)
-          }
-    }
+    Blk blk;  // (m, v_new) rows of the grid, and PIC/FLIP's (-, dv) beside them
+    blk.for_each_node(g.nbr8[b], [&](Real* d, std::size_t leaf, int off) {
+      const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
+      simd::store4(d, simd::load4(g.a + n));
+      if constexpr (CH == 8) simd::store4(d + 4, simd::load4(g.b + n));
+    });
     const Vec3i origin = g.bin_leaf[b] * kLeafDim;
     for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
       if constexpr (L)
