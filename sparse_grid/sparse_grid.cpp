@@ -45,12 +45,10 @@ std::int32_t SparseGrid::touch_leaf(const Vec3i& lc) {
     idx = free_.back();
     free_.pop_back();
     leaf_coord_[size_t(idx)] = lc;
-    leaf_used_[size_t(idx)] = 0;
     leaf_idle_[size_t(idx)] = 0;
   } else {
     idx = std::int32_t(leaf_coord_.size());
     leaf_coord_.push_back(lc);
-    leaf_used_.push_back(0);
     leaf_idle_.push_back(0);
   }
   auto* leaf = tree_->acc.touchLeaf(origin);
@@ -69,7 +67,6 @@ void SparseGrid::clear_topology() {
   tree_->acc.clear();
   tree_->tree.clear();
   leaf_coord_.clear();
-  leaf_used_.clear();
   leaf_idle_.clear();
   free_.clear();
   nbr27_stale_ = true;
@@ -97,19 +94,19 @@ void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins)
   const size_t nb = bins.count();
   auto build = [&] {
     nbr8_.resize(nb);
-    std::fill(leaf_used_.begin(), leaf_used_.end(), 0);
+    for (auto& idle : leaf_idle_)  // one more update unused, unless a bin touches the leaf below
+      if (idle != kRetired) ++idle;
     for (size_t b = 0; b < nb; ++b) {
       const Vec3i l = bins.leaf[b];
       for (int t = 0; t < 8; ++t) {
         const std::int32_t li = touch_leaf(l + Vec3i((t >> 2) & 1, (t >> 1) & 1, t & 1));
         nbr8_[b][size_t(t)] = li;
-        leaf_used_[size_t(li)] = 1;
+        leaf_idle_[size_t(li)] = 0;
       }
     }
   };
   build();
-  size_t used = 0;
-  for (auto u : leaf_used_) used += u;
+  const size_t used = size_t(std::count(leaf_idle_.begin(), leaf_idle_.end(), 0u));
   // Compact (rebuild indices in bin order) once fewer than a quarter of the slots are in use: the
   // body shrank a lot. Retirement keeps the table near what is in use otherwise, and a moving
   // body's wake (up to 2 kRetireAfter updates) does not trigger it.
@@ -117,15 +114,12 @@ void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins)
     clear_topology();
     build();
   }
-  for (size_t i = 0; i < leaf_idle_.size(); ++i)
-    if (leaf_used_[i]) leaf_idle_[i] = 0;
-    else if (leaf_idle_[i] != kRetired) ++leaf_idle_[i];
   if (++updates_ % kRetireAfter == 0) retire_idle_leaves();
   grow_channels();
 
   active_.clear();
-  for (size_t i = 0; i < leaf_used_.size(); ++i)
-    if (leaf_used_[i]) active_.push_back(std::int32_t(i));
+  for (size_t i = 0; i < leaf_idle_.size(); ++i)
+    if (leaf_idle_[i] == 0) active_.push_back(std::int32_t(i));
 
   // Colour lists: parity of the bin's leaf coordinate, bins in key order within a colour.
   std::array<std::uint32_t, 9> count{};

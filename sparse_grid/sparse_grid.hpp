@@ -55,8 +55,6 @@ class SparseGrid {
   // Slots of the leaf table (live leaves and retired slots awaiting reuse): the size of every
   // leaf-indexed array.
   std::size_t leaf_count() const { return leaf_coord_.size(); }
-  // Leaves in the tree (slots minus retired ones).
-  std::size_t live_leaf_count() const { return leaf_coord_.size() - free_.size(); }
   // A retired slot: no leaf of the tree maps to it (its coordinates and nbr27 row are stale / -1).
   bool leaf_retired(std::size_t li) const { return leaf_idle_[li] == kRetired; }
   const std::vector<Vec3i>& leaf_coords() const { return leaf_coord_; }
@@ -79,9 +77,10 @@ class SparseGrid {
   std::unique_ptr<Tree> tree_;
   std::vector<Vec3i> leaf_coord_;
   std::vector<std::int32_t> active_;
-  std::vector<std::uint8_t> leaf_used_;
   static constexpr std::uint32_t kRetired = ~std::uint32_t(0);
-  std::vector<std::uint32_t> leaf_idle_;  // updates since a bin last touched the leaf; kRetired
+  // Per slot: topology updates since a bin last touched the leaf (0: in use this update, i.e.
+  // active), or kRetired.
+  std::vector<std::uint32_t> leaf_idle_;
   std::vector<std::int32_t> free_;        // retired slots, highest first (reuse takes the lowest)
   std::uint64_t updates_ = 0;
   std::vector<std::array<std::int32_t, 8>> nbr8_;

@@ -1,5 +1,5 @@
 // Four Reals in one vector register, for the 4-lane node rows of the transfer kernels (a grid node
-// is (m, p) or (v, 0): one vector). GCC/Clang vector extensions: SSE in the portable float build,
+// is (m, p) after P2G and (m, v) after the grid update: one vector). GCC/Clang vector extensions: SSE in the portable float build,
 // AVX with -march=native; element-wise IEEE operations, so a kernel written with V4 computes
 // exactly what the same scalar loop over 4 lanes computes (no reassociation, no FMA contraction in
 // the portable build). Only for inline kernel code: vectors are not passed across translation
@@ -47,7 +47,6 @@ inline V4 load4(const Real* p) {
   return v;
 }
 inline void store4(Real* p, const V4& v) { std::memcpy(p, static_cast<const void*>(&v), sizeof v); }
-inline V4 splat(Real a) { return V4{a, a, a, a}; }
 // (lead, c0, c1, c2): a node row with a scalar first lane and a 3-vector after it.
 inline V4 row4(Real lead, const Vec3& c) { return V4{lead, c[0], c[1], c[2]}; }
 // Column a of a 3x3 matrix behind a zero lane: (0, M(0,a), M(1,a), M(2,a)).
