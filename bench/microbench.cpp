@@ -321,6 +321,18 @@ void BM_PolarFast(benchmark::State& st) {
   set_items(st, F.size(), sizeof(Mat3) * 2);
 }
 
+// The same matrices lanes::kN<Real> at a time, one per vector lane (what P2G runs).
+void BM_PolarFastLanes(benchmark::State& st) {
+  const std::vector<Mat3> F = random_F(4096);
+  constexpr int W = lanes::kN<Real>;
+  std::vector<Mat3> R(F.size());
+  for (auto _ : st) {
+    for (std::size_t i = 0; i < F.size(); i += W) polar_rotation_fast_lanes(&F[i], &R[i], W);
+    benchmark::DoNotOptimize(R.data());
+  }
+  set_items(st, F.size(), sizeof(Mat3) * 2);
+}
+
 // Per particle: Kirchhoff stress (what P2G evaluates) plus the state update after G2P (return
 // mapping or F reset; nothing for the hyperelastic models). F near I with +-0.3 perturbations,
 // so the plastic models mostly project. 2^16 particles in a parallel_for, per backend.
@@ -539,6 +551,7 @@ BENCHMARK(BM_StreamTriad)->Apply(backend_args);
 BENCHMARK(BM_PeakFlops)->Apply(backend_args);
 BENCHMARK(BM_Svd3)->Unit(benchmark::kNanosecond);
 BENCHMARK(BM_PolarFast)->Unit(benchmark::kNanosecond);
+BENCHMARK(BM_PolarFastLanes)->Unit(benchmark::kNanosecond);
 BENCHMARK_CAPTURE(BM_Material, fixed_corotated, MaterialModel::FixedCorotated)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_Material, neo_hookean, MaterialModel::NeoHookean)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_Material, stvk_hencky, MaterialModel::StvkHencky)->Apply(backend_args);

@@ -1,8 +1,10 @@
 #include "kernels/mpm_transfers.hpp"
 
+#include <algorithm>
 #include <cstring>
 
 #include "core/math/bspline.hpp"
+#include "core/math/lanes.hpp"
 #include "core/math/simd4.hpp"
 #include "kernels/grid_block.hpp"
 #include "sparse_grid/sparse_grid.hpp"
@@ -42,11 +44,22 @@ using Block = GridBlock<Order, CH>;
 
 constexpr int channels_of(Transfer t) { return t == Transfer::PicFlip ? 8 : 4; }
 
+// How many of the particles q0, q0 + 1, ... (at most W, none from q1 on) share q0's material.
+template <int W>
+inline int one_material_run(const std::int32_t* material, std::uint32_t q0, std::uint32_t q1) {
+  const int most = int(std::min<std::uint32_t>(W, q1 - q0));
+  int n = 1;
+  while (n < most && material[q0 + std::uint32_t(n)] == material[q0]) ++n;
+  return n;
+}
+
 // Per-particle P2G contribution into a block whose node (0,0,0) is `origin` (pure: no grid).
 // P (A-ULMPM, MLS/APIC only, CH = 8): lanes 4-7 also receive the node-position scatter of
 // p2g_positions, w (m, m (xq + Fq o)) with the same stencil (xq = x_p, Fq = F_s; o = X_i - X_p).
+// flatten: every small Eigen operation inside is inlined; GCC's unit-growth limits otherwise
+// leave some out of line as the file grows (measured: G2P 12 % slower).
 template <int Order, Transfer T, int CH, bool P = false>
-inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3& x, const Vec3& v, const Mat3& C,
+__attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3& x, const Vec3& v, const Mat3& C,
                          const Mat3& tau, Real m, Real V0, Real dx, Real inv_dx, Real dt,
                          const Vec3& xq = Vec3::Zero(), const Mat3& Fq = Mat3::Zero()) {
   static_assert(!P || (CH == 8 && T != Transfer::PicFlip), "fused positions: MLS/APIC with an 8-lane block");
@@ -134,22 +147,37 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
       Blk blk;
       std::memset(blk.data, 0, sizeof(blk.data));
       const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-      for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
-        const Real plastic = p.plastic ? p.plastic[q] : Real(0);
-        const Real temperature = p.temperature ? p.temperature[q] : Real(0);
-        if constexpr (!L) {
-          const Mat3 tau = prm.materials[p.material[q]].kirchhoff(p.F[q], p.C[q], plastic, temperature);  // P F^T
-          p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau, p.mass[q], p.volume0[q], dx, inv_dx,
-                                     dt);
-        } else {
-          // A-ULMPM eq. 20: P^0 (F^{0s})^T = tau (F^{sn})^{-T}; the material sees the spatial
-          // velocity gradient grad_s v (F^{sn})^{-1}.
-          const Mat3 Fs_inv = p.F_s[q].inverse();
-          const Mat3 tau =
-              prm.materials[p.material[q]].kirchhoff(p.F[q], p.C[q] * Fs_inv, plastic, temperature) * Fs_inv.transpose();
-          p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q], tau, p.mass[q], p.volume0[q], dx,
-                                        inv_dx, dt, p.x[q], p.F_s[q]);
+      // Particles in batches of up to W of one material: their stresses at once (one per vector
+      // lane, the values of one at a time: MaterialParams::kirchhoff_lanes), then their scatter.
+      constexpr int W = lanes::kN<Real>;
+      const std::uint32_t q1 = g.bin_start[b + 1];
+      for (std::uint32_t q0 = g.bin_start[b]; q0 < q1;) {
+        const int n = one_material_run<W>(p.material, q0, q1);
+        Real plastic[W], temperature[W];
+        Mat3 tau[W], Lv[W], Fs_inv[W];
+        for (int l = 0; l < n; ++l) {
+          const std::uint32_t q = q0 + std::uint32_t(l);
+          plastic[l] = p.plastic ? p.plastic[q] : Real(0);
+          temperature[l] = p.temperature ? p.temperature[q] : Real(0);
+          if constexpr (L) {
+            // A-ULMPM eq. 20: P^0 (F^{0s})^T = tau (F^{sn})^{-T}; the material sees the spatial
+            // velocity gradient grad_s v (F^{sn})^{-1}.
+            Fs_inv[l] = p.F_s[q].inverse();
+            Lv[l] = p.C[q] * Fs_inv[l];
+          }
         }
+        prm.materials[p.material[q0]].kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic, temperature, tau, n);
+        for (int l = 0; l < n; ++l) {
+          const std::uint32_t q = q0 + std::uint32_t(l);
+          if constexpr (!L) {
+            p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l], p.mass[q], p.volume0[q], dx,
+                                       inv_dx, dt);
+          } else {
+            p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q], tau[l] * Fs_inv[l].transpose(),
+                                          p.mass[q], p.volume0[q], dx, inv_dx, dt, p.x[q], p.F_s[q]);
+          }
+        }
+        q0 += std::uint32_t(n);
       }
       // Flush into the 8 target leaves; P: (m, m q) into q_out, PIC/FLIP: the force lanes into b
       // (their lane 0 is 0, so b's stays 0).
@@ -165,9 +193,9 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
 
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
 // L (Lagrangian mode): the stencil sits at the reference position xs and F_s, F_0s are updated
-// (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F.
+// (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F. flatten: as p2g_particle.
 template <int Order, Transfer T, int CH, bool L>
-inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, const Vec3& xs, Vec3& x, Vec3& v, Mat3& C,
+__attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, const Vec3& xs, Vec3& x, Vec3& v, Mat3& C,
                          Mat3& F, Mat3* Fs, const Mat3* F0s, Real dx, Real inv_dx, Real dt, Real alpha) {
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;

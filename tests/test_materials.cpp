@@ -3,6 +3,7 @@
 // inverted F; return mappings land on their yield surface, are idempotent and objective.
 #include <gtest/gtest.h>
 
+#include <cstring>
 #include <random>
 
 #include "core/materials/material.hpp"
@@ -411,4 +412,44 @@ TEST(Materials, MeltingSwitchesToViscousLiquid) {
   EXPECT_NEAR(double(m.kirchhoff(F, L, plastic, 310)(0, 1)), 5.0, 1e-4);  // eta * shear rate
   EXPECT_GT(m.wave_speed(), Real(0));
   EXPECT_NEAR(double(m.kinematic_viscosity()), 5e-3, 1e-9);
+}
+
+// P2G takes the stresses of several particles at once (kirchhoff_lanes: the fixed corotated
+// rotations one per vector lane). Every model, with viscosity, snow's per-particle hardening and a
+// melting point crossed inside a batch, must give bitwise the one-particle kirchhoff().
+TEST(Materials, KirchhoffOfABatchIsBitwiseThatOfOneParticle) {
+  constexpr int W = lanes::kN<Real>;
+  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  std::mt19937 rng(21);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  int compared = 0;
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
+    for (int variant = 0; variant < 3; ++variant) {
+      MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
+      m.bulk = Real(1e5);
+      m.friction_alpha = Real(0.4);
+      m.yield_stress = Real(1e3);
+      m.viscosity = variant == 1 ? Real(0.1) : Real(0);
+      if (variant == 2) m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
+      for (int t = 0; t < 200; ++t) {
+        const int n = 1 + t % W;
+        Mat3 F[W], L[W], tau[W];
+        Real plastic[W], temperature[W];
+        for (int i = 0; i < n; ++i) {
+          F[i] = random_F(rng);
+          if (t % 5 == 0 && i == 0) F[i].col(2) *= Real(-1);  // inverted: the SVD fallback
+          L[i] = random_F(rng) - Mat3::Identity();
+          plastic[i] = m.model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
+          temperature[i] = Real(300 + 5 * u(rng));  // some lanes melted, some not
+        }
+        m.kirchhoff_lanes(F, L, plastic, temperature, tau, n);
+        for (int i = 0; i < n; ++i) {
+          const Mat3 one = m.kirchhoff(F[i], L[i], plastic[i], temperature[i]);
+          ASSERT_EQ(0, std::memcmp(one.data(), tau[i].data(), sizeof(Mat3)))
+              << material_model_name(m.model) << " variant " << variant << " lane " << i << "\n" << one << "\n" << tau[i];
+          ++compared;
+        }
+      }
+    }
+  EXPECT_GT(compared, 1000);
 }

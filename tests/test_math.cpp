@@ -2,7 +2,10 @@
 // random, near-singular and inverted matrices reconstruct F with proper rotations.
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cstring>
 #include <random>
+#include <vector>
 
 #include "core/math/bspline.hpp"
 #include "core/math/svd3.hpp"
@@ -125,4 +128,46 @@ TEST(Polar, FastRotationMatchesSvdIncludingFallbacks) {
     fast += F.determinant() > 0;
   }
   EXPECT_GT(fast, 1000);
+}
+
+// The lane version runs several matrices at once, one per vector lane. Each lane must give
+// bitwise what the one-matrix call gives, whatever the other lanes hold: lanes that converge at
+// different iterations, take the scaled first step or not, or fall back to the SVD share a batch.
+template <class T>
+void check_lanes_match_one_at_a_time() {
+  using M = Eigen::Matrix<T, 3, 3>;
+  constexpr int W = lanes::kN<T>;
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::vector<M> F;
+  for (int t = 0; t < 4000; ++t) {
+    M f = M::Identity();
+    const double scale = (t % 4 == 0) ? 1e-3 : (t % 4 == 1 ? 0.05 : (t % 4 == 2 ? 0.6 : 3.0));
+    for (int i = 0; i < 9; ++i) f(i) += T(scale * u(rng));
+    if (t % 7 == 0) f.col(1) *= T(1e-5);  // nearly flat: the SVD fallback
+    if (t % 11 == 0) f.col(2) *= T(-1);   // inverted: the SVD fallback
+    F.push_back(f);
+  }
+  std::shuffle(F.begin(), F.end(), rng);
+  int batches = 0, mixed = 0;
+  for (std::size_t s = 0; s < F.size(); s += W) {
+    const int n = int(std::min<std::size_t>(W, F.size() - s)) - int(batches % 2);  // also partial batches
+    if (n < 1) continue;
+    M R[W];
+    polar_rotation_fast_lanes<T>(&F[s], R, n);
+    int fallback = 0;
+    for (int l = 0; l < n; ++l) {
+      const M one = polar_rotation_fast<T>(F[s + l]);
+      ASSERT_EQ(0, std::memcmp(one.data(), R[l].data(), sizeof(M))) << "lane " << l << " of\n" << F[s + l];
+      fallback += F[s + l].determinant() <= 0;
+    }
+    mixed += fallback > 0 && fallback < n;
+    ++batches;
+  }
+  EXPECT_GT(mixed, 50);  // batches that mix the Newton path with the SVD fallback
+}
+
+TEST(Polar, LanesGiveBitwiseTheOneMatrixResult) {
+  check_lanes_match_one_at_a_time<float>();
+  check_lanes_match_one_at_a_time<double>();
 }

@@ -68,8 +68,9 @@ struct FixedCorotatedT {
   }
   // tau = P F^T = 2 mu (F - R) F^T + lambda (J - 1) J I. The hot path of P2G: R by the fast
   // polar iteration (SVD only for inverted or flattened F).
-  M3 kirchhoff(const M3& F) const {
-    const M3 R = polar_rotation_fast(F);
+  M3 kirchhoff(const M3& F) const { return kirchhoff(F, polar_rotation_fast(F)); }
+  // The same with R = polar rotation of F given (P2G computes it for several particles at once).
+  M3 kirchhoff(const M3& F, const M3& R) const {
     const T J = F.determinant();
     return T(2) * mu * (F - R) * F.transpose() + (lambda * (J - 1) * J) * M3::Identity();
   }

@@ -15,6 +15,7 @@
 #include "core/materials/elastic.hpp"
 #include "core/materials/fluid.hpp"
 #include "core/materials/plasticity.hpp"
+#include "core/math/lanes.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam {
@@ -68,6 +69,26 @@ struct MaterialParams {
     // Solids: Kelvin-Voigt damping sigma_v = eta (L + L^T), tau_v = J sigma_v. It vanishes for
     // rigid motion (L skew), so a spinning or translating body keeps its momentum.
     return tau + (F.determinant() * viscosity) * (L + L.transpose());
+  }
+  // kirchhoff() of n <= lanes::kN<Real> particles of this material, tau[l] bitwise what
+  // kirchhoff(F[l], L[l], plastic[l], temperature[l]) gives. The fixed corotated models (also
+  // snow's elasticity) take the rotations of all n at once, one particle per vector lane (P2G's
+  // hot spot); the others, and any batch with a melted particle, go one particle at a time.
+  void kirchhoff_lanes(const Mat3* F, const Mat3* L, const Real* plastic, const Real* temperature, Mat3* tau,
+                       int n) const {
+    bool batch = model == MaterialModel::FixedCorotated || model == MaterialModel::Snow;
+    for (int l = 0; l < n && batch && melting; ++l) batch = !melted(temperature[l]);
+    if (!batch) {
+      for (int l = 0; l < n; ++l) tau[l] = kirchhoff(F[l], L[l], plastic[l], temperature[l]);
+      return;
+    }
+    Mat3 R[lanes::kN<Real>];
+    polar_rotation_fast_lanes(F, R, n);
+    for (int l = 0; l < n; ++l) {
+      const FixedCorotated m = model == MaterialModel::Snow ? snow().elastic(plastic[l]) : FixedCorotated{mu, lambda};
+      tau[l] = m.kirchhoff(F[l], R[l]);
+      if (viscosity > 0) tau[l] += (F[l].determinant() * viscosity) * (L[l] + L[l].transpose());
+    }
   }
   // The elastic Kirchhoff stress of a solid model (fluids: zero).
   Mat3 solid_kirchhoff(const Mat3& F, Real plastic) const {

@@ -13,7 +13,11 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <cassert>
 #include <cmath>
+#include <limits>
+
+#include "core/math/lanes.hpp"
 
 namespace amalgam {
 
@@ -134,42 +138,109 @@ inline Eigen::Matrix<T, 3, 3> cofactor3(const Eigen::Matrix<T, 3, 3>& F) {
 }
 }  // namespace detail
 
+namespace detail {
+// The Newton polar iteration of polar_rotation_fast on f (the 9 entries of F in storage order,
+// X(r, c) = x[r + 3 c]), written once for a scalar V = T (Mask = bool) and for a vector of lanes
+// (V = lanes::V<T>, one matrix per lane, Mask from a comparison). Every operation is per lane and
+// a lane stops changing once it has converged, so each lane computes bitwise what the scalar
+// instantiation computes for its matrix, whatever the other lanes hold. Returns, per lane,
+// whether X holds the converged rotation (false: the caller takes the SVD).
+template <class T, class V, class Mask>
+inline Mask polar_newton(const V* f, V* X) {
+  const auto cof = [](const V* x, V* c) {
+    c[0] = x[4] * x[8] - x[7] * x[5];
+    c[3] = x[7] * x[2] - x[1] * x[8];
+    c[6] = x[1] * x[5] - x[4] * x[2];
+    c[1] = x[6] * x[5] - x[3] * x[8];
+    c[4] = x[0] * x[8] - x[6] * x[2];
+    c[7] = x[3] * x[2] - x[0] * x[5];
+    c[2] = x[3] * x[7] - x[6] * x[4];
+    c[5] = x[6] * x[1] - x[0] * x[7];
+    c[8] = x[0] * x[4] - x[3] * x[1];
+  };
+  // det X: row 0 of X times row 0 of cof(X).
+  const auto det = [](const V* x, const V* c) { return x[0] * c[0] + x[3] * c[3] + x[6] * c[6]; };
+  V nF2 = f[0] * f[0];
+  for (int e = 1; e < 9; ++e) nF2 += f[e] * f[e];
+  V c0[9];
+  cof(f, c0);
+  const V det0 = det(f, c0);
+  // det >= 1e-3 |F|^3 / 3^{3/2} keeps the condition number moderate (<~ 1e3): Newton converges
+  // in a handful of steps. Otherwise (inverted, flattened, NaN) the SVD.
+  Mask active = det0 > T(2e-4) * nF2 * lanes::sqrt(nF2);
+  for (int e = 0; e < 9; ++e) X[e] = f[e];
+  // Near a rotation (|F|^2 ~ 3, det ~ 1: the usual MPM substep) plain Newton steps converge
+  // quadratically from X = F. Far from it, the first step is scaled (Higham), which brings the
+  // singular values near 1; its two square roots are what the near-rotation test saves.
+  const V d3 = nF2 - T(3), d1 = det0 - T(1);
+  const Mask scaled = active & ((d3 > T(0.75)) | (d3 < T(-0.75)) | (d1 > T(0.5)) | (d1 < T(-0.5)));
+  if (lanes::any(scaled)) {
+    V nC2 = c0[0] * c0[0];
+    for (int e = 1; e < 9; ++e) nC2 += c0[e] * c0[e];
+    const V zeta = lanes::sqrt(lanes::sqrt(nC2 / nF2) / det0);  // (|F^{-1}| / |F|)^{1/2}
+    const V zd = zeta * det0;
+    for (int e = 0; e < 9; ++e) X[e] = scaled ? V(T(0.5) * (zeta * f[e] + c0[e] / zd)) : f[e];
+  }
+  const T tol = std::numeric_limits<T>::epsilon() * T(8);
+  Mask converged{};
+  for (int it = 0; it < 10 && lanes::any(active); ++it) {
+    V C[9], Xn[9];
+    cof(X, C);
+    const V h = T(0.5) / det(X, C);  // X^{-T} / 2 = cof(X) h
+    V change2{};
+    for (int e = 0; e < 9; ++e) {
+      Xn[e] = T(0.5) * X[e] + C[e] * h;
+      const V s = Xn[e] - X[e];
+      change2 = e == 0 ? V(s * s) : V(change2 + s * s);
+    }
+    for (int e = 0; e < 9; ++e) X[e] = active ? Xn[e] : X[e];
+    // |change| <= sqrt(tol): the next error is ~tol, already met.
+    const Mask done = active & (change2 <= tol);
+    converged = converged | done;
+    active = lanes::andnot(active, done);
+  }
+  return converged;
+}
+}  // namespace detail
+
 // Rotation of the polar decomposition, fast path. For det F clearly positive it runs Higham's
 // scaled Newton iteration X <- (zeta X + X^{-T} / zeta) / 2, zeta = (|X^{-1}|_F / |X|_F)^{1/2}
 // (Higham 1986), which converges quadratically to the orthogonal polar factor (a rotation, since
 // det stays positive); X^{-T} = cof(X) / det X. Inverted, near-singular or non-converging F fall
-// back to the SVD, whose sign convention keeps R a rotation there too. Same result as
-// U V^T of svd3 up to round-off.
+// back to the SVD, whose sign convention keeps R a rotation there too. Same result as U V^T of
+// svd3 up to round-off.
 template <class T>
 inline Eigen::Matrix<T, 3, 3> polar_rotation_fast(const Eigen::Matrix<T, 3, 3>& F) {
-  using M = Eigen::Matrix<T, 3, 3>;
-  const T nF2 = F.squaredNorm();
-  const M C0 = detail::cofactor3(F);
-  const T det0 = F.row(0).dot(C0.row(0));
-  // det >= 1e-3 |F|^3 / 3^{3/2} keeps the condition number moderate (<~ 1e3): Newton converges
-  // in a handful of steps. Otherwise (inverted, flattened) use the SVD.
-  if (det0 > T(2e-4) * nF2 * std::sqrt(nF2)) {
-    // Near a rotation (|F|^2 ~ 3, det ~ 1: the usual MPM substep) plain Newton steps converge
-    // quadratically from X = F. Far from it, the first step is scaled (Higham), which brings the
-    // singular values near 1; its two square roots are what the near-rotation test saves.
-    M X = F;
-    if (std::abs(nF2 - T(3)) > T(0.75) || std::abs(det0 - T(1)) > T(0.5)) {
-      const T nC2 = C0.squaredNorm();
-      const T zeta = std::sqrt(std::sqrt(nC2 / nF2) / det0);  // (|F^{-1}| / |F|)^{1/2}
-      X = T(0.5) * (zeta * F + C0 / (zeta * det0));
-    }
-    const T tol = std::numeric_limits<T>::epsilon() * T(8);
-    for (int it = 0; it < 10; ++it) {
-      const M C = detail::cofactor3(X);
-      const T det = X.row(0).dot(C.row(0));
-      const M Xn = T(0.5) * (X + C / det);
-      const T change2 = (Xn - X).squaredNorm();
-      X = Xn;
-      if (change2 <= tol) return X;  // |change| <= sqrt(tol): the next error is ~tol, already met
+  Eigen::Matrix<T, 3, 3> R;
+  if (detail::polar_newton<T, T, bool>(F.data(), R.data())) return R;
+  const Svd3<T> s = svd3(F);
+  return s.U * s.V.transpose();
+}
+
+// polar_rotation_fast of n <= lanes::kN<T> matrices at once, one per vector lane: R[l] is
+// bitwise polar_rotation_fast(F[l]), in about the time of one.
+template <class T>
+inline void polar_rotation_fast_lanes(const Eigen::Matrix<T, 3, 3>* F, Eigen::Matrix<T, 3, 3>* R, int n) {
+  using V = lanes::V<T>;
+  assert(n >= 1 && n <= lanes::kN<T>);
+  V f[9], X[9];  // entry e of every matrix; spare lanes hold the identity
+  static_assert(sizeof(Eigen::Matrix<T, 3, 3>) == 9 * sizeof(T), "3x3 matrices stored densely");
+  if (n == lanes::kN<T>) {
+    for (int e = 0; e < 9; ++e) f[e] = lanes::gather(F[0].data() + e, 9);
+  } else {
+    for (int e = 0; e < 9; ++e) f[e] = lanes::splat(T(e % 4 == 0));
+    for (int l = 0; l < n; ++l)
+      for (int e = 0; e < 9; ++e) f[e][l] = F[l].data()[e];
+  }
+  const lanes::Mask<T> converged = detail::polar_newton<T, V, lanes::Mask<T>>(f, X);
+  for (int l = 0; l < n; ++l) {
+    if (converged[l]) {
+      for (int e = 0; e < 9; ++e) R[l].data()[e] = X[e][l];
+    } else {
+      const Svd3<T> s = svd3(F[l]);
+      R[l] = s.U * s.V.transpose();
     }
   }
-  const Svd3<T> d = svd3(F);
-  return d.U * d.V.transpose();
 }
 
 // Polar decomposition F = R S with R = U V^T a rotation (also for inverted F) and
