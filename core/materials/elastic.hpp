@@ -13,6 +13,7 @@
 #include <cstdint>
 
 #include "core/materials/isotropic.hpp"
+#include "core/math/lanes.hpp"
 #include "core/math/svd3.hpp"
 #include "core/math/types.hpp"
 
@@ -69,10 +70,34 @@ struct FixedCorotatedT {
   // tau = P F^T = 2 mu (F - R) F^T + lambda (J - 1) J I. The hot path of P2G: R by the fast
   // polar iteration (SVD only for inverted or flattened F).
   M3 kirchhoff(const M3& F) const { return kirchhoff(F, polar_rotation_fast(F)); }
-  // The same with R = polar rotation of F given (P2G computes it for several particles at once).
+  // The same with R = polar rotation of F given.
   M3 kirchhoff(const M3& F, const M3& R) const {
-    const T J = F.determinant();
-    return T(2) * mu * (F - R) * F.transpose() + (lambda * (J - 1) * J) * M3::Identity();
+    M3 tau;
+    tau_entries<T>(F.data(), R.data(), mu, lambda, tau.data());
+    return tau;
+  }
+  // kirchhoff(F[l]) with Lame parameters mu[l], lambda[l] for n <= lanes::kN<T> particles at
+  // once, one per vector lane (P2G's hot spot), bitwise the one-particle values.
+  static void kirchhoff_lanes(const M3* F, const T* mu, const T* lambda, M3* tau, int n) {
+    using V = lanes::V<T>;
+    V f[9], r[9], t[9], vmu = lanes::splat(T(0)), vlambda = vmu;
+    for (int l = 0; l < n; ++l) vmu[l] = mu[l], vlambda[l] = lambda[l];
+    lanes::load_mat3(F, n, f);
+    polar_rotation_fast_lanes(f, F, n, r);
+    tau_entries<V>(f, r, vmu, vlambda, t);
+    lanes::store_mat3(t, n, tau);
+  }
+  // tau from the entries of F and R in storage order, X(i, j) = x[i + 3 j]; V = T for one particle
+  // or a vector of lanes (the same operations lane by lane).
+  template <class V>
+  static void tau_entries(const V* f, const V* r, const V& mu, const V& lambda, V* tau) {
+    V a[9];
+    for (int e = 0; e < 9; ++e) a[e] = (mu + mu) * (f[e] - r[e]);  // 2 mu (F - R)
+    for (int j = 0; j < 3; ++j)
+      for (int i = 0; i < 3; ++i) tau[i + 3 * j] = a[i] * f[j] + a[i + 3] * f[j + 3] + a[i + 6] * f[j + 6];
+    const V J = f[0] * (f[4] * f[8] - f[7] * f[5]) + f[3] * (f[7] * f[2] - f[1] * f[8]) + f[6] * (f[1] * f[5] - f[4] * f[2]);
+    const V p = lambda * (J - T(1)) * J;
+    tau[0] += p, tau[4] += p, tau[8] += p;
   }
   static M3 cofactor(const M3& F) { return detail::cofactor3(F); }
 };

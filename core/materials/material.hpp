@@ -82,13 +82,14 @@ struct MaterialParams {
       for (int l = 0; l < n; ++l) tau[l] = kirchhoff(F[l], L[l], plastic[l], temperature[l]);
       return;
     }
-    Mat3 R[lanes::kN<Real>];
-    polar_rotation_fast_lanes(F, R, n);
+    Real lmu[lanes::kN<Real>], llambda[lanes::kN<Real>];
     for (int l = 0; l < n; ++l) {
       const FixedCorotated m = model == MaterialModel::Snow ? snow().elastic(plastic[l]) : FixedCorotated{mu, lambda};
-      tau[l] = m.kirchhoff(F[l], R[l]);
-      if (viscosity > 0) tau[l] += (F[l].determinant() * viscosity) * (L[l] + L[l].transpose());
+      lmu[l] = m.mu, llambda[l] = m.lambda;
     }
+    FixedCorotated::kirchhoff_lanes(F, lmu, llambda, tau, n);
+    if (viscosity > 0)
+      for (int l = 0; l < n; ++l) tau[l] += (F[l].determinant() * viscosity) * (L[l] + L[l].transpose());
   }
   // The elastic Kirchhoff stress of a solid model (fluids: zero).
   Mat3 solid_kirchhoff(const Mat3& F, Real plastic) const {

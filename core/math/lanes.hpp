@@ -5,6 +5,7 @@
 // lanes hold; a comparison gives a mask (all ones or zero per lane) that selects with ?:.
 #pragma once
 
+#include <Eigen/Core>
 #include <cmath>
 #include <cstdint>
 #include <cstddef>
@@ -48,6 +49,25 @@ inline V<T> gather_impl(const T* p, std::size_t stride, std::index_sequence<L...
 template <class T>
 inline V<T> gather(const T* p, std::size_t stride) {
   return detail::gather_impl<T>(p, stride, std::make_index_sequence<kN<T>>{});
+}
+
+// The entries of n <= kN 3x3 matrices in storage order, one matrix per lane: m[e][l] =
+// M[l].data()[e]; spare lanes hold the identity. store_mat3 writes lanes 0..n-1 back.
+template <class T>
+inline void load_mat3(const Eigen::Matrix<T, 3, 3>* M, int n, V<T>* m) {
+  static_assert(sizeof(Eigen::Matrix<T, 3, 3>) == 9 * sizeof(T), "3x3 matrices stored densely");
+  if (n == kN<T>) {
+    for (int e = 0; e < 9; ++e) m[e] = gather(M[0].data() + e, 9);
+    return;
+  }
+  for (int e = 0; e < 9; ++e) m[e] = splat(T(e % 4 == 0));
+  for (int l = 0; l < n; ++l)
+    for (int e = 0; e < 9; ++e) m[e][l] = M[l].data()[e];
+}
+template <class T>
+inline void store_mat3(const V<T>* m, int n, Eigen::Matrix<T, 3, 3>* M) {
+  for (int l = 0; l < n; ++l)
+    for (int e = 0; e < 9; ++e) M[l].data()[e] = m[e][l];
 }
 
 // Helpers that let one algorithm be written once for a vector of lanes and for a single scalar

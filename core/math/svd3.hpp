@@ -217,30 +217,26 @@ inline Eigen::Matrix<T, 3, 3> polar_rotation_fast(const Eigen::Matrix<T, 3, 3>& 
   return s.U * s.V.transpose();
 }
 
-// polar_rotation_fast of n <= lanes::kN<T> matrices at once, one per vector lane: R[l] is
-// bitwise polar_rotation_fast(F[l]), in about the time of one.
+// polar_rotation_fast of n <= lanes::kN<T> matrices at once, one per vector lane: f holds their
+// entries (lanes::load_mat3 of F), R receives the rotations the same way; lane l is bitwise
+// polar_rotation_fast(F[l]).
+template <class T>
+inline void polar_rotation_fast_lanes(const lanes::V<T>* f, const Eigen::Matrix<T, 3, 3>* F, int n, lanes::V<T>* R) {
+  assert(n >= 1 && n <= lanes::kN<T>);
+  const lanes::Mask<T> converged = detail::polar_newton<T, lanes::V<T>, lanes::Mask<T>>(f, R);
+  for (int l = 0; l < n; ++l) {
+    if (converged[l]) continue;
+    const Svd3<T> s = svd3(F[l]);
+    const Eigen::Matrix<T, 3, 3> Rl = s.U * s.V.transpose();
+    for (int e = 0; e < 9; ++e) R[e][l] = Rl.data()[e];
+  }
+}
 template <class T>
 inline void polar_rotation_fast_lanes(const Eigen::Matrix<T, 3, 3>* F, Eigen::Matrix<T, 3, 3>* R, int n) {
-  using V = lanes::V<T>;
-  assert(n >= 1 && n <= lanes::kN<T>);
-  V f[9], X[9];  // entry e of every matrix; spare lanes hold the identity
-  static_assert(sizeof(Eigen::Matrix<T, 3, 3>) == 9 * sizeof(T), "3x3 matrices stored densely");
-  if (n == lanes::kN<T>) {
-    for (int e = 0; e < 9; ++e) f[e] = lanes::gather(F[0].data() + e, 9);
-  } else {
-    for (int e = 0; e < 9; ++e) f[e] = lanes::splat(T(e % 4 == 0));
-    for (int l = 0; l < n; ++l)
-      for (int e = 0; e < 9; ++e) f[e][l] = F[l].data()[e];
-  }
-  const lanes::Mask<T> converged = detail::polar_newton<T, V, lanes::Mask<T>>(f, X);
-  for (int l = 0; l < n; ++l) {
-    if (converged[l]) {
-      for (int e = 0; e < 9; ++e) R[l].data()[e] = X[e][l];
-    } else {
-      const Svd3<T> s = svd3(F[l]);
-      R[l] = s.U * s.V.transpose();
-    }
-  }
+  lanes::V<T> f[9], r[9];
+  lanes::load_mat3(F, n, f);
+  polar_rotation_fast_lanes(f, F, n, r);
+  lanes::store_mat3(r, n, R);
 }
 
 // Polar decomposition F = R S with R = U V^T a rotation (also for inverted F) and
