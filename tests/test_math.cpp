@@ -64,7 +64,9 @@ void check_svd(const Mat3& F, double tol) {
   EXPECT_LT(double((rec - F).norm()), tol * std::max(1.0, double(F.norm()))) << F;
   EXPECT_GE(d.sigma[0], d.sigma[1]);
   EXPECT_GE(d.sigma[1], std::abs(d.sigma[2]) - Real(tol));
-  if (F.determinant() < -tol) EXPECT_LT(d.sigma[2], 0) << "inverted F keeps the negative singular value";
+  if (F.determinant() < -tol) {
+    EXPECT_LT(d.sigma[2], 0) << "inverted F keeps the negative singular value";
+  }
 }
 }  // namespace
 
@@ -124,7 +126,9 @@ TEST(Polar, FastRotationMatchesSvdIncludingFallbacks) {
     const Mat3 Rs = polar_rotation(F);
     expect_rotation(Rf, tol);
     const double kappa = double(svd3(F).sigma[0] / std::max(std::abs(svd3(F).sigma[2]), Real(1e-30)));
-    if (kappa < 1e3) EXPECT_LT(double((Rf - Rs).norm()), tol * kappa) << F;
+    if (kappa < 1e3) {
+      EXPECT_LT(double((Rf - Rs).norm()), tol * kappa) << F;
+    }
     fast += F.determinant() > 0;
   }
   EXPECT_GT(fast, 1000);
