@@ -215,14 +215,15 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
       for (int k = 0; k < N; ++k) {
         const V4 vk = simd::load4(row + k * CH);
         U += st.w[2][k] * vk;
-        if constexpr (kB) Uk += (Real(k) * st.w[2][k]) * vk;
+        if constexpr (kB)
+          if (k > 0) Uk += (Real(k) * st.w[2][k]) * vk;  // the k = 0 term is +-0
         if constexpr (kGrad) Ud += st.dw[2][k] * vk;
         if constexpr (kFlip) UdV += st.w[2][k] * simd::load4(row + k * CH + 4);
       }
       const Real wy = st.w[1][j], jwy = Real(j) * wy, dwy = st.dw[1][j];
       Ti += wy * U;
       if constexpr (kB) {
-        Tj += jwy * U;
+        if (j > 0) Tj += jwy * U;
         Tk += wy * Uk;
       }
       if constexpr (kGrad) {
@@ -234,7 +235,7 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
     const Real wx = st.w[0][i], iwx = Real(i) * wx, dwx = st.dw[0][i];
     S += wx * Ti;
     if constexpr (kB) {
-      Si += iwx * Ti;
+      if (i > 0) Si += iwx * Ti;
       Sj += wx * Tj;
       Sk += wx * Tk;
     }
