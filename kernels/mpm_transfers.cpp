@@ -246,31 +246,41 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
     }
     if constexpr (kFlip) dV += wx * TdV;
   }
-  // Lane 0 summed the nodes' masses (unused); velocity component c is lane c + 1.
+  // Lane 0 summed the nodes' masses (unused); velocity component c is lane c + 1, and the
+  // matrices below are 4-lane columns with row c in lane c + 1.
   const Vec3 v_pic(S[1], S[2], S[3]);
   const Vec3 dv(dV[1], dV[2], dV[3]);
-  Mat3 Bm, grad_v;
-  for (int c = 0; c < 3; ++c) {
-    Bm(c, 0) = dx * (Si[c + 1] - st.fx[0] * S[c + 1]);
-    Bm(c, 1) = dx * (Sj[c + 1] - st.fx[1] * S[c + 1]);
-    Bm(c, 2) = dx * (Sk[c + 1] - st.fx[2] * S[c + 1]);
-    grad_v(c, 0) = D0[c + 1];
-    grad_v(c, 1) = D1[c + 1];
-    grad_v(c, 2) = D2[c + 1];
-  }
+  V4 Ccol[3], Gcol[3];  // C and grad v
   if constexpr (T == Transfer::PicFlip) {
     v = alpha * (v + dv) + (1 - alpha) * v_pic;
-    C = grad_v;  // kept for velocity-dependent stress (viscosity); A = 0 in the PIC/FLIP P2G
+    Ccol[0] = Gcol[0] = D0, Ccol[1] = Gcol[1] = D1, Ccol[2] = Gcol[2] = D2;  // C kept for viscosity
   } else {
-    C = (BSpline<Order>::kDinvScale * inv_dx * inv_dx) * Bm;
-    if constexpr (T == Transfer::Mls) grad_v = C;  // A-ULMPM Sec. 5.8: grad v_p = C_p
+    // B.col(a) = dx (S_a - fx_a S), C = D^{-1} B.
+    const Real s = BSpline<Order>::kDinvScale * inv_dx * inv_dx;
+    const V4* Sa[3] = {&Si, &Sj, &Sk};
+    for (int a = 0; a < 3; ++a) Ccol[a] = s * (dx * (*Sa[a] - st.fx[a] * S));
+    if constexpr (T == Transfer::Mls) {
+      for (int a = 0; a < 3; ++a) Gcol[a] = Ccol[a];  // A-ULMPM Sec. 5.8: grad v_p = C_p
+    } else {
+      Gcol[0] = D0, Gcol[1] = D1, Gcol[2] = D2;
+    }
     v = v_pic;
   }
+  for (int a = 0; a < 3; ++a)
+    for (int c = 0; c < 3; ++c) C(c, a) = Ccol[a][c + 1];
   if constexpr (L) {
+    Mat3 grad_v;
+    for (int a = 0; a < 3; ++a)
+      for (int c = 0; c < 3; ++c) grad_v(c, a) = Gcol[a][c + 1];
     *Fs += dt * grad_v;  // A-ULMPM eq. 30: F^{s(n+1)} = F^{sn} + dt grad_s v
     F = *Fs * *F0s;      // eq. 32: F^{0(n+1)} = F^{s(n+1)} F^{0s}
   } else {
-    F = (Mat3::Identity() + dt * grad_v) * F;
+    // F <- (I + dt grad v) F: column j is sum_a (e_a + dt g_a) F(a, j), on 4-lane columns.
+    const V4 M[3] = {V4{0, 1, 0, 0} + dt * Gcol[0], V4{0, 0, 1, 0} + dt * Gcol[1], V4{0, 0, 0, 1} + dt * Gcol[2]};
+    for (int j = 0; j < 3; ++j) {
+      const V4 f = M[0] * F(0, j) + M[1] * F(1, j) + M[2] * F(2, j);
+      F(0, j) = f[1], F(1, j) = f[2], F(2, j) = f[3];
+    }
   }
   x += dt * v_pic;  // eq. 28
 }
