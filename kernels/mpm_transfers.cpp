@@ -59,10 +59,14 @@ inline int one_material_run(const std::int32_t* material, std::uint32_t q0, std:
 // flatten: every small Eigen operation inside is inlined; GCC's unit-growth limits otherwise
 // leave some out of line as the file grows (measured: G2P 12 % slower).
 template <int Order, Transfer T, int CH, bool P = false>
-__attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin, const Vec3& x, const Vec3& v, const Mat3& C,
-                         const Mat3& tau, Real m, Real V0, Real dx, Real inv_dx, Real dt,
-                         const Vec3& xq = Vec3::Zero(), const Mat3& Fq = Mat3::Zero()) {
-  static_assert(!P || (CH == 8 && T != Transfer::PicFlip), "fused positions: MLS/APIC with an 8-lane block");
+__attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin,
+                                                  const Vec3& x, const Vec3& v, const Mat3& C,
+                                                  const Mat3& tau, Real m, Real V0, Real dx,
+                                                  Real inv_dx, Real dt,
+                                                  const Vec3& xq = Vec3::Zero(),
+                                                  const Mat3& Fq = Mat3::Zero()) {
+  static_assert(!P || (CH == 8 && T != Transfer::PicFlip),
+                "fused positions: MLS/APIC with an 8-lane block");
   const Stencil<Order> st = Stencil<Order>::at(x, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
@@ -195,8 +199,10 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
 // L (Lagrangian mode): the stencil sits at the reference position xs and F_s, F_0s are updated
 // (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F. flatten: as p2g_particle.
 template <int Order, Transfer T, int CH, bool L>
-__attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin, const Vec3& xs, Vec3& x, Vec3& v, Mat3& C,
-                         Mat3& F, Mat3* Fs, const Mat3* F0s, Real dx, Real inv_dx, Real dt, Real alpha) {
+__attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin,
+                                                  const Vec3& xs, Vec3& x, Vec3& v, Mat3& C,
+                                                  Mat3& F, Mat3* Fs, const Mat3* F0s, Real dx,
+                                                  Real inv_dx, Real dt, Real alpha) {
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;

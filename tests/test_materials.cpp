@@ -446,7 +446,9 @@ TEST(Materials, KirchhoffOfABatchIsBitwiseThatOfOneParticle) {
         for (int i = 0; i < n; ++i) {
           const Mat3 one = m.kirchhoff(F[i], L[i], plastic[i], temperature[i]);
           ASSERT_EQ(0, std::memcmp(one.data(), tau[i].data(), sizeof(Mat3)))
-              << material_model_name(m.model) << " variant " << variant << " lane " << i << "\n" << one << "\n" << tau[i];
+              << material_model_name(m.model) << " variant " << variant << " lane " << i << "\n"
+              << one << "\n"
+              << tau[i];
           ++compared;
         }
       }

@@ -95,7 +95,8 @@ struct FixedCorotatedT {
     for (int e = 0; e < 9; ++e) a[e] = (mu + mu) * (f[e] - r[e]);  // 2 mu (F - R)
     for (int j = 0; j < 3; ++j)
       for (int i = 0; i < 3; ++i) tau[i + 3 * j] = a[i] * f[j] + a[i + 3] * f[j + 3] + a[i + 6] * f[j + 6];
-    const V J = f[0] * (f[4] * f[8] - f[7] * f[5]) + f[3] * (f[7] * f[2] - f[1] * f[8]) + f[6] * (f[1] * f[5] - f[4] * f[2]);
+    const V J = f[0] * (f[4] * f[8] - f[7] * f[5]) + f[3] * (f[7] * f[2] - f[1] * f[8]) +
+                f[6] * (f[1] * f[5] - f[4] * f[2]);
     const V p = lambda * (J - T(1)) * J;
     tau[0] += p, tau[4] += p, tau[8] += p;
   }
