@@ -48,9 +48,4 @@ std::string format_seconds(double s);
 // Rows of an existing diagnostics.csv for frames before `first_frame` (kept on resume).
 std::vector<std::string> earlier_rows(const std::string& csv, int first_frame);
 
-// `amalgam run` of a peridynamics scene (apps/run_pd.cpp), after the options and the scene
-// were read and the output directory made. Throws like run_command's body.
-int run_peridynamics(const Scene& scene, const Options& o, const exec::Space& space, exec::Profiler& profiler,
-                     const std::string& out_dir);
-
 }  // namespace amalgam::cli

@@ -26,6 +26,7 @@
 #include "io/plot.hpp"
 #include "io/preview.hpp"
 #include "io/scene.hpp"
+#include "solvers/factory.hpp"
 
 using namespace amalgam;
 

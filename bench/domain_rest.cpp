@@ -28,6 +28,7 @@
 #include "core/exec/exec.hpp"
 #include "core/math/shape_matching.hpp"
 #include "io/scene.hpp"
+#include "solvers/factory.hpp"
 
 using namespace amalgam;
 

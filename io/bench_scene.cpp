@@ -3,7 +3,7 @@
 #include <cmath>
 #include <random>
 
-#include "io/lattice.hpp"
+#include "core/geometry/lattice.hpp"
 
 namespace amalgam {
 

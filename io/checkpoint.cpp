@@ -50,15 +50,7 @@ class Reader {
   const std::string& path_;
   std::size_t pos_ = 0;
 };
-// A named block of raw bytes after the particle attributes. A section whose size is part of the
-// state (the bonds left after compaction) has `resize`: the reader calls it with the file's size,
-// and it checks the size and returns where to read to.
-struct Section {
-  std::string name;
-  char* data;
-  std::size_t bytes;
-  std::function<char*(std::uint64_t)> resize = nullptr;
-};
+using Section = StateSection;
 
 void write_state(const std::string& path, const ParticleSet& ps, double time, std::uint64_t steps, int next_frame,
                  std::uint64_t scene_fingerprint, const std::vector<Section>& sections) {
@@ -164,94 +156,34 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64
       throw InputError(path + ": checkpoint section '" + name + "' (" + std::to_string(bytes) +
                        " bytes) does not match this solver's '" + sec.name + "' (" + std::to_string(sec.bytes) + ")");
     const char* src = r.take(std::size_t(bytes), "section data");
-    char* dst = sec.resize ? sec.resize(bytes) : sec.data;
+    char* dst = sec.data;
+    if (sec.resize) {
+      try {
+        dst = sec.resize(bytes);
+      } catch (const InputError& e) {
+        throw InputError(path + ": " + e.what());
+      }
+    }
     std::memcpy(dst, src, std::size_t(bytes));
   }
   if (r.pos() != d.size() - 8) throw InputError(path + ": checkpoint has trailing bytes (corrupt file)");
   return st;
 }
 
-// Peridynamics: the bond layout (rows may have been compacted) and the per-bond state, then the
-// embedded meshes (vertices, splits).
-std::vector<Section> pd_mesh_sections(PdSolver& s) {
-  std::vector<Section> out;
-  for (std::size_t k = 0; k < s.crack_meshes().size(); ++k)
-    for (const auto& a : s.crack_meshes()[k].state())
-      out.push_back({"crack_mesh" + std::to_string(k) + "." + a.name, a.data, a.bytes});
-  return out;
-}
-std::vector<Section> pd_write_sections(const PdSolver& solver) {
-  PdSolver& s = const_cast<PdSolver&>(solver);  // only read
-  PdBonds& m = s.bonds();
-  std::vector<Section> out = {
-      {"bonds.offsets", reinterpret_cast<char*>(m.offsets.data()), m.offsets.size() * sizeof(std::uint64_t)},
-      {"bonds.neighbor", reinterpret_cast<char*>(m.neighbor.data()), m.neighbor.size() * sizeof(std::uint32_t)},
-      {"bonds.plastic", reinterpret_cast<char*>(m.plastic.data()), m.plastic.size() * sizeof(Real)},
-      {"bonds.intact", reinterpret_cast<char*>(m.intact.data()), m.intact.size()}};
-  for (Section& sec : pd_mesh_sections(s)) out.push_back(std::move(sec));
-  return out;
-}
-// Where a variable-size section of T goes: `v` resized to the file's bytes (a whole number of T).
-template <class T>
-std::function<char*(std::uint64_t)> resize_into(std::vector<T>& v, const std::string& path, const char* name) {
-  return [&v, path, name](std::uint64_t bytes) {
-    if (bytes % sizeof(T) != 0)
-      throw InputError(path + ": checkpoint section '" + name + "' has " + std::to_string(bytes) +
-                       " bytes, not a whole number of entries (corrupt file)");
-    v.resize(std::size_t(bytes / sizeof(T)));
-    return reinterpret_cast<char*>(v.data());
-  };
-}
-// Enriched MPM: the particle-domain corners' positions (the rest of the corner state is rebuilt
-// every substep from the particles).
-std::vector<Section> mpm_sections(const MpmSolver& solver) {
-  if (!solver.settings().domains.enabled) return {};
-  MpmSolver& s = const_cast<MpmSolver&>(solver);  // written from, or read into
-  return {{"domains.corner_x", reinterpret_cast<char*>(s.domains().corner_positions()),
-           s.domains().corner_count() * sizeof(Vec3)}};
-}
 }  // namespace
 
-void write_checkpoint(const std::string& path, const MpmSolver& solver, int next_frame,
-                      std::uint64_t scene_fingerprint) {
-  write_state(path, solver.particles(), solver.time(), solver.step_count(), next_frame, scene_fingerprint,
-              mpm_sections(solver));
+void write_checkpoint(const std::string& path, Simulation& sim, int next_frame, std::uint64_t scene_fingerprint) {
+  write_state(path, sim.particles(), sim.time(), sim.step_count(), next_frame, scene_fingerprint,
+              sim.checkpoint_sections());
 }
 
-CheckpointState read_checkpoint(const std::string& path, MpmSolver& solver, std::uint64_t scene_fingerprint) {
-  const CheckpointState st = read_state(path, solver.particles(), scene_fingerprint, mpm_sections(solver));
-  solver.restore_clock(st.time, st.steps);
-  return st;
-}
-
-void write_checkpoint(const std::string& path, const PdSolver& solver, int next_frame,
-                      std::uint64_t scene_fingerprint) {
-  write_state(path, solver.particles(), solver.time(), solver.step_count(), next_frame, scene_fingerprint,
-              pd_write_sections(solver));
-}
-
-CheckpointState read_checkpoint(const std::string& path, PdSolver& solver, std::uint64_t scene_fingerprint) {
-  std::vector<std::uint64_t> offsets(solver.bonds().offsets.size());
-  std::vector<std::uint32_t> neighbor;
-  std::vector<Real> plastic;
-  std::vector<std::uint8_t> intact;
-  std::vector<Section> sections = {
-      {"bonds.offsets", reinterpret_cast<char*>(offsets.data()), offsets.size() * sizeof(std::uint64_t)},
-      {"bonds.neighbor", nullptr, solver.bonds().size() * sizeof(std::uint32_t),
-       resize_into(neighbor, path, "bonds.neighbor")},
-      {"bonds.plastic", nullptr, solver.bonds().size() * sizeof(Real), resize_into(plastic, path, "bonds.plastic")},
-      {"bonds.intact", nullptr, solver.bonds().size(), resize_into(intact, path, "bonds.intact")}};
-  for (Section& sec : pd_mesh_sections(solver)) sections.push_back(std::move(sec));
-  const CheckpointState st = read_state(path, solver.particles(), scene_fingerprint, sections);
-  if (plastic.size() != neighbor.size() || intact.size() != neighbor.size())
-    throw InputError(path + ": checkpoint's bond sections disagree in length (" + std::to_string(neighbor.size()) +
-                     " neighbours, " + std::to_string(plastic.size()) + " plastic extensions, " +
-                     std::to_string(intact.size()) + " flags)");
-  if (!solver.restore_bonds(offsets, neighbor, plastic, intact))
-    throw InputError(path + ": checkpoint's bond list is not a subset of this scene's bonds (written for other "
-                            "particles or another horizon?)");
-  for (PdCrackMesh& m : solver.crack_meshes()) m.restored();
-  solver.restore_clock(st.time, st.steps);
+CheckpointState read_checkpoint(const std::string& path, Simulation& sim, std::uint64_t scene_fingerprint) {
+  const CheckpointState st = read_state(path, sim.particles(), scene_fingerprint, sim.restore_sections());
+  try {
+    sim.restored(st.time, st.steps);
+  } catch (const InputError& e) {
+    throw InputError(path + ": " + e.what());
+  }
   return st;
 }
 

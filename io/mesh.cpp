@@ -1,19 +1,13 @@
-// Mesh readers and level-set sampling. Sees OpenVDB tool headers (slow to compile).
+// Mesh file readers: OBJ, OFF and PLY (ASCII or binary little-endian).
 #include "io/mesh.hpp"
 
-#include <openvdb/openvdb.h>
-#include <openvdb/tools/Interpolation.h>
-#include <openvdb/tools/MeshToVolume.h>
 
 #include <algorithm>
 #include <cstring>
 #include <fstream>
-#include <mutex>
 #include <sstream>
-#include <unordered_map>
 
 #include "core/errors.hpp"
-#include "io/lattice.hpp"
 
 namespace amalgam {
 
@@ -209,99 +203,6 @@ TriangleMesh load_mesh(const std::string& path) {
   for (const auto& v : m.vertices)
     if (!v.allFinite()) throw InputError(path + ": mesh has a non-finite vertex coordinate");
   return m;
-}
-
-MeshCheck check_mesh(const TriangleMesh& m) {
-  std::unordered_map<std::uint64_t, int> uses;
-  uses.reserve(m.triangles.size() * 2);
-  for (const auto& t : m.triangles)
-    for (int e = 0; e < 3; ++e) {
-      std::uint64_t a = std::uint32_t(t[size_t(e)]), b = std::uint32_t(t[size_t((e + 1) % 3)]);
-      if (a > b) std::swap(a, b);
-      ++uses[(a << 32) | b];
-    }
-  MeshCheck c;
-  for (const auto& kv : uses) {
-    if (kv.second == 1) ++c.boundary_edges;
-    else if (kv.second > 2) ++c.nonmanifold_edges;
-  }
-  return c;
-}
-
-double enclosed_volume(const TriangleMesh& m) {
-  double v = 0;
-  for (const auto& t : m.triangles)
-    v += m.vertices[size_t(t[0])].dot(m.vertices[size_t(t[1])].cross(m.vertices[size_t(t[2])]));
-  return v / 6.0;
-}
-
-namespace {
-// The mesh in OpenVDB's types (float points, index triangles), OpenVDB initialised.
-struct VdbMesh {
-  std::vector<openvdb::Vec3s> pts;
-  std::vector<openvdb::Vec3I> tris;
-  explicit VdbMesh(const TriangleMesh& m) {
-    static std::once_flag init;
-    std::call_once(init, [] { openvdb::initialize(); });
-    pts.reserve(m.vertices.size());
-    for (const auto& v : m.vertices) pts.emplace_back(float(v[0]), float(v[1]), float(v[2]));
-    tris.reserve(m.triangles.size());
-    for (const auto& t : m.triangles) tris.emplace_back(t[0], t[1], t[2]);
-  }
-};
-}  // namespace
-
-std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed) {
-  const VdbMesh vm(m);
-  const auto& pts = vm.pts;
-  const auto& tris = vm.tris;
-  const auto xform = openvdb::math::Transform::createLinearTransform(h);
-  // Level set in world units; interior beyond the narrow band is flood-filled negative.
-  const auto sdf = openvdb::tools::meshToLevelSet<openvdb::FloatGrid>(*xform, pts, tris, 3.0f);
-  Vec3d lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
-  for (const auto& v : m.vertices) {
-    lo = lo.cwiseMin(v);
-    hi = hi.cwiseMax(v);
-  }
-  const auto acc = sdf->getConstAccessor();
-  openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler> sampler(acc, *xform);
-  long long n[3];
-  for (int a = 0; a < 3; ++a) n[a] = (long long)std::ceil((hi[a] - lo[a]) / h);
-  const std::vector<Vec3> out = sample_lattice(lo, n, h, jitter, seed, [&](const Vec3d& p) {
-    return sampler.wsSample(openvdb::Vec3d(p[0], p[1], p[2])) < 0;
-  });
-  return out;
-}
-
-std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin) {
-  const VdbMesh vm(m);
-  const auto& pts = vm.pts;
-  const auto& tris = vm.tris;
-  std::vector<openvdb::Vec4I> quads;
-  Vec3d lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
-  for (const auto& v : m.vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
-  const auto xform = openvdb::math::Transform::createLinearTransform(h);
-  const float band_out = float(margin / h) + 2.0f, band_in = float((hi - lo).maxCoeff() / h) + 2.0f;
-  const auto grid =
-      openvdb::tools::meshToSignedDistanceField<openvdb::FloatGrid>(*xform, pts, tris, quads, band_out, band_in);
-  auto sdf = std::make_shared<SdfGrid>();
-  sdf->h = h;
-  sdf->origin = lo - Vec3d::Constant(margin);
-  for (int a = 0; a < 3; ++a) sdf->n[a] = int(std::ceil((hi[a] - lo[a] + 2 * margin) / h)) + 2;
-  if (double(sdf->n[0]) * sdf->n[1] * sdf->n[2] > 2e8)
-    throw InputError("mesh collider: the baked distance field would exceed 2e8 samples; coarsen dx");
-  sdf->outside = float(margin);
-  sdf->phi.resize(size_t(sdf->n[0]) * size_t(sdf->n[1]) * size_t(sdf->n[2]));
-  const auto acc = grid->getConstAccessor();
-  openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler> sampler(acc, *xform);
-  size_t q = 0;
-  for (int k = 0; k < sdf->n[2]; ++k)
-    for (int j = 0; j < sdf->n[1]; ++j)
-      for (int i = 0; i < sdf->n[0]; ++i) {
-        const Vec3d p = sdf->origin + h * Vec3d(i, j, k);
-        sdf->phi[q++] = float(sampler.wsSample(openvdb::Vec3d(p[0], p[1], p[2])));
-      }
-  return sdf;
 }
 
 }  // namespace amalgam

@@ -1,44 +1,15 @@
-// Triangle meshes for solids: OBJ, OFF and PLY (ASCII or binary little-endian) readers, a
-// watertightness check, the enclosed volume, and particle sampling inside the mesh through an
-// OpenVDB level set (tools::meshToLevelSet). Errors are InputErrors naming the file and line.
+// Triangle mesh files for solids and colliders: OBJ, OFF and PLY (ASCII or binary little-endian)
+// readers. Errors are InputErrors naming the file and line. The geometry (checks, sampling,
+// distance fields) is in core/geometry/triangle_mesh.hpp.
 #pragma once
 
-#include <array>
-#include <memory>
-#include <cstdint>
 #include <string>
-#include <vector>
 
-#include "core/math/types.hpp"
-#include "kernels/colliders.hpp"
+#include "core/geometry/triangle_mesh.hpp"
 
 namespace amalgam {
 
-struct TriangleMesh {
-  std::vector<Vec3d> vertices;
-  std::vector<std::array<std::int32_t, 3>> triangles;  // polygons are fan-triangulated
-};
-
 // Reads .obj, .off or .ply by extension.
 TriangleMesh load_mesh(const std::string& path);
-
-struct MeshCheck {
-  std::size_t boundary_edges = 0;     // edges used by one triangle
-  std::size_t nonmanifold_edges = 0;  // edges used by more than two triangles
-  bool watertight() const { return boundary_edges == 0 && nonmanifold_edges == 0; }
-};
-MeshCheck check_mesh(const TriangleMesh& m);
-
-// Signed enclosed volume (divergence theorem; positive for outward-oriented triangles).
-double enclosed_volume(const TriangleMesh& m);
-
-// Lattice points of spacing h (jittered by jitter * h, seeded) inside the mesh, in the mesh's
-// coordinates. Inside/outside from a level set of voxel size h.
-std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed);
-
-// Signed distance field of the mesh (tools::meshToSignedDistanceField, exact distance inside
-// and out to `margin` beyond the surface), baked into a dense array of spacing h covering the
-// mesh's box plus margin: what a mesh collider samples.
-std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin);
 
 }  // namespace amalgam

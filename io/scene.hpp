@@ -3,44 +3,13 @@
 // path (e.g. "drop.json: /colliders/0/friction: expected a number >= 0, got -1").
 #pragma once
 
+#include <cstdint>
 #include <string>
-#include <vector>
 
-#include <memory>
-
-#include "core/materials/material.hpp"
-#include "io/mesh.hpp"
-#include "io/tetmesh.hpp"
 #include "io/preview.hpp"
-#include "kernels/colliders.hpp"
-#include "solvers/mpm_solver.hpp"
-#include "solvers/pd_solver.hpp"
+#include "solvers/scene_spec.hpp"
 
 namespace amalgam {
-
-enum class ObjectShape { Box, Sphere, Cylinder, Torus, Mesh, TetMesh };
-
-struct ObjectSpec {
-  ObjectShape shape = ObjectShape::Box;
-  std::shared_ptr<const TriangleMesh> mesh;  // Mesh: loaded, scaled and translated
-  std::shared_ptr<const TetMesh> tets;       // TetMesh (peridynamics): one particle per tetrahedron
-  Vec3 min = Vec3::Zero(), max = Vec3::Ones();  // box
-  Vec3 center = Vec3::Zero();                   // sphere (and rotation centre of both)
-  Real radius = 1;        // sphere, cylinder; torus: major radius
-  Real height = 1;        // cylinder
-  Real minor_radius = 0;  // torus: tube radius
-  int axis = 1;           // cylinder and torus axis: 0 x, 1 y, 2 z
-  int material = 0;
-  Vec3 velocity = Vec3::Zero();
-  Vec3 angular_velocity = Vec3::Zero();
-  int particles_per_cell = 8;
-  Real jitter = Real(0.5);  // fraction of the lattice spacing
-  std::uint64_t seed = 1;
-  Real temperature = Real(293.15);  // K, initial (used by melting materials)
-  // A-ULMPM: the object's own configuration map and its update policy ("configuration" block).
-  bool has_configuration = false;
-  ConfigurationPolicy configuration;
-};
 
 struct OutputSpec {
   std::string directory = "out";
@@ -53,36 +22,11 @@ struct OutputSpec {
   bool surface_obj = true, surface_ply = false;
 };
 
-enum class Method { Mpm, Peridynamics };
-
-// Peridynamics: particles whose reference position lies in [min, max] move with `velocity`
-// (zero: fixed).
-struct PdBoundarySpec {
-  Vec3 min, max, velocity;
-  bool load = false;  // true: force_density is applied, the velocity is free
-  Vec3 force_density = Vec3::Zero();
-};
-// Peridynamics: a pre-crack, the part inside [min, max] of the plane through point with normal.
-struct PdPrecrackSpec {
-  Vec3 point, normal, min, max;
-};
-
-struct Scene {
+// A parsed scene: the physics (SceneSpec, what the factory builds a Simulation from), plus what
+// only the runner reads: file, name, output and preview settings, and the fingerprint.
+struct Scene : SceneSpec {
   std::string file;
   std::string name;
-  Method method = Method::Mpm;
-  MpmSettings mpm;  // dx, fps, max_dt and gravity are shared by both methods
-  PdSettings pd;
-  std::vector<PdMaterial> pd_materials;  // parallel to materials (peridynamics scenes)
-  std::vector<PdBoundarySpec> pd_boundaries;
-  std::vector<PdPrecrackSpec> pd_precracks;
-  int frames = 48;
-  double fps = 24;
-  std::vector<std::string> material_names;
-  std::vector<MaterialParams> materials;
-  std::vector<ObjectSpec> objects;
-  std::vector<Collider> colliders;
-  std::vector<HeatSource> heat_sources;
   OutputSpec output;
   PreviewSpec preview;
   // Hash of everything that determines the simulated state (not output, frames, name,
@@ -96,10 +40,6 @@ Scene load_scene(const std::string& path);
 // Same, from JSON text (`file` is used in messages and to resolve relative mesh paths).
 Scene parse_scene(const std::string& text, const std::string& file);
 
-// Samples an object's particles on a jittered lattice of spacing dx / cbrt(ppc), seeded and
-// reproducible; returns positions and sets the volume per particle.
-std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per_particle);
-
 // The preview camera: the scene's, or fitted to the objects' bounds (widened for material that
 // spreads) and the floor below them.
 Camera preview_camera(const Scene& scene);
@@ -107,10 +47,5 @@ Camera preview_camera(const Scene& scene);
 double preview_radius(const Scene& scene);
 // Height of the highest upward-facing half-space collider (the floor), or NaN.
 double preview_floor(const Scene& scene);
-
-// Builds a solver from a scene and fills its particles.
-MpmSolver build_solver(const Scene& scene);
-// Peridynamics scenes: the solver with its particles and boundary sets, not yet initialised.
-PdSolver build_pd_solver(const Scene& scene);
 
 }  // namespace amalgam

@@ -9,23 +9,14 @@
 #include <string>
 #include <vector>
 
-#include "core/math/types.hpp"
+#include "core/geometry/tet_mesh.hpp"
 
 namespace amalgam {
-
-struct TetMesh {
-  std::vector<Vec3d> nodes;
-  std::vector<std::array<std::int32_t, 4>> tets;  // 0-based node indices
-};
 
 // Reads PATH.node and PATH.ele; `path` may name either file or their common stem. Node numbering
 // may start at 0 or 1 (TetGen's -z); 10-node (second-order) tetrahedra keep their 4 corners;
 // attributes and boundary markers are skipped. Checks indices, and that no tetrahedron is
 // degenerate.
 TetMesh load_tetgen(const std::string& path);
-
-// Barycentres and (positive) volumes of the tetrahedra; mean edge length (the paper's lambda).
-void tet_barycentres(const TetMesh& m, std::vector<Vec3>& x, std::vector<Real>& volume);
-double tet_mean_edge(const TetMesh& m);
 
 }  // namespace amalgam

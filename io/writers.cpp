@@ -36,36 +36,6 @@ void commit_temporary(const std::string& tmp, const std::string& path) {
   }
 }
 
-PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a) {
-  PointFields p;
-  p.n = ps.size();
-  p.x = ps.vec3(a.x);
-  p.v = ps.vec3(a.v);
-  p.material = ps.int32(a.material);
-  p.id = ps.int32(a.id);
-  std::vector<float> J(p.n);
-  const Mat3* F = ps.mat3(a.F);
-  for (std::size_t i = 0; i < p.n; ++i) J[i] = float(F[i].determinant());
-  p.primary.emplace_back("J", std::move(J));
-  // Method-specific state, when the scene's materials carry it.
-  for (const auto& [attr, name] : {std::pair<ParticleSet::Id, const char*>{a.plastic, "plastic"},
-                                   std::pair<ParticleSet::Id, const char*>{a.temperature, "temperature"}}) {
-    if (attr < 0) continue;
-    const Real* r = ps.real(attr);
-    p.extra.emplace_back(name, std::vector<float>(r, r + p.n));
-  }
-  // Enriched MPM: the particle's enrichment state (-1 domain disabled, 0 unenriched,
-  // 1 transitional, 2 enriched; enriched MPM Fig. 3), for colour-mapping as in Figs. 6 and 10.
-  const ParticleSet::Id ds = ps.find("domain_state");
-  if (ds >= 0) {
-    const std::int32_t* st = ps.int32(ds);
-    std::vector<float> e(p.n);
-    for (std::size_t i = 0; i < p.n; ++i) e[i] = float(st[i]);
-    p.extra.emplace_back("enrichment", std::move(e));
-  }
-  return p;
-}
-
 void write_ply_points(const std::string& path, const PointFields& p) {
   const size_t n = p.n;
   std::ostringstream h;
@@ -143,23 +113,23 @@ void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertice
   write_file_atomic(path, buf);
 }
 
-std::string diagnostics_csv_header() {
-  return "frame,time_s,last_dt_s,substeps,kinetic_J,elastic_J,momentum_x,momentum_y,momentum_z,max_speed_m_s,"
-         "particles,wall_s,p2g_s,g2p_s,sort_s,grid_s,other_s,leaves,active_leaves,rss_mb,solve_s,cg_iterations,"
-         "cg_max_iterations,cg_max_residual,cg_unconverged,enriched_fraction,transitional_fraction,"
-         "max_enriched_fraction,enriched_corners\n";
+std::string csv_header(const std::vector<Column>& columns) {
+  std::string out;
+  for (const Column& c : columns) out += (out.empty() ? "" : ",") + c.name;
+  return out + "\n";
 }
 
-std::string diagnostics_csv_line(const DiagnosticsRow& r) {
+std::string csv_row(const std::vector<Column>& columns) {
   std::ostringstream os;
   os.precision(9);
-  os << r.frame << ',' << r.time << ',' << r.dt << ',' << r.substeps << ',' << r.d.kinetic << ',' << r.d.elastic << ','
-     << r.d.momentum[0] << ',' << r.d.momentum[1] << ',' << r.d.momentum[2] << ',' << r.d.max_speed << ','
-     << r.particles << ',' << r.wall_seconds << ',' << r.p2g_s << ',' << r.g2p_s << ',' << r.sort_s << ','
-     << r.grid_s << ',' << r.other_s << ',' << r.leaves << ',' << r.active_leaves << ',' << r.rss_mb << ','
-     << r.solve_s << ',' << r.cg_iterations << ',' << r.cg_max_iterations << ',' << r.cg_max_residual << ','
-     << r.cg_unconverged << ',' << r.enriched_fraction << ',' << r.transitional_fraction << ','
-     << r.max_enriched_fraction << ',' << r.enriched_corners << '\n';
+  for (std::size_t k = 0; k < columns.size(); ++k) {
+    if (k) os << ',';
+    if (columns[k].integer)
+      os << (long long)columns[k].value;
+    else
+      os << columns[k].value;
+  }
+  os << '\n';
   return os.str();
 }
 

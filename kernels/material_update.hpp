@@ -11,7 +11,7 @@
 
 #include "core/exec/exec.hpp"
 #include "core/materials/material.hpp"
-#include "kernels/colliders.hpp"
+#include "core/geometry/colliders.hpp"
 #include "kernels/mpm_transfers.hpp"
 
 namespace amalgam {

@@ -23,7 +23,7 @@
 #include "core/exec/exec.hpp"
 #include "core/materials/material.hpp"
 #include "core/math/types.hpp"
-#include "kernels/colliders.hpp"
+#include "core/geometry/colliders.hpp"
 #include "sparse_grid/binning.hpp"
 
 namespace amalgam {

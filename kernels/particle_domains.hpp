@@ -1,5 +1,5 @@
 // Dynamically enriched MPM with particle domains (Zhu et al. 2017, "Dynamically enriched MPM for
-// invertible elasticity"; ../shared/papers/enriched-mpm-invertible-elasticity.txt): kernels.
+// invertible elasticity"; docs/architecture.md lists the papers): kernels.
 //
 // Every particle p owns a hexahedral domain whose 8 corners alpha are shared with its lattice
 // neighbours, so the domains form one connected mesh (Sec. 4). Reference domains are lattice
@@ -40,7 +40,7 @@
 #include "core/materials/isotropic.hpp"
 #include "core/materials/material.hpp"
 #include "core/math/types.hpp"
-#include "kernels/colliders.hpp"
+#include "core/geometry/colliders.hpp"
 #include "kernels/mpm_transfers.hpp"
 
 namespace amalgam {

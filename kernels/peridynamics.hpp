@@ -2,7 +2,7 @@
 // animation for elastoplastic solids", after Madenci & Oterkus 2014 and Mitchell 2011):
 // elasticity (eqs. 2-9), deviatoric plasticity with a cap (eqs. 10-15), anisotropy through a
 // matrix G in the influence weight (eq. 16), fracture by a critical stretch with damage (eqs.
-// 17-18). Bonds in CSR form (DESIGN.md "Peridynamics storage"). Every kernel gathers per particle
+// 17-18). Bonds in CSR form (offsets, neighbours, per-bond arrays). Every kernel gathers per particle
 // over its own row (no scatter), so results are bitwise identical on every backend and thread
 // count; the pair force uses both directed bonds i->j and j->i, the far end's per-bond values
 // mirrored into row i (PdBonds::omega_r, shear_omega_r, plastic_r). Rows are processed in blocks

@@ -3,7 +3,7 @@
 //   (I + dt^2 M^{-1} H) v = v*   solved in its symmetric, mass-weighted form   (M + dt^2 H) v = M v*
 // matrix-free, over every active DOF: grid nodes with mass, then any extra DOF sets a method
 // registers (the enriched particle-domain corners), stacked in one vector of 4 lanes per DOF
-// (x, y, z, unused) as DESIGN.md asks. H is the sum of registered terms (the particles' elastic
+// (x, y, z, unused), like the grid's node rows (docs/architecture.md, "The grid"). H is the sum of registered terms (the particles' elastic
 // energy for MPM; a method adds its own coupling); each term adds scale * H du and its diagonal.
 //
 // Solvers: Jacobi-preconditioned conjugate gradients (preconditioner diag(M + dt^2 H), eqs.

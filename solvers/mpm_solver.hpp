@@ -28,7 +28,7 @@
 #include "core/exec/exec.hpp"
 #include "core/materials/material.hpp"
 #include "core/particles/particle_set.hpp"
-#include "kernels/colliders.hpp"
+#include "core/geometry/colliders.hpp"
 #include "kernels/implicit_mpm.hpp"
 #include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"

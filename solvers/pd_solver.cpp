@@ -317,6 +317,10 @@ void PdSolver::compact_bonds(const exec::Space& space) {
   const std::uint64_t stored = bonds_.size();
   const std::uint64_t removable = stored - intact_ - kept_broken_;  // broken since the last compaction
   if (!(double(removable) > double(settings_.compact_fraction) * double(stored))) return;
+  if (armed_ && !armed_->layout_saved) {  // a retry of this frame needs the layout back
+    armed_->layout = bonds_;
+    armed_->layout_saved = true;
+  }
   pd_compact_bonds(space, bonds_, settings_.contact ? contact_distance() : Real(0));
   kept_broken_ = bonds_.size() - intact_;
   ++compactions_;
@@ -341,6 +345,33 @@ bool PdSolver::restore_bonds(const std::vector<std::uint64_t>& offsets, const st
   meshes_intact_ = intact_;
   for (PdCrackMesh& m : meshes_) m.reattach(bonds_);
   return true;
+}
+
+void PdSolver::save(Snapshot& s) {
+  particles_.save(s.particles);
+  s.plastic = bonds_.plastic;
+  s.plastic_r = bonds_.plastic_r;
+  s.intact = bonds_.intact;
+  s.layout = PdBonds();
+  s.layout_saved = false;
+  s.meshes = meshes_;
+  s.intact_count = intact_, s.meshes_intact = meshes_intact_, s.kept_broken = kept_broken_;
+  s.compactions = compactions_, s.bond_updates = bond_updates_;
+  s.time = time_, s.steps = steps_;
+  armed_ = &s;
+}
+
+void PdSolver::restore(Snapshot& s) {
+  particles_.restore(s.particles);
+  if (s.layout_saved) bonds_ = s.layout;  // a compaction ran since save(): its layout back
+  bonds_.plastic = s.plastic;
+  bonds_.plastic_r = s.plastic_r;
+  bonds_.intact = s.intact;
+  meshes_ = s.meshes;
+  intact_ = s.intact_count, meshes_intact_ = s.meshes_intact, kept_broken_ = s.kept_broken;
+  compactions_ = s.compactions, bond_updates_ = s.bond_updates;
+  time_ = s.time, steps_ = s.steps;
+  contact_list_ = PdContactList();  // positions changed: rebuilt at the next contact pass
 }
 
 void PdSolver::kick(const exec::Space& space, Real dt) {

@@ -15,7 +15,7 @@
 
 #include "core/exec/exec.hpp"
 #include "core/particles/particle_set.hpp"
-#include "kernels/colliders.hpp"
+#include "core/geometry/colliders.hpp"
 #include "kernels/peridynamics.hpp"
 #include "solvers/pd_crack_mesh.hpp"
 
@@ -107,8 +107,28 @@ class PdSolver {
     time_ = time;
     steps_ = steps;
   }
+  // The whole evolving state (particles, per-bond state, crack meshes, counters and clock), to
+  // retry a frame from its start. The bond layout is not copied: save() arms the snapshot, and
+  // the first compaction after it keeps the layout it replaces there (9 bytes per bond per frame
+  // instead of the ~46 of the whole PdBonds). The snapshot must outlive the solver's steps until
+  // the next save(). Restoring drops the contact list (rebuilt at the next contact pass).
+  struct Snapshot {
+    ParticleSet::Snapshot particles;
+    std::vector<Real> plastic, plastic_r;
+    std::vector<std::uint8_t> intact;
+    PdBonds layout;             // the bonds as saved, when a compaction replaced them since
+    bool layout_saved = false;
+    std::vector<PdCrackMesh> meshes;
+    std::uint64_t intact_count = 0, meshes_intact = 0, kept_broken = 0, compactions = 0, bond_updates = 0;
+    double time = 0;
+    std::uint64_t steps = 0;
+  };
+  void save(Snapshot& s);
+  void restore(Snapshot& s);
   std::uint64_t step_count() const { return steps_; }
   const PdSettings& settings() const { return settings_; }
+  // CFL number used by stable_dt (lowered while retrying a failed frame).
+  void set_cfl(Real cfl) { settings_.cfl = cfl; }
   ParticleSet& particles() { return particles_; }
   const ParticleSet& particles() const { return particles_; }
   const PdAttributes& attributes() const { return attr_; }
@@ -182,6 +202,7 @@ class PdSolver {
   std::uint64_t bonds_initial_ = 0;  // directed bonds at initialize()
   std::uint64_t kept_broken_ = 0;    // broken bonds the last compaction kept (short ones, for contact)
   std::uint64_t compactions_ = 0, bond_updates_ = 0;
+  Snapshot* armed_ = nullptr;  // the snapshot of the frame start, given the layout a compaction replaces
   Real contact_distance() const;
   Real crit_dt_ = 0;  // critical Verlet step of the reference configuration (critical_dt)
   double time_ = 0;

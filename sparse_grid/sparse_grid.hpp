@@ -1,4 +1,4 @@
-// Block-sparse MPM grid backed by a persistent OpenVDB tree (DESIGN.md, "Sparse grid").
+// Block-sparse MPM grid backed by a persistent OpenVDB tree (docs/architecture.md, "The grid").
 //
 // Blocks are OpenVDB leaves of 8^3 nodes; node (i,j,k) lives in leaf (i>>3, j>>3, k>>3) at offset
 // ((i&7)<<6) | ((j&7)<<3) | (k&7) (z fastest, as OpenVDB). The tree is an index grid: every voxel

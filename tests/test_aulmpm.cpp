@@ -10,6 +10,7 @@
 
 #include "core/errors.hpp"
 #include "io/scene.hpp"
+#include "solvers/factory.hpp"
 #include "test_shapes.hpp"
 #include "test_util.hpp"
 

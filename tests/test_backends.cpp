@@ -6,6 +6,7 @@
 #include <fstream>
 
 #include "io/scene.hpp"
+#include "solvers/factory.hpp"
 #include "test_util.hpp"
 
 using namespace amalgam;

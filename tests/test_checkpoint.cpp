@@ -9,6 +9,8 @@
 #include "core/errors.hpp"
 #include "io/checkpoint.hpp"
 #include "io/scene.hpp"
+#include "solvers/factory.hpp"
+#include "solvers/mpm_simulation.hpp"
 
 using namespace amalgam;
 
@@ -30,7 +32,7 @@ void spit(const std::string& p, const std::string& d) {
   std::ofstream(p, std::ios::binary).write(d.data(), std::streamsize(d.size()));
 }
 std::string error_reading(const std::string& path, std::uint64_t fp) {
-  MpmSolver s = build_solver(parse_scene(kScene, "s.json"));
+  MpmSimulation s(build_solver(parse_scene(kScene, "s.json")));
   try {
     read_checkpoint(path, s, fp);
   } catch (const InputError& e) {
@@ -42,13 +44,13 @@ std::string error_reading(const std::string& path, std::uint64_t fp) {
 
 TEST(Checkpoint, RoundTripIsBitwise) {
   const Scene scene = parse_scene(kScene, "s.json");
-  MpmSolver a = build_solver(scene);
+  MpmSimulation sim_a(build_solver(scene)), sim_b(build_solver(scene));
+  MpmSolver &a = sim_a.solver(), &b = sim_b.solver();
   const exec::Space space(exec::Backend::OpenMP, 2);
   for (int i = 0; i < 7; ++i) a.step(space, a.stable_dt(space));
   const std::string path = tmp_path("roundtrip.amck");
-  write_checkpoint(path, a, 3, scene.fingerprint);
-  MpmSolver b = build_solver(scene);
-  const CheckpointState st = read_checkpoint(path, b, scene.fingerprint);
+  write_checkpoint(path, sim_a, 3, scene.fingerprint);
+  const CheckpointState st = read_checkpoint(path, sim_b, scene.fingerprint);
   EXPECT_EQ(st.next_frame, 3);
   EXPECT_EQ(st.steps, 7u);
   EXPECT_EQ(b.time(), a.time());
@@ -70,7 +72,7 @@ TEST(Checkpoint, RoundTripIsBitwise) {
 
 TEST(Checkpoint, DamagedFilesAreClearErrors) {
   const Scene scene = parse_scene(kScene, "s.json");
-  MpmSolver a = build_solver(scene);
+  MpmSimulation a(build_solver(scene));
   const std::string path = tmp_path("good.amck"), bad = tmp_path("bad.amck");
   write_checkpoint(path, a, 1, scene.fingerprint);
   const std::string good = slurp(path);

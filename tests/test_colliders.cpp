@@ -8,7 +8,8 @@
 #include <random>
 
 #include "io/scene.hpp"
-#include "kernels/colliders.hpp"
+#include "solvers/factory.hpp"
+#include "core/geometry/colliders.hpp"
 
 using namespace amalgam;
 
@@ -134,7 +135,7 @@ TEST(MeshCollider, BakedDistanceMatchesTheBox) {
   const std::string obj = write_cube("amalgam_cube.obj", Vec3d(0.5, 0.3, 0.5), 0.2);
   const Scene s = mesh_collider_scene(obj, "");
   ASSERT_EQ(s.colliders.size(), 1u);
-  const Collider& c = s.colliders[0];
+  const Collider c = build_colliders(s)[0];
   ASSERT_EQ(c.shape, ColliderShape::Mesh);
   std::mt19937 rng(3);
   std::uniform_real_distribution<double> u(0.22, 0.78);
@@ -156,7 +157,7 @@ TEST(MeshCollider, KeyframedPoseAndVelocity) {
   const std::string obj = write_cube("amalgam_cube2.obj", Vec3d(0.5, 0.3, 0.5), 0.1);
   const Scene s = mesh_collider_scene(obj, R"(, "keyframes": [{"time": 0}, {"time": 1, "translate": [0.2, 0, 0],
                                               "rotate_degrees": [0, 90, 0]}])");
-  const Collider& c = s.colliders[0];
+  const Collider c = build_colliders(s)[0];
   // At t = 1 the cube is at (0.7, 0.3, 0.5); at t = 0.5 at (0.6, 0.3, 0.5), turned 45 deg.
   EXPECT_NEAR(double(c.phi(Vec3(0.7, 0.3, 0.5), 1)), -0.1, 0.01);
   EXPECT_NEAR(double(c.phi(Vec3(0.7, 0.45, 0.5), 1)), 0.05, 0.01);
@@ -185,6 +186,7 @@ TEST(MeshCollider, BlockLandsOnMeshBox) {
   const Scene s = mesh_collider_scene(obj, "");
   MpmSolver solver = build_solver(s);
   const exec::Space space(exec::Backend::OpenMP, 2);
+  const Collider box = build_colliders(s)[0];
   const auto& ps = solver.particles();
   double ymin_run = 1e9, centre = 0;
   int steps = 0;
@@ -196,7 +198,7 @@ TEST(MeshCollider, BlockLandsOnMeshBox) {
       const Vec3 x = ps.vec3(solver.attributes().x)[p];
       ymin_run = std::min(ymin_run, double(x[1]));
       centre += double(x[1]) / double(ps.size());
-      ASSERT_GE(double(s.colliders[0].phi(x, Real(solver.time()))), -1e-3) << "particle inside the mesh";
+      ASSERT_GE(double(box.phi(x, Real(solver.time()))), -1e-3) << "particle inside the mesh";
     }
   }
   EXPECT_GT(ymin_run, 0.5 - 0.02);

@@ -5,7 +5,13 @@
 #include <cmath>
 #include <numeric>
 
+#include <tbb/parallel_for.h>
+
+#include <atomic>
+#include <chrono>
+
 #include "test_util.hpp"
+#include "thread_recorder.hpp"
 
 using namespace amalgam;
 
@@ -82,5 +88,28 @@ TEST(Exec, ParseBackendRejectsUnknownNames) {
   } else {
     EXPECT_THROW(exec::parse_backend("kokkos"), std::invalid_argument);
     EXPECT_THROW(exec::Space(exec::Backend::Kokkos, 1), std::invalid_argument);
+  }
+}
+
+// with_thread_limit bounds library code built on TBB (OpenVDB's tools) to the space's threads: no
+// TBB worker joins under one thread, at most one (the caller being the other) under two. Without
+// the arena, TBB's default arena on a 2-core machine takes a worker for this much work.
+TEST(Exec, ThreadLimitBoundsLibraryThreads) {
+  for (const int threads : {1, 2}) {
+    for (const exec::Backend b : {exec::Backend::Serial, exec::Backend::OpenMP, exec::Backend::TBB}) {
+      const exec::Space space(b, threads);
+      test::WorkerRecorder rec;
+      std::atomic<long> sum{0};
+      exec::with_thread_limit(space, [&] {
+        tbb::parallel_for(0, 2000, [&](int i) {
+          const auto until = std::chrono::steady_clock::now() + std::chrono::microseconds(20);
+          while (std::chrono::steady_clock::now() < until) {
+          }
+          sum += i;
+        });
+      });
+      EXPECT_EQ(sum.load(), 1999L * 2000 / 2);
+      EXPECT_LE(rec.workers(), std::size_t(space.threads() - 1)) << exec::backend_name(b) << " x" << threads;
+    }
   }
 }

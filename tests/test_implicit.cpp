@@ -12,6 +12,7 @@
 #include "core/materials/elastic.hpp"
 #include "core/materials/fluid.hpp"
 #include "io/scene.hpp"
+#include "solvers/factory.hpp"
 #include "kernels/implicit_mpm.hpp"
 #include "solvers/implicit_system.hpp"
 #include "test_util.hpp"

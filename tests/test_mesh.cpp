@@ -2,12 +2,14 @@
 // sampled at a given spacing carries its enclosed volume within 2 % (issue 3).
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 
 #include "core/errors.hpp"
 #include "io/mesh.hpp"
+#include "thread_recorder.hpp"
 
 using namespace amalgam;
 
@@ -56,7 +58,7 @@ TEST(Mesh, CubeInEveryFormat) {
     EXPECT_TRUE(check_mesh(m).watertight()) << name;
     EXPECT_NEAR(enclosed_volume(m), 1.0, 1e-12) << name;
     Real h = Real(0.05);
-    const auto pts = sample_mesh(m, double(h), 0.0, 1);
+    const auto pts = sample_mesh(m, double(h), 0.0, 1, exec::Space());
     EXPECT_NEAR(double(pts.size()) * 0.05 * 0.05 * 0.05, 1.0, 0.02) << name;
   }
   // An open box (one face missing) is reported.
@@ -93,7 +95,7 @@ TEST(Mesh, ArmadilloSampledVolumeWithinTwoPercent) {
   Vec3d lo = m.vertices[0], hi = m.vertices[0];
   for (const auto& v : m.vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
   const double h = (hi - lo).maxCoeff() / 100.0;  // 100 lattice spacings across the largest extent
-  const auto pts = sample_mesh(m, h, 0.5, 7);
+  const auto pts = sample_mesh(m, h, 0.5, 7, exec::Space());
   const double sampled = double(pts.size()) * h * h * h;
   std::printf("armadillo: enclosed volume %.6g, sampled %zu particles x h^3 = %.6g (%.3f %%)\n", V, pts.size(),
               sampled, 100 * (sampled / V - 1));
@@ -105,4 +107,32 @@ TEST(Mesh, ChineseDragonIsReportedNotWatertight) {
   const MeshCheck c = check_mesh(load_mesh(mesh_dir() + "/ChineseDragon-10kv.off"));
   EXPECT_FALSE(c.watertight());
   EXPECT_GT(c.boundary_edges + c.nonmanifold_edges, 0u);
+}
+
+// `--threads 1` means one thread during mesh voxelisation: sample_mesh runs OpenVDB's
+// meshToLevelSet in the exec layer's arena, so no TBB worker joins it under a one-thread space
+// (a sphere of 80 000 triangles voxelised at 1/150 of its size keeps a 2-core machine's worker
+// busy otherwise), and both spaces sample the same points.
+TEST(Mesh, VoxelisationUsesTheSpacesThreadCount) {
+  TriangleMesh m;
+  const int nu = 200, nv = 200;  // UV sphere of radius 0.5
+  for (int j = 0; j <= nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      const double th = M_PI * j / nv, ph = 2 * M_PI * i / nu;
+      m.vertices.emplace_back(0.5 * std::sin(th) * std::cos(ph), 0.5 * std::cos(th), 0.5 * std::sin(th) * std::sin(ph));
+    }
+  auto at = [&](int i, int j) { return std::int32_t(j * nu + (i % nu)); };
+  for (int j = 0; j < nv; ++j)
+    for (int i = 0; i < nu; ++i) {
+      m.triangles.push_back({at(i, j), at(i + 1, j), at(i + 1, j + 1)});
+      m.triangles.push_back({at(i, j), at(i + 1, j + 1), at(i, j + 1)});
+    }
+  std::vector<Vec3> pts[2];
+  for (const int threads : {1, 2}) {
+    test::WorkerRecorder rec;
+    pts[threads - 1] = sample_mesh(m, 1.0 / 150, 0.0, 1, exec::Space(exec::Backend::TBB, threads));
+    EXPECT_LE(rec.workers(), std::size_t(threads - 1)) << threads << " thread(s)";
+  }
+  EXPECT_GT(pts[0].size(), 1000000u);
+  EXPECT_EQ(pts[0], pts[1]);
 }

@@ -9,6 +9,7 @@
 
 #include "core/errors.hpp"
 #include "io/scene.hpp"
+#include "solvers/factory.hpp"
 #include "test_util.hpp"
 
 using namespace amalgam;

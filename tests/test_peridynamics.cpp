@@ -10,6 +10,7 @@
 
 #include "core/errors.hpp"
 #include "io/checkpoint.hpp"
+#include "solvers/pd_simulation.hpp"
 #include "kernels/peridynamics.hpp"
 #include "solvers/pd_solver.hpp"
 #include "test_util.hpp"
@@ -244,7 +245,7 @@ Moduli lattice_moduli(PdDeviatoric dev, bool correction, bool partial_volume) {
 }
 
 // Effective moduli of an interior particle (continuum targets K = 48, C11 = 86.4, C12 = C44 =
-// 28.8 GPa). ../shared/notes/peridynamics-model.md: the paper's analytic constants give K about
+// 28.8 GPa). The paper's analytic constants give K about
 // +10 % off (no volume rule) or -11 % (partial volumes) on this lattice; the correction makes K
 // exact and C44 exact (the three coordinate shears are what it normalises).
 TEST(PdModuli, SurfaceCorrectionMakesBulkAndShearModuliExact) {
@@ -933,6 +934,37 @@ TEST(PdCompaction, TetMeshCracksAndSurfaceAreUnchanged) {
   EXPECT_TRUE(test::bitwise_equal(mr.positions().data(), mc.positions().data(), mr.vertices()));
 }
 
+// A frame's retry (PdSolver::save / restore, what the frame loop uses): after steps that break
+// bonds and compact them, restoring the snapshot brings back the bond layout, the per-bond state,
+// the counters and the clock, and the same steps again give bitwise the same state.
+TEST(PdCompaction, SnapshotRestoresAcrossCompactions) {
+  const exec::Space space(test::parallel_backend(), 2);
+  PdSolver a = pulled_bar(space, Real(0.005)), twin = pulled_bar(space, Real(0.005));
+  const Real dt = a.stable_dt(space);
+  for (int k = 0; k < 10; ++k) a.step(space, dt), twin.step(space, dt);
+  PdSolver::Snapshot snap;
+  a.save(snap);
+  const std::uint64_t compactions = a.diagnostics(space).compactions;
+  const std::size_t stored = a.bonds().size();
+  for (int k = 0; k < 50; ++k) a.step(space, dt);
+  ASSERT_GT(a.diagnostics(space).compactions, compactions);  // the layout changed since save()
+  a.restore(snap);
+  EXPECT_EQ(a.bonds().size(), stored);
+  EXPECT_EQ(a.bonds().neighbor, twin.bonds().neighbor);
+  EXPECT_EQ(a.bonds().intact, twin.bonds().intact);
+  EXPECT_EQ(a.time(), twin.time());
+  EXPECT_EQ(a.step_count(), twin.step_count());
+  for (int k = 0; k < 50; ++k) a.step(space, dt), twin.step(space, dt);
+  expect_same_state(twin, a, "restored and stepped again");
+  EXPECT_EQ(a.bonds().neighbor, twin.bonds().neighbor);
+  EXPECT_EQ(a.bonds().plastic, twin.bonds().plastic);
+  EXPECT_EQ(a.diagnostics(space).compactions, twin.diagnostics(space).compactions);
+  // Restored twice (a second retry of the same frame) is the same.
+  a.restore(snap);
+  for (int k = 0; k < 50; ++k) a.step(space, dt);
+  expect_same_state(twin, a, "restored again");
+}
+
 // A checkpoint of a compacted run stores its bond rows; a fresh solver (full bond list) restricts
 // its bonds to them and continues bitwise like the uninterrupted run (and like one that never
 // compacted). A checkpoint whose rows are not a subset of the scene's bonds is an InputError.
@@ -944,29 +976,31 @@ TEST(PdCompaction, CheckpointOfACompactedRunResumesBitwise) {
   for (int k = 0; k < 50; ++k) a.step(space, dt), never.step(space, dt);
   ASSERT_GT(a.diagnostics(space).compactions, 0u);
   ASSERT_LT(a.bonds().size(), never.bonds().size());
-  write_checkpoint(path, a, 7, 42);
-  PdSolver b = pulled_bar(space, Real(0.005));
-  const CheckpointState st = read_checkpoint(path, b, 42);
+  PdSimulation sim_a(std::move(a), space), sim_b(pulled_bar(space, Real(0.005)), space);
+  write_checkpoint(path, sim_a, 7, 42);
+  const CheckpointState st = read_checkpoint(path, sim_b, 42);
+  PdSolver &a2 = sim_a.solver(), &b = sim_b.solver();
   EXPECT_EQ(st.next_frame, 7);
-  EXPECT_EQ(b.bonds().neighbor, a.bonds().neighbor);
-  EXPECT_EQ(b.bonds().reverse, a.bonds().reverse);
-  EXPECT_EQ(b.bonds().omega, a.bonds().omega);
-  EXPECT_EQ(b.bonds().intact, a.bonds().intact);
-  EXPECT_EQ(b.bonds().plastic, a.bonds().plastic);
-  for (int k = 0; k < 30; ++k) a.step(space, dt), b.step(space, dt), never.step(space, dt);
-  expect_same_state(a, b, "resumed");
+  EXPECT_EQ(b.bonds().neighbor, a2.bonds().neighbor);
+  EXPECT_EQ(b.bonds().reverse, a2.bonds().reverse);
+  EXPECT_EQ(b.bonds().omega, a2.bonds().omega);
+  EXPECT_EQ(b.bonds().intact, a2.bonds().intact);
+  EXPECT_EQ(b.bonds().plastic, a2.bonds().plastic);
+  for (int k = 0; k < 30; ++k) a2.step(space, dt), b.step(space, dt), never.step(space, dt);
+  expect_same_state(a2, b, "resumed");
   expect_same_state(never, b, "resumed vs never compacted");
   // The same lattice with a smaller horizon has fewer bonds per row: not a superset.
   PdSettings s = settings(PdDeviatoric::Paper, true);
   s.contact = true;
   s.horizon = Real(2.2 * kLc);
   PdSolver other(s, {breakable()});
-  other.add_particles(std::vector<Vec3>(a.particles().vec3(a.attributes().x0),
-                                        a.particles().vec3(a.attributes().x0) + a.particles().size()),
+  other.add_particles(std::vector<Vec3>(a2.particles().vec3(a2.attributes().x0),
+                                        a2.particles().vec3(a2.attributes().x0) + a2.particles().size()),
                       Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
   other.initialize(space);
+  PdSimulation sim_other(std::move(other), space);
   try {
-    read_checkpoint(path, other, 42);
+    read_checkpoint(path, sim_other, 42);
     ADD_FAILURE() << "a foreign bond list was accepted";
   } catch (const InputError& e) {
     EXPECT_NE(std::string(e.what()).find("not a subset of this scene's bonds"), std::string::npos) << e.what();

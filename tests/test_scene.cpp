@@ -9,6 +9,7 @@
 #include "io/mesh.hpp"
 #include "io/tetmesh.hpp"
 #include "io/scene.hpp"
+#include "solvers/factory.hpp"
 
 using namespace amalgam;
 

@@ -8,7 +8,10 @@
 #include <filesystem>
 
 #include "io/scene.hpp"
+#include "solvers/mpm_simulation.hpp"
+#include "solvers/factory.hpp"
 #include "io/vdb_points.hpp"
+#include "thread_recorder.hpp"
 
 using namespace amalgam;
 
@@ -25,7 +28,7 @@ TEST(VdbPoints, ReadBackFieldByField) {
   const exec::Space space(exec::Backend::TBB, 2);
   for (int i = 0; i < 5; ++i) solver.step(space, solver.stable_dt(space));  // sorted: index != id
   const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_points.vdb").string();
-  write_vdb_points(path, solver.particles(), solver.attributes(), double(scene.mpm.dx));
+  write_vdb_points(path, mpm_point_fields(solver.particles(), solver.attributes()), double(scene.mpm.dx), exec::Space());
 
   openvdb::initialize();
   openvdb::io::File file(path);
@@ -85,7 +88,7 @@ TEST(VdbGridFields, ReadBackMassAndVelocity) {
   const exec::Space space(exec::Backend::Serial, 1);
   for (int i = 0; i < 3; ++i) solver.step(space, solver.stable_dt(space));
   const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_grid.vdb").string();
-  write_vdb_grid_fields(path, solver.grid(), double(scene.mpm.dx));
+  write_vdb_grid_fields(path, solver.grid(), double(scene.mpm.dx), exec::Space());
   openvdb::initialize();
   openvdb::io::File file(path);
   file.open();
@@ -116,5 +119,32 @@ TEST(VdbGridFields, ReadBackMassAndVelocity) {
     ++checked;
   }
   EXPECT_GT(checked, 0u);
+  std::filesystem::remove(path);
+}
+
+// Writing VDB points obeys the space's thread count: under one thread no TBB worker joins the
+// point-index and point-data construction (nor the grids' destruction); both writes hold the same
+// points.
+TEST(VdbPoints, WritingUsesTheSpacesThreadCount) {
+  const std::size_t n = 400000;
+  std::vector<Vec3> x(n), v(n, Vec3(1, 2, 3));
+  std::vector<std::int32_t> material(n, 0), id(n);
+  for (std::size_t i = 0; i < n; ++i) {
+    x[i] = Vec3(Real(i % 97) * Real(0.01), Real((i / 97) % 89) * Real(0.01), Real(i / (97 * 89)) * Real(0.01));
+    id[i] = std::int32_t(i);
+  }
+  PointFields p;
+  p.n = n;
+  p.x = x.data();
+  p.v = v.data();
+  p.material = material.data();
+  p.id = id.data();
+  p.primary.emplace_back("J", std::vector<float>(n, 1.0f));
+  const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_points_threads.vdb").string();
+  for (const int threads : {1, 2}) {
+    test::WorkerRecorder rec;
+    write_vdb_points(path, p, 0.02, exec::Space(exec::Backend::TBB, threads));
+    EXPECT_LE(rec.workers(), std::size_t(threads - 1)) << threads << " thread(s)";
+  }
   std::filesystem::remove(path);
 }

@@ -26,7 +26,9 @@ std::string kokkos_version();
 struct BackendState {
   Backend backend;
   int threads;
-  std::unique_ptr<tbb::task_arena> arena;  // TBB only: fixes the concurrency to `threads`
+  // Fixes TBB's concurrency to `threads`: the TBB backend's kernels, and library code run through
+  // with_thread_limit on every backend.
+  std::unique_ptr<tbb::task_arena> arena;
 };
 
 void run_chunks(const BackendState& s, Index nchunks, ChunkFn fn, void* ctx) {
@@ -139,7 +141,11 @@ Space::Space(Backend backend, int threads, Profiler* profiler)
   state_ = std::make_shared<detail::BackendState>();
   state_->backend = backend_;
   state_->threads = threads_;
-  if (backend_ == Backend::TBB) state_->arena = std::make_unique<tbb::task_arena>(threads_);
+  state_->arena = std::make_unique<tbb::task_arena>(threads_);
+}
+
+void with_thread_limit(const Space& space, const std::function<void()>& fn) {
+  space.state().arena->execute(fn);
 }
 
 std::string Space::describe() const {

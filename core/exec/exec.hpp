@@ -13,6 +13,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -70,6 +71,12 @@ class Space {
   Profiler* profiler_;
   std::shared_ptr<detail::BackendState> state_;
 };
+
+// Runs `fn` inside a TBB task arena of the space's thread count (one for Serial), so that library
+// code built on TBB that the exec layer does not dispatch itself (OpenVDB's tools: mesh
+// voxelisation, point grids) uses at most `space.threads()` threads: `--threads 1` means one
+// thread there too. Every OpenVDB tool call of the project goes through it.
+void with_thread_limit(const Space& space, const std::function<void()>& fn);
 
 // Chunk size used by parallel_for for n items and a requested grain (0 = automatic). Depends
 // only on n and grain, never on threads.

@@ -1,0 +1,267 @@
+#include "apps/frame_loop.hpp"
+
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <csignal>
+#include <cstdio>
+#include <cstdlib>
+#include <fstream>
+#include <iostream>
+
+#include "apps/commands.hpp"
+#include "core/errors.hpp"
+#include "io/checkpoint.hpp"
+#include "io/preview.hpp"
+#include "io/vdb_points.hpp"
+#include "io/writers.hpp"
+
+namespace amalgam::cli {
+
+namespace {
+
+std::string numbered(const std::string& dir, const char* pattern, int frame, const char* ext) {
+  char name[96];
+  std::snprintf(name, sizeof name, pattern, frame);
+  return dir + "/" + name + "." + ext;
+}
+
+// The float attribute a preview colours by (null: by material).
+const char* preview_attribute(ColorBy c) {
+  switch (c) {
+    case ColorBy::Temperature: return "temperature";
+    case ColorBy::Plastic: return "plastic";
+    case ColorBy::Damage: return "damage";
+    default: return nullptr;
+  }
+}
+
+// The frame files of the simulation's current state.
+class FrameWriter {
+ public:
+  FrameWriter(const Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space)
+      : sim_(sim), scene_(scene), rs_(rs), space_(space), camera_(preview_camera(scene)),
+        splat_(preview_radius(scene)), floor_y_(preview_floor(scene)) {}
+
+  void write(int f) {
+    const OutputSpec& out = scene_.output;
+    const PointFields p = sim_.point_fields();
+    if (rs_.preview) {
+      const char* attr = preview_attribute(scene_.preview.color_by);
+      const std::vector<float>* scalar = attr ? p.find(attr) : nullptr;
+      write_png(numbered(rs_.out_dir, "preview_%04d", f, "png"),
+                render_points(p.n, p.x, p.v, p.material, scalar ? scalar->data() : nullptr, camera_, splat_,
+                              scene_.preview.width, scene_.preview.height, scene_.preview.color_by, floor_y_));
+    }
+    if (out.ply) write_ply_points(numbered(rs_.out_dir, "frame_%04d", f, "ply"), p);
+    if (out.vdb_points) write_vdb_points(numbered(rs_.out_dir, "frame_%04d", f, "vdb"), p, sim_.point_voxel_size(), space_);
+    if (out.grid_volumes && f > 0 && sim_.grid())  // the grid exists once a substep ran
+      write_vdb_grid_fields(numbered(rs_.out_dir, "frame_%04d", f, "grid.vdb"), *sim_.grid(), sim_.point_voxel_size(),
+                            space_);
+    if ((out.surface_obj || out.surface_ply) && sim_.surface(mesh_)) {
+      if (out.surface_obj)
+        write_surface_obj(numbered(rs_.out_dir, sim_.surface_pattern(), f, "obj"), mesh_.vertices, mesh_.triangles,
+                          mesh_.crack);
+      if (out.surface_ply)
+        write_surface_ply(numbered(rs_.out_dir, sim_.surface_pattern(), f, "ply"), mesh_.vertices, mesh_.triangles,
+                          mesh_.crack);
+    }
+  }
+
+ private:
+  const Simulation& sim_;
+  const Scene& scene_;
+  const RunSettings& rs_;
+  const exec::Space& space_;
+  const Camera camera_;
+  const double splat_, floor_y_;
+  SurfaceMesh mesh_;
+};
+
+// The optional per-substep log (Simulation::substep_log_name): rows appended frame by frame; on
+// resume the rows of substeps before the checkpoint are kept.
+class SubstepLog {
+ public:
+  SubstepLog(const Simulation& sim, const Scene& scene, const RunSettings& rs) : sim_(sim) {
+    const std::string name = sim.substep_log_name();
+    if (name.empty() || !scene.output.diagnostics_csv) return;
+    path_ = rs.out_dir + "/" + name;
+    std::string kept = sim.substep_log_header();
+    if (sim.step_count() > 0) {
+      std::ifstream in(path_);
+      std::string line;
+      std::getline(in, line);
+      while (std::getline(in, line)) {
+        const std::size_t comma = line.find(',');
+        if (comma != std::string::npos && std::strtoull(line.c_str() + comma + 1, nullptr, 10) < sim.step_count())
+          kept += line + "\n";
+      }
+    }
+    write_file_atomic(path_, kept);
+  }
+  void add(int frame, Real dt) {
+    if (!path_.empty()) rows_ += sim_.substep_log_row(frame, dt);
+  }
+  void discard() { rows_.clear(); }
+  void flush() {
+    if (rows_.empty()) return;
+    std::ofstream app(path_, std::ios::app);
+    app << rows_;
+    if (!app) throw InputError(path_ + ": cannot append to the per-substep log");
+    rows_.clear();
+  }
+
+ private:
+  const Simulation& sim_;
+  std::string path_, rows_;
+};
+
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+// Profiler seconds so far per profile column of the simulation.
+std::vector<double> profile_seconds(const Simulation& sim, const exec::Profiler& p, std::size_t ncols) {
+  std::vector<double> s(ncols, 0.0);
+  for (const auto& r : p.regions()) {
+    const int c = sim.profile_column(r.label);
+    if (c >= 0 && std::size_t(c) < ncols) s[std::size_t(c)] += r.seconds;
+  }
+  return s;
+}
+
+}  // namespace
+
+int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space,
+               const exec::Profiler& profiler) {
+  const std::string checkpoint_path = rs.out_dir + "/checkpoint.amck";
+  const bool tty = isatty(fileno(stdout));
+  FrameWriter frames(sim, scene, rs, space);
+  if (rs.first_frame == 1) frames.write(0);
+
+  const std::string csv_path = rs.out_dir + "/diagnostics.csv";
+  std::vector<std::string> csv_rows;
+  if (rs.first_frame > 1) csv_rows = earlier_rows(csv_path, rs.first_frame);
+  SubstepLog steps_log(sim, scene, rs);
+  g_signal = 0;
+  std::signal(SIGINT, on_signal);
+  std::signal(SIGTERM, on_signal);
+
+  const Real cfl0 = sim.cfl();
+  const std::vector<std::string> profile_names = sim.profile_columns();
+  const auto t_start = std::chrono::steady_clock::now();
+  const double work0 = sim.work_done();
+  long long total_substeps = 0;
+  std::vector<double> profile_before = profile_seconds(sim, profiler, profile_names.size());
+  double wall_before = 0;
+  for (int f = rs.first_frame; f <= scene.frames; ++f) {
+    const double t_frame_end = double(f) / scene.fps;
+    long long substeps = 0;
+    Real dt = 0;
+    sim.begin_frame();
+    if (rs.max_retries > 0) sim.save_frame_start();
+    for (int attempt = 0;; ++attempt) {
+      try {
+        // Tolerance covers the rounding of dt to Real; it is far below any physical substep.
+        while (sim.time() < t_frame_end - 1e-7 / scene.fps) {
+          // Split what is left of the frame evenly into stable substeps (no sliver at the end).
+          const double remaining = t_frame_end - sim.time();
+          const double n_left = std::ceil(remaining / double(sim.stable_dt(space)));
+          dt = Real(remaining / std::max(1.0, n_left));
+          sim.advance(space, dt);
+          ++substeps;
+          steps_log.add(f, dt);
+          if (g_signal) {  // interrupted: save the exact state mid-frame and stop
+            const int sig = g_signal;
+            write_checkpoint(checkpoint_path, sim, f, scene.fingerprint);
+            steps_log.flush();
+            if (tty && !rs.quiet) std::cout << "\n";
+            std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
+                      << " received: checkpoint written to " << checkpoint_path << " (t = " << sim.time()
+                      << " s, frame " << f << " in progress); continue with --resume " << checkpoint_path << "\n";
+            return 128 + sig;
+          }
+        }
+        // The guard runs on a substep's starting state, so a blow-up in the frame's last substep
+        // would otherwise surface in the next frame, whose retries cannot undo it: check the end
+        // state here, before the frame is written.
+        (void)sim.stable_dt(space);
+        break;
+      } catch (const SimulationError& e) {
+        if (attempt >= rs.max_retries) throw;
+        const Real cfl = cfl0 * Real(std::pow(0.5, attempt + 1));
+        if (tty && !rs.quiet) std::cout << "\n";
+        std::cerr << "amalgam: warning: frame " << f << ": " << e.what() << "\namalgam: retrying frame " << f
+                  << " from its start with cfl = " << cfl << " (retry " << attempt + 1 << " of " << rs.max_retries
+                  << ")\n";
+        sim.restore_frame_start();
+        sim.set_cfl(cfl);
+        steps_log.discard();
+        substeps = 0;
+      }
+    }
+    sim.set_cfl(cfl0);
+    total_substeps += substeps;
+    steps_log.flush();
+    const FrameReport report = sim.end_frame(space, substeps);
+    frames.write(f);
+    const double wall = seconds_since(t_start);
+    for (const std::string& w : report.warnings)
+      std::cerr << (tty && !rs.quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": " << w << "\n";
+
+    // diagnostics.csv: frame, clock, the simulation's columns, wall time split by kernel group.
+    std::vector<Column> cols = {{"frame", double(f), true},
+                                {"time_s", sim.time()},
+                                {"last_dt_s", double(dt)},
+                                {"substeps", double(substeps), true}};
+    cols.insert(cols.end(), report.columns.begin(), report.columns.end());
+    cols.push_back({"wall_s", wall});
+    const std::vector<double> profile_now = profile_seconds(sim, profiler, profile_names.size());
+    double grouped = 0;
+    for (std::size_t k = 0; k < profile_names.size(); ++k) {
+      cols.push_back({profile_names[k], profile_now[k] - profile_before[k]});
+      grouped += profile_now[k] - profile_before[k];
+    }
+    cols.push_back({"other_s", std::max(0.0, (wall - wall_before) - grouped)});
+    cols.push_back({"rss_mb", resident_mb()});
+    profile_before = profile_now;
+    wall_before = wall;
+    csv_rows.push_back(csv_row(cols));
+    if (scene.output.diagnostics_csv) {
+      std::string csv = csv_header(cols);
+      for (const auto& r : csv_rows) csv += r;
+      write_file_atomic(csv_path, csv);
+    }
+    if ((rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames)
+      write_checkpoint(checkpoint_path, sim, f + 1, scene.fingerprint);
+    if (!rs.quiet) {
+      const int done = f - rs.first_frame + 1;
+      const double eta = wall / done * (scene.frames - f);
+      const double rate = (sim.work_done() - work0) / std::max(wall, 1e-9);
+      char line[400];
+      std::snprintf(line, sizeof line,
+                    "frame %d/%d  t=%.4fs  substeps=%lld  dt=%.2e  KE=%.4g J  max|v|=%.3g m/s%s%s  %.2fM %s/s  "
+                    "elapsed %s  ETA %s",
+                    f, scene.frames, sim.time(), substeps, double(dt), report.kinetic, report.max_speed,
+                    report.progress.empty() ? "" : "  ", report.progress.c_str(), rate * 1e-6, sim.work_unit(),
+                    format_seconds(wall).c_str(), format_seconds(eta).c_str());
+      if (tty)
+        std::cout << "\r" << line << "\033[K" << std::flush;
+      else
+        std::cout << line << "\n";
+    }
+  }
+  const double wall = seconds_since(t_start);
+  if (!rs.quiet) {
+    if (tty) std::cout << "\n";
+    std::cout << "amalgam: done: " << scene.frames - rs.first_frame + 1 << " frames, " << total_substeps
+              << " substeps in " << format_seconds(wall) << " (" << wall << " s), "
+              << (sim.work_done() - work0) / wall * 1e-6 << "M " << sim.work_unit() << "/s\n"
+              << "amalgam: per-kernel time:\n"
+              << profiler.report(wall) << sim.run_summary(wall);
+  }
+  return kOk;
+}
+
+}  // namespace amalgam::cli

@@ -1,0 +1,182 @@
+// Scene files, the MPM part: MPM materials, the MPM keys of /simulation (transfer, order,
+// integrator, contact between A-ULMPM objects, particle domains), A-ULMPM's rule that every
+// object or none keeps a configuration map, and heat sources. Other methods' keys are rejected.
+#include <cmath>
+#include <string>
+
+#include "core/errors.hpp"
+#include "io/scene_parts.hpp"
+
+namespace amalgam::scene_detail {
+
+namespace {
+
+// Elastic constants: Young's modulus and Poisson ratio, or the Lame parameters (not both).
+void read_elasticity(JsonObject& o, MaterialParams& m) {
+  if (o.has("lame_mu") || o.has("lame_lambda")) {
+    if (o.has("youngs_modulus")) o.fail("youngs_modulus", "give either youngs_modulus/poisson_ratio or lame_mu/lame_lambda");
+    if (o.has("poisson_ratio")) o.fail("poisson_ratio", "give either youngs_modulus/poisson_ratio or lame_mu/lame_lambda");
+    m.mu = Real(o.required_number("lame_mu", 0, kHuge, true));
+    m.lambda = Real(o.required_number("lame_lambda", 0, kHuge));
+    return;
+  }
+  const double E = o.required_number("youngs_modulus", 0, kHuge, true);
+  const double nu = o.number("poisson_ratio", 0.3, -0.999, 0.499);
+  const Lame l = Lame::from_young_poisson(E, nu);
+  m.mu = l.mu;
+  m.lambda = l.lambda;
+}
+
+MaterialParams read_material(JsonObject o) {
+  MaterialParams m;
+  const std::string model = o.choice("model", "fixed_corotated",
+                                     {"fixed_corotated", "neo_hookean", "stvk_hencky", "snow", "drucker_prager",
+                                      "von_mises", "fluid"});
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
+    if (model == material_model_name(MaterialModel(k))) m.model = MaterialModel(k);
+  m.density = Real(o.required_number("density", 0, kHuge, true));
+  if (m.model == MaterialModel::Fluid) {
+    m.bulk = Real(o.required_number("bulk_modulus", 0, kHuge, true));
+    m.gamma = Real(o.number("gamma", 7, 1, 20));
+    m.viscosity = Real(o.number("viscosity", 0, 0, kHuge));
+  } else {
+    read_elasticity(o, m);
+    m.viscosity = Real(o.number("viscosity", 0, 0, kHuge));  // Kelvin-Voigt damping
+  }
+  if (m.model == MaterialModel::Snow) {
+    m.theta_c = Real(o.number("critical_compression", 2.5e-2, 0, 1, true));
+    if (!(m.theta_c < 1)) o.fail("critical_compression", "must be below 1");
+    m.theta_s = Real(o.number("critical_stretch", 7.5e-3, 0, 10, true));
+    m.hardening = Real(o.number("hardening", 10, 0, 100));
+    m.max_hardening = Real(o.number("max_hardening", 10, 1, 1e4));
+  } else if (m.model == MaterialModel::DruckerPrager) {
+    const double phi = o.number("friction_angle", 30, 0, 80, true) * M_PI / 180.0;
+    const double c = o.number("cohesion", 0, 0, kHuge);
+    m.friction_alpha = Real(DruckerPragerT<double>::friction_alpha(phi));
+    m.apex_trace = Real(DruckerPragerT<double>::apex_trace(m.mu, m.lambda, phi, c));
+    m.volume_correction = o.boolean("volume_correction", true);
+  } else if (m.model == MaterialModel::VonMises) {
+    m.yield_stress = Real(o.required_number("yield_stress", 0, kHuge, true));
+    m.hardening_modulus = Real(o.number("hardening_modulus", 0, 0, kHuge));
+  }
+  if (o.has("melting")) {
+    JsonObject melt = o.object("melting");
+    m.melting = true;
+    m.melting_point = Real(melt.required_number("temperature", 0, kHuge, true));
+    m.liquid_bulk = Real(melt.required_number("bulk_modulus", 0, kHuge, true));
+    m.liquid_viscosity = Real(melt.number("viscosity", 0, 0, kHuge));
+    melt.finish();
+  }
+  o.finish();
+  return m;
+}
+
+// Peridynamic material (model "peridynamic"): elastic constants as bulk/shear modulus or
+// Young's modulus/Poisson ratio; plasticity by yield_stress (or the paper's psi0) and
+// plastic_cap; fracture by critical_stretch and damage_alpha (eq. 18); anisotropy (eq. 16) as
+
+HeatSource read_heat_source(JsonObject o) {
+  HeatSource h;
+  h.region = read_region(o);
+  read_until(o, h.region);
+  h.temperature = Real(o.required_number("temperature", 0, kHuge));
+  h.rate = Real(o.required_number("rate", 0, kHuge, true));
+  o.finish();
+  return h;
+}
+
+}  // namespace
+
+void read_mpm_simulation(JsonObject& sim, Scene& s) {
+  if (sim.has("peridynamics")) sim.fail("peridynamics", "set \"method\": \"peridynamics\" to use these settings");
+  s.mpm.order = int(sim.integer("order", 2, 2, 3));
+  const std::string tr = sim.choice("transfer", "mls", {"mls", "apic", "pic", "flip"});
+  s.mpm.transfer = tr == "mls" ? Transfer::Mls : tr == "apic" ? Transfer::Apic : Transfer::PicFlip;
+  s.mpm.flip_alpha = Real(sim.number("flip_alpha", tr == "pic" ? 0.0 : 0.95, 0, 1));
+  if (tr == "pic" && s.mpm.flip_alpha != 0) sim.fail("flip_alpha", "must be 0 (or absent) with transfer \"pic\"");
+  s.mpm.implicit = sim.choice("integrator", "explicit", {"explicit", "implicit"}) == "implicit";
+  {
+    JsonObject imp = sim.object("implicit");
+    if (imp.has("tolerance") || imp.has("max_iterations") || imp.has("solver") || imp.has("definiteness_fix"))
+      if (!s.mpm.implicit) sim.fail("implicit", "set \"integrator\": \"implicit\" to use these settings");
+    s.mpm.solver.tolerance = imp.number("tolerance", 1e-4, 0, 1, true);
+    s.mpm.solver.max_iterations = int(imp.integer("max_iterations", 200, 1, 100000));
+    s.mpm.solver.method = imp.choice("solver", "cg", {"cg", "minres"}) == "cg" ? KrylovMethod::Cg : KrylovMethod::Minres;
+    s.mpm.solver.definiteness_fix = imp.boolean("definiteness_fix", true);
+    imp.finish();
+  }
+  {
+    JsonObject contact = sim.object("contact");
+    const std::string mode = contact.choice("mode", "stick", {"stick", "separate", "none"});
+    s.mpm.contact.mode = mode == "stick"      ? ObjectContactMode::Stick
+                         : mode == "separate" ? ObjectContactMode::Separate
+                                              : ObjectContactMode::None;
+    s.mpm.contact.friction = Real(contact.number("friction", 0, 0, kHuge));
+    if (contact.has("friction") && mode != "separate")
+      contact.fail("friction", "only with \"mode\": \"separate\" (stick contact has no slip)");
+    contact.finish();
+  }
+  if (sim.has("domains")) {
+    JsonObject d = sim.object("domains");
+    s.mpm.domains.enabled = true;
+    s.mpm.domains.enrichment = d.boolean("enrichment", true);
+    s.mpm.domains.epsilon = Real(d.number("epsilon", 0.6, 0, 1));
+    if (d.has("epsilon") && !s.mpm.domains.enrichment) d.fail("epsilon", "only with \"enrichment\": true");
+    s.mpm.domains.clamp = Real(d.number("inversion_clamp", 0.15, 0, 1, true));
+    s.mpm.domains.elasticity_from = Real(d.number("elasticity_from", 0, 0, kHuge));
+    s.mpm.domains.gauss_quadrature = d.choice("quadrature", "gauss", {"gauss", "one_point"}) == "gauss";
+    d.finish();
+    if (sim.has("transfer") && tr != "flip" && tr != "pic")
+      sim.fail("transfer", "particle domains transfer by PIC/FLIP on linear weights: \"flip\" (flip_alpha, default "
+                           "0.95) or \"pic\"");
+    if (sim.has("order")) sim.fail("order", "particle domains use linear grid weights (enriched MPM eq. 3)");
+  }
+}
+
+void check_mpm_objects(JsonObject& sim, Scene& s) {
+  // A-ULMPM: objects in their own configuration maps do not share reference nodes and touch
+  // through the global-grid contact (simulation/contact), shared-grid objects through their one
+  // grid: mixing the two would leave them passing through each other. (An object that should
+  // behave like plain MPM takes "configuration": {"update": "eulerian"}.)
+  for (std::size_t k = 0; k < s.objects.size(); ++k)
+    if (s.objects[k].has_configuration != s.objects[0].has_configuration) {
+      const std::size_t bad = s.objects[0].has_configuration ? k : 0;
+      throw InputError(s.file + ": /objects/" + std::to_string(bad) +
+                       "/configuration: missing; when one object keeps a configuration map (A-ULMPM), every "
+                       "object must have a \"configuration\" block");
+    }
+  s.mpm.configuration_maps = s.objects[0].has_configuration;
+  if (s.mpm.domains.enabled && s.mpm.configuration_maps)
+    sim.fail("domains", "particle domains cannot be combined with configuration maps (objects' \"configuration\")");
+  if (sim.has("contact") && !s.mpm.configuration_maps)
+    sim.fail("contact", "only for objects with a \"configuration\" block (A-ULMPM); objects on the shared grid "
+                        "already interact through it");
+}
+
+void read_mpm_materials(JsonObject& mats, Scene& s) {
+  for (const auto& name : s.material_names) {
+    JsonObject mo = mats.object(name);
+    if (mo.has("model") && mo.string("model", "") == "peridynamic")
+      mo.fail("model", "\"peridynamic\" needs \"method\": \"peridynamics\" in /simulation");
+    s.materials.push_back(read_material(mats.object(name)));
+    const MaterialParams& m = s.materials.back();
+    if (s.mpm.domains.enabled && (m.model == MaterialModel::Fluid || m.has_plastic_state() || m.viscosity > 0))
+      throw InputError(s.file + ": /materials/" + name +
+                       ": particle domains (/simulation/domains) need an elastic solid (fixed_corotated, "
+                       "neo_hookean or stvk_hencky, no viscosity; it may melt)");
+  }
+}
+
+void read_mpm_sources(JsonObject& top, Scene& s) {
+  if (top.has("boundary_conditions"))
+    top.fail("boundary_conditions", "only for \"method\": \"peridynamics\" (MPM uses colliders)");
+  if (top.has("precracks")) top.fail("precracks", "only for \"method\": \"peridynamics\"");
+  for (auto& h : top.objects("heat_sources")) s.heat_sources.push_back(read_heat_source(h));
+  if (!s.heat_sources.empty()) {
+    bool melts = false;
+    for (const auto& m : s.materials) melts |= m.melting;
+    if (!melts) top.fail("heat_sources", "no material has a \"melting\" block, so heat sources would do nothing");
+  }
+}
+
+}  // namespace amalgam::scene_detail

@@ -1,0 +1,184 @@
+#include "solvers/mpm_simulation.hpp"
+
+#include <algorithm>
+#include <cstdio>
+#include <sstream>
+
+namespace amalgam {
+
+PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a) {
+  PointFields p;
+  p.n = ps.size();
+  p.x = ps.vec3(a.x);
+  p.v = ps.vec3(a.v);
+  p.material = ps.int32(a.material);
+  p.id = ps.int32(a.id);
+  std::vector<float> J(p.n);
+  const Mat3* F = ps.mat3(a.F);
+  for (std::size_t i = 0; i < p.n; ++i) J[i] = float(F[i].determinant());
+  p.primary.emplace_back("J", std::move(J));
+  // Method-specific state, when the scene's materials carry it.
+  for (const auto& [attr, name] : {std::pair<ParticleSet::Id, const char*>{a.plastic, "plastic"},
+                                   std::pair<ParticleSet::Id, const char*>{a.temperature, "temperature"}}) {
+    if (attr < 0) continue;
+    const Real* r = ps.real(attr);
+    p.extra.emplace_back(name, std::vector<float>(r, r + p.n));
+  }
+  // Enriched MPM: the particle's enrichment state (-1 domain disabled, 0 unenriched,
+  // 1 transitional, 2 enriched; enriched MPM Fig. 3), for colour-mapping as in Figs. 6 and 10.
+  const ParticleSet::Id ds = ps.find("domain_state");
+  if (ds >= 0) {
+    const std::int32_t* st = ps.int32(ds);
+    std::vector<float> e(p.n);
+    for (std::size_t i = 0; i < p.n; ++i) e[i] = float(st[i]);
+    p.extra.emplace_back("enrichment", std::move(e));
+  }
+  return p;
+}
+
+MpmSimulation::MpmSimulation(MpmSolver solver) : s_(std::move(solver)) {}
+
+std::string MpmSimulation::describe() const {
+  std::ostringstream os;
+  os << s_.particles().size() << " particles, dx = " << s_.settings().dx << ", transfer "
+     << transfer_name(s_.settings().transfer);
+  return os.str();
+}
+
+void MpmSimulation::save_frame_start() {
+  s_.save(snapshot_);
+  frame_time_ = s_.time();
+  frame_steps_ = s_.step_count();
+}
+
+void MpmSimulation::restore_frame_start() {
+  s_.restore(snapshot_);
+  s_.restore_clock(frame_time_, frame_steps_);
+  begin_frame();
+}
+
+void MpmSimulation::begin_frame() {
+  s_.reset_implicit_counters();
+  s_.domains().reset_counters();
+}
+
+FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substeps) {
+  const MpmDiagnostics d = s_.diagnostics(space);
+  FrameReport r;
+  r.kinetic = d.kinetic;
+  r.max_speed = d.max_speed;
+  const ImplicitCounters& ic = s_.implicit_counters();
+  const DomainCounters& dc = s_.domains().counters();
+  const double enriched = dc.steps ? dc.enriched_fraction_sum / double(dc.steps) : 0.0;
+  const double transitional = dc.steps ? dc.transitional_fraction_sum / double(dc.steps) : 0.0;
+  if (s_.settings().domains.enabled) {
+    enriched_sum_ += enriched;
+    enriched_max_ = std::max(enriched_max_, dc.max_enriched_fraction);
+  }
+  ++frames_;
+  r.columns = {{"kinetic_J", d.kinetic},
+               {"elastic_J", d.elastic},
+               {"momentum_x", d.momentum[0]},
+               {"momentum_y", d.momentum[1]},
+               {"momentum_z", d.momentum[2]},
+               {"max_speed_m_s", d.max_speed},
+               {"particles", double(s_.particles().size()), true},
+               {"leaves", double(s_.grid().leaf_count()), true},
+               {"active_leaves", double(s_.grid().active_leaves().size()), true},
+               {"cg_iterations", double(ic.iterations), true},
+               {"cg_max_iterations", double(ic.max_iterations), true},
+               {"cg_max_residual", ic.max_residual},
+               {"cg_unconverged", double(ic.unconverged), true},
+               {"enriched_fraction", enriched},
+               {"transitional_fraction", transitional},
+               {"max_enriched_fraction", dc.max_enriched_fraction},
+               {"enriched_corners", double(dc.last_enriched_corners), true}};
+  if (s_.settings().implicit) {
+    char cg[64];
+    std::snprintf(cg, sizeof cg, "CG %.1f it/step", double(ic.iterations) / double(std::max(1LL, substeps)));
+    r.progress = cg;
+  }
+  if (ic.unconverged > 0) {
+    std::ostringstream w;
+    w << ic.unconverged << " implicit solve(s) stopped at max_iterations = " << s_.settings().solver.max_iterations
+      << " (worst relative residual " << ic.max_residual
+      << "); raise simulation.implicit.max_iterations or lower max_dt";
+    r.warnings.push_back(w.str());
+  }
+  return r;
+}
+
+std::vector<std::string> MpmSimulation::profile_columns() const {
+  return {"p2g_s", "g2p_s", "sort_s", "grid_s", "solve_s"};
+}
+
+int MpmSimulation::profile_column(const std::string& l) const {
+  auto starts = [&l](const char* p) { return l.rfind(p, 0) == 0; };
+  // Particle domains: particle -> corner -> grid is the P2G side, grid -> corner -> particle (with
+  // the corner collisions and the advection) the G2P side.
+  if (l == "mpm.p2g" || l == "domain.p2c" || l == "domain.points_to_grid" || l == "domain.stress") return 0;
+  if (l == "mpm.g2p" || l == "domain.grid_to_corners" || l == "domain.c2p" || l == "domain.collide_corners" ||
+      starts("domain.advect"))
+    return 1;
+  if (starts("bin.") || l == "particles.permute") return 2;
+  if (starts("grid.") || l == "mpm.grid_clear" || l == "mpm.grid_update") return 3;
+  if (starts("implicit.")) return 4;
+  return -1;
+}
+
+std::string MpmSimulation::substep_log_name() const {
+  return s_.settings().implicit ? "implicit_steps.csv" : "";
+}
+std::string MpmSimulation::substep_log_header() const {
+  return "frame,step,time_s,dt_s,iterations,relative_residual,converged,minres\n";
+}
+std::string MpmSimulation::substep_log_row(int frame, Real dt) const {
+  const SolveStats& ls = s_.last_solve();
+  char row[160];
+  std::snprintf(row, sizeof row, "%d,%llu,%.9g,%.9g,%d,%.4g,%d,%d\n", frame,
+                (unsigned long long)(s_.step_count() - 1), s_.time(), double(dt), ls.iterations, ls.residual,
+                ls.converged ? 1 : 0, ls.used_minres ? 1 : 0);
+  return row;
+}
+
+std::string MpmSimulation::run_summary(double wall) const {
+  std::ostringstream os;
+  // A-ULMPM: configuration resets per object and the time they (and the re-binning they force)
+  // took, against the whole run.
+  const ConfigurationMaps& maps = s_.configuration_maps();
+  for (int k = 0; k < maps.object_count(); ++k) {
+    const ConfigurationStats& st = maps.stats(k);
+    os << "amalgam: object " << k << " (" << configuration_update_name(maps.policy(k).update) << "): " << st.updates
+       << " configuration updates in " << st.steps << " substeps, " << st.update_seconds << " s updating ("
+       << 100.0 * st.update_seconds / wall << " % of the run)\n";
+  }
+  if (s_.settings().domains.enabled)
+    os << "amalgam: particle domains: " << s_.domains().corner_count() << " corners; enriched particles "
+       << 100.0 * enriched_sum_ / double(std::max(1, frames_)) << " % on average over frames, at most "
+       << 100.0 * enriched_max_ << " % in a substep" << (s_.settings().domains.enrichment ? "" : " (enrichment off)")
+       << "\n";
+  if (s_.contact_active())
+    os << "amalgam: contact between objects (" << object_contact_mode_name(s_.settings().contact.mode)
+       << ", friction " << s_.settings().contact.friction << "): " << s_.contact_nodes()
+       << " reference-node velocity corrections, " << s_.contact_seconds() << " s ("
+       << 100.0 * s_.contact_seconds() / wall << " % of the run)\n";
+  return os.str();
+}
+
+bool MpmSimulation::surface(SurfaceMesh& out) const {
+  // Enriched MPM: the meshes embedded in the particle domains, deformed (Sec. 4.1).
+  if (!s_.domains().has_surface()) return false;
+  s_.domains().surface(s_.particles().int32(s_.domain_attributes().corners), out.vertices, out.triangles);
+  out.crack.assign(out.triangles.size(), 0);
+  return true;
+}
+
+// Enriched MPM: the particle-domain corners' positions (the rest of the corner state is rebuilt
+// every substep from the particles).
+std::vector<StateSection> MpmSimulation::checkpoint_sections() {
+  if (!s_.settings().domains.enabled) return {};
+  return {{"domains.corner_x", reinterpret_cast<char*>(s_.domains().corner_positions()),
+           s_.domains().corner_count() * sizeof(Vec3)}};
+}
+
+}  // namespace amalgam

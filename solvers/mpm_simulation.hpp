@@ -1,0 +1,71 @@
+// MPM as a Simulation (solvers/simulation.hpp): every MPM variant (explicit, implicit, A-ULMPM,
+// enriched) behind the one interface the frame loop drives. The step itself is MpmSolver::step()
+// (solvers/mpm_solver.cpp); this class adds what the frame loop needs: frame-start snapshots for
+// retries, diagnostics columns, output fields, checkpoint sections.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "solvers/mpm_solver.hpp"
+#include "solvers/simulation.hpp"
+
+namespace amalgam {
+
+// MPM particles for the frame writers: primary J (= det F); extra plastic and temperature when
+// the scene has them, and enrichment (the domain state) with particle domains.
+PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a);
+
+class MpmSimulation final : public Simulation {
+ public:
+  explicit MpmSimulation(MpmSolver solver);
+  MpmSolver& solver() { return s_; }
+  const MpmSolver& solver() const { return s_; }
+
+  std::string describe() const override;
+  std::size_t particle_count() const override { return s_.particles().size(); }
+  double work_done() const override { return double(s_.particles().size()) * double(s_.step_count()); }
+  const char* work_unit() const override { return "p-steps"; }
+
+  double time() const override { return s_.time(); }
+  std::uint64_t step_count() const override { return s_.step_count(); }
+  Real stable_dt(const exec::Space& space) const override { return s_.stable_dt(space); }
+  void advance(const exec::Space& space, Real dt) override { s_.step(space, dt); }
+  Real cfl() const override { return s_.settings().cfl; }
+  void set_cfl(Real cfl) override { s_.set_cfl(cfl); }
+
+  void save_frame_start() override;
+  void restore_frame_start() override;
+
+  void begin_frame() override;
+  FrameReport end_frame(const exec::Space& space, long long substeps) override;
+  std::vector<std::string> profile_columns() const override;
+  int profile_column(const std::string& label) const override;
+  std::string substep_log_name() const override;
+  std::string substep_log_header() const override;
+  std::string substep_log_row(int frame, Real dt) const override;
+  std::string run_summary(double wall) const override;
+
+  PointFields point_fields() const override { return mpm_point_fields(s_.particles(), s_.attributes()); }
+  double point_voxel_size() const override { return double(s_.settings().dx); }
+  bool surface(SurfaceMesh& out) const override;
+  const char* surface_pattern() const override { return "frame_%04d_surface"; }
+  const SparseGrid* grid() const override { return &s_.grid(); }
+
+  const ParticleSet& particles() const override { return s_.particles(); }
+  ParticleSet& particles() override { return s_.particles(); }
+  std::vector<StateSection> checkpoint_sections() override;
+  void restored(double time, std::uint64_t steps) override { s_.restore_clock(time, steps); }
+
+ private:
+  MpmSolver s_;
+  MpmSolver::Snapshot snapshot_;
+  double frame_time_ = 0;
+  std::uint64_t frame_steps_ = 0;
+  // Particle domains: enriched particle fraction, summed over the frames of this run and its
+  // largest value in one substep.
+  double enriched_sum_ = 0, enriched_max_ = 0;
+  int frames_ = 0;
+};
+
+}  // namespace amalgam

@@ -1,0 +1,152 @@
+#include "solvers/pd_simulation.hpp"
+
+#include <cstdio>
+#include <sstream>
+
+#include "core/errors.hpp"
+
+namespace amalgam {
+
+PdSimulation::PdSimulation(PdSolver solver, const exec::Space& space) : s_(std::move(solver)) {
+  const PdDiagnostics d = s_.diagnostics(space);
+  const std::size_t np = s_.particles().size();
+  std::ostringstream os;
+  os << "peridynamics, " << np << " particles, " << d.bonds << " directed bonds ("
+     << double(d.bonds) / double(std::max<std::size_t>(1, np)) << " per particle), spacing " << s_.settings().spacing
+     << " m, horizon " << s_.settings().horizon << " m, deviatoric " << pd_deviatoric_name(s_.settings().deviatoric)
+     << ", stable dt " << s_.stable_dt(space) << " s";
+  description_ = os.str();
+}
+
+FrameReport PdSimulation::end_frame(const exec::Space& space, long long) {
+  const PdDiagnostics d = s_.diagnostics(space);
+  FrameReport r;
+  r.kinetic = d.kinetic;
+  r.max_speed = d.max_speed;
+  r.columns = {{"kinetic_J", d.kinetic},
+               {"momentum_x", d.momentum[0]},
+               {"momentum_y", d.momentum[1]},
+               {"momentum_z", d.momentum[2]},
+               {"max_speed_m_s", d.max_speed},
+               {"max_damage", d.max_damage},
+               {"bonds", double(d.bonds), true},
+               {"intact_bonds", double(d.intact), true},
+               {"stored_bonds", double(d.stored), true},
+               {"particles", double(s_.particles().size()), true}};
+  char line[64];
+  std::snprintf(line, sizeof line, "broken %.2f%%",
+                100.0 * double(d.bonds - d.intact) / double(std::max<std::uint64_t>(1, d.bonds)));
+  r.progress = line;
+  return r;
+}
+
+// The dilatation (with plasticity), force (with fracture) and contact passes.
+std::vector<std::string> PdSimulation::profile_columns() const { return {"dilatation_s", "force_s", "contact_s"}; }
+int PdSimulation::profile_column(const std::string& l) const {
+  if (l == "pd.dilatation") return 0;
+  if (l.rfind("pd.forces", 0) == 0) return 1;  // with pd.forces_rows
+  if (l.rfind("pd.contact", 0) == 0 || l == "pd.cell_keys") return 2;
+  return -1;
+}
+
+std::string PdSimulation::run_summary(double) const {
+  std::ostringstream os;
+  os << "amalgam: bonds: " << s_.bonds().size() << " directed bonds stored at the end, "
+     << s_.diagnostics(exec::Space()).compactions << " compactions\n";
+  return os.str();
+}
+
+PointFields PdSimulation::point_fields() const {
+  const ParticleSet& ps = s_.particles();
+  const PdAttributes& a = s_.attributes();
+  PointFields p;
+  p.n = ps.size();
+  p.x = ps.vec3(a.x);
+  p.v = ps.vec3(a.v);
+  p.material = ps.int32(a.material);
+  p.id = ps.int32(a.id);
+  const Real* d = ps.real(a.damage);
+  const Real* t = ps.real(a.theta);
+  p.primary.emplace_back("damage", std::vector<float>(d, d + p.n));
+  p.extra.emplace_back("theta", std::vector<float>(t, t + p.n));
+  return p;
+}
+
+bool PdSimulation::surface(SurfaceMesh& out) const {
+  if (s_.crack_meshes().empty()) return false;
+  out = SurfaceMesh();
+  std::vector<Vec3> verts;
+  std::vector<std::array<std::uint32_t, 3>> tris;
+  std::vector<std::uint8_t> crack;
+  for (const PdCrackMesh& m : s_.crack_meshes()) {  // one surface file for all meshes
+    m.surface(verts, tris, crack);
+    const auto base = std::uint32_t(out.vertices.size());
+    out.vertices.insert(out.vertices.end(), verts.begin(), verts.end());
+    for (auto t : tris) out.triangles.push_back({t[0] + base, t[1] + base, t[2] + base});
+    out.crack.insert(out.crack.end(), crack.begin(), crack.end());
+  }
+  return true;
+}
+
+namespace {
+// The embedded meshes' state arrays (vertex positions, split tetrahedra, crack faces).
+void add_mesh_sections(PdSolver& s, std::vector<StateSection>& out) {
+  for (std::size_t k = 0; k < s.crack_meshes().size(); ++k)
+    for (const auto& a : s.crack_meshes()[k].state())
+      out.push_back({"crack_mesh" + std::to_string(k) + "." + a.name, a.data, a.bytes});
+}
+// Where a variable-size section of T goes: `v` resized to the file's bytes (a whole number of T).
+template <class T>
+std::function<char*(std::uint64_t)> resize_into(std::vector<T>& v, const char* name) {
+  return [&v, name](std::uint64_t bytes) {
+    if (bytes % sizeof(T) != 0)
+      throw InputError(std::string("checkpoint section '") + name + "' has " + std::to_string(bytes) +
+                       " bytes, not a whole number of entries (corrupt file)");
+    v.resize(std::size_t(bytes / sizeof(T)));
+    return reinterpret_cast<char*>(v.data());
+  };
+}
+}  // namespace
+
+// The bond layout (rows may have been compacted) and the per-bond state, then the embedded
+// meshes; the per-bond constants are rebuilt from the reference positions on restore.
+std::vector<StateSection> PdSimulation::checkpoint_sections() {
+  PdBonds& m = s_.bonds();
+  std::vector<StateSection> out = {
+      {"bonds.offsets", reinterpret_cast<char*>(m.offsets.data()), m.offsets.size() * sizeof(std::uint64_t)},
+      {"bonds.neighbor", reinterpret_cast<char*>(m.neighbor.data()), m.neighbor.size() * sizeof(std::uint32_t)},
+      {"bonds.plastic", reinterpret_cast<char*>(m.plastic.data()), m.plastic.size() * sizeof(Real)},
+      {"bonds.intact", reinterpret_cast<char*>(m.intact.data()), m.intact.size()}};
+  add_mesh_sections(s_, out);
+  return out;
+}
+
+std::vector<StateSection> PdSimulation::restore_sections() {
+  offsets_.assign(s_.bonds().offsets.size(), 0);
+  const std::size_t nb = s_.bonds().size();
+  std::vector<StateSection> out = {
+      {"bonds.offsets", reinterpret_cast<char*>(offsets_.data()), offsets_.size() * sizeof(std::uint64_t)},
+      {"bonds.neighbor", nullptr, nb * sizeof(std::uint32_t), resize_into(neighbor_, "bonds.neighbor")},
+      {"bonds.plastic", nullptr, nb * sizeof(Real), resize_into(plastic_, "bonds.plastic")},
+      {"bonds.intact", nullptr, nb, resize_into(intact_, "bonds.intact")}};
+  add_mesh_sections(s_, out);
+  return out;
+}
+
+void PdSimulation::restored(double time, std::uint64_t steps) {
+  if (plastic_.size() != neighbor_.size() || intact_.size() != neighbor_.size())
+    throw InputError("checkpoint's bond sections disagree in length (" + std::to_string(neighbor_.size()) +
+                     " neighbours, " + std::to_string(plastic_.size()) + " plastic extensions, " +
+                     std::to_string(intact_.size()) + " flags)");
+  if (!s_.restore_bonds(offsets_, neighbor_, plastic_, intact_))
+    throw InputError("checkpoint's bond list is not a subset of this scene's bonds (written for other "
+                     "particles or another horizon?)");
+  for (PdCrackMesh& m : s_.crack_meshes()) m.restored();
+  s_.restore_clock(time, steps);
+  offsets_ = {};
+  neighbor_ = {};
+  plastic_ = {};
+  intact_ = {};
+}
+
+}  // namespace amalgam

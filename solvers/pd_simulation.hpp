@@ -1,0 +1,64 @@
+// Peridynamics as a Simulation (solvers/simulation.hpp). The step itself is PdSolver::step()
+// (solvers/pd_solver.cpp); this class adds what the frame loop needs: frame-start snapshots for
+// retries, diagnostics columns, output fields (damage, dilatation, crack surfaces), checkpoint
+// sections (the bond rows left after compaction, per-bond state, crack meshes).
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "solvers/pd_solver.hpp"
+#include "solvers/simulation.hpp"
+
+namespace amalgam {
+
+class PdSimulation final : public Simulation {
+ public:
+  // `solver` initialised (PdSolver::initialize); `space` computes the figures of describe().
+  PdSimulation(PdSolver solver, const exec::Space& space);
+  PdSolver& solver() { return s_; }
+  const PdSolver& solver() const { return s_; }
+
+  std::string describe() const override { return description_; }
+  std::size_t particle_count() const override { return s_.particles().size(); }
+  double work_done() const override { return double(s_.bond_updates()); }
+  const char* work_unit() const override { return "bond-updates"; }
+
+  double time() const override { return s_.time(); }
+  std::uint64_t step_count() const override { return s_.step_count(); }
+  Real stable_dt(const exec::Space& space) const override { return s_.stable_dt(space); }
+  void advance(const exec::Space& space, Real dt) override { s_.step(space, dt); }
+  Real cfl() const override { return s_.settings().cfl; }
+  void set_cfl(Real cfl) override { s_.set_cfl(cfl); }
+
+  void save_frame_start() override { s_.save(snapshot_); }
+  void restore_frame_start() override { s_.restore(snapshot_); }
+
+  FrameReport end_frame(const exec::Space& space, long long substeps) override;
+  std::vector<std::string> profile_columns() const override;
+  int profile_column(const std::string& label) const override;
+  std::string run_summary(double wall) const override;
+
+  PointFields point_fields() const override;
+  double point_voxel_size() const override { return double(s_.settings().spacing); }
+  bool surface(SurfaceMesh& out) const override;
+  const char* surface_pattern() const override { return "surface_%04d"; }
+
+  const ParticleSet& particles() const override { return s_.particles(); }
+  ParticleSet& particles() override { return s_.particles(); }
+  std::vector<StateSection> checkpoint_sections() override;
+  std::vector<StateSection> restore_sections() override;
+  void restored(double time, std::uint64_t steps) override;
+
+ private:
+  PdSolver s_;
+  PdSolver::Snapshot snapshot_;
+  std::string description_;
+  // What restore_sections reads into, applied by restored().
+  std::vector<std::uint64_t> offsets_;
+  std::vector<std::uint32_t> neighbor_;
+  std::vector<Real> plastic_;
+  std::vector<std::uint8_t> intact_;
+};
+
+}  // namespace amalgam

@@ -1,0 +1,117 @@
+// The seam between a method that advances state and the runner that drives frames, output,
+// checkpoints and retries (apps/frame_loop.cpp). Every method (explicit, implicit, A-ULMPM and
+// enriched MPM; peridynamics) implements it once; the frame loop knows nothing of any method.
+// docs/architecture.md shows where each method's step lives.
+//
+// What the frame loop does with it, per frame:
+//   begin_frame; save_frame_start (for retries); while the frame lasts: stable_dt (also the
+//   stability guard, which throws SimulationError), advance; stable_dt on the end state;
+//   end_frame (diagnostics row, progress figures); point_fields / surface / grid for output;
+//   checkpoint_sections for checkpoints.
+// On a SimulationError inside a frame: restore_frame_start, set_cfl(cfl / 2), and again.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "core/exec/exec.hpp"
+#include "core/math/types.hpp"
+#include "core/particles/particle_set.hpp"
+#include "core/particles/point_fields.hpp"
+
+namespace amalgam {
+
+class SparseGrid;
+
+// A named block of state after the particle attributes in a checkpoint (io/checkpoint.hpp). A
+// section whose size is part of the state (peridynamic bonds left after compaction) has `resize`:
+// the reader calls it with the size found in the file, and it checks that size and returns where
+// to read to.
+struct StateSection {
+  std::string name;
+  char* data = nullptr;
+  std::size_t bytes = 0;
+  std::function<char*(std::uint64_t)> resize = nullptr;
+};
+
+// One value of a frame's diagnostics row (a diagnostics.csv column).
+struct Column {
+  std::string name;
+  double value = 0;
+  bool integer = false;  // printed as a whole number
+};
+
+// What a simulation reports at the end of a frame.
+struct FrameReport {
+  std::vector<Column> columns;      // its diagnostics.csv columns, the same names every frame
+  double kinetic = 0, max_speed = 0;  // for the progress line
+  std::string progress;             // method figures for the progress line ("CG 4.2 it/step")
+  std::vector<std::string> warnings;  // printed after the frame ("2 implicit solves stopped ...")
+};
+
+class Simulation {
+ public:
+  virtual ~Simulation() = default;
+
+  // --- What it is.
+  // One line for the start of a run: method, particles and the method's key settings.
+  virtual std::string describe() const = 0;
+  virtual std::size_t particle_count() const = 0;
+  // Work done since the start of the run in the unit of the throughput figure (particle-substeps
+  // for MPM, directed bond-updates for peridynamics), and that unit's short name.
+  virtual double work_done() const = 0;
+  virtual const char* work_unit() const = 0;
+
+  // --- Clock and stepping.
+  virtual double time() const = 0;
+  virtual std::uint64_t step_count() const = 0;
+  // Largest stable substep. Also the stability guard: throws SimulationError naming the step,
+  // particle and quantity when the state is not finite or a speed is above the limit.
+  virtual Real stable_dt(const exec::Space& space) const = 0;
+  // One substep of length dt: the method's named phases (its step()).
+  virtual void advance(const exec::Space& space, Real dt) = 0;
+  virtual Real cfl() const = 0;
+  virtual void set_cfl(Real cfl) = 0;
+
+  // --- Retries. The state at the start of the frame, and back to it (clock included).
+  virtual void save_frame_start() = 0;
+  virtual void restore_frame_start() = 0;
+
+  // --- Per-frame bookkeeping and diagnostics.
+  virtual void begin_frame() {}
+  virtual FrameReport end_frame(const exec::Space& space, long long substeps) = 0;
+  // Profiler regions grouped into diagnostics columns ("p2g_s"): the column names, and the
+  // column of a region label (-1: counted as other).
+  virtual std::vector<std::string> profile_columns() const = 0;
+  virtual int profile_column(const std::string& label) const = 0;
+  // Optional per-substep log (implicit solver statistics): file name, header, and the row of the
+  // substep just taken; empty name = none.
+  virtual std::string substep_log_name() const { return ""; }
+  virtual std::string substep_log_header() const { return ""; }
+  virtual std::string substep_log_row(int frame, Real dt) const { return ""; }
+  // Lines printed at the end of a run (wall: seconds the run took).
+  virtual std::string run_summary(double wall) const { return ""; }
+
+  // --- Output.
+  virtual PointFields point_fields() const = 0;
+  virtual double point_voxel_size() const = 0;  // the VDB point grid's voxel (dx, or the spacing)
+  // A surface mesh written per frame (false: none), and its file name pattern without extension
+  // (printf with the frame number).
+  virtual bool surface(SurfaceMesh& out) const { return false; }
+  virtual const char* surface_pattern() const { return "surface_%04d"; }
+  // The background grid of the last substep (grid volumes), when the method has one.
+  virtual const SparseGrid* grid() const { return nullptr; }
+
+  // --- Checkpoints (io/checkpoint.hpp): the particles, the sections after them, and a hook
+  // called once the particles and sections were read, with the clock (throws InputError without
+  // the file name when what was read is inconsistent).
+  virtual const ParticleSet& particles() const = 0;
+  virtual ParticleSet& particles() = 0;
+  virtual std::vector<StateSection> checkpoint_sections() = 0;
+  virtual std::vector<StateSection> restore_sections() { return checkpoint_sections(); }
+  virtual void restored(double time, std::uint64_t steps) = 0;
+};
+
+}  // namespace amalgam
