@@ -8,7 +8,8 @@
 #include "apps/commands.hpp"
 #include "core/exec/exec.hpp"
 #include "core/errors.hpp"
-#include "io/bench_scene.hpp"
+#include "solvers/bench_scene.hpp"
+#include "solvers/mpm_implicit.hpp"
 
 namespace amalgam::cli {
 
@@ -74,7 +75,7 @@ int implicit_bench(BenchSceneOptions so, int steps, int reps, const std::vector<
         MpmSolver solver = make_bench_sphere(so);
         exec::Space warm(backend, t);
         for (int s = 0; s < 2; ++s) solver.step(warm, dt);
-        solver.reset_implicit_counters();
+        solver.implicit()->reset_counters();
         exec::Profiler run_prof;
         exec::Space space(backend, t, &run_prof);
         const auto t0 = std::chrono::steady_clock::now();
@@ -83,7 +84,7 @@ int implicit_bench(BenchSceneOptions so, int steps, int reps, const std::vector<
         rate.push_back(double(so.particles) * steps / sec);
         if (r == reps / 2) {
           prof = run_prof;
-          const ImplicitCounters& c = solver.implicit_counters();
+          const ImplicitCounters& c = solver.implicit()->counters();
           mean_it = double(c.iterations) / double(c.solves);
           max_it = c.max_iterations;
           applications = c.iterations + c.solves;  // + the initial residual

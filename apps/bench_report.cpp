@@ -1,4 +1,4 @@
-// `amalgam bench --report DIR`: the standard cases (io/bench_suite) on every backend and thread
+// `amalgam bench --report DIR`: the standard cases (solvers/bench_suite) on every backend and thread
 // count, with warm-up and interleaved repetitions; writes DIR/results.csv, DIR/kernels.csv,
 // DIR/report.md and the plots DIR/scaling.png and DIR/breakdown.png (docs/bench_report/).
 #include <algorithm>
@@ -18,7 +18,7 @@
 #include "core/errors.hpp"
 #include "core/exec/exec.hpp"
 #include "core/math/types.hpp"
-#include "io/bench_suite.hpp"
+#include "solvers/bench_suite.hpp"
 #include "io/plot.hpp"
 
 namespace amalgam::cli {

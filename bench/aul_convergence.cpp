@@ -27,6 +27,9 @@
 #include "io/preview.hpp"
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
+#include "solvers/mpm_aul.hpp"
+#include "solvers/mpm_enriched.hpp"
+#include "solvers/mpm_implicit.hpp"
 
 using namespace amalgam;
 
@@ -104,7 +107,7 @@ Result run(const Variant& var, double dx, double dt, double t_end, const exec::S
   r.dx = dx;
   r.disp = std::sqrt(eu / double(ps.size())) / kA;
   r.vel = std::sqrt(ev / double(ps.size())) / (kA * w);
-  r.resets = s.configuration_maps().stats(0).updates;
+  r.resets = s.aul()->maps().stats(0).updates;
   return r;
 }
 

@@ -29,6 +29,9 @@
 #include "core/math/shape_matching.hpp"
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
+#include "solvers/mpm_aul.hpp"
+#include "solvers/mpm_enriched.hpp"
+#include "solvers/mpm_implicit.hpp"
 
 using namespace amalgam;
 
@@ -75,9 +78,9 @@ Row run(const std::string& name, const std::string& variant, const exec::Space& 
       const double stop = !measured && release > s.time() ? release : t_end;
       s.step(space, std::min(s.stable_dt(space), Real(stop - s.time()) + Real(1e-9)));
       ++r.substeps;
-      r.iterations += std::uint64_t(s.last_solve().iterations);
+      r.iterations += std::uint64_t(s.implicit()->last_solve().iterations);
       if (sc.mpm.domains.enabled) {
-        const EnrichmentCounts& c = s.domains().last_counts();
+        const EnrichmentCounts& c = s.enriched()->domains().last_counts();
         r.max_enriched = std::max(r.max_enriched, double(c.enriched) / double(r.particles));
       }
       if (!measured && s.time() >= release - 1e-9) {

@@ -2,7 +2,7 @@
 // count. Arguments of every transfer benchmark: {backend (0 serial, 1 openmp, 2 tbb, 4 kokkos),
 // threads}.
 // Items are particles (or grid nodes for the grid update); items/s is the throughput.
-// Scene: the standard sphere (io/bench_scene) with 2^18 particles at dx chosen for the same
+// Scene: the standard sphere (solvers/bench_scene) with 2^18 particles at dx chosen for the same
 // ~4.2 particles per cell as the 1e6 benchmark.
 #include <benchmark/benchmark.h>
 
@@ -13,10 +13,14 @@
 
 #include "core/materials/material.hpp"
 #include "core/math/svd3.hpp"
-#include "io/bench_scene.hpp"
+#include "solvers/bench_scene.hpp"
+#include "solvers/pd_bench_block.hpp"
 #include "kernels/implicit_mpm.hpp"
 #include "kernels/particle_domains.hpp"
 #include "solvers/pd_solver.hpp"
+#include "solvers/mpm_aul.hpp"
+#include "solvers/mpm_enriched.hpp"
+#include "solvers/mpm_implicit.hpp"
 
 using namespace amalgam;
 
@@ -54,7 +58,7 @@ std::unique_ptr<MpmSolver> prepared(
   auto s = std::make_unique<MpmSolver>(make_bench_sphere(o));
   s->step(space, Real(1e-4));
   if (lagrangian) {
-    s->update_configurations(space);
+    s->aul()->update_configurations(space, *s);
   } else {
     s->sort_particles(space);
     s->update_grid(space);
@@ -120,7 +124,7 @@ void BM_AulGridUpdate(benchmark::State& st) {
 void BM_AulConfigurationCheck(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared(Transfer::Mls, 2, space, true, ConfigurationUpdate::Adaptive);
-  for (auto _ : st) s->update_configurations(space);
+  for (auto _ : st) s->aul()->update_configurations(space, *s);
   set_items(st, kParticles, sizeof(Mat3));
 }
 
@@ -131,8 +135,8 @@ void BM_AulConfigurationCheck(benchmark::State& st) {
 void BM_ObjectContact(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared(Transfer::Mls, 2, space, true, ConfigurationUpdate::TotalLagrangian, 2);
-  for (auto _ : st) s->couple_objects(space, Real(1e-4));
-  st.counters["contact_points"] = double(s->contact_point_count());
+  for (auto _ : st) s->aul()->couple_objects(space, *s, Real(1e-4));
+  st.counters["contact_points"] = double(s->aul()->contact_point_count());
   set_items(st, kParticles, 2 * sizeof(Vec3) + sizeof(Real));  // x, v, m of each particle read
 }
 
@@ -152,25 +156,25 @@ std::unique_ptr<MpmSolver> prepared_domains(const exec::Space& space, bool impli
 void BM_DomainParticlesToCorners(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared_domains(space);
-  const DomainParticleView pv = s->domain_particle_view();
-  const DomainParams prm = s->domain_params(Real(1e-4));
+  const DomainParticleView pv = s->enriched()->particle_view(*s);
+  const DomainParams prm = s->enriched()->params(*s, Real(1e-4));
   for (auto _ : st) {
-    s->domains().stresses_and_enrichment(space, pv, prm, false, true);
-    s->domains().particles_to_corners(space, pv);
+    s->enriched()->domains().stresses_and_enrichment(space, pv, prm, false, true);
+    s->enriched()->domains().particles_to_corners(space, pv);
   }
-  st.counters["corners"] = double(s->domains().corner_count());
+  st.counters["corners"] = double(s->enriched()->domains().corner_count());
   set_items(st, pv.n, 2 * sizeof(Mat3) + 2 * sizeof(Real) + 8 * 4 + sizeof(Vec3) + 4);  // F, P, m, V0, corners, h, state
 }
 // Grid -> corner gather with corner collisions, then corner -> particle (v, F) and advection.
 void BM_DomainGridToParticles(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared_domains(space);
-  const DomainParticleView pv = s->domain_particle_view();
-  const DomainParams prm = s->domain_params(Real(0));  // dt 0: positions stay, state repeatable
+  const DomainParticleView pv = s->enriched()->particle_view(*s);
+  const DomainParams prm = s->enriched()->params(*s, Real(0));  // dt 0: positions stay, state repeatable
   const MpmGridView g = s->grid_view();
   for (auto _ : st) {
-    s->domains().grid_to_corners(space, g, pv, prm);
-    s->domains().corners_to_particles(space, pv, prm);
+    s->enriched()->domains().grid_to_corners(space, g, pv, prm);
+    s->enriched()->domains().corners_to_particles(space, pv, prm);
   }
   set_items(st, pv.n, 8 * 4 + 2 * sizeof(Mat3) + 4 * sizeof(Vec3));  // corners; F r/w; v, x; corner v, x
 }
@@ -178,24 +182,24 @@ void BM_DomainGridToParticles(benchmark::State& st) {
 void BM_DomainStep(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared_domains(space);
-  for (auto _ : st) s->step_domains(space, Real(1e-5));
+  for (auto _ : st) s->enriched()->step(space, *s, Real(1e-5));
   set_items(st, s->particles().size(), s->particles().bytes_per_particle());  // resident particle state
 }
 // The implicit operator's domain term: grid -> corners -> dF -> dP -> corners -> grid.
 void BM_DomainHessianAction(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared_domains(space, true);
-  const DomainParticleView pv = s->domain_particle_view();
-  const DomainParams prm = s->domain_params(Real(1e-4));
-  s->domains().stresses_and_enrichment(space, pv, prm, true, true);
-  s->domains().particles_to_corners(space, pv);
-  s->domains().number_enriched_dofs(space);
+  const DomainParticleView pv = s->enriched()->particle_view(*s);
+  const DomainParams prm = s->enriched()->params(*s, Real(1e-4));
+  s->enriched()->domains().stresses_and_enrichment(space, pv, prm, true, true);
+  s->enriched()->domains().particles_to_corners(space, pv);
+  s->enriched()->domains().number_enriched_dofs(space);
   const MpmGridView g = s->grid_view();
   const std::size_t ngrid = s->grid().leaf_count() * kLeafNodes * 4;
-  const std::size_t ncorner = 4 * s->domains().enriched_dof_count() + 4;
+  const std::size_t ncorner = 4 * s->enriched()->domains().enriched_dof_count() + 4;
   std::vector<Real> du(ngrid, Real(1e-3)), out(ngrid), duc(ncorner, Real(1e-3)), outc(ncorner);
   for (auto _ : st)
-    s->domains().hessian_action(space, pv, g, s->settings().dx, du.data(), duc.data(), 1,
+    s->enriched()->domains().hessian_action(space, pv, g, s->settings().dx, du.data(), duc.data(), 1,
                                 out.data(), outc.data());
   set_items(st, pv.n, 8 * 4 + sizeof(DomainHessian));  // corner ids + the Hessian cache
 }
@@ -241,8 +245,8 @@ ImplicitRig implicit_rig(const exec::Space& space) {
   r.s->update_grid(space);
   r.s->particle_to_grid(space, r.dt);
   r.s->update_grid_velocities(space, r.dt);
-  r.s->assemble_implicit(space, r.dt);
-  const ImplicitSystem& sys = r.s->implicit_system();
+  r.s->implicit()->assemble(space, *r.s, r.dt);
+  const ImplicitSystem& sys = r.s->implicit()->system();
   for (const auto& b : sys.blocks())
     for (std::uint64_t d = b.first; d < b.first + b.count; ++d)
       r.dofs += r.s->grid().node4(0)[d * 4] > 0;
@@ -253,7 +257,7 @@ ImplicitRig implicit_rig(const exec::Space& space) {
 void BM_ImplicitOperator(benchmark::State& st) {
   const exec::Space space = space_of(st);
   ImplicitRig r = implicit_rig(space);
-  ImplicitSystem& sys = r.s->implicit_system();
+  ImplicitSystem& sys = r.s->implicit()->system();
   std::vector<Real> out(sys.dof_count() * 4);
   for (auto _ : st) sys.apply(space, r.dt, sys.rhs(), out.data());
   set_items(st, kParticles, sizeof(ParticleHessian) + sizeof(Vec3) + sizeof(Real));  // cache, x, V0
@@ -266,7 +270,7 @@ void BM_ImplicitOperator(benchmark::State& st) {
 void BM_CgIteration(benchmark::State& st) {
   const exec::Space space = space_of(st);
   ImplicitRig r = implicit_rig(space);
-  ImplicitSystem& sys = r.s->implicit_system();
+  ImplicitSystem& sys = r.s->implicit()->system();
   ImplicitSettings cfg;
   cfg.tolerance = 0;  // never converged: exactly max_iterations
   cfg.max_iterations = 10;
@@ -292,8 +296,8 @@ void BM_ImplicitAssemble(benchmark::State& st) {
   const exec::Space space = space_of(st);
   ImplicitRig r = implicit_rig(space);
   for (auto _ : st) {
-    r.s->assemble_implicit(space, r.dt);
-    r.s->implicit_system().prepare(space, r.dt);
+    r.s->implicit()->assemble(space, *r.s, r.dt);
+    r.s->implicit()->system().prepare(space, r.dt);
   }
   set_items(st, kParticles, sizeof(ParticleHessian) + sizeof(Mat3) + sizeof(Vec3));  // cache written, F, x
 }

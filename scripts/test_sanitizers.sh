@@ -21,5 +21,5 @@ AMALGAM_BUILD_DIR="${AMALGAM_ASAN_DIR:-$root/build-asan}" "$root/scripts/build.s
   -DAMALGAM_SANITIZE=address,undefined -DAMALGAM_BUILD_BENCH=OFF
 cd "${AMALGAM_ASAN_DIR:-$root/build-asan}"
 AMALGAM_TEST_BACKENDS="${AMALGAM_TEST_BACKENDS:-serial,openmp}" \
-ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
+LSAN_OPTIONS="suppressions=$root/tests/lsan.supp" ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
   ctest --output-on-failure -j2 -E "AxialBar|MaterialValidation|default_scene|restart_after_sigint|ImplicitPhysics|PdDynamics|AulMpm.Spinning|AulMpm.FastSpinning|AulMpm.Stretched|AulMpm.Twisted|AulMpm.SemiImplicitLagrangian|ObjectContact.HeadOn|ObjectContact.Sliding|PdValidation|PdModuli|pd_tet_mesh_restart|implicit_scene_reports_cg|PdForms.HomogeneousDeformation|PdPlasticity.HydrostaticLoad|ParticleDomains.TwistCompress|ParticleDomains.StretchedBar|ParticleDomains.ImplicitMatches" "$@"

@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "core/errors.hpp"
+#include "solvers/mpm_enriched.hpp"
 #include "solvers/mpm_simulation.hpp"
 #include "solvers/pd_simulation.hpp"
 
@@ -35,9 +36,9 @@ MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
     if (scene.mpm.domains.enabled) {
       const Real h = Real(double(scene.mpm.dx) / std::cbrt(double(obj.particles_per_cell)));
       if (obj.mesh)  // the mesh is embedded in the domains and written deformed every frame (Sec. 4.1)
-        solver.add_particle_domains(first, h, &obj.mesh->vertices, &obj.mesh->triangles);
+        solver.enriched()->add_object(solver, first, h, &obj.mesh->vertices, &obj.mesh->triangles);
       else
-        solver.add_particle_domains(first, h);
+        solver.enriched()->add_object(solver, first, h);
     }
   }
   return solver;

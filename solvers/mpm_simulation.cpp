@@ -4,6 +4,10 @@
 #include <cstdio>
 #include <sstream>
 
+#include "solvers/mpm_aul.hpp"
+#include "solvers/mpm_enriched.hpp"
+#include "solvers/mpm_implicit.hpp"
+
 namespace amalgam {
 
 PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a) {
@@ -58,8 +62,8 @@ void MpmSimulation::restore_frame_start() {
 }
 
 void MpmSimulation::begin_frame() {
-  s_.reset_implicit_counters();
-  s_.domains().reset_counters();
+  if (s_.implicit()) s_.implicit()->reset_counters();
+  if (s_.enriched()) s_.enriched()->domains().reset_counters();
 }
 
 FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substeps) {
@@ -67,11 +71,11 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
   FrameReport r;
   r.kinetic = d.kinetic;
   r.max_speed = d.max_speed;
-  const ImplicitCounters& ic = s_.implicit_counters();
-  const DomainCounters& dc = s_.domains().counters();
+  const ImplicitCounters ic = s_.implicit() ? s_.implicit()->counters() : ImplicitCounters();
+  const DomainCounters dc = s_.enriched() ? s_.enriched()->domains().counters() : DomainCounters();
   const double enriched = dc.steps ? dc.enriched_fraction_sum / double(dc.steps) : 0.0;
   const double transitional = dc.steps ? dc.transitional_fraction_sum / double(dc.steps) : 0.0;
-  if (s_.settings().domains.enabled) {
+  if (s_.enriched()) {
     enriched_sum_ += enriched;
     enriched_max_ = std::max(enriched_max_, dc.max_enriched_fraction);
   }
@@ -133,7 +137,7 @@ std::string MpmSimulation::substep_log_header() const {
   return "frame,step,time_s,dt_s,iterations,relative_residual,converged,minres\n";
 }
 std::string MpmSimulation::substep_log_row(int frame, Real dt) const {
-  const SolveStats& ls = s_.last_solve();
+  const SolveStats& ls = s_.implicit()->last_solve();
   char row[160];
   std::snprintf(row, sizeof row, "%d,%llu,%.9g,%.9g,%d,%.4g,%d,%d\n", frame,
                 (unsigned long long)(s_.step_count() - 1), s_.time(), double(dt), ls.iterations, ls.residual,
@@ -145,30 +149,32 @@ std::string MpmSimulation::run_summary(double wall) const {
   std::ostringstream os;
   // A-ULMPM: configuration resets per object and the time they (and the re-binning they force)
   // took, against the whole run.
-  const ConfigurationMaps& maps = s_.configuration_maps();
-  for (int k = 0; k < maps.object_count(); ++k) {
+  const MpmAul* aul = s_.aul();
+  for (int k = 0; aul && k < aul->maps().object_count(); ++k) {
+    const ConfigurationMaps& maps = aul->maps();
     const ConfigurationStats& st = maps.stats(k);
     os << "amalgam: object " << k << " (" << configuration_update_name(maps.policy(k).update) << "): " << st.updates
        << " configuration updates in " << st.steps << " substeps, " << st.update_seconds << " s updating ("
        << 100.0 * st.update_seconds / wall << " % of the run)\n";
   }
-  if (s_.settings().domains.enabled)
-    os << "amalgam: particle domains: " << s_.domains().corner_count() << " corners; enriched particles "
+  if (s_.enriched())
+    os << "amalgam: particle domains: " << s_.enriched()->domains().corner_count() << " corners; enriched particles "
        << 100.0 * enriched_sum_ / double(std::max(1, frames_)) << " % on average over frames, at most "
        << 100.0 * enriched_max_ << " % in a substep" << (s_.settings().domains.enrichment ? "" : " (enrichment off)")
        << "\n";
-  if (s_.contact_active())
+  if (aul && aul->contact_active())
     os << "amalgam: contact between objects (" << object_contact_mode_name(s_.settings().contact.mode)
-       << ", friction " << s_.settings().contact.friction << "): " << s_.contact_nodes()
-       << " reference-node velocity corrections, " << s_.contact_seconds() << " s ("
-       << 100.0 * s_.contact_seconds() / wall << " % of the run)\n";
+       << ", friction " << s_.settings().contact.friction << "): " << aul->contact_nodes()
+       << " reference-node velocity corrections, " << aul->contact_seconds() << " s ("
+       << 100.0 * aul->contact_seconds() / wall << " % of the run)\n";
   return os.str();
 }
 
 bool MpmSimulation::surface(SurfaceMesh& out) const {
   // Enriched MPM: the meshes embedded in the particle domains, deformed (Sec. 4.1).
-  if (!s_.domains().has_surface()) return false;
-  s_.domains().surface(s_.particles().int32(s_.domain_attributes().corners), out.vertices, out.triangles);
+  const MpmEnriched* e = s_.enriched();
+  if (!e || !e->domains().has_surface()) return false;
+  e->domains().surface(s_.particles().int32(e->attributes().corners), out.vertices, out.triangles);
   out.crack.assign(out.triangles.size(), 0);
   return true;
 }
@@ -176,9 +182,10 @@ bool MpmSimulation::surface(SurfaceMesh& out) const {
 // Enriched MPM: the particle-domain corners' positions (the rest of the corner state is rebuilt
 // every substep from the particles).
 std::vector<StateSection> MpmSimulation::checkpoint_sections() {
-  if (!s_.settings().domains.enabled) return {};
-  return {{"domains.corner_x", reinterpret_cast<char*>(s_.domains().corner_positions()),
-           s_.domains().corner_count() * sizeof(Vec3)}};
+  MpmEnriched* e = s_.enriched();
+  if (!e) return {};
+  return {{"domains.corner_x", reinterpret_cast<char*>(e->domains().corner_positions()),
+           e->domains().corner_count() * sizeof(Vec3)}};
 }
 
 }  // namespace amalgam

@@ -13,6 +13,9 @@
 #include "solvers/factory.hpp"
 #include "test_shapes.hpp"
 #include "test_util.hpp"
+#include "solvers/mpm_aul.hpp"
+#include "solvers/mpm_enriched.hpp"
+#include "solvers/mpm_implicit.hpp"
 
 using namespace amalgam;
 
@@ -54,7 +57,7 @@ double angular_momentum_y(const MpmSolver& s) {
 double total_angular_momentum_y(const MpmSolver& s) {
   const auto& ps = s.particles();
   const Mat3* C = ps.mat3(s.attributes().C);
-  const Mat3* Fs = ps.mat3(s.configuration_attributes().F_s);
+  const Mat3* Fs = ps.mat3(s.aul()->attributes().F_s);
   const Real* m = ps.real(s.attributes().mass);
   const double D = 0.01 * 0.01 / 4;
   double L = angular_momentum_y(s);
@@ -128,8 +131,8 @@ DiscRun run_disc(const std::string& update, double omega, double seconds,
     r.overstretched += d[p] > 1.1 * h0 * stretch ? 1 : 0;
   }
   r.pieces = count_pieces(s, 0.01);
-  r.updates = s.configuration_maps().stats(0).updates;
-  r.steps = s.configuration_maps().stats(0).steps;
+  r.updates = s.aul()->maps().stats(0).updates;
+  r.steps = s.aul()->maps().stats(0).steps;
   return r;
 }
 
@@ -175,7 +178,7 @@ BarRun run_bar(const std::string& update, double a, double seconds, const exec::
   BarRun r;
   for (size_t i = 1; i < xs.size(); ++i) r.max_gap = std::max(r.max_gap, xs[i] - xs[i - 1]);
   r.length = xs.back() - xs.front();
-  r.updates = s.configuration_maps().stats(0).updates;
+  r.updates = s.aul()->maps().stats(0).updates;
   return r;
 }
 }  // namespace
@@ -251,7 +254,7 @@ TEST(AulMpm, AdaptiveCriterionResetsBetweenTotalLagrangianAndEulerian) {
     stretch_about_centre(s, 10);
     auto& ps = s.particles();
     for (int i = 0; i < 300; ++i) s.step(space, s.stable_dt(space));
-    const ConfigurationStats& st = s.configuration_maps().stats(0);
+    const ConfigurationStats& st = s.aul()->maps().stats(0);
     std::printf("epsilon %s: %llu resets in %llu substeps\n", extra.c_str(),
                 (unsigned long long)st.updates, (unsigned long long)st.steps);
     if (extra == tight) {
@@ -262,8 +265,8 @@ TEST(AulMpm, AdaptiveCriterionResetsBetweenTotalLagrangianAndEulerian) {
     }
     // After a reset F_s restarts at I: the invariant F = F_s F_0s holds throughout.
     const Mat3* F = ps.mat3(s.attributes().F);
-    const Mat3* Fs = ps.mat3(s.configuration_attributes().F_s);
-    const Mat3* F0s = ps.mat3(s.configuration_attributes().F_0s);
+    const Mat3* Fs = ps.mat3(s.aul()->attributes().F_s);
+    const Mat3* F0s = ps.mat3(s.aul()->attributes().F_0s);
     for (size_t p = 0; p < ps.size(); ++p) ASSERT_LT((F[p] - Fs[p] * F0s[p]).norm(), 1e-5);
   }
 }
@@ -303,7 +306,7 @@ TEST(AulMpm, EulerianPolicyMatchesPlainMpm) {
   for (size_t p = 0; p < a.size(); ++p) worst = std::max(worst, double((a[p] - b[p]).norm()));
   std::printf("largest position difference after 60 substeps: %.3g m\n", worst);
   EXPECT_LT(worst, 1e-4);  // 0.5 % of a cell
-  EXPECT_GT(euler.configuration_maps().stats(0).updates, 59u);
+  EXPECT_GT(euler.aul()->maps().stats(0).updates, 59u);
 }
 
 // Every backend and thread count gives the serial run bit for bit, resets included (two objects
@@ -330,18 +333,18 @@ TEST(AulMpm, BitwiseIdenticalOnEveryBackend) {
     const auto& ps = s.particles();
     std::vector<Real> st;
     for (auto id : {s.attributes().x, s.attributes().v, s.attributes().C, s.attributes().F,
-                    s.configuration_attributes().X_s, s.configuration_attributes().F_s})
+                    s.aul()->attributes().X_s, s.aul()->attributes().F_s})
       st.insert(st.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
     if (ref.empty()) {
       ref = st;
-      ref_updates = s.configuration_maps().stats(0).updates;
+      ref_updates = s.aul()->maps().stats(0).updates;
       std::printf("adaptive sphere: %llu resets in 60 substeps\n", (unsigned long long)ref_updates);
       EXPECT_GT(ref_updates, 0u) << "the test must exercise resets";
       continue;
     }
     ASSERT_EQ(st.size(), ref.size());
     EXPECT_TRUE(test::bitwise_equal(st.data(), ref.data(), st.size())) << c.name();
-    EXPECT_EQ(s.configuration_maps().stats(0).updates, ref_updates) << c.name();
+    EXPECT_EQ(s.aul()->maps().stats(0).updates, ref_updates) << c.name();
   }
 }
 
@@ -388,7 +391,7 @@ TwistRun run_twist(const std::string& update, double degrees, double seconds, co
   r.twisted = rest_shape_deviation(rest, positions_by_id(s));
   advance(seconds);
   r.deviation = rest_shape_deviation(rest, positions_by_id(s));
-  r.updates = s.configuration_maps().stats(0).updates;
+  r.updates = s.aul()->maps().stats(0).updates;
   return r;
 }
 }  // namespace
@@ -445,7 +448,7 @@ TEST(AulMpm, SemiImplicitLagrangianMatchesExplicitAndIsStableAtTenTimesCfl) {
     for (int i = 0; i < steps; ++i) {
       ex.step(space, dt);
       im.step(space, dt);
-      ASSERT_TRUE(im.last_solve().converged) << "step " << i;
+      ASSERT_TRUE(im.implicit()->last_solve().converged) << "step " << i;
     }
     const std::vector<Vec3d> xe = positions_by_id(ex), xi = positions_by_id(im);
     double diff = 0, disp = 0;
@@ -503,11 +506,11 @@ TEST(AulMpm, SemiImplicitBitwiseIdenticalOnEveryBackend) {
     for (int i = 0; i < 6; ++i) s.step(space, Real(1e-3));
     const auto& ps = s.particles();
     std::vector<Real> st;
-    for (auto id : {s.attributes().x, s.attributes().v, s.attributes().F, s.configuration_attributes().F_s})
+    for (auto id : {s.attributes().x, s.attributes().v, s.attributes().F, s.aul()->attributes().F_s})
       st.insert(st.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
     if (ref.empty()) {
       ref = st;
-      EXPECT_GT(s.last_solve().iterations, 0);
+      EXPECT_GT(s.implicit()->last_solve().iterations, 0);
       continue;
     }
     ASSERT_EQ(st.size(), ref.size());

@@ -16,6 +16,9 @@
 #include "kernels/implicit_mpm.hpp"
 #include "solvers/implicit_system.hpp"
 #include "test_util.hpp"
+#include "solvers/mpm_aul.hpp"
+#include "solvers/mpm_enriched.hpp"
+#include "solvers/mpm_implicit.hpp"
 
 using namespace amalgam;
 
@@ -134,10 +137,10 @@ struct Rig {
       solver.sort_particles(space);
       solver.update_grid(space);
     } else {
-      solver.update_configurations(space);  // bins by X^s (permutes: fetch the arrays after it)
+      solver.aul()->update_configurations(space, solver);  // bins by X^s (permutes: fetch the arrays after it)
       F = ps.mat3(solver.attributes().F);
-      Mat3* Fs = ps.mat3(solver.configuration_attributes().F_s);
-      Mat3* F0s = ps.mat3(solver.configuration_attributes().F_0s);
+      Mat3* Fs = ps.mat3(solver.aul()->attributes().F_s);
+      Mat3* F0s = ps.mat3(solver.aul()->attributes().F_0s);
       for (size_t p = 0; p < ps.size(); ++p) {
         Fs[p] = random_F(rng, spread, false).cast<Real>();
         F0s[p] = random_F(rng, spread, u01(rng) < invert_fraction).cast<Real>();
@@ -242,8 +245,8 @@ TEST_P(ImplicitOperator, Symmetric) {
   Rig rig(transfer, order, 0.3, 0.2, "fixed_corotated");
   rig.prepare(true);
   expect_symmetric(rig, 4);
-  rig.solver.assemble_implicit(rig.space, Real(1e-3));
-  ImplicitSystem& sys = rig.solver.implicit_system();
+  rig.solver.implicit()->assemble(rig.space, rig.solver, Real(1e-3));
+  ImplicitSystem& sys = rig.solver.implicit()->system();
   ASSERT_EQ(sys.dof_count(), rig.ngrid);
   const auto u = rig.random_vector(1), v = rig.random_vector(2);
   std::vector<Real> Au(u.size()), Av(v.size());
@@ -527,8 +530,8 @@ TEST(ImplicitPhysics, SmallStepMatchesExplicit) {
   for (int i = 0; i < steps; ++i) {
     ex.step(space, dt);
     im.step(space, dt);
-    max_iter = std::max(max_iter, im.last_solve().iterations);
-    ASSERT_TRUE(im.last_solve().converged) << "step " << i;
+    max_iter = std::max(max_iter, im.implicit()->last_solve().iterations);
+    ASSERT_TRUE(im.implicit()->last_solve().converged) << "step " << i;
   }
   const std::vector<Vec3> xe = positions_by_id(ex), xi = positions_by_id(im);
   double diff = 0, disp = 0;
@@ -568,8 +571,8 @@ TEST(ImplicitPhysics, TenTimesCflIsStableAndDissipative) {
     // H has no net force, so only the CG truncation (relative tolerance 1e-4 per solve) moves p.
     EXPECT_LT((d.momentum - d0.momentum).norm(), 3e-3 * d0.momentum.norm()) << "step " << i;
     e_prev = e_last;
-    iters += im.last_solve().iterations;
-    EXPECT_TRUE(im.last_solve().converged);
+    iters += im.implicit()->last_solve().iterations;
+    EXPECT_TRUE(im.implicit()->last_solve().converged);
   }
   // What remains is the rigid motion: the translation's kinetic energy |p|^2 / 2m at least.
   const double translation = 0.5 * d0.momentum.squaredNorm() / d0.mass;

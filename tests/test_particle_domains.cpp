@@ -14,6 +14,9 @@
 #include "kernels/particle_domains.hpp"
 #include "test_shapes.hpp"
 #include "test_util.hpp"
+#include "solvers/mpm_aul.hpp"
+#include "solvers/mpm_enriched.hpp"
+#include "solvers/mpm_implicit.hpp"
 
 using namespace amalgam;
 
@@ -131,8 +134,8 @@ TEST(ParticleDomains, FreeBodyConservesMomentum) {
     double worst = 0;
     for (int k = 0; k < 40; ++k) {
       s.step(space, std::min(s.stable_dt(space), Real(1e-3)));
-      enriched = std::max(enriched, s.domains().last_counts().enriched);
-      transitional = std::max(transitional, s.domains().last_counts().transitional);
+      enriched = std::max(enriched, s.enriched()->domains().last_counts().enriched);
+      transitional = std::max(transitional, s.enriched()->domains().last_counts().transitional);
       worst = std::max(worst, (totals(s).momentum - t0.momentum).norm());
     }
     const Totals t1 = totals(s);
@@ -170,7 +173,7 @@ TEST(ParticleDomains, TranslationIsExact) {
   EXPECT_LT(dx, 2e-6);
   EXPECT_LT(dF, 2e-5);
   EXPECT_LT(dv, 2e-6);
-  EXPECT_EQ(s.domains().last_counts().enriched + s.domains().last_counts().transitional, 0u);
+  EXPECT_EQ(s.enriched()->domains().last_counts().enriched + s.enriched()->domains().last_counts().transitional, 0u);
 }
 
 // Every kernel of the method, explicit and implicit, with enrichment, a floor and a sticky box:
@@ -192,16 +195,16 @@ TEST(ParticleDomains, BitwiseIdenticalOnEveryBackend) {
       std::size_t enriched = 0;
       for (int k = 0; k < 25; ++k) {
         s.step(space, std::min(s.stable_dt(space), Real(1e-3)));
-        enriched += s.domains().last_counts().enriched;
+        enriched += s.enriched()->domains().last_counts().enriched;
       }
       const auto& ps = s.particles();
       std::vector<Real> st;
       for (auto id : {s.attributes().x, s.attributes().v, s.attributes().F})
         st.insert(st.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
-      const std::int32_t* state = ps.int32(s.domain_attributes().state);
+      const std::int32_t* state = ps.int32(s.enriched()->attributes().state);
       for (size_t p = 0; p < ps.size(); ++p) st.push_back(Real(state[p]));
-      const Vec3* cx = s.domains().corner_positions();
-      for (size_t a = 0; a < s.domains().corner_count(); ++a)
+      const Vec3* cx = s.enriched()->domains().corner_positions();
+      for (size_t a = 0; a < s.enriched()->domains().corner_count(); ++a)
         st.insert(st.end(), cx[a].data(), cx[a].data() + 3);
       if (ref.empty()) {
         ref = st;
@@ -232,7 +235,7 @@ TEST(ParticleDomains, SceneKeys) {
   EXPECT_EQ(sc.objects[0].jitter, 0);  // domains sample an exact lattice by default
   MpmSolver s = build_solver(sc);
   EXPECT_EQ(s.particles().size(), 5u * 4 * 3 * 8);
-  EXPECT_EQ(s.domains().corner_count(), 11u * 9 * 7);  // shared corners: (n + 1)^3 for n^3 cells
+  EXPECT_EQ(s.enriched()->domains().corner_count(), 11u * 9 * 7);  // shared corners: (n + 1)^3 for n^3 cells
   auto fails = [](const std::string& text, const std::string& what) {
     try {
       parse_scene(text, "bad.json");
@@ -364,7 +367,7 @@ RestRun twist_compress_release(const std::string& domains, const std::string& in
     while (s.time() < until) {
       s.step(space, std::min(s.stable_dt(space), Real(until - s.time()) + Real(1e-9)));
       if (s.settings().domains.enabled) {
-        const EnrichmentCounts& c = s.domains().last_counts();
+        const EnrichmentCounts& c = s.enriched()->domains().last_counts();
         r.max_enriched =
             std::max(r.max_enriched, double(c.enriched) / double(s.particles().size()));
       }
@@ -412,11 +415,11 @@ TEST(ParticleDomains, EmbeddedSurfaceFollowsTheDomains) {
                  "velocity": [1, 0, 0]}]})",
                                "embed.json");
   MpmSolver s = build_solver(sc);
-  ASSERT_TRUE(s.domains().has_surface());
-  const std::int32_t* corners = s.particles().int32(s.domain_attributes().corners);
+  ASSERT_TRUE(s.enriched()->domains().has_surface());
+  const std::int32_t* corners = s.particles().int32(s.enriched()->attributes().corners);
   std::vector<Vec3> v;
   std::vector<std::array<std::uint32_t, 3>> t;
-  s.domains().surface(corners, v, t);
+  s.enriched()->domains().surface(corners, v, t);
   const auto& mesh = *sc.objects[0].mesh;
   ASSERT_EQ(v.size(), mesh.vertices.size());
   ASSERT_EQ(t.size(), mesh.triangles.size());
@@ -425,7 +428,7 @@ TEST(ParticleDomains, EmbeddedSurfaceFollowsTheDomains) {
     err = std::max(err, (v[k].cast<double>() - mesh.vertices[k]).norm());
   EXPECT_LT(err, 1e-6);
   for (int k = 0; k < 20; ++k) s.step(space, Real(1e-3));
-  s.domains().surface(corners, v, t);
+  s.enriched()->domains().surface(corners, v, t);
   err = 0;
   for (size_t k = 0; k < v.size(); ++k)
     err = std::max(err, (v[k].cast<double>() - mesh.vertices[k] - Vec3d(0.02, 0, 0)).norm());
@@ -472,7 +475,7 @@ TEST(ParticleDomains, ImplicitMatchesExplicitAndIsStableAtTenTimesCfl) {
     for (int k = 0; k < 200; ++k) {
       ex.step(space, dt);
       im.step(space, dt);
-      enriched = std::max(enriched, im.domains().last_counts().enriched);
+      enriched = std::max(enriched, im.enriched()->domains().last_counts().enriched);
     }
     double disp = 0;
     const std::vector<Vec3d> x1 = test::positions_by_id(ex);
@@ -505,7 +508,7 @@ TEST(ParticleDomains, ImplicitMatchesExplicitAndIsStableAtTenTimesCfl) {
     }
     std::printf(
         "10x CFL: explicit blew up: %d; implicit max speed %.3f m/s, last solve %d iterations\n",
-        int(blew_up), vmax, im.last_solve().iterations);
+        int(blew_up), vmax, im.implicit()->last_solve().iterations);
     EXPECT_TRUE(blew_up);
     EXPECT_LT(vmax, 1.0);  // started at 0.4 m/s at the ends
   }
@@ -539,7 +542,7 @@ TEST(ParticleDomains, MeltedParticlesLeaveTheirDomains) {
     std::vector<Real> st;
     for (auto id : {s.attributes().x, s.attributes().v, s.attributes().F})
       st.insert(st.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
-    const std::int32_t* state = ps.int32(s.domain_attributes().state);
+    const std::int32_t* state = ps.int32(s.enriched()->attributes().state);
     std::size_t disabled = 0;
     for (size_t p = 0; p < ps.size(); ++p) st.push_back(Real(state[p])), disabled += state[p] == kDomainDisabled;
     if (ref.empty()) {
@@ -548,7 +551,7 @@ TEST(ParticleDomains, MeltedParticlesLeaveTheirDomains) {
                   worst / (t0.mass * t0.max_speed));
       EXPECT_GT(disabled, ps.size() / 5);
       EXPECT_LT(disabled, ps.size());
-      EXPECT_EQ(s.domains().disabled_count(), disabled);
+      EXPECT_EQ(s.enriched()->domains().disabled_count(), disabled);
       EXPECT_LT(worst / (t0.mass * t0.max_speed), 1e-6);
       for (auto id : {s.attributes().x, s.attributes().v, s.attributes().F})
         for (size_t k = 0; k < ps.size() * size_t(ps.width(id)); ++k) ASSERT_TRUE(std::isfinite(ps.real(id)[k]));

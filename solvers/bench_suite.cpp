@@ -1,17 +1,20 @@
-#include "io/bench_suite.hpp"
+#include "solvers/bench_suite.hpp"
 
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <map>
 
-#include "io/bench_scene.hpp"
+#include "solvers/bench_scene.hpp"
+#include "solvers/pd_bench_block.hpp"
+#include "solvers/mpm_enriched.hpp"
+#include "solvers/mpm_implicit.hpp"
 
 namespace amalgam {
 
 namespace {
 
-// The standard sphere (io/bench_scene) at 2^18 x scale particles with the ~4.2 particles per
+// The standard sphere (solvers/bench_scene) at 2^18 x scale particles with the ~4.2 particles per
 // cell of the 1e6 sphere at dx = 1/128.
 BenchSceneOptions sphere(double scale) {
   BenchSceneOptions o;
@@ -33,7 +36,7 @@ BenchInstance mpm_instance(MpmSolver&& solver, Real dt) {
   b.items = double(s->particles().size());
   b.owner = s;
   b.extra = [s] {
-    const ImplicitCounters& c = s->implicit_counters();
+    const ImplicitCounters c = s->implicit() ? s->implicit()->counters() : ImplicitCounters();
     std::string out;
     if (c.solves > 0) {
       char buf[96];
@@ -41,17 +44,17 @@ BenchInstance mpm_instance(MpmSolver&& solver, Real dt) {
                     double(c.iterations) / double(c.solves), c.max_iterations);
       out = buf;
     }
-    if (s->settings().domains.enabled) {
+    if (s->enriched()) {
       char buf[64];
       std::snprintf(buf, sizeof buf, "%senriched_fraction=%.3f", out.empty() ? "" : " ",
-                    s->domains().counters().max_enriched_fraction);
+                    s->enriched()->domains().counters().max_enriched_fraction);
       out += buf;
     }
     return out;
   };
   b.reset_extra = [s] {
-    s->reset_implicit_counters();
-    s->domains().reset_counters();
+    if (s->implicit()) s->implicit()->reset_counters();
+    if (s->enriched()) s->enriched()->domains().reset_counters();
   };
   return b;
 }
