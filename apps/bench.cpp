@@ -60,9 +60,9 @@ int implicit_bench(BenchSceneOptions so, int steps, int reps, const std::vector<
   so.implicit = true;
   const Real dt = fixed_dt > 0 ? Real(fixed_dt) : 10 * dt_cfl;
   std::cout << "# amalgam bench --implicit: sphere, " << so.particles << " particles, dx=" << so.dx
-            << ", E=1e7, transfer=" << transfer_name(so.transfer) << ", precision=" << real_name() << ", dt=" << dt
-            << " (" << dt / dt_cfl << "x explicit CFL), " << steps << " substeps x " << reps
-            << " reps (median, [min, max])\n";
+            << ", E=1e7, transfer=" << transfer_name(so.transfer) << ", precision=" << real_name()
+            << ", dt=" << dt << " (" << dt / dt_cfl << "x explicit CFL), " << steps
+            << " substeps x " << reps << " reps (median, [min, max])\n";
   for (const auto backend : backends) {
     for (const int t : threads) {
       if (backend == exec::Backend::Serial && t != 1) continue;
@@ -80,7 +80,8 @@ int implicit_bench(BenchSceneOptions so, int steps, int reps, const std::vector<
         exec::Space space(backend, t, &run_prof);
         const auto t0 = std::chrono::steady_clock::now();
         for (int s = 0; s < steps; ++s) solver.step(space, dt);
-        const double sec = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        const double sec =
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         rate.push_back(double(so.particles) * steps / sec);
         if (r == reps / 2) {
           prof = run_prof;
@@ -94,16 +95,19 @@ int implicit_bench(BenchSceneOptions so, int steps, int reps, const std::vector<
       double solve = 0;
       for (const auto& r : prof.regions())
         if (r.label.rfind("implicit.", 0) == 0) solve += r.seconds;
-      const double op = prof.seconds("implicit.hessian_action") + prof.seconds("implicit.apply_mass");
+      const double op =
+          prof.seconds("implicit.hessian_action") + prof.seconds("implicit.apply_mass");
       char line[512];
-      std::snprintf(line, sizeof line,
-                    "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
-                    "cg_iterations_mean=%.1f cg_iterations_max=%d solve_ns=%.1f operator_ns_per_application=%.1f "
-                    "p2g_ns=%.1f g2p_ns=%.1f",
-                    exec::backend_name(backend), t, so.particles, median(rate),
-                    *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()), mean_it,
-                    max_it, solve * per, op * 1e9 / (double(so.particles) * double(std::max<std::uint64_t>(1, applications))),
-                    prof.seconds("mpm.p2g") * per, prof.seconds("mpm.g2p") * per);
+      std::snprintf(
+          line, sizeof line,
+          "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
+          "cg_iterations_mean=%.1f cg_iterations_max=%d solve_ns=%.1f operator_ns_per_application=%.1f "
+          "p2g_ns=%.1f g2p_ns=%.1f",
+          exec::backend_name(backend), t, so.particles, median(rate),
+          *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()),
+          mean_it, max_it, solve * per,
+          op * 1e9 / (double(so.particles) * double(std::max<std::uint64_t>(1, applications))),
+          prof.seconds("mpm.p2g") * per, prof.seconds("mpm.g2p") * per);
       std::cout << line << std::endl;
     }
   }
@@ -120,10 +124,11 @@ int bench_command(const std::vector<std::string>& args) {
   bool implicit = false;
   double fixed_dt = 0;
   try {
-    const Options o = parse_options(args,
-                                    {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer", "--dt",
-                                     "--report", "--scale", "--warmup", "--cases", "--compare", "--commit"},
-                                    {"--help", "--implicit"});
+    const Options o = parse_options(
+        args,
+        {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer", "--dt",
+         "--report", "--scale", "--warmup", "--cases", "--compare", "--commit"},
+        {"--help", "--implicit"});
     if (o.flag("--help")) {
       std::cout << kBenchHelp;
       return kOk;
@@ -131,8 +136,10 @@ int bench_command(const std::vector<std::string>& args) {
     if (o.get("--report")) {
       for (const char* k : {"--particles", "--transfer", "--dt"})
         if (o.get(k)) throw std::invalid_argument(std::string(k) + " does not apply to --report");
-      if (o.flag("--implicit")) throw std::invalid_argument("--implicit does not apply to --report");
-      if (!o.positional.empty()) throw std::invalid_argument("unexpected argument " + o.positional[0]);
+      if (o.flag("--implicit"))
+        throw std::invalid_argument("--implicit does not apply to --report");
+      if (!o.positional.empty())
+        throw std::invalid_argument("unexpected argument " + o.positional[0]);
       try {
         return bench_report(o);
       } catch (const InputError& e) {
@@ -142,8 +149,10 @@ int bench_command(const std::vector<std::string>& args) {
     }
     for (const char* k : {"--scale", "--warmup", "--cases", "--compare", "--commit"})
       if (o.get(k)) throw std::invalid_argument(std::string(k) + " needs --report");
-    if (!o.positional.empty()) throw std::invalid_argument("unexpected argument " + o.positional[0]);
-    if (auto* v = o.get("--particles")) so.particles = size_t(parse_int("--particles", *v, 1000, 200000000));
+    if (!o.positional.empty())
+      throw std::invalid_argument("unexpected argument " + o.positional[0]);
+    if (auto* v = o.get("--particles"))
+      so.particles = size_t(parse_int("--particles", *v, 1000, 200000000));
     if (auto* v = o.get("--steps")) steps = parse_int("--steps", *v, 1, 100000);
     if (auto* v = o.get("--reps")) reps = parse_int("--reps", *v, 1, 1000);
     if (auto* v = o.get("--threads")) {
@@ -155,10 +164,14 @@ int bench_command(const std::vector<std::string>& args) {
       for (const auto& b : split(*v)) backends.push_back(exec::parse_backend(b));
     }
     if (auto* v = o.get("--transfer")) {
-      if (*v == "mls") so.transfer = Transfer::Mls;
-      else if (*v == "apic") so.transfer = Transfer::Apic;
-      else if (*v == "flip" || *v == "pic") so.transfer = Transfer::PicFlip;
-      else throw std::invalid_argument("--transfer expects mls, apic, flip or pic, got '" + *v + "'");
+      if (*v == "mls")
+        so.transfer = Transfer::Mls;
+      else if (*v == "apic")
+        so.transfer = Transfer::Apic;
+      else if (*v == "flip" || *v == "pic")
+        so.transfer = Transfer::PicFlip;
+      else
+        throw std::invalid_argument("--transfer expects mls, apic, flip or pic, got '" + *v + "'");
     }
     implicit = o.flag("--implicit");
     if (auto* v = o.get("--dt")) {
@@ -170,9 +183,10 @@ int bench_command(const std::vector<std::string>& args) {
     return kUsage;
   }
   if (implicit) return implicit_bench(so, steps, reps, threads, backends, fixed_dt);
-  std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/" << int(std::lround(1 / so.dx))
-            << ", transfer=" << transfer_name(so.transfer) << ", precision=" << real_name() << ", " << steps
-            << " substeps x " << reps << " reps (median, [min, max])\n";
+  std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/"
+            << int(std::lround(1 / so.dx)) << ", transfer=" << transfer_name(so.transfer)
+            << ", precision=" << real_name() << ", " << steps << " substeps x " << reps
+            << " reps (median, [min, max])\n";
   const Real dt = Real(1e-4);
   for (const auto backend : backends) {
     for (const int t : threads) {
@@ -188,11 +202,13 @@ int bench_command(const std::vector<std::string>& args) {
         exec::Space space(backend, t, &run_prof);
         const auto t0 = std::chrono::steady_clock::now();
         for (int s = 0; s < steps; ++s) solver.step(space, dt);
-        const double sec = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+        const double sec =
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         rate.push_back(double(so.particles) * steps / sec);
         if (r == reps / 2) prof = run_prof;
         leaves = solver.grid().active_leaves().size();
-        particle_bytes = solver.particles().bytes_per_particle() + solver.binning_bytes_per_particle();
+        particle_bytes =
+            solver.particles().bytes_per_particle() + solver.binning_bytes_per_particle();
         leaf_bytes = solver.grid().bytes_per_leaf();
       }
       const double per = 1e9 / (double(so.particles) * steps);
@@ -202,17 +218,18 @@ int bench_command(const std::vector<std::string>& args) {
         return s * per;
       };
       char line[512];
-      std::snprintf(line, sizeof line,
-                    "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
-                    "p2g_ns=%.1f g2p_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f leaves=%zu "
-                    "bytes_per_particle=%zu bytes_per_node=%.1f",
-                    exec::backend_name(backend), t, so.particles, median(rate),
-                    *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()),
-                    ns({"mpm.p2g"}), ns({"mpm.g2p"}),
-                    ns({"bin.leaf_box", "bin.keys", "bin.radix_hist", "bin.radix_scatter", "particles.permute",
-                        "bin.find_runs"}),
-                    ns({"grid.topology"}), ns({"mpm.grid_clear", "mpm.grid_update"}), leaves, particle_bytes,
-                    double(leaf_bytes) / 512.0);
+      std::snprintf(
+          line, sizeof line,
+          "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
+          "p2g_ns=%.1f g2p_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f leaves=%zu "
+          "bytes_per_particle=%zu bytes_per_node=%.1f",
+          exec::backend_name(backend), t, so.particles, median(rate),
+          *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()),
+          ns({"mpm.p2g"}), ns({"mpm.g2p"}),
+          ns({"bin.leaf_box", "bin.keys", "bin.radix_hist", "bin.radix_scatter",
+              "particles.permute", "bin.find_runs"}),
+          ns({"grid.topology"}), ns({"mpm.grid_clear", "mpm.grid_update"}), leaves, particle_bytes,
+          double(leaf_bytes) / 512.0);
       std::cout << line << std::endl;
     }
   }

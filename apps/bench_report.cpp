@@ -28,7 +28,9 @@ namespace {
 struct Config {
   exec::Backend backend;
   int threads;
-  std::string name() const { return std::string(exec::backend_name(backend)) + " x" + std::to_string(threads); }
+  std::string name() const {
+    return std::string(exec::backend_name(backend)) + " x" + std::to_string(threads);
+  }
 };
 
 struct KernelRow {
@@ -68,7 +70,8 @@ double triad_gb_per_s(const exec::Space& space) {
   double best = 0;
   for (int r = 0; r < 6; ++r) {
     const auto t0 = std::chrono::steady_clock::now();
-    exec::parallel_for(space, "bench.triad", n, [&](exec::Index i) { a[size_t(i)] = b[size_t(i)] + 0.5f * c[size_t(i)]; });
+    exec::parallel_for(space, "bench.triad", n,
+                       [&](exec::Index i) { a[size_t(i)] = b[size_t(i)] + 0.5f * c[size_t(i)]; });
     const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (r > 0) best = std::max(best, 12.0 * double(n) / s / 1e9);
   }
@@ -110,10 +113,14 @@ std::map<std::string, Previous> read_previous(const std::string& path) {
     bool quoted = false;
     for (size_t i = 0; i < line.size(); ++i) {
       const char c = line[i];
-      if (quoted && c == '"' && i + 1 < line.size() && line[i + 1] == '"') f.back() += '"', ++i;
-      else if (c == '"') quoted = !quoted;
-      else if (c == ',' && !quoted) f.emplace_back();
-      else f.back() += c;
+      if (quoted && c == '"' && i + 1 < line.size() && line[i + 1] == '"')
+        f.back() += '"', ++i;
+      else if (c == '"')
+        quoted = !quoted;
+      else if (c == ',' && !quoted)
+        f.emplace_back();
+      else
+        f.back() += c;
     }
     if (lineno == 1) {
       head = f;
@@ -123,10 +130,11 @@ std::map<std::string, Previous> read_previous(const std::string& path) {
     std::map<std::string, std::string> row;
     for (size_t i = 0; i < head.size(); ++i) row[head[i]] = f[i];
     try {
-      out[row.at("case") + "|" + row.at("backend") + "|" + row.at("threads")] = {std::stod(row.at("median")),
-                                                                               std::stod(row.at("spread_pct")) / 100};
+      out[row.at("case") + "|" + row.at("backend") + "|" + row.at("threads")] = {
+          std::stod(row.at("median")), std::stod(row.at("spread_pct")) / 100};
     } catch (const std::exception&) {
-      throw InputError(path + ":" + std::to_string(lineno) + ": not a results.csv row of amalgam bench --report");
+      throw InputError(path + ":" + std::to_string(lineno) +
+                       ": not a results.csv row of amalgam bench --report");
     }
   }
   return out;
@@ -171,7 +179,8 @@ std::vector<Config> configs_of(const ReportOptions& o) {
 // Runs one case on every configuration: builds each, warms each up, then times the
 // repetitions interleaved (rep 0 of every configuration, then rep 1, ...) so slow drifts of a
 // shared machine spread over all configurations instead of biasing one.
-std::vector<Result> run_case(const BenchCase& bc, const ReportOptions& o, const std::vector<Config>& configs) {
+std::vector<Result> run_case(const BenchCase& bc, const ReportOptions& o,
+                             const std::vector<Config>& configs) {
   const int steps = o.steps > 0 ? o.steps : default_steps(bc.name);
   std::vector<BenchInstance> inst;
   std::vector<exec::Profiler> prof(configs.size());
@@ -186,14 +195,16 @@ std::vector<Result> run_case(const BenchCase& bc, const ReportOptions& o, const 
     inst[c].reset_extra();
     Result& r = res[c];
     r.case_name = bc.name, r.method = bc.method, r.unit = bc.unit, r.config = configs[c];
-    r.items = inst[c].items, r.bytes_per_item = inst[c].bytes_per_item, r.dt = inst[c].dt, r.steps = steps;
+    r.items = inst[c].items, r.bytes_per_item = inst[c].bytes_per_item, r.dt = inst[c].dt,
+    r.steps = steps;
   }
   for (int rep = 0; rep < o.reps; ++rep)
     for (size_t c = 0; c < configs.size(); ++c) {
       const exec::Space space(configs[c].backend, configs[c].threads, &prof[c]);
       const auto t0 = std::chrono::steady_clock::now();
       for (int s = 0; s < steps; ++s) inst[c].step(space);
-      const double sec = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+      const double sec =
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
       res[c].rates.push_back(inst[c].items * steps / sec);
     }
   for (size_t c = 0; c < configs.size(); ++c) {
@@ -205,7 +216,8 @@ std::vector<Result> run_case(const BenchCase& bc, const ReportOptions& o, const 
     const double per = 1e9 / (r.items * steps * o.reps);
     const double total = prof[c].total_seconds();
     for (const auto& reg : prof[c].regions())
-      r.kernels.push_back({reg.label, reg.calls, reg.seconds * per, total > 0 ? reg.seconds / total : 0});
+      r.kernels.push_back(
+          {reg.label, reg.calls, reg.seconds * per, total > 0 ? reg.seconds / total : 0});
     std::sort(r.kernels.begin(), r.kernels.end(),
               [](const KernelRow& a, const KernelRow& b) { return a.ns_per_item > b.ns_per_item; });
   }
@@ -237,12 +249,14 @@ std::string results_csv(const std::vector<Result>& all) {
       "case,backend,threads,unit,items,steps,reps,median,min,max,spread_pct,speedup_vs_serial,"
       "parallel_efficiency,ns_per_item,bytes_per_item,dt,method,extra\n";
   for (const Result& r : all) {
-    s += r.case_name + "," + exec::backend_name(r.config.backend) + "," + std::to_string(r.config.threads) + "," +
-         r.unit + "," + fmt("%.0f", r.items) + "," + std::to_string(r.steps) + "," + std::to_string(r.rates.size()) +
-         "," + fmt("%.6g", r.median) + "," + fmt("%.6g", r.min) + "," + fmt("%.6g", r.max) + "," +
-         fmt("%.2f", 100 * r.spread()) + "," + fmt("%.4f", r.speedup) + "," + fmt("%.4f", r.efficiency) + "," +
-         fmt("%.3f", 1e9 / r.median) + "," + fmt("%.1f", r.bytes_per_item) + "," + fmt("%.3g", r.dt) + "," +
-         csv_field(r.method) + "," + csv_field(r.extra) + "\n";
+    s += r.case_name + "," + exec::backend_name(r.config.backend) + "," +
+         std::to_string(r.config.threads) + "," + r.unit + "," + fmt("%.0f", r.items) + "," +
+         std::to_string(r.steps) + "," + std::to_string(r.rates.size()) + "," +
+         fmt("%.6g", r.median) + "," + fmt("%.6g", r.min) + "," + fmt("%.6g", r.max) + "," +
+         fmt("%.2f", 100 * r.spread()) + "," + fmt("%.4f", r.speedup) + "," +
+         fmt("%.4f", r.efficiency) + "," + fmt("%.3f", 1e9 / r.median) + "," +
+         fmt("%.1f", r.bytes_per_item) + "," + fmt("%.3g", r.dt) + "," + csv_field(r.method) + "," +
+         csv_field(r.extra) + "\n";
   }
   return s;
 }
@@ -251,16 +265,19 @@ std::string kernels_csv(const std::vector<Result>& all) {
   std::string s = "case,backend,threads,label,calls,ns_per_item,share_pct\n";
   for (const Result& r : all)
     for (const KernelRow& k : r.kernels)
-      s += r.case_name + "," + exec::backend_name(r.config.backend) + "," + std::to_string(r.config.threads) + "," +
-           k.label + "," + std::to_string(k.calls) + "," + fmt("%.4g", k.ns_per_item) + "," + fmt("%.2f", 100 * k.share) +
-           "\n";
+      s += r.case_name + "," + exec::backend_name(r.config.backend) + "," +
+           std::to_string(r.config.threads) + "," + k.label + "," + std::to_string(k.calls) + "," +
+           fmt("%.4g", k.ns_per_item) + "," + fmt("%.2f", 100 * k.share) + "\n";
   return s;
 }
 
-std::string rate(double v) { return fmt("%.3g", v); }
+std::string rate(double v) {
+  return fmt("%.3g", v);
+}
 
 // A case's Serial result and its fastest 2-thread one (either may be null).
-std::pair<const Result*, const Result*> serial_and_best2(const std::vector<Result>& all, const std::string& name) {
+std::pair<const Result*, const Result*> serial_and_best2(const std::vector<Result>& all,
+                                                         const std::string& name) {
   const Result* serial = nullptr;
   const Result* best2 = nullptr;
   for (const Result& r : all) {
@@ -289,8 +306,9 @@ std::vector<KernelRow> top_kernels(const Result& r) {
   return out;
 }
 
-std::string report_md(const std::vector<Result>& all, const std::vector<BenchCase>& cases, const ReportOptions& o,
-                      const std::vector<Config>& configs, const std::map<int, double>& bandwidth,
+std::string report_md(const std::vector<Result>& all, const std::vector<BenchCase>& cases,
+                      const ReportOptions& o, const std::vector<Config>& configs,
+                      const std::map<int, double>& bandwidth,
                       const std::map<std::string, Previous>* prev, double wall_seconds) {
   std::ostringstream md;
   std::time_t now = std::time(nullptr);
@@ -306,14 +324,20 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
      << "| commit | " << o.commit << " |\n"
      << "| CPU | " << read_first("/proc/cpuinfo", "model name") << " |\n"
      << "| hardware threads | " << exec::hardware_threads() << " |\n"
-     << "| memory | " << fmt("%.1f", std::atof(read_first("/proc/meminfo", "MemTotal").c_str()) / 1048576.0) << " GiB |\n"
+     << "| memory | "
+     << fmt("%.1f", std::atof(read_first("/proc/meminfo", "MemTotal").c_str()) / 1048576.0)
+     << " GiB |\n"
      << "| precision | " << real_name() << " |\n"
-     << "| compiler | g++ " << __VERSION__ << ", Release" << " |\n"
+     << "| compiler | g++ " << __VERSION__ << ", Release"
+     << " |\n"
      << "| backends | ";
   for (const Config& c : configs) md << c.name() << "; ";
-  md << (exec::backend_compiled(exec::Backend::Kokkos) ? exec::kokkos_version() : std::string("(no Kokkos)")) << " |\n"
+  md << (exec::backend_compiled(exec::Backend::Kokkos) ? exec::kokkos_version()
+                                                       : std::string("(no Kokkos)"))
+     << " |\n"
      << "| STREAM triad | ";
-  for (const auto& [t, gb] : bandwidth) md << t << " thread" << (t > 1 ? "s" : "") << ": " << fmt("%.1f", gb) << " GB/s; ";
+  for (const auto& [t, gb] : bandwidth)
+    md << t << " thread" << (t > 1 ? "s" : "") << ": " << fmt("%.1f", gb) << " GB/s; ";
   md << " |\n| wall time | " << fmt("%.0f", wall_seconds) << " s |\n\n";
   md << "**Method.** Each case is built once per configuration (same seed, same state), stepped "
      << o.warmup << " times untimed, then timed in " << o.reps
@@ -336,7 +360,8 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
     md << "| " << bc.name << " | " << bc.unit << " |";
     for (const Config& c : configs)
       for (const Result& r : all)
-        if (r.case_name == bc.name && r.config.backend == c.backend && r.config.threads == c.threads)
+        if (r.case_name == bc.name && r.config.backend == c.backend &&
+            r.config.threads == c.threads)
           md << " " << rate(r.median) << " (" << fmt("%.0f", 100 * r.spread()) << " %) |";
     md << "\n";
   }
@@ -345,28 +370,33 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
         "(breakdown.png)\n\n";
 
   for (const BenchCase& bc : cases) {
-    md << "## " << bc.name << ": " << bc.method << "\n\n" << bc.scene << ".\n\n"
-       << "| configuration | " << bc.unit << " | spread | ns/item | speed-up | efficiency | bytes/item | "
+    md << "## " << bc.name << ": " << bc.method << "\n\n"
+       << bc.scene << ".\n\n"
+       << "| configuration | " << bc.unit
+       << " | spread | ns/item | speed-up | efficiency | bytes/item | "
        << "floor ns/item | notes |\n|---|---:|---:|---:|---:|---:|---:|---:|---|\n";
     const auto [serial, best2] = serial_and_best2(all, bc.name);
     for (const Result& r : all) {
       if (r.case_name != bc.name) continue;
       const auto bw = bandwidth.find(r.config.threads);
-      const double floor = bw != bandwidth.end() && bw->second > 0 ? r.bytes_per_item / bw->second : 0;
-      md << "| " << r.config.name() << " | " << rate(r.median) << " [" << rate(r.min) << ", " << rate(r.max) << "] | "
-         << fmt("%.1f", 100 * r.spread()) << " % | " << fmt("%.1f", 1e9 / r.median) << " | "
-         << fmt("%.2f", r.speedup) << " | " << fmt("%.2f", r.efficiency) << " | " << fmt("%.0f", r.bytes_per_item)
-         << " | " << fmt("%.2f", floor) << " | " << r.extra << " |\n";
+      const double floor =
+          bw != bandwidth.end() && bw->second > 0 ? r.bytes_per_item / bw->second : 0;
+      md << "| " << r.config.name() << " | " << rate(r.median) << " [" << rate(r.min) << ", "
+         << rate(r.max) << "] | " << fmt("%.1f", 100 * r.spread()) << " % | "
+         << fmt("%.1f", 1e9 / r.median) << " | " << fmt("%.2f", r.speedup) << " | "
+         << fmt("%.2f", r.efficiency) << " | " << fmt("%.0f", r.bytes_per_item) << " | "
+         << fmt("%.2f", floor) << " | " << r.extra << " |\n";
     }
     md << "\n*floor ns/item*: the resident bytes per item streamed once at the STREAM triad bandwidth of "
           "that thread count, a lower bound a step cannot beat if it touches all its state once.\n\n";
     for (const Result* r : {serial, best2}) {
       if (!r) continue;
-      md << "Kernels, " << r->config.name() << " (ns per item per step, share of profiled time):\n\n"
+      md << "Kernels, " << r->config.name()
+         << " (ns per item per step, share of profiled time):\n\n"
          << "| region | ns/item | share | calls |\n|---|---:|---:|---:|\n";
       for (const KernelRow& k : top_kernels(*r))
-        md << "| " << k.label << " | " << fmt("%.2f", k.ns_per_item) << " | " << fmt("%.1f", 100 * k.share) << " % | "
-           << k.calls << " |\n";
+        md << "| " << k.label << " | " << fmt("%.2f", k.ns_per_item) << " | "
+           << fmt("%.1f", 100 * k.share) << " % | " << k.calls << " |\n";
       md << "\n";
       if (r == best2 && serial == best2) break;
     }
@@ -383,23 +413,25 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
       const double noise = std::max(r.spread(), it->second.spread);
       const bool ok = std::abs(change) <= noise;
       within += ok, ++total;
-      rows << "| " << r.case_name << " | " << r.config.name() << " | " << rate(it->second.median) << " | "
-           << rate(r.median) << " | " << fmt("%+.1f", 100 * change) << " % | " << fmt("%.1f", 100 * noise) << " % | "
-           << (ok ? "yes" : "**no**") << " |\n";
+      rows << "| " << r.case_name << " | " << r.config.name() << " | " << rate(it->second.median)
+           << " | " << rate(r.median) << " | " << fmt("%+.1f", 100 * change) << " % | "
+           << fmt("%.1f", 100 * noise) << " % | " << (ok ? "yes" : "**no**") << " |\n";
     }
     md << "## Repeatability: this run against the previous one\n\n"
        << "Medians of two consecutive runs of the whole report on the same build; *noise* is the "
           "larger of the two runs' spreads (max - min over the repetitions, relative to the median). "
-       << within << " of " << total << " configurations changed by no more than the noise the runs state.\n\n"
+       << within << " of " << total
+       << " configurations changed by no more than the noise the runs state.\n\n"
        << "| case | configuration | previous | this run | change | noise | within |\n"
        << "|---|---|---:|---:|---:|---:|---|\n"
        << rows.str() << "\n";
   }
   // Tables the report script made before this run (bench/microbench_table.py, bench/pd_peer.py).
   for (const auto& [file, title] :
-       {std::pair<const char*, const char*>{"microbench.md",
-                                            "Microbenchmarks: every solver's hot kernels per backend "
-                                            "(bench/microbench_table.py)"},
+       {std::pair<const char*, const char*>{
+            "microbench.md",
+            "Microbenchmarks: every solver's hot kernels per backend "
+            "(bench/microbench_table.py)"},
         {"peer_lammps.md", "Peer: LAMMPS peri/lps (bench/pd_peer.py)"}}) {
     std::ifstream in(std::filesystem::path(o.dir) / file);
     if (!in) continue;
@@ -425,7 +457,8 @@ Image scaling_plot(const std::vector<Result>& all, const std::vector<BenchCase>&
       if (r.case_name == bc.name && r.config.backend == exec::Backend::Serial) serial = r.median;
     for (const Config& c : configs)
       for (const Result& r : all)
-        if (r.case_name == bc.name && r.config.backend == c.backend && r.config.threads == c.threads) {
+        if (r.case_name == bc.name && r.config.backend == c.backend &&
+            r.config.threads == c.threads) {
           v.push_back(serial > 0 ? r.median / serial : 0);
           lo.push_back(serial > 0 ? r.min / serial : 0);
           hi.push_back(serial > 0 ? r.max / serial : 0);
@@ -479,7 +512,8 @@ int bench_report(const Options& opts) {
     std::stringstream ss(*v);
     std::string name;
     while (std::getline(ss, name, ',')) {
-      auto it = std::find_if(all_cases.begin(), all_cases.end(), [&](const BenchCase& c) { return c.name == name; });
+      auto it = std::find_if(all_cases.begin(), all_cases.end(),
+                             [&](const BenchCase& c) { return c.name == name; });
       if (it == all_cases.end()) {
         std::string known;
         for (const auto& c : all_cases) known += (known.empty() ? "" : ", ") + c.name;
@@ -500,20 +534,23 @@ int bench_report(const Options& opts) {
   for (int t : o.threads) {
     const exec::Backend b = t == 1 ? exec::Backend::Serial : exec::Backend::OpenMP;
     if (exec::Space(b, t).threads() == t) bandwidth[t] = triad_gb_per_s(exec::Space(b, t));
-    std::cout << "bench report: STREAM triad, " << t << " thread(s): " << fmt("%.1f", bandwidth[t]) << " GB/s"
-              << std::endl;
+    std::cout << "bench report: STREAM triad, " << t << " thread(s): " << fmt("%.1f", bandwidth[t])
+              << " GB/s" << std::endl;
   }
   std::vector<Result> all;
   for (const BenchCase& bc : cases) {
     const auto c0 = std::chrono::steady_clock::now();
     for (Result& r : run_case(bc, o, configs)) {
       std::cout << "case=" << r.case_name << " backend=" << exec::backend_name(r.config.backend)
-                << " threads=" << r.config.threads << " median=" << rate(r.median) << " min=" << rate(r.min)
-                << " max=" << rate(r.max) << " unit=" << r.unit << " spread=" << fmt("%.1f", 100 * r.spread()) << "%"
+                << " threads=" << r.config.threads << " median=" << rate(r.median)
+                << " min=" << rate(r.min) << " max=" << rate(r.max) << " unit=" << r.unit
+                << " spread=" << fmt("%.1f", 100 * r.spread()) << "%"
                 << (r.extra.empty() ? "" : " ") << r.extra << std::endl;
       all.push_back(std::move(r));
     }
-    std::cout << "  (" << bc.name << ": " << fmt("%.0f", std::chrono::duration<double>(std::chrono::steady_clock::now() - c0).count())
+    std::cout << "  (" << bc.name << ": "
+              << fmt("%.0f",
+                     std::chrono::duration<double>(std::chrono::steady_clock::now() - c0).count())
               << " s)" << std::endl;
   }
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -522,8 +559,10 @@ int bench_report(const Options& opts) {
   write_file(dir / "kernels.csv", kernels_csv(all));
   write_png((dir / "scaling.png").string(), scaling_plot(all, cases, configs));
   write_png((dir / "breakdown.png").string(), breakdown_plot(all, cases));
-  write_file(dir / "report.md", report_md(all, cases, o, configs, bandwidth, prev.empty() ? nullptr : &prev, wall));
-  std::cout << "bench report: " << (dir / "report.md").string() << " (" << fmt("%.0f", wall) << " s)" << std::endl;
+  write_file(dir / "report.md",
+             report_md(all, cases, o, configs, bandwidth, prev.empty() ? nullptr : &prev, wall));
+  std::cout << "bench report: " << (dir / "report.md").string() << " (" << fmt("%.0f", wall)
+            << " s)" << std::endl;
   return kOk;
 }
 

@@ -25,7 +25,8 @@ struct Options {
   const std::string* get(const std::string& key) const;
   bool flag(const std::string& key) const;
 };
-Options parse_options(const std::vector<std::string>& args, const std::vector<std::string>& value_keys,
+Options parse_options(const std::vector<std::string>& args,
+                      const std::vector<std::string>& value_keys,
                       const std::vector<std::string>& flag_keys);
 // `amalgam bench --report DIR ...` (apps/bench_report.cpp). Throws std::invalid_argument on a
 // bad option, InputError on an unreadable --compare file.

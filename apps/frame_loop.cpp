@@ -30,19 +30,29 @@ std::string numbered(const std::string& dir, const char* pattern, int frame, con
 // The float attribute a preview colours by (null: by material).
 const char* preview_attribute(ColorBy c) {
   switch (c) {
-    case ColorBy::Temperature: return "temperature";
-    case ColorBy::Plastic: return "plastic";
-    case ColorBy::Damage: return "damage";
-    default: return nullptr;
+    case ColorBy::Temperature:
+      return "temperature";
+    case ColorBy::Plastic:
+      return "plastic";
+    case ColorBy::Damage:
+      return "damage";
+    default:
+      return nullptr;
   }
 }
 
 // The frame files of the simulation's current state.
 class FrameWriter {
  public:
-  FrameWriter(const Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space)
-      : sim_(sim), scene_(scene), rs_(rs), space_(space), camera_(preview_camera(scene)),
-        splat_(preview_radius(scene)), floor_y_(preview_floor(scene)) {}
+  FrameWriter(const Simulation& sim, const Scene& scene, const RunSettings& rs,
+              const exec::Space& space)
+      : sim_(sim),
+        scene_(scene),
+        rs_(rs),
+        space_(space),
+        camera_(preview_camera(scene)),
+        splat_(preview_radius(scene)),
+        floor_y_(preview_floor(scene)) {}
 
   void write(int f) {
     const OutputSpec& out = scene_.output;
@@ -51,21 +61,24 @@ class FrameWriter {
       const char* attr = preview_attribute(scene_.preview.color_by);
       const std::vector<float>* scalar = attr ? p.find(attr) : nullptr;
       write_png(numbered(rs_.out_dir, "preview_%04d", f, "png"),
-                render_points(p.n, p.x, p.v, p.material, scalar ? scalar->data() : nullptr, camera_, splat_,
-                              scene_.preview.width, scene_.preview.height, scene_.preview.color_by, floor_y_));
+                render_points(p.n, p.x, p.v, p.material, scalar ? scalar->data() : nullptr, camera_,
+                              splat_, scene_.preview.width, scene_.preview.height,
+                              scene_.preview.color_by, floor_y_));
     }
     if (out.ply) write_ply_points(numbered(rs_.out_dir, "frame_%04d", f, "ply"), p);
-    if (out.vdb_points) write_vdb_points(numbered(rs_.out_dir, "frame_%04d", f, "vdb"), p, sim_.point_voxel_size(), space_);
+    if (out.vdb_points)
+      write_vdb_points(numbered(rs_.out_dir, "frame_%04d", f, "vdb"), p, sim_.point_voxel_size(),
+                       space_);
     if (out.grid_volumes && f > 0 && sim_.grid())  // the grid exists once a substep ran
-      write_vdb_grid_fields(numbered(rs_.out_dir, "frame_%04d", f, "grid.vdb"), *sim_.grid(), sim_.point_voxel_size(),
-                            space_);
+      write_vdb_grid_fields(numbered(rs_.out_dir, "frame_%04d", f, "grid.vdb"), *sim_.grid(),
+                            sim_.point_voxel_size(), space_);
     if ((out.surface_obj || out.surface_ply) && sim_.surface(mesh_)) {
       if (out.surface_obj)
-        write_surface_obj(numbered(rs_.out_dir, sim_.surface_pattern(), f, "obj"), mesh_.vertices, mesh_.triangles,
-                          mesh_.crack);
+        write_surface_obj(numbered(rs_.out_dir, sim_.surface_pattern(), f, "obj"), mesh_.vertices,
+                          mesh_.triangles, mesh_.crack);
       if (out.surface_ply)
-        write_surface_ply(numbered(rs_.out_dir, sim_.surface_pattern(), f, "ply"), mesh_.vertices, mesh_.triangles,
-                          mesh_.crack);
+        write_surface_ply(numbered(rs_.out_dir, sim_.surface_pattern(), f, "ply"), mesh_.vertices,
+                          mesh_.triangles, mesh_.crack);
     }
   }
 
@@ -94,7 +107,8 @@ class SubstepLog {
       std::getline(in, line);
       while (std::getline(in, line)) {
         const std::size_t comma = line.find(',');
-        if (comma != std::string::npos && std::strtoull(line.c_str() + comma + 1, nullptr, 10) < sim.step_count())
+        if (comma != std::string::npos &&
+            std::strtoull(line.c_str() + comma + 1, nullptr, 10) < sim.step_count())
           kept += line + "\n";
       }
     }
@@ -122,7 +136,8 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
 }
 
 // Profiler seconds so far per profile column of the simulation.
-std::vector<double> profile_seconds(const Simulation& sim, const exec::Profiler& p, std::size_t ncols) {
+std::vector<double> profile_seconds(const Simulation& sim, const exec::Profiler& p,
+                                    std::size_t ncols) {
   std::vector<double> s(ncols, 0.0);
   for (const auto& r : p.regions()) {
     const int c = sim.profile_column(r.label);
@@ -178,8 +193,9 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
             steps_log.flush();
             if (tty && !rs.quiet) std::cout << "\n";
             std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
-                      << " received: checkpoint written to " << checkpoint_path << " (t = " << sim.time()
-                      << " s, frame " << f << " in progress); continue with --resume " << checkpoint_path << "\n";
+                      << " received: checkpoint written to " << checkpoint_path
+                      << " (t = " << sim.time() << " s, frame " << f
+                      << " in progress); continue with --resume " << checkpoint_path << "\n";
             return 128 + sig;
           }
         }
@@ -192,9 +208,9 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
         if (attempt >= rs.max_retries) throw;
         const Real cfl = cfl0 * Real(std::pow(0.5, attempt + 1));
         if (tty && !rs.quiet) std::cout << "\n";
-        std::cerr << "amalgam: warning: frame " << f << ": " << e.what() << "\namalgam: retrying frame " << f
-                  << " from its start with cfl = " << cfl << " (retry " << attempt + 1 << " of " << rs.max_retries
-                  << ")\n";
+        std::cerr << "amalgam: warning: frame " << f << ": " << e.what()
+                  << "\namalgam: retrying frame " << f << " from its start with cfl = " << cfl
+                  << " (retry " << attempt + 1 << " of " << rs.max_retries << ")\n";
         sim.restore_frame_start();
         sim.set_cfl(cfl);
         steps_log.discard();
@@ -208,7 +224,8 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     frames.write(f);
     const double wall = seconds_since(t_start);
     for (const std::string& w : report.warnings)
-      std::cerr << (tty && !rs.quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": " << w << "\n";
+      std::cerr << (tty && !rs.quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": " << w
+                << "\n";
 
     // diagnostics.csv: frame, clock, the simulation's columns, wall time split by kernel group.
     std::vector<Column> cols = {{"frame", double(f), true},
@@ -240,12 +257,13 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
       const double eta = wall / done * (scene.frames - f);
       const double rate = (sim.work_done() - work0) / std::max(wall, 1e-9);
       char line[400];
-      std::snprintf(line, sizeof line,
-                    "frame %d/%d  t=%.4fs  substeps=%lld  dt=%.2e  KE=%.4g J  max|v|=%.3g m/s%s%s  %.2fM %s/s  "
-                    "elapsed %s  ETA %s",
-                    f, scene.frames, sim.time(), substeps, double(dt), report.kinetic, report.max_speed,
-                    report.progress.empty() ? "" : "  ", report.progress.c_str(), rate * 1e-6, sim.work_unit(),
-                    format_seconds(wall).c_str(), format_seconds(eta).c_str());
+      std::snprintf(
+          line, sizeof line,
+          "frame %d/%d  t=%.4fs  substeps=%lld  dt=%.2e  KE=%.4g J  max|v|=%.3g m/s%s%s  %.2fM %s/s  "
+          "elapsed %s  ETA %s",
+          f, scene.frames, sim.time(), substeps, double(dt), report.kinetic, report.max_speed,
+          report.progress.empty() ? "" : "  ", report.progress.c_str(), rate * 1e-6,
+          sim.work_unit(), format_seconds(wall).c_str(), format_seconds(eta).c_str());
       if (tty)
         std::cout << "\r" << line << "\033[K" << std::flush;
       else
@@ -255,9 +273,10 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   const double wall = seconds_since(t_start);
   if (!rs.quiet) {
     if (tty) std::cout << "\n";
-    std::cout << "amalgam: done: " << scene.frames - rs.first_frame + 1 << " frames, " << total_substeps
-              << " substeps in " << format_seconds(wall) << " (" << wall << " s), "
-              << (sim.work_done() - work0) / wall * 1e-6 << "M " << sim.work_unit() << "/s\n"
+    std::cout << "amalgam: done: " << scene.frames - rs.first_frame + 1 << " frames, "
+              << total_substeps << " substeps in " << format_seconds(wall) << " (" << wall
+              << " s), " << (sim.work_done() - work0) / wall * 1e-6 << "M " << sim.work_unit()
+              << "/s\n"
               << "amalgam: per-kernel time:\n"
               << profiler.report(wall) << sim.run_summary(wall);
   }

@@ -17,9 +17,9 @@ int info_command(const std::vector<std::string>&) {
             << "backends: ";
   for (auto b : exec::available_backends()) std::cout << exec::backend_name(b) << " ";
   std::cout << "\nhardware threads: " << exec::hardware_threads() << "\n"
-            << "Eigen " << EIGEN_WORLD_VERSION << "." << EIGEN_MAJOR_VERSION << "." << EIGEN_MINOR_VERSION
-            << ", oneTBB " << TBB_VERSION_MAJOR << "." << TBB_VERSION_MINOR << ", OpenVDB " << AMALGAM_OPENVDB_VERSION
-            << "\n";
+            << "Eigen " << EIGEN_WORLD_VERSION << "." << EIGEN_MAJOR_VERSION << "."
+            << EIGEN_MINOR_VERSION << ", oneTBB " << TBB_VERSION_MAJOR << "." << TBB_VERSION_MINOR
+            << ", OpenVDB " << AMALGAM_OPENVDB_VERSION << "\n";
   if (exec::backend_compiled(exec::Backend::Kokkos)) std::cout << exec::kokkos_version() << "\n";
   return kOk;
 }

@@ -17,7 +17,8 @@ bool Options::flag(const std::string& key) const {
   return false;
 }
 
-Options parse_options(const std::vector<std::string>& args, const std::vector<std::string>& value_keys,
+Options parse_options(const std::vector<std::string>& args,
+                      const std::vector<std::string>& value_keys,
                       const std::vector<std::string>& flag_keys) {
   Options o;
   for (size_t i = 0; i < args.size(); ++i) {
@@ -77,8 +78,8 @@ int parse_int(const std::string& key, const std::string& value, int lo, int hi) 
     pos = 0;
   }
   if (pos != value.size() || value.empty() || v < lo || v > hi)
-    throw std::invalid_argument(key + " expects an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) +
-                                "], got '" + value + "'");
+    throw std::invalid_argument(key + " expects an integer in [" + std::to_string(lo) + ", " +
+                                std::to_string(hi) + "], got '" + value + "'");
   return int(v);
 }
 

@@ -35,7 +35,9 @@ int plot_command(const std::vector<std::string>& args) {
     const std::string dir = o.positional[0];
     const std::string csv = dir + "/diagnostics.csv";
     std::ifstream in(csv, std::ios::binary);
-    if (!in) throw InputError(csv + ": cannot open diagnostics file (run the scene with output.diagnostics_csv)");
+    if (!in)
+      throw InputError(
+          csv + ": cannot open diagnostics file (run the scene with output.diagnostics_csv)");
     std::ostringstream ss;
     ss << in.rdbuf();
     const auto cols = read_csv_columns(ss.str(), csv);

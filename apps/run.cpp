@@ -92,7 +92,8 @@ int run_command(const std::vector<std::string>& args) {
   Options o;
   try {
     o = parse_options(args,
-                      {"--backend", "--threads", "--out", "--frames", "--checkpoint-every", "--resume", "--retries"},
+                      {"--backend", "--threads", "--out", "--frames", "--checkpoint-every",
+                       "--resume", "--retries"},
                       {"--quiet", "--help", "--preview"});
     if (o.flag("--help")) {
       std::cout << kRunHelp;
@@ -113,7 +114,8 @@ int run_command(const std::vector<std::string>& args) {
     rs.quiet = o.flag("--quiet");
     rs.preview = o.flag("--preview");
     rs.checkpoint_every = scene.output.checkpoint_every;
-    if (const auto* c = o.get("--checkpoint-every")) rs.checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
+    if (const auto* c = o.get("--checkpoint-every"))
+      rs.checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
     rs.max_retries = o.get("--retries") ? parse_int("--retries", *o.get("--retries"), 0, 10) : 3;
     std::error_code ec;
     std::filesystem::create_directories(rs.out_dir, ec);
@@ -127,11 +129,13 @@ int run_command(const std::vector<std::string>& args) {
         std::cout << "amalgam: resumed from " << *r << " at t = " << sim->time() << " s, substep "
                   << sim->step_count() << ", frame " << rs.first_frame << "\n";
     }
-    const double setup = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_setup).count();
+    const double setup =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t_setup).count();
     if (!rs.quiet)
-      std::cout << "amalgam: scene '" << scene.name << "': " << sim->describe() << "; " << scene.frames
-                << " frames at " << scene.fps << " fps, backend " << space.describe() << ", precision "
-                << real_name() << " (set-up " << format_seconds(setup) << ")\n"
+      std::cout << "amalgam: scene '" << scene.name << "': " << sim->describe() << "; "
+                << scene.frames << " frames at " << scene.fps << " fps, backend "
+                << space.describe() << ", precision " << real_name() << " (set-up "
+                << format_seconds(setup) << ")\n"
                 << "amalgam: writing to " << rs.out_dir << "/\n";
     return run_frames(*sim, scene, rs, space, profiler);
   } catch (const InputError& e) {
@@ -141,8 +145,9 @@ int run_command(const std::vector<std::string>& args) {
     std::cerr << "amalgam run: " << e.what() << "\n";
     return kUsage;
   } catch (const SimulationError& e) {
-    std::cerr << "amalgam: simulation failed: " << e.what() << "\n"
-              << "amalgam: the last good checkpoint (if any was written) is in the output directory\n";
+    std::cerr
+        << "amalgam: simulation failed: " << e.what() << "\n"
+        << "amalgam: the last good checkpoint (if any was written) is in the output directory\n";
     return kSimulationFailed;
   }
 }

@@ -60,7 +60,8 @@ Result run(const Variant& var, double dx, double dt, double t_end, const exec::S
     "materials": {"bar": {"model": "fixed_corotated", "density": %g, "youngs_modulus": %g, "poisson_ratio": 0}},
     "objects": [{"shape": "box", "min": [%.17g, 0.48, 0.48], "max": [%.17g, %.17g, %.17g], "material": "bar",
                  "jitter": 0, "configuration": {"update": "%s"%s}}]})",
-                dx, var.transfer.c_str(), kRho, kE, kXmin, kXmin + kL, 0.48 + kW, 0.48 + kW, var.update.c_str(),
+                dx, var.transfer.c_str(), kRho, kE, kXmin, kXmin + kL, 0.48 + kW, 0.48 + kW,
+                var.update.c_str(),
                 var.update == "adaptive" ? R"(, "epsilon": 0.002, "eta": 0.05)" : "");
   if (var.transfer != "flip") {  // flip_alpha is a flip-only key
     std::string t = text;
@@ -116,7 +117,8 @@ double order(const std::vector<Result>& r, int n, bool velocity) {
   n = std::min<int>(n, int(r.size()));
   double sx = 0, sy = 0, sxx = 0, sxy = 0;
   for (int i = int(r.size()) - n; i < int(r.size()); ++i) {
-    const double a = std::log(r[size_t(i)].dx), b = std::log(velocity ? r[size_t(i)].vel : r[size_t(i)].disp);
+    const double a = std::log(r[size_t(i)].dx),
+                 b = std::log(velocity ? r[size_t(i)].vel : r[size_t(i)].disp);
     sx += a, sy += b, sxx += a * a, sxy += a * b;
   }
   return (n * sxy - sx * sy) / (n * sxx - sx * sx);
@@ -130,14 +132,22 @@ Options parse(int argc, char** argv) {
       if (i + 1 >= argc) throw std::invalid_argument("missing value after " + a);
       return argv[++i];
     };
-    if (a == "--levels") o.levels = std::atoi(next());
-    else if (a == "--fit") o.fit = std::atoi(next());
-    else if (a == "--csv") o.csv = next();
-    else if (a == "--png") o.png = next();
-    else if (a == "--check") o.check = std::atof(next());
-    else if (a == "--backend") o.backend = next();
-    else if (a == "--threads") o.threads = std::atoi(next());
-    else throw std::invalid_argument("unknown option " + a);
+    if (a == "--levels")
+      o.levels = std::atoi(next());
+    else if (a == "--fit")
+      o.fit = std::atoi(next());
+    else if (a == "--csv")
+      o.csv = next();
+    else if (a == "--png")
+      o.png = next();
+    else if (a == "--check")
+      o.check = std::atof(next());
+    else if (a == "--backend")
+      o.backend = next();
+    else if (a == "--threads")
+      o.threads = std::atoi(next());
+    else
+      throw std::invalid_argument("unknown option " + a);
   }
   if (o.levels < 2 || o.levels > 7 || o.fit < 2 || o.threads < 1)
     throw std::invalid_argument("--levels in [2, 7], --fit >= 2, --threads >= 1");
@@ -161,8 +171,9 @@ int main(int argc, char** argv) {
     const double c = std::sqrt(kE / kRho), w = M_PI / kL * c;
     const double dt = 0.4 * dxs.back() / (c + kV + kA * w);
     const double t_end = 0.3 * 2 * M_PI / w;  // 0.3 of a period: the wave mid-swing
-    std::printf("bar L = %g m, c = %.3f m/s, period %.4f s, t_end %.4f s, dt %.3g s (%d steps), A = %g m, V = %g m/s\n",
-                kL, c, 2 * M_PI / w, t_end, dt, int(std::lround(t_end / dt)), kA, kV);
+    std::printf(
+        "bar L = %g m, c = %.3f m/s, period %.4f s, t_end %.4f s, dt %.3g s (%d steps), A = %g m, V = %g m/s\n",
+        kL, c, 2 * M_PI / w, t_end, dt, int(std::lround(t_end / dt)), kA, kV);
     std::vector<std::vector<Result>> all;
     std::FILE* csv = o.csv.empty() ? nullptr : std::fopen(o.csv.c_str(), "w");
     if (!o.csv.empty() && !csv) throw std::runtime_error("cannot write " + o.csv);
@@ -171,34 +182,41 @@ int main(int argc, char** argv) {
       std::vector<Result> rs;
       for (double dx : dxs) {
         const Result r = run(var, dx, dt, t_end, space);
-        std::printf("%-22s dx %.5f  E_u %.4e  E_v %.4e  resets %llu\n", var.label.c_str(), dx, r.disp, r.vel,
-                    (unsigned long long)r.resets);
+        std::printf("%-22s dx %.5f  E_u %.4e  E_v %.4e  resets %llu\n", var.label.c_str(), dx,
+                    r.disp, r.vel, (unsigned long long)r.resets);
         std::fflush(stdout);
-        if (csv) std::fprintf(csv, "%s,%.6g,%.6e,%.6e,%llu\n", var.label.c_str(), dx, r.disp, r.vel, (unsigned long long)r.resets);
+        if (csv)
+          std::fprintf(csv, "%s,%.6g,%.6e,%.6e,%llu\n", var.label.c_str(), dx, r.disp, r.vel,
+                       (unsigned long long)r.resets);
         rs.push_back(r);
       }
-      std::printf("%-22s order (finest %d): displacement %.2f, velocity %.2f\n", var.label.c_str(), o.fit,
-                  order(rs, o.fit, false), order(rs, o.fit, true));
+      std::printf("%-22s order (finest %d): displacement %.2f, velocity %.2f\n", var.label.c_str(),
+                  o.fit, order(rs, o.fit, false), order(rs, o.fit, true));
       all.push_back(rs);
     }
     if (csv) std::fclose(csv);
     if (!o.png.empty()) {
-      LogLogPanel pu{"DISPLACEMENT ERROR E_U / A", "DX (M)", {}}, pv{"VELOCITY ERROR E_V / (A W)", "DX (M)", {}};
+      LogLogPanel pu{"DISPLACEMENT ERROR E_U / A", "DX (M)", {}},
+          pv{"VELOCITY ERROR E_V / (A W)", "DX (M)", {}};
       for (size_t i = 0; i < variants.size(); ++i) {
         PlotSeries su{variants[i].label, {}, {}}, sv{variants[i].label, {}, {}};
-        for (const auto& r : all[i]) su.x.push_back(r.dx), su.y.push_back(r.disp), sv.x.push_back(r.dx), sv.y.push_back(r.vel);
+        for (const auto& r : all[i])
+          su.x.push_back(r.dx), su.y.push_back(r.disp), sv.x.push_back(r.dx), sv.y.push_back(r.vel);
         pu.series.push_back(su), pv.series.push_back(sv);
       }
       PlotSeries ref{"SLOPE 2", {}, {}};  // through the TL finest point
-      for (double dx : dxs) ref.x.push_back(dx), ref.y.push_back(all[0].back().disp * (dx / dxs.back()) * (dx / dxs.back()));
+      for (double dx : dxs)
+        ref.x.push_back(dx),
+            ref.y.push_back(all[0].back().disp * (dx / dxs.back()) * (dx / dxs.back()));
       pu.series.push_back(ref);
-      write_png(o.png, plot_loglog("A-ULMPM CONVERGENCE: BAR STANDING WAVE + TRANSLATION", {pu, pv}));
+      write_png(o.png,
+                plot_loglog("A-ULMPM CONVERGENCE: BAR STANDING WAVE + TRANSLATION", {pu, pv}));
     }
     if (o.check > 0) {
       const double pu = order(all[0], o.fit, false), pv = order(all[0], o.fit, true);
       const bool ok = pu >= o.check && pv >= o.check;
-      std::printf("check: TL MLS orders displacement %.2f, velocity %.2f (need >= %.2f): %s\n", pu, pv, o.check,
-                  ok ? "ok" : "FAILED");
+      std::printf("check: TL MLS orders displacement %.2f, velocity %.2f (need >= %.2f): %s\n", pu,
+                  pv, o.check, ok ? "ok" : "FAILED");
       return ok ? 0 : 1;
     }
     return 0;

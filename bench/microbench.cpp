@@ -163,27 +163,32 @@ void BM_DomainParticlesToCorners(benchmark::State& st) {
     s->enriched()->domains().particles_to_corners(space, pv);
   }
   st.counters["corners"] = double(s->enriched()->domains().corner_count());
-  set_items(st, pv.n, 2 * sizeof(Mat3) + 2 * sizeof(Real) + 8 * 4 + sizeof(Vec3) + 4);  // F, P, m, V0, corners, h, state
+  set_items(st, pv.n,
+            2 * sizeof(Mat3) + 2 * sizeof(Real) + 8 * 4 + sizeof(Vec3) +
+                4);  // F, P, m, V0, corners, h, state
 }
 // Grid -> corner gather with corner collisions, then corner -> particle (v, F) and advection.
 void BM_DomainGridToParticles(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared_domains(space);
   const DomainParticleView pv = s->enriched()->particle_view(*s);
-  const DomainParams prm = s->enriched()->params(*s, Real(0));  // dt 0: positions stay, state repeatable
+  const DomainParams prm =
+      s->enriched()->params(*s, Real(0));  // dt 0: positions stay, state repeatable
   const MpmGridView g = s->grid_view();
   for (auto _ : st) {
     s->enriched()->domains().grid_to_corners(space, g, pv, prm);
     s->enriched()->domains().corners_to_particles(space, pv, prm);
   }
-  set_items(st, pv.n, 8 * 4 + 2 * sizeof(Mat3) + 4 * sizeof(Vec3));  // corners; F r/w; v, x; corner v, x
+  set_items(st, pv.n,
+            8 * 4 + 2 * sizeof(Mat3) + 4 * sizeof(Vec3));  // corners; F r/w; v, x; corner v, x
 }
 // A whole explicit substep (the two above plus points, sort, topology, scatter, grid update).
 void BM_DomainStep(benchmark::State& st) {
   const exec::Space space = space_of(st);
   auto s = prepared_domains(space);
   for (auto _ : st) s->enriched()->step(space, *s, Real(1e-5));
-  set_items(st, s->particles().size(), s->particles().bytes_per_particle());  // resident particle state
+  set_items(st, s->particles().size(),
+            s->particles().bytes_per_particle());  // resident particle state
 }
 // The implicit operator's domain term: grid -> corners -> dF -> dP -> corners -> grid.
 void BM_DomainHessianAction(benchmark::State& st) {
@@ -199,8 +204,8 @@ void BM_DomainHessianAction(benchmark::State& st) {
   const std::size_t ncorner = 4 * s->enriched()->domains().enriched_dof_count() + 4;
   std::vector<Real> du(ngrid, Real(1e-3)), out(ngrid), duc(ncorner, Real(1e-3)), outc(ncorner);
   for (auto _ : st)
-    s->enriched()->domains().hessian_action(space, pv, g, s->settings().dx, du.data(), duc.data(), 1,
-                                out.data(), outc.data());
+    s->enriched()->domains().hessian_action(space, pv, g, s->settings().dx, du.data(), duc.data(),
+                                            1, out.data(), outc.data());
   set_items(st, pv.n, 8 * 4 + sizeof(DomainHessian));  // corner ids + the Hessian cache
 }
 
@@ -286,7 +291,8 @@ void BM_CgIteration(benchmark::State& st) {
   // the operator's share of the particle Hessian cache
   set_items(st, r.dofs * 10,
             std::size_t(7 * 4 * sizeof(Real) +
-                        double(kParticles) / double(r.dofs) * double(sizeof(ParticleHessian) + sizeof(Vec3) + sizeof(Real))));
+                        double(kParticles) / double(r.dofs) *
+                            double(sizeof(ParticleHessian) + sizeof(Vec3) + sizeof(Real))));
   st.counters["dofs"] = double(r.dofs);
 }
 
@@ -299,7 +305,8 @@ void BM_ImplicitAssemble(benchmark::State& st) {
     r.s->implicit()->assemble(space, *r.s, r.dt);
     r.s->implicit()->system().prepare(space, r.dt);
   }
-  set_items(st, kParticles, sizeof(ParticleHessian) + sizeof(Mat3) + sizeof(Vec3));  // cache written, F, x
+  set_items(st, kParticles,
+            sizeof(ParticleHessian) + sizeof(Mat3) + sizeof(Vec3));  // cache written, F, x
 }
 
 std::vector<Mat3> random_F(std::size_t n) {
@@ -374,7 +381,8 @@ void BM_StreamTriad(benchmark::State& st) {
   const exec::Index n = exec::Index(1) << 24;
   std::vector<float> a(size_t(n), 0.f), b(size_t(n), 1.f), c(size_t(n), 2.f);
   for (auto _ : st) {
-    exec::parallel_for(space, "bench.triad", n, [&](exec::Index i) { a[size_t(i)] = b[size_t(i)] + 0.5f * c[size_t(i)]; });
+    exec::parallel_for(space, "bench.triad", n,
+                       [&](exec::Index i) { a[size_t(i)] = b[size_t(i)] + 0.5f * c[size_t(i)]; });
     benchmark::DoNotOptimize(a.data());
   }
   set_items(st, size_t(n), 12);
@@ -386,18 +394,23 @@ void BM_StreamTriad(benchmark::State& st) {
 // is 1 GFLOP/s. Per backend, 1 and 2 threads (each chunk its own chains).
 void BM_PeakFlops(benchmark::State& st) {
   const exec::Space space = space_of(st);
-  constexpr int kLanes = 48, kIters = 16384;  // 12 SSE vectors in flight: covers the 3+3-cycle latency
+  constexpr int kLanes = 48,
+                kIters = 16384;  // 12 SSE vectors in flight: covers the 3+3-cycle latency
   const exec::Index chunks = 256;
   std::vector<Real> sink(size_t(chunks) * kLanes);
   for (auto _ : st) {
-    exec::parallel_for(space, "bench.flops", chunks, [&](exec::Index c) {
-      Real acc[kLanes];
-      for (int l = 0; l < kLanes; ++l) acc[l] = Real(1) + Real(l) * Real(1e-3) + Real(c) * Real(1e-6);
-      const Real m = Real(0.999999), a = Real(1e-7);
-      for (int it = 0; it < kIters; ++it)
-        for (int l = 0; l < kLanes; ++l) acc[l] = acc[l] * m + a;
-      for (int l = 0; l < kLanes; ++l) sink[size_t(c) * kLanes + size_t(l)] = acc[l];
-    }, 1);
+    exec::parallel_for(
+        space, "bench.flops", chunks,
+        [&](exec::Index c) {
+          Real acc[kLanes];
+          for (int l = 0; l < kLanes; ++l)
+            acc[l] = Real(1) + Real(l) * Real(1e-3) + Real(c) * Real(1e-6);
+          const Real m = Real(0.999999), a = Real(1e-7);
+          for (int it = 0; it < kIters; ++it)
+            for (int l = 0; l < kLanes; ++l) acc[l] = acc[l] * m + a;
+          for (int l = 0; l < kLanes; ++l) sink[size_t(c) * kLanes + size_t(l)] = acc[l];
+        },
+        1);
     benchmark::DoNotOptimize(sink.data());
   }
   st.SetItemsProcessed(std::int64_t(st.iterations()) * chunks * kLanes * kIters * 2);

@@ -41,21 +41,36 @@ Options parse(int argc, char** argv) {
       if (i + 1 >= argc) throw std::invalid_argument("missing value after " + a);
       return argv[++i];
     };
-    if (a == "--nx") o.nx = std::atoi(next());
-    else if (a == "--ny") o.ny = std::atoi(next());
-    else if (a == "--nz") o.nz = std::atoi(next());
-    else if (a == "--lc") o.lc = std::atof(next());
-    else if (a == "--dt") o.dt = std::atof(next());
-    else if (a == "--v0") o.v0 = std::atof(next());
-    else if (a == "--backend") o.backend = next();
-    else if (a == "--threads") o.threads = std::atoi(next());
-    else if (a == "--form") o.form = next();
-    else if (a == "--correction") o.correction = std::atoi(next()) != 0;
-    else if (a == "--steps") o.steps = std::atoi(next());
-    else if (a == "--timing-steps") o.timing_steps = std::atoi(next());
-    else if (a == "--repeats") o.repeats = std::atoi(next());
-    else if (a == "--profile") o.profile = true;
-    else throw std::invalid_argument("unknown option " + a);
+    if (a == "--nx")
+      o.nx = std::atoi(next());
+    else if (a == "--ny")
+      o.ny = std::atoi(next());
+    else if (a == "--nz")
+      o.nz = std::atoi(next());
+    else if (a == "--lc")
+      o.lc = std::atof(next());
+    else if (a == "--dt")
+      o.dt = std::atof(next());
+    else if (a == "--v0")
+      o.v0 = std::atof(next());
+    else if (a == "--backend")
+      o.backend = next();
+    else if (a == "--threads")
+      o.threads = std::atoi(next());
+    else if (a == "--form")
+      o.form = next();
+    else if (a == "--correction")
+      o.correction = std::atoi(next()) != 0;
+    else if (a == "--steps")
+      o.steps = std::atoi(next());
+    else if (a == "--timing-steps")
+      o.timing_steps = std::atoi(next());
+    else if (a == "--repeats")
+      o.repeats = std::atoi(next());
+    else if (a == "--profile")
+      o.profile = true;
+    else
+      throw std::invalid_argument("unknown option " + a);
   }
   if (o.nx < 8 || o.ny < 1 || o.nz < 1 || !(o.dt > 0) || o.threads < 1 || o.repeats < 1)
     throw std::invalid_argument("bad sizes, dt, threads or repeats");
@@ -85,11 +100,13 @@ int main(int argc, char** argv) try {
   std::vector<Vec3> x;
   for (int i = 0; i < o.nx; ++i)
     for (int j = 0; j < o.ny; ++j)
-      for (int k = 0; k < o.nz; ++k) x.push_back((o.lc * Vec3d(i, j, k)).cast<Real>());  // LAMMPS's sc sites
+      for (int k = 0; k < o.nz; ++k)
+        x.push_back((o.lc * Vec3d(i, j, k)).cast<Real>());  // LAMMPS's sc sites
   solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(o.lc * o.lc * o.lc));
   const auto t_setup = std::chrono::steady_clock::now();
   solver.initialize(space);
-  const double setup_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_setup).count();
+  const double setup_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t_setup).count();
   Vec3* v = solver.particles().vec3(solver.attributes().v);
   std::vector<std::size_t> far;
   for (std::size_t i = 0; i < x.size(); ++i) {
@@ -107,8 +124,9 @@ int main(int argc, char** argv) try {
     vx /= double(far.size());
     if (vx > 0.1 * o.v0) arrival = double(step + 1) * o.dt;
   }
-  std::printf("particles = %zu\nbonds = %zu\ndt_s = %.6g\nsetup_s = %.4f\narrival_s = %.6g\nsteps = %d\n", x.size(),
-              solver.bonds().size(), o.dt, setup_s, arrival, step);
+  std::printf(
+      "particles = %zu\nbonds = %zu\ndt_s = %.6g\nsetup_s = %.4f\narrival_s = %.6g\nsteps = %d\n",
+      x.size(), solver.bonds().size(), o.dt, setup_s, arrival, step);
   if (o.timing_steps > 0) {
     exec::Profiler profiler;  // --profile: per-region times of the timed steps
     exec::Space timed = space;
@@ -117,14 +135,16 @@ int main(int argc, char** argv) try {
     for (int r = 0; r < o.repeats; ++r) {
       const auto t0 = std::chrono::steady_clock::now();
       for (int k = 0; k < o.timing_steps; ++k) solver.step(timed, dt);
-      per_step.push_back(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() /
-                         o.timing_steps);
+      per_step.push_back(
+          std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() /
+          o.timing_steps);
     }
     std::sort(per_step.begin(), per_step.end());
     const double med = per_step[per_step.size() / 2];
-    std::printf("seconds_per_step = %.6g\nseconds_per_step_min = %.6g\nseconds_per_step_max = %.6g\n"
-                "bond_updates_per_s = %.4g\n",
-                med, per_step.front(), per_step.back(), double(solver.bonds().size()) / med);
+    std::printf(
+        "seconds_per_step = %.6g\nseconds_per_step_min = %.6g\nseconds_per_step_max = %.6g\n"
+        "bond_updates_per_s = %.4g\n",
+        med, per_step.front(), per_step.back(), double(solver.bonds().size()) / med);
     if (o.profile) std::printf("%s", profiler.report().c_str());
   }
   return 0;

@@ -6,7 +6,8 @@
 
 namespace amalgam {
 
-inline std::uint64_t fnv1a64(const void* data, std::size_t n, std::uint64_t h = 0xcbf29ce484222325ULL) {
+inline std::uint64_t fnv1a64(const void* data, std::size_t n,
+                             std::uint64_t h = 0xcbf29ce484222325ULL) {
   const unsigned char* p = static_cast<const unsigned char*>(data);
   for (std::size_t i = 0; i < n; ++i) {
     h ^= p[i];

@@ -43,8 +43,8 @@ class Reader {
  private:
   void need(std::size_t n, const char* what) {
     if (d_.size() - pos_ < n)
-      throw InputError(path_ + ": checkpoint is truncated (ends inside " + what + " at byte " + std::to_string(pos_) +
-                       " of " + std::to_string(d_.size()) + ")");
+      throw InputError(path_ + ": checkpoint is truncated (ends inside " + what + " at byte " +
+                       std::to_string(pos_) + " of " + std::to_string(d_.size()) + ")");
   }
   const std::string& d_;
   const std::string& path_;
@@ -52,11 +52,13 @@ class Reader {
 };
 using Section = StateSection;
 
-void write_state(const std::string& path, const ParticleSet& ps, double time, std::uint64_t steps, int next_frame,
-                 std::uint64_t scene_fingerprint, const std::vector<Section>& sections) {
+void write_state(const std::string& path, const ParticleSet& ps, double time, std::uint64_t steps,
+                 int next_frame, std::uint64_t scene_fingerprint,
+                 const std::vector<Section>& sections) {
   std::string b;
   std::size_t total = 128;
-  for (int a = 0; a < ps.attribute_count(); ++a) total += 64 + ps.size() * 4 * size_t(ps.words_per_particle(a));
+  for (int a = 0; a < ps.attribute_count(); ++a)
+    total += 64 + ps.size() * 4 * size_t(ps.words_per_particle(a));
   for (const Section& sec : sections) total += 64 + sec.bytes;
   b.reserve(total);
   b.append(kMagic, kMagicLen);
@@ -75,7 +77,8 @@ void write_state(const std::string& path, const ParticleSet& ps, double time, st
     put(b, std::uint32_t(ps.type(a)));
     put(b, std::uint32_t(ps.width(a)));
     put(b, std::uint32_t(ps.words_per_particle(a)));
-    b.append(reinterpret_cast<const char*>(ps.words(a)), ps.size() * 4 * size_t(ps.words_per_particle(a)));
+    b.append(reinterpret_cast<const char*>(ps.words(a)),
+             ps.size() * 4 * size_t(ps.words_per_particle(a)));
   }
   put(b, std::uint32_t(sections.size()));
   for (const Section& sec : sections) {
@@ -89,8 +92,8 @@ void write_state(const std::string& path, const ParticleSet& ps, double time, st
 }
 
 // Reads into ps (same attribute layout) and the sections (same names and sizes, in order).
-CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64_t scene_fingerprint,
-                           const std::vector<Section>& sections) {
+CheckpointState read_state(const std::string& path, ParticleSet& ps,
+                           std::uint64_t scene_fingerprint, const std::vector<Section>& sections) {
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open checkpoint");
   std::ostringstream ss;
@@ -107,15 +110,17 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64
   r.take(kMagicLen, "magic");
   const auto version = r.get<std::uint32_t>("version");
   if (version != 1 && version != kVersion)
-    throw InputError(path + ": checkpoint format version " + std::to_string(version) + ", this build reads 1 and " +
-                     std::to_string(kVersion));
+    throw InputError(path + ": checkpoint format version " + std::to_string(version) +
+                     ", this build reads 1 and " + std::to_string(kVersion));
   const auto real_size = r.get<std::uint32_t>("precision");
   if (real_size != sizeof(Real))
-    throw InputError(path + ": checkpoint was written by a " + (real_size == 8 ? "double" : "float") +
-                     " build, this build is " + real_name());
+    throw InputError(path + ": checkpoint was written by a " +
+                     (real_size == 8 ? "double" : "float") + " build, this build is " +
+                     real_name());
   const auto fp = r.get<std::uint64_t>("scene fingerprint");
   if (fp != scene_fingerprint)
-    throw InputError(path + ": checkpoint was written for a different scene (or the scene file changed since)");
+    throw InputError(
+        path + ": checkpoint was written for a different scene (or the scene file changed since)");
   CheckpointState st;
   st.time = r.get<double>("time");
   st.steps = r.get<std::uint64_t>("step count");
@@ -123,8 +128,8 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64
   const auto n = r.get<std::uint64_t>("particle count");
   const auto nattr = r.get<std::uint32_t>("attribute count");
   if (nattr != std::uint32_t(ps.attribute_count()))
-    throw InputError(path + ": checkpoint has " + std::to_string(nattr) + " particle attributes, expected " +
-                     std::to_string(ps.attribute_count()));
+    throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
+                     " particle attributes, expected " + std::to_string(ps.attribute_count()));
   if (!sections.empty() && n != ps.size())
     throw InputError(path + ": checkpoint has " + std::to_string(n) + " particles, this scene " +
                      std::to_string(ps.size()));
@@ -139,14 +144,16 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64
     const auto words = r.get<std::uint32_t>("attribute words");
     if (a < 0 || type != std::uint32_t(ps.type(a)) || width != std::uint32_t(ps.width(a)) ||
         words != std::uint32_t(ps.words_per_particle(a)))
-      throw InputError(path + ": checkpoint attribute '" + name + "' does not match this solver's layout");
+      throw InputError(path + ": checkpoint attribute '" + name +
+                       "' does not match this solver's layout");
     const std::size_t bytes = size_t(n) * 4 * words;
     std::memcpy(ps.words(a), r.take(bytes, "attribute data"), bytes);
   }
   const std::uint32_t nsec = version >= 2 ? r.get<std::uint32_t>("section count") : 0;
   if (nsec != sections.size())
-    throw InputError(path + ": checkpoint has " + std::to_string(nsec) + " state sections, this solver expects " +
-                     std::to_string(sections.size()) + " (written by a different method?)");
+    throw InputError(path + ": checkpoint has " + std::to_string(nsec) +
+                     " state sections, this solver expects " + std::to_string(sections.size()) +
+                     " (written by a different method?)");
   for (const Section& sec : sections) {
     const auto len = r.get<std::uint32_t>("section name length");
     if (len > 256) throw InputError(path + ": checkpoint section name too long (corrupt file)");
@@ -154,7 +161,8 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64
     const auto bytes = r.get<std::uint64_t>("section size");
     if (name != sec.name || (!sec.resize && bytes != sec.bytes))
       throw InputError(path + ": checkpoint section '" + name + "' (" + std::to_string(bytes) +
-                       " bytes) does not match this solver's '" + sec.name + "' (" + std::to_string(sec.bytes) + ")");
+                       " bytes) does not match this solver's '" + sec.name + "' (" +
+                       std::to_string(sec.bytes) + ")");
     const char* src = r.take(std::size_t(bytes), "section data");
     char* dst = sec.data;
     if (sec.resize) {
@@ -166,19 +174,23 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps, std::uint64
     }
     std::memcpy(dst, src, std::size_t(bytes));
   }
-  if (r.pos() != d.size() - 8) throw InputError(path + ": checkpoint has trailing bytes (corrupt file)");
+  if (r.pos() != d.size() - 8)
+    throw InputError(path + ": checkpoint has trailing bytes (corrupt file)");
   return st;
 }
 
 }  // namespace
 
-void write_checkpoint(const std::string& path, Simulation& sim, int next_frame, std::uint64_t scene_fingerprint) {
+void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
+                      std::uint64_t scene_fingerprint) {
   write_state(path, sim.particles(), sim.time(), sim.step_count(), next_frame, scene_fingerprint,
               sim.checkpoint_sections());
 }
 
-CheckpointState read_checkpoint(const std::string& path, Simulation& sim, std::uint64_t scene_fingerprint) {
-  const CheckpointState st = read_state(path, sim.particles(), scene_fingerprint, sim.restore_sections());
+CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
+                                std::uint64_t scene_fingerprint) {
+  const CheckpointState st =
+      read_state(path, sim.particles(), scene_fingerprint, sim.restore_sections());
   try {
     sim.restored(st.time, st.steps);
   } catch (const InputError& e) {

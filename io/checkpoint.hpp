@@ -31,10 +31,12 @@ struct CheckpointState {
 };
 
 // Writes the simulation's particles and state sections (Simulation::checkpoint_sections).
-void write_checkpoint(const std::string& path, Simulation& sim, int next_frame, std::uint64_t scene_fingerprint);
+void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
+                      std::uint64_t scene_fingerprint);
 // Loads particles, sections and clock into `sim`, built from the same scene (peridynamics:
 // initialised); returns the state. A section or bond list that does not fit the scene is an
 // InputError naming the file.
-CheckpointState read_checkpoint(const std::string& path, Simulation& sim, std::uint64_t scene_fingerprint);
+CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
+                                std::uint64_t scene_fingerprint);
 
 }  // namespace amalgam

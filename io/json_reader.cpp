@@ -6,7 +6,9 @@
 namespace amalgam::detail {
 
 namespace {
-std::string type_name(const nlohmann::json& v) { return v.type_name(); }
+std::string type_name(const nlohmann::json& v) {
+  return v.type_name();
+}
 std::string show(const nlohmann::json& v) {
   std::string s = v.dump();
   return s.size() > 60 ? s.substr(0, 57) + "..." : s;
@@ -21,7 +23,8 @@ std::string fmt(double x) {
 JsonObject::JsonObject(const nlohmann::json& j, std::string file, std::string path)
     : j_(j), file_(std::move(file)), path_(std::move(path)) {
   if (!j_.is_object())
-    throw InputError(file_ + ": " + (path_.empty() ? "/" : path_) + ": expected an object, got " + type_name(j_));
+    throw InputError(file_ + ": " + (path_.empty() ? "/" : path_) + ": expected an object, got " +
+                     type_name(j_));
 }
 
 void JsonObject::fail(const std::string& key, const std::string& what) const {
@@ -33,8 +36,10 @@ const nlohmann::json& JsonObject::at(const std::string& key) {
   return j_.at(key);
 }
 
-double JsonObject::check_number(const std::string& key, const nlohmann::json& v, double lo, double hi, bool lo_open) {
-  const std::string range = std::string("a number in ") + (lo_open ? "(" : "[") + fmt(lo) + ", " + fmt(hi) + "]";
+double JsonObject::check_number(const std::string& key, const nlohmann::json& v, double lo,
+                                double hi, bool lo_open) {
+  const std::string range =
+      std::string("a number in ") + (lo_open ? "(" : "[") + fmt(lo) + ", " + fmt(hi) + "]";
   if (!v.is_number()) fail(key, "expected " + range + ", got " + type_name(v) + " " + show(v));
   const double x = v.get<double>();
   if (!std::isfinite(x)) fail(key, "expected a finite number, got " + show(v));
@@ -56,10 +61,12 @@ long long JsonObject::integer(const std::string& key, long long def, long long l
   if (!has(key)) return def;
   const auto& v = at(key);
   if (!v.is_number_integer())
-    fail(key, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got " + show(v));
+    fail(key, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) +
+                  "], got " + show(v));
   const long long x = v.get<long long>();
   if (x < lo || x > hi)
-    fail(key, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) + "], got " + std::to_string(x));
+    fail(key, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) +
+                  "], got " + std::to_string(x));
   return x;
 }
 
@@ -77,7 +84,8 @@ std::string JsonObject::string(const std::string& key, const std::string& def) {
   return v.get<std::string>();
 }
 
-std::string JsonObject::choice(const std::string& key, const std::string& def, const std::vector<std::string>& allowed) {
+std::string JsonObject::choice(const std::string& key, const std::string& def,
+                               const std::vector<std::string>& allowed) {
   const std::string s = string(key, def);
   for (const auto& a : allowed)
     if (a == s) return s;
@@ -97,9 +105,11 @@ Vec3 JsonObject::required_vec3(const std::string& key) {
   if (!v.is_array() || v.size() != 3) fail(key, "expected an array of 3 numbers, got " + show(v));
   Vec3 r;
   for (int a = 0; a < 3; ++a) {
-    if (!v[size_t(a)].is_number()) fail(key + "/" + std::to_string(a), "expected a number, got " + show(v[size_t(a)]));
+    if (!v[size_t(a)].is_number())
+      fail(key + "/" + std::to_string(a), "expected a number, got " + show(v[size_t(a)]));
     const double x = v[size_t(a)].get<double>();
-    if (!std::isfinite(x)) fail(key + "/" + std::to_string(a), "expected a finite number, got " + show(v[size_t(a)]));
+    if (!std::isfinite(x))
+      fail(key + "/" + std::to_string(a), "expected a finite number, got " + show(v[size_t(a)]));
     r[a] = Real(x);
   }
   return r;
@@ -118,7 +128,8 @@ std::vector<JsonObject> JsonObject::objects(const std::string& key) {
   if (!has(key)) return out;
   const auto& v = at(key);
   if (!v.is_array()) fail(key, "expected an array of objects, got " + type_name(v));
-  for (size_t i = 0; i < v.size(); ++i) out.emplace_back(v[i], file_, path_ + "/" + key + "/" + std::to_string(i));
+  for (size_t i = 0; i < v.size(); ++i)
+    out.emplace_back(v[i], file_, path_ + "/" + key + "/" + std::to_string(i));
   return out;
 }
 
@@ -130,7 +141,8 @@ std::vector<std::string> JsonObject::keys() const {
 
 void JsonObject::finish() const {
   for (auto it = j_.begin(); it != j_.end(); ++it)
-    if (!used_.count(it.key())) fail(it.key(), "unknown key (check the spelling against docs/scenes.md)");
+    if (!used_.count(it.key()))
+      fail(it.key(), "unknown key (check the spelling against docs/scenes.md)");
 }
 
 }  // namespace amalgam::detail

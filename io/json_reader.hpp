@@ -22,7 +22,8 @@ class JsonObject {
   long long integer(const std::string& key, long long def, long long lo, long long hi);
   bool boolean(const std::string& key, bool def);
   std::string string(const std::string& key, const std::string& def);
-  std::string choice(const std::string& key, const std::string& def, const std::vector<std::string>& allowed);
+  std::string choice(const std::string& key, const std::string& def,
+                     const std::vector<std::string>& allowed);
   Vec3 vec3(const std::string& key, const Vec3& def);
   Vec3 required_vec3(const std::string& key);
   JsonObject object(const std::string& key);
@@ -39,7 +40,8 @@ class JsonObject {
   std::string file_, path_;
   std::set<std::string> used_;
   const nlohmann::json& at(const std::string& key);
-  double check_number(const std::string& key, const nlohmann::json& v, double lo, double hi, bool lo_open);
+  double check_number(const std::string& key, const nlohmann::json& v, double lo, double hi,
+                      bool lo_open);
 };
 
 }  // namespace amalgam::detail

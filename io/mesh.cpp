@@ -1,7 +1,6 @@
 // Mesh file readers: OBJ, OFF and PLY (ASCII or binary little-endian).
 #include "io/mesh.hpp"
 
-
 #include <algorithm>
 #include <cstring>
 #include <fstream>
@@ -16,7 +15,8 @@ namespace {
 std::string lower_ext(const std::string& path) {
   const auto dot = path.find_last_of('.');
   std::string e = dot == std::string::npos ? "" : path.substr(dot + 1);
-  std::transform(e.begin(), e.end(), e.begin(), [](unsigned char c) { return char(std::tolower(c)); });
+  std::transform(e.begin(), e.end(), e.begin(),
+                 [](unsigned char c) { return char(std::tolower(c)); });
   return e;
 }
 
@@ -26,7 +26,8 @@ void add_polygon(TriangleMesh& m, const std::vector<std::int32_t>& poly, const s
     if (i < 0 || size_t(i) >= m.vertices.size())
       throw InputError(where + ": vertex index " + std::to_string(i) + " out of range (" +
                        std::to_string(m.vertices.size()) + " vertices)");
-  for (size_t k = 1; k + 1 < poly.size(); ++k) m.triangles.push_back({poly[0], poly[k], poly[k + 1]});
+  for (size_t k = 1; k + 1 < poly.size(); ++k)
+    m.triangles.push_back({poly[0], poly[k], poly[k + 1]});
 }
 
 TriangleMesh read_obj(const std::string& path, std::istream& in) {
@@ -69,32 +70,39 @@ TriangleMesh read_off(const std::string& path, std::istream& in) {
   };
   std::string line;
   int ln = 0;
-  if (!next_line(line, ln) || line.rfind("OFF", 0) != 0) throw InputError(path + ":1: expected the 'OFF' header");
+  if (!next_line(line, ln) || line.rfind("OFF", 0) != 0)
+    throw InputError(path + ":1: expected the 'OFF' header");
   std::istringstream rest(line.substr(3));
   long nv = -1, nf = -1;
   if (!(rest >> nv >> nf)) {
     if (!next_line(line, ln)) throw InputError(path + ": missing vertex/face counts");
     std::istringstream c(line);
-    if (!(c >> nv >> nf)) throw InputError(path + ":" + std::to_string(ln) + ": expected 'vertices faces edges'");
+    if (!(c >> nv >> nf))
+      throw InputError(path + ":" + std::to_string(ln) + ": expected 'vertices faces edges'");
   }
   if (nv < 3 || nf < 1) throw InputError(path + ": needs at least 3 vertices and 1 face");
   TriangleMesh m;
   m.vertices.reserve(size_t(nv));
   for (long i = 0; i < nv; ++i) {
-    if (!next_line(line, ln)) throw InputError(path + ": truncated after " + std::to_string(i) + " vertices");
+    if (!next_line(line, ln))
+      throw InputError(path + ": truncated after " + std::to_string(i) + " vertices");
     std::istringstream ss(line);
     Vec3d p;
-    if (!(ss >> p[0] >> p[1] >> p[2])) throw InputError(path + ":" + std::to_string(ln) + ": expected 'x y z'");
+    if (!(ss >> p[0] >> p[1] >> p[2]))
+      throw InputError(path + ":" + std::to_string(ln) + ": expected 'x y z'");
     m.vertices.push_back(p);
   }
   for (long f = 0; f < nf; ++f) {
-    if (!next_line(line, ln)) throw InputError(path + ": truncated after " + std::to_string(f) + " faces");
+    if (!next_line(line, ln))
+      throw InputError(path + ": truncated after " + std::to_string(f) + " faces");
     std::istringstream ss(line);
     long k = 0;
     ss >> k;
     std::vector<std::int32_t> poly(size_t(std::max(0L, k)));
     for (auto& i : poly)
-      if (!(ss >> i)) throw InputError(path + ":" + std::to_string(ln) + ": face has fewer indices than its count");
+      if (!(ss >> i))
+        throw InputError(path + ":" + std::to_string(ln) +
+                         ": face has fewer indices than its count");
     add_polygon(m, poly, path + ":" + std::to_string(ln));
   }
   return m;
@@ -112,13 +120,15 @@ TriangleMesh read_ply(const std::string& path, std::istream& in) {
   };
   std::string line, format;
   std::vector<Element> elems;
-  if (!std::getline(in, line) || line.rfind("ply", 0) != 0) throw InputError(path + ":1: expected the 'ply' header");
+  if (!std::getline(in, line) || line.rfind("ply", 0) != 0)
+    throw InputError(path + ":1: expected the 'ply' header");
   while (std::getline(in, line)) {
     if (!line.empty() && line.back() == '\r') line.pop_back();
     std::istringstream ss(line);
     std::string w;
     ss >> w;
-    if (w == "format") ss >> format;
+    if (w == "format")
+      ss >> format;
     else if (w == "element") {
       Element e;
       ss >> e.name >> e.count;
@@ -130,15 +140,19 @@ TriangleMesh read_ply(const std::string& path, std::istream& in) {
       if (p.type == "list") ss >> p.count_type >> p.type;
       ss >> p.name;
       elems.back().props.push_back(p);
-    } else if (w == "end_header") break;
+    } else if (w == "end_header")
+      break;
   }
   const bool ascii = format == "ascii";
   if (!ascii && format != "binary_little_endian")
-    throw InputError(path + ": PLY format '" + format + "' not supported (ascii or binary_little_endian)");
+    throw InputError(path + ": PLY format '" + format +
+                     "' not supported (ascii or binary_little_endian)");
   auto size_of = [&](const std::string& t) -> int {
     if (t == "char" || t == "uchar" || t == "int8" || t == "uint8") return 1;
     if (t == "short" || t == "ushort" || t == "int16" || t == "uint16") return 2;
-    if (t == "int" || t == "uint" || t == "float" || t == "int32" || t == "uint32" || t == "float32") return 4;
+    if (t == "int" || t == "uint" || t == "float" || t == "int32" || t == "uint32" ||
+        t == "float32")
+      return 4;
     if (t == "double" || t == "float64") return 8;
     throw InputError(path + ": unknown PLY property type '" + t + "'");
   };
@@ -153,11 +167,31 @@ TriangleMesh read_ply(const std::string& path, std::istream& in) {
     if (!in.read(b, n)) throw InputError(path + ": truncated PLY data");
     if (t == "char" || t == "int8") return double(*reinterpret_cast<std::int8_t*>(b));
     if (t == "uchar" || t == "uint8") return double(*reinterpret_cast<std::uint8_t*>(b));
-    if (t == "short" || t == "int16") { std::int16_t v; std::memcpy(&v, b, 2); return v; }
-    if (t == "ushort" || t == "uint16") { std::uint16_t v; std::memcpy(&v, b, 2); return v; }
-    if (t == "int" || t == "int32") { std::int32_t v; std::memcpy(&v, b, 4); return v; }
-    if (t == "uint" || t == "uint32") { std::uint32_t v; std::memcpy(&v, b, 4); return v; }
-    if (t == "float" || t == "float32") { float v; std::memcpy(&v, b, 4); return v; }
+    if (t == "short" || t == "int16") {
+      std::int16_t v;
+      std::memcpy(&v, b, 2);
+      return v;
+    }
+    if (t == "ushort" || t == "uint16") {
+      std::uint16_t v;
+      std::memcpy(&v, b, 2);
+      return v;
+    }
+    if (t == "int" || t == "int32") {
+      std::int32_t v;
+      std::memcpy(&v, b, 4);
+      return v;
+    }
+    if (t == "uint" || t == "uint32") {
+      std::uint32_t v;
+      std::memcpy(&v, b, 4);
+      return v;
+    }
+    if (t == "float" || t == "float32") {
+      float v;
+      std::memcpy(&v, b, 4);
+      return v;
+    }
     double v;
     std::memcpy(&v, b, 8);
     return v;
@@ -176,9 +210,12 @@ TriangleMesh read_ply(const std::string& path, std::istream& in) {
         } else {
           const double v = read_value(pr.type);
           if (e.name == "vertex") {
-            if (pr.name == "x") p[0] = v;
-            else if (pr.name == "y") p[1] = v;
-            else if (pr.name == "z") p[2] = v;
+            if (pr.name == "x")
+              p[0] = v;
+            else if (pr.name == "y")
+              p[1] = v;
+            else if (pr.name == "z")
+              p[2] = v;
           }
         }
       }
@@ -195,10 +232,14 @@ TriangleMesh load_mesh(const std::string& path) {
   if (!in) throw InputError(path + ": cannot open mesh file");
   const std::string ext = lower_ext(path);
   TriangleMesh m;
-  if (ext == "obj") m = read_obj(path, in);
-  else if (ext == "off") m = read_off(path, in);
-  else if (ext == "ply") m = read_ply(path, in);
-  else throw InputError(path + ": unknown mesh format '." + ext + "' (expected .obj, .off or .ply)");
+  if (ext == "obj")
+    m = read_obj(path, in);
+  else if (ext == "off")
+    m = read_off(path, in);
+  else if (ext == "ply")
+    m = read_ply(path, in);
+  else
+    throw InputError(path + ": unknown mesh format '." + ext + "' (expected .obj, .off or .ply)");
   if (m.triangles.empty()) throw InputError(path + ": mesh has no faces");
   for (const auto& v : m.vertices)
     if (!v.allFinite()) throw InputError(path + ": mesh has a non-finite vertex coordinate");

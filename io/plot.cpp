@@ -10,7 +10,8 @@
 
 namespace amalgam {
 
-std::map<std::string, std::vector<double>> read_csv_columns(const std::string& text, const std::string& file) {
+std::map<std::string, std::vector<double>> read_csv_columns(const std::string& text,
+                                                            const std::string& file) {
   std::istringstream in(text);
   std::string line;
   if (!std::getline(in, line) || line.empty()) throw InputError(file + ": empty diagnostics file");
@@ -36,14 +37,14 @@ std::map<std::string, std::vector<double>> read_csv_columns(const std::string& t
       char* end = nullptr;
       const double v = std::strtod(cell.c_str(), &end);
       if (end == cell.c_str() || *end != '\0')
-        throw InputError(file + ":" + std::to_string(lineno) + ": field '" + names[c] + "' is not a number: \"" + cell +
-                         "\"");
+        throw InputError(file + ":" + std::to_string(lineno) + ": field '" + names[c] +
+                         "' is not a number: \"" + cell + "\"");
       cols[names[c]].push_back(v);
       ++c;
     }
     if (c != names.size())
-      throw InputError(file + ":" + std::to_string(lineno) + ": " + std::to_string(c) + " fields, header has " +
-                       std::to_string(names.size()));
+      throw InputError(file + ":" + std::to_string(lineno) + ": " + std::to_string(c) +
+                       " fields, header has " + std::to_string(names.size()));
   }
   return cols;
 }
@@ -56,7 +57,8 @@ void draw_text(Image& img, int x, int y, const std::string& text, const Vec3d& c
         if (g[r * font::kWidth + c] != '#') continue;
         for (int sy = 0; sy < scale; ++sy)
           for (int sx = 0; sx < scale; ++sx) {
-            const int px = x + (int(i) * (font::kWidth + 1) + c) * scale + sx, py = y + r * scale + sy;
+            const int px = x + (int(i) * (font::kWidth + 1) + c) * scale + sx,
+                      py = y + r * scale + sy;
             if (px >= 0 && py >= 0 && px < img.width && py < img.height) img.set(px, py, color);
           }
       }
@@ -89,8 +91,9 @@ std::string num(double v) {
 }
 
 // One panel in the box (x0, y0, w, h): frame, title, axis range labels, series, legend.
-void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, const std::string& xlabel,
-           const std::vector<Series>& series, bool log_y, bool log_x = false) {
+void panel(Image& img, int x0, int y0, int w, int h, const std::string& title,
+           const std::string& xlabel, const std::vector<Series>& series, bool log_y,
+           bool log_x = false) {
   const Vec3d ink(0.1, 0.1, 0.1), grid(0.85, 0.85, 0.85);
   const int left = x0 + 70, right = x0 + w - 10, top = y0 + 24, bottom = y0 + h - 30;
   draw_text(img, x0 + 8, y0 + 4, title, ink, 2);
@@ -112,7 +115,9 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
   auto Y = [&](double v) { return log_y ? std::log10(v) : v; };
   auto X = [&](double v) { return log_x ? std::log10(v) : v; };
   const double ly0 = Y(ymin), ly1 = Y(ymax);
-  auto sx = [&](double v) { return left + (X(v) - X(xmin)) / (X(xmax) - X(xmin)) * (right - left); };
+  auto sx = [&](double v) {
+    return left + (X(v) - X(xmin)) / (X(xmax) - X(xmin)) * (right - left);
+  };
   auto sy = [&](double v) { return bottom - (Y(v) - ly0) / (ly1 - ly0) * (bottom - top); };
   for (int k = 0; k <= 4; ++k) {  // horizontal grid lines with labels
     const double yl = ly0 + (ly1 - ly0) * k / 4;
@@ -144,7 +149,9 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
     }
     for (size_t i = 0; log_x && i < s.x->size() && i < s.y->size(); ++i)  // markers at the samples
       if (std::isfinite((*s.y)[i]) && (*s.y)[i] > 0)
-        for (int d = -3; d <= 3; ++d) line(img, sx((*s.x)[i]) - 3, sy((*s.y)[i]) + d, sx((*s.x)[i]) + 3, sy((*s.y)[i]) + d, s.color);
+        for (int d = -3; d <= 3; ++d)
+          line(img, sx((*s.x)[i]) - 3, sy((*s.y)[i]) + d, sx((*s.x)[i]) + 3, sy((*s.y)[i]) + d,
+               s.color);
     if (s.x->size() == 1 && s.y->size() == 1 && std::isfinite((*s.y)[0]))
       line(img, sx((*s.x)[0]) - 2, sy((*s.y)[0]), sx((*s.x)[0]) + 2, sy((*s.y)[0]), s.color);
     line(img, lx, top + 10, lx + 16, top + 10, s.color);  // legend
@@ -156,9 +163,10 @@ void panel(Image& img, int x0, int y0, int w, int h, const std::string& title, c
 }  // namespace
 
 namespace {
-const Vec3d kPalette[] = {{0.85, 0.2, 0.15}, {0.15, 0.35, 0.85}, {0.1, 0.6, 0.2},    {0.95, 0.55, 0.1},
-                          {0.55, 0.25, 0.7}, {0.1, 0.65, 0.7},  {0.35, 0.2, 0.1},   {0.75, 0.5, 0.3},
-                          {0.9, 0.4, 0.7},   {0.4, 0.4, 0.1},   {0.25, 0.25, 0.45}, {0.5, 0.8, 0.4}};
+const Vec3d kPalette[] = {{0.85, 0.2, 0.15}, {0.15, 0.35, 0.85}, {0.1, 0.6, 0.2},
+                          {0.95, 0.55, 0.1}, {0.55, 0.25, 0.7},  {0.1, 0.65, 0.7},
+                          {0.35, 0.2, 0.1},  {0.75, 0.5, 0.3},   {0.9, 0.4, 0.7},
+                          {0.4, 0.4, 0.1},   {0.25, 0.25, 0.45}, {0.5, 0.8, 0.4}};
 constexpr int kPaletteSize = int(sizeof kPalette / sizeof kPalette[0]);
 
 Image blank(int w, int h) {
@@ -170,7 +178,8 @@ Image blank(int w, int h) {
 
 void fill(Image& img, int x0, int y0, int x1, int y1, const Vec3d& c) {
   for (int y = std::max(0, std::min(y0, y1)); y <= std::min(img.height - 1, std::max(y0, y1)); ++y)
-    for (int x = std::max(0, std::min(x0, x1)); x <= std::min(img.width - 1, std::max(x0, x1)); ++x) img.set(x, y, c);
+    for (int x = std::max(0, std::min(x0, x1)); x <= std::min(img.width - 1, std::max(x0, x1)); ++x)
+      img.set(x, y, c);
 }
 }  // namespace
 
@@ -185,7 +194,8 @@ Image plot_bars(const BarChart& chart) {
   for (int g = 0; g < ng; ++g)
     for (int k = 0; k < ns; ++k) {
       if (size_t(k) < chart.values[g].size()) ymax = std::max(ymax, chart.values[g][k]);
-      if (size_t(g) < chart.high.size() && size_t(k) < chart.high[g].size()) ymax = std::max(ymax, chart.high[g][k]);
+      if (size_t(g) < chart.high.size() && size_t(k) < chart.high[g].size())
+        ymax = std::max(ymax, chart.high[g][k]);
     }
   if (!(ymax > 0)) ymax = 1;
   ymax *= 1.08;
@@ -214,8 +224,8 @@ Image plot_bars(const BarChart& chart) {
       if (!std::isfinite(v)) continue;
       const int x0 = gx + k * bw, x1 = x0 + bw - 3;
       fill(img, x0, sy(v), x1, bottom - 1, kPalette[k % kPaletteSize]);
-      if (size_t(g) < chart.low.size() && size_t(k) < chart.low[g].size() && size_t(g) < chart.high.size() &&
-          size_t(k) < chart.high[g].size()) {
+      if (size_t(g) < chart.low.size() && size_t(k) < chart.low[g].size() &&
+          size_t(g) < chart.high.size() && size_t(k) < chart.high[g].size()) {
         const int xm = (x0 + x1) / 2, ylo = sy(chart.low[g][k]), yhi = sy(chart.high[g][k]);
         fill(img, xm, yhi, xm, ylo, ink);
         fill(img, xm - 3, yhi, xm + 3, yhi, ink);
@@ -223,11 +233,13 @@ Image plot_bars(const BarChart& chart) {
       }
     }
     const std::string& name = chart.groups[size_t(g)];
-    draw_text(img, int(left + g * gw + gw / 2) - int(name.size()) * 3, bottom + 8 + (g % 2) * 12, name, ink);
+    draw_text(img, int(left + g * gw + gw / 2) - int(name.size()) * 3, bottom + 8 + (g % 2) * 12,
+              name, ink);
   }
   if (chart.reference > 0) {
     const int py = sy(chart.reference);
-    for (int px = left; px <= right; px += 8) fill(img, px, py, std::min(right, px + 4), py + 1, ink);
+    for (int px = left; px <= right; px += 8)
+      fill(img, px, py, std::min(right, px + 4), py + 1, ink);
   }
   return img;
 }
@@ -271,7 +283,7 @@ Image plot_breakdown(const std::string& title, const std::vector<BreakdownBar>& 
 
 Image plot_loglog(const std::string& title, const std::vector<LogLogPanel>& panels) {
   static const Vec3d palette[] = {{0.85, 0.2, 0.15}, {0.15, 0.35, 0.85}, {0.1, 0.1, 0.1},
-                                  {0.1, 0.6, 0.2},   {0.95, 0.55, 0.1}, {0.55, 0.25, 0.7}};
+                                  {0.1, 0.6, 0.2},   {0.95, 0.55, 0.1},  {0.55, 0.25, 0.7}};
   Image img;
   img.width = 900;
   img.height = 40 + int(panels.size()) * 340;
@@ -283,12 +295,14 @@ Image plot_loglog(const std::string& title, const std::vector<LogLogPanel>& pane
       const PlotSeries& s = panels[k].series[i];
       series.push_back({s.name, &s.x, &s.y, palette[i % 6]});
     }
-    panel(img, 0, 40 + int(k) * 340, img.width, 340, panels[k].title, panels[k].xlabel, series, true, true);
+    panel(img, 0, 40 + int(k) * 340, img.width, 340, panels[k].title, panels[k].xlabel, series,
+          true, true);
   }
   return img;
 }
 
-Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols, const std::string& title) {
+Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols,
+                       const std::string& title) {
   auto col = [&](const std::string& n) -> const std::vector<double>& {
     const auto it = cols.find(n);
     if (it == cols.end()) throw InputError("diagnostics: missing column '" + n + "'");
@@ -312,11 +326,15 @@ Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols, c
   img.height = 40 + 3 * 260;
   img.rgb.assign(size_t(img.width) * size_t(img.height) * 3, 255);
   draw_text(img, 10, 10, title, Vec3d(0, 0, 0), 2);
-  const Vec3d red(0.85, 0.2, 0.15), blue(0.15, 0.35, 0.85), green(0.1, 0.6, 0.2), orange(0.95, 0.55, 0.1),
-      purple(0.55, 0.25, 0.7), grey(0.45, 0.45, 0.45);
+  const Vec3d red(0.85, 0.2, 0.15), blue(0.15, 0.35, 0.85), green(0.1, 0.6, 0.2),
+      orange(0.95, 0.55, 0.1), purple(0.55, 0.25, 0.7), grey(0.45, 0.45, 0.45);
   panel(img, 0, 40, img.width, 260, "ENERGY (J)", "TIME (S)",
-        {{"KINETIC", &t, &ke, red}, {"ELASTIC", &t, &ee, blue}, {"KINETIC+ELASTIC", &t, &total, grey}}, false);
-  panel(img, 0, 300, img.width, 260, "SUBSTEP DT (S), LOG", "TIME (S)", {{"DT", &t, &col("last_dt_s"), green}}, true);
+        {{"KINETIC", &t, &ke, red},
+         {"ELASTIC", &t, &ee, blue},
+         {"KINETIC+ELASTIC", &t, &total, grey}},
+        false);
+  panel(img, 0, 300, img.width, 260, "SUBSTEP DT (S), LOG", "TIME (S)",
+        {{"DT", &t, &col("last_dt_s"), green}}, true);
   panel(img, 0, 560, img.width, 260, "SECONDS PER FRAME", "FRAME",
         {{"P2G", &frame, &col("p2g_s"), red},
          {"G2P", &frame, &col("g2p_s"), blue},

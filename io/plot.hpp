@@ -12,11 +12,13 @@ namespace amalgam {
 
 // Columns of a diagnostics CSV by header name. Throws InputError naming the file and line on a
 // malformed row.
-std::map<std::string, std::vector<double>> read_csv_columns(const std::string& text, const std::string& file);
+std::map<std::string, std::vector<double>> read_csv_columns(const std::string& text,
+                                                            const std::string& file);
 
 // Three panels: kinetic, elastic and total energy vs time; substep dt vs time; seconds per
 // frame in P2G, G2P, sort, grid and other vs frame.
-Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols, const std::string& title);
+Image plot_diagnostics(const std::map<std::string, std::vector<double>>& cols,
+                       const std::string& title);
 
 // Log-log panels stacked vertically (convergence studies): each series a polyline with markers at
 // its samples and a legend entry; the x samples of a panel's first series label its x axis.
@@ -51,6 +53,7 @@ struct BreakdownBar {
 Image plot_breakdown(const std::string& title, const std::vector<BreakdownBar>& bars);
 
 // Text in the 5x7 font, scaled by `scale`, top-left at (x, y).
-void draw_text(Image& img, int x, int y, const std::string& text, const Vec3d& color, int scale = 1);
+void draw_text(Image& img, int x, int y, const std::string& text, const Vec3d& color,
+               int scale = 1);
 
 }  // namespace amalgam

@@ -37,8 +37,9 @@ namespace {
 
 // Eight distinct material colours.
 Vec3d palette(int i) {
-  static const double k[8][3] = {{0.90, 0.45, 0.25}, {0.30, 0.55, 0.90}, {0.45, 0.80, 0.40}, {0.90, 0.80, 0.30},
-                                 {0.70, 0.45, 0.85}, {0.35, 0.80, 0.80}, {0.85, 0.40, 0.55}, {0.75, 0.75, 0.75}};
+  static const double k[8][3] = {{0.90, 0.45, 0.25}, {0.30, 0.55, 0.90}, {0.45, 0.80, 0.40},
+                                 {0.90, 0.80, 0.30}, {0.70, 0.45, 0.85}, {0.35, 0.80, 0.80},
+                                 {0.85, 0.40, 0.55}, {0.75, 0.75, 0.75}};
   const int j = ((i % 8) + 8) % 8;
   return Vec3d(k[j][0], k[j][1], k[j][2]);
 }
@@ -54,17 +55,21 @@ Vec3d ramp(double t) {
 
 }  // namespace
 
-Image render_particles(const ParticleSet& ps, const MpmAttributes& a, const Camera& cam, double radius, int width,
-                       int height, ColorBy color_by, double floor_y) {
+Image render_particles(const ParticleSet& ps, const MpmAttributes& a, const Camera& cam,
+                       double radius, int width, int height, ColorBy color_by, double floor_y) {
   std::vector<float> scalar;
-  const ParticleSet::Id id = color_by == ColorBy::Temperature ? a.temperature : color_by == ColorBy::Plastic ? a.plastic : -1;
+  const ParticleSet::Id id = color_by == ColorBy::Temperature ? a.temperature
+                             : color_by == ColorBy::Plastic   ? a.plastic
+                                                              : -1;
   if (id >= 0) scalar.assign(ps.real(id), ps.real(id) + ps.size());
-  return render_points(ps.size(), ps.vec3(a.x), ps.vec3(a.v), ps.int32(a.material), id >= 0 ? scalar.data() : nullptr,
-                       cam, radius, width, height, color_by, floor_y);
+  return render_points(ps.size(), ps.vec3(a.x), ps.vec3(a.v), ps.int32(a.material),
+                       id >= 0 ? scalar.data() : nullptr, cam, radius, width, height, color_by,
+                       floor_y);
 }
 
-Image render_points(std::size_t n, const Vec3* x, const Vec3* v, const std::int32_t* mat, const float* scalar,
-                    const Camera& cam, double radius, int width, int height, ColorBy color_by, double floor_y) {
+Image render_points(std::size_t n, const Vec3* x, const Vec3* v, const std::int32_t* mat,
+                    const float* scalar, const Camera& cam, double radius, int width, int height,
+                    ColorBy color_by, double floor_y) {
   Image img;
   img.width = width;
   img.height = height;
@@ -77,23 +82,28 @@ Image render_points(std::size_t n, const Vec3* x, const Vec3* v, const std::int3
   const Vec3d right = fwd.cross(cam.up).normalized();
   const Vec3d up = right.cross(fwd);
   const double focal = 0.5 * double(height) / std::tan(0.5 * cam.fov_degrees * M_PI / 180.0);
-  if (color_by != ColorBy::Speed && color_by != ColorBy::Material && !scalar) color_by = ColorBy::Material;
+  if (color_by != ColorBy::Speed && color_by != ColorBy::Material && !scalar)
+    color_by = ColorBy::Material;
   // Ranges for the colour ramps and the depth cue.
   double smin = std::numeric_limits<double>::max(), smax = -smin, zmin = smin, zmax = -smin;
   for (size_t i = 0; i < n; ++i) {
     const double z = (x[i].cast<double>() - cam.eye).dot(fwd);
     zmin = std::min(zmin, z), zmax = std::max(zmax, z);
-    const double s = color_by == ColorBy::Speed ? double(v[i].norm()) : scalar ? double(scalar[i]) : 0.0;
+    const double s = color_by == ColorBy::Speed ? double(v[i].norm())
+                     : scalar                   ? double(scalar[i])
+                                                : 0.0;
     smin = std::min(smin, s), smax = std::max(smax, s);
   }
   if (color_by == ColorBy::Speed) smin = 0;
   const double srange = smax > smin ? smax - smin : 1.0, zrange = zmax > zmin ? zmax - zmin : 1.0;
-  const Vec3d light = Vec3d(-0.4, 0.7, 0.6).normalized();  // camera space: up-left, towards the viewer
+  const Vec3d light =
+      Vec3d(-0.4, 0.7, 0.6).normalized();  // camera space: up-left, towards the viewer
   std::vector<float> depth(size_t(width) * size_t(height), std::numeric_limits<float>::max());
   if (std::isfinite(floor_y)) {  // checkered floor, 0.1 m tiles, fading with distance
     for (int py = 0; py < height; ++py)
       for (int px = 0; px < width; ++px) {
-        const Vec3d dir = fwd + ((px + 0.5 - 0.5 * width) / focal) * right - ((py + 0.5 - 0.5 * height) / focal) * up;
+        const Vec3d dir = fwd + ((px + 0.5 - 0.5 * width) / focal) * right -
+                          ((py + 0.5 - 0.5 * height) / focal) * up;
         if (std::abs(dir[1]) < 1e-12) continue;
         const double t = (floor_y - cam.eye[1]) / dir[1];
         if (t <= 0) continue;
@@ -109,16 +119,25 @@ Image render_points(std::size_t n, const Vec3* x, const Vec3* v, const std::int3
     const Vec3d p = x[i].cast<double>() - cam.eye;
     const double z = p.dot(fwd);
     if (z <= radius) continue;
-    const double sx = 0.5 * width + focal * p.dot(right) / z, sy = 0.5 * height - focal * p.dot(up) / z;
+    const double sx = 0.5 * width + focal * p.dot(right) / z,
+                 sy = 0.5 * height - focal * p.dot(up) / z;
     const double r = std::max(0.75, focal * radius / z);
-    const int x0 = std::max(0, int(std::floor(sx - r))), x1 = std::min(width - 1, int(std::ceil(sx + r)));
-    const int y0 = std::max(0, int(std::floor(sy - r))), y1 = std::min(height - 1, int(std::ceil(sy + r)));
+    const int x0 = std::max(0, int(std::floor(sx - r))),
+              x1 = std::min(width - 1, int(std::ceil(sx + r)));
+    const int y0 = std::max(0, int(std::floor(sy - r))),
+              y1 = std::min(height - 1, int(std::ceil(sy + r)));
     if (x0 > x1 || y0 > y1) continue;
     Vec3d base;
     switch (color_by) {
-      case ColorBy::Material: base = palette(mat[i]); break;
-      case ColorBy::Speed: base = ramp((double(v[i].norm()) - smin) / srange); break;
-      default: base = ramp((double(scalar[i]) - smin) / srange); break;
+      case ColorBy::Material:
+        base = palette(mat[i]);
+        break;
+      case ColorBy::Speed:
+        base = ramp((double(v[i].norm()) - smin) / srange);
+        break;
+      default:
+        base = ramp((double(scalar[i]) - smin) / srange);
+        break;
     }
     const double cue = 1.0 - 0.45 * (z - zmin) / zrange;
     for (int py = y0; py <= y1; ++py)
@@ -146,7 +165,8 @@ void chunk(std::string& out, const char* type, const std::string& data) {
   put_be32(out, std::uint32_t(data.size()));
   const std::string body = std::string(type, 4) + data;
   out += body;
-  put_be32(out, std::uint32_t(crc32(0, reinterpret_cast<const Bytef*>(body.data()), uInt(body.size()))));
+  put_be32(out,
+           std::uint32_t(crc32(0, reinterpret_cast<const Bytef*>(body.data()), uInt(body.size()))));
 }
 }  // namespace
 
@@ -160,8 +180,8 @@ std::string encode_png(const Image& img) {
   }
   uLongf len = compressBound(uLong(raw.size()));
   std::string z(len, '\0');
-  if (compress2(reinterpret_cast<Bytef*>(z.data()), &len, reinterpret_cast<const Bytef*>(raw.data()),
-                uLong(raw.size()), 6) != Z_OK)
+  if (compress2(reinterpret_cast<Bytef*>(z.data()), &len,
+                reinterpret_cast<const Bytef*>(raw.data()), uLong(raw.size()), 6) != Z_OK)
     throw InputError("PNG: zlib compression failed");
   z.resize(len);
   std::string out("\x89PNG\r\n\x1a\n", 8);
@@ -175,6 +195,8 @@ std::string encode_png(const Image& img) {
   return out;
 }
 
-void write_png(const std::string& path, const Image& img) { write_file_atomic(path, encode_png(img)); }
+void write_png(const std::string& path, const Image& img) {
+  write_file_atomic(path, encode_png(img));
+}
 
 }  // namespace amalgam

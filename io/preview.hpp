@@ -41,12 +41,13 @@ Camera fit_camera(const Vec3d& lo, const Vec3d& hi, double fov_degrees, double a
 // Renders each particle as a shaded sphere of `radius` metres (colour by material index, speed,
 // temperature or plastic state; missing attributes fall back to material), over a checkered
 // floor at height floor_y (NaN: none).
-Image render_particles(const ParticleSet& ps, const MpmAttributes& a, const Camera& cam, double radius, int width,
-                       int height, ColorBy color_by, double floor_y);
+Image render_particles(const ParticleSet& ps, const MpmAttributes& a, const Camera& cam,
+                       double radius, int width, int height, ColorBy color_by, double floor_y);
 // Same for any solver's points; `scalar` (may be null: colour by material) colours Temperature,
 // Plastic and Damage.
-Image render_points(std::size_t n, const Vec3* x, const Vec3* v, const std::int32_t* material, const float* scalar,
-                    const Camera& cam, double radius, int width, int height, ColorBy color_by, double floor_y);
+Image render_points(std::size_t n, const Vec3* x, const Vec3* v, const std::int32_t* material,
+                    const float* scalar, const Camera& cam, double radius, int width, int height,
+                    ColorBy color_by, double floor_y);
 
 // Encodes an RGB PNG (8 bits per channel), written atomically. Throws InputError on failure.
 void write_png(const std::string& path, const Image& img);

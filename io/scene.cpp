@@ -19,8 +19,9 @@ namespace amalgam {
 namespace scene_detail {
 
 std::filesystem::path scene_relative(const std::string& file, const std::string& scene_file) {
-  return std::filesystem::path(file).is_absolute() ? std::filesystem::path(file)
-                                                   : std::filesystem::path(scene_file).parent_path() / file;
+  return std::filesystem::path(file).is_absolute()
+             ? std::filesystem::path(file)
+             : std::filesystem::path(scene_file).parent_path() / file;
 }
 
 namespace {
@@ -32,7 +33,8 @@ void place_points(JsonObject& o, std::vector<Vec3d>& points) {
   const Vec3d deg = o.vec3("rotate_degrees", Vec3::Zero()).cast<double>();
   const Vec3 t = o.vec3("translate", Vec3::Zero());
   const double k = M_PI / 180.0;
-  const Mat3d R = (Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) * Eigen::AngleAxisd(deg[1] * k, Vec3d::UnitY()) *
+  const Mat3d R = (Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) *
+                   Eigen::AngleAxisd(deg[1] * k, Vec3d::UnitY()) *
                    Eigen::AngleAxisd(deg[0] * k, Vec3d::UnitX()))
                       .toRotationMatrix();
   for (auto& v : points) v = R * (v * scale) + t.cast<double>();
@@ -40,7 +42,8 @@ void place_points(JsonObject& o, std::vector<Vec3d>& points) {
 
 std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::string& scene_file) {
   const std::string file = o.string("file", "");
-  if (!o.has("file") || file.empty()) o.fail("file", "missing required mesh file (.obj, .off or .ply)");
+  if (!o.has("file") || file.empty())
+    o.fail("file", "missing required mesh file (.obj, .off or .ply)");
   const std::filesystem::path p = scene_relative(file, scene_file);
   auto mesh = std::make_shared<TriangleMesh>();
   try {
@@ -55,8 +58,9 @@ std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::s
   const bool allow_open = o.boolean("allow_open", false);
   const MeshCheck c = check_mesh(*mesh);
   if (!c.watertight()) {
-    const std::string what = "mesh file \"" + file + "\" is not watertight (" + std::to_string(c.boundary_edges) +
-                             " boundary edges, " + std::to_string(c.nonmanifold_edges) +
+    const std::string what = "mesh file \"" + file + "\" is not watertight (" +
+                             std::to_string(c.boundary_edges) + " boundary edges, " +
+                             std::to_string(c.nonmanifold_edges) +
                              " non-manifold edges): inside and outside may be wrong";
     if (!allow_open) o.fail("file", what + "; repair the mesh or set \"allow_open\": true");
     std::cerr << "amalgam: warning: " << o.where("file") << ": " << what << "\n";
@@ -68,7 +72,8 @@ std::shared_ptr<const TriangleMesh> read_mesh_object(JsonObject& o, const std::s
 // translate, as for triangle meshes.
 std::shared_ptr<const TetMesh> read_tet_object(JsonObject& o, const std::string& scene_file) {
   const std::string file = o.string("file", "");
-  if (!o.has("file") || file.empty()) o.fail("file", "missing required TetGen file (.node with its .ele)");
+  if (!o.has("file") || file.empty())
+    o.fail("file", "missing required TetGen file (.node with its .ele)");
   const std::filesystem::path p = scene_relative(file, scene_file);
   auto mesh = std::make_shared<TetMesh>();
   try {
@@ -80,12 +85,15 @@ std::shared_ptr<const TetMesh> read_tet_object(JsonObject& o, const std::string&
   return mesh;
 }
 
-ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials, const std::string& scene_file,
-                       bool peridynamics, bool domains) {
+ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials,
+                       const std::string& scene_file, bool peridynamics, bool domains) {
   ObjectSpec s;
-  const std::string shape = o.choice("shape", "", {"box", "sphere", "cylinder", "torus", "mesh", "tet_mesh"});
+  const std::string shape =
+      o.choice("shape", "", {"box", "sphere", "cylinder", "torus", "mesh", "tet_mesh"});
   if (shape == "tet_mesh") {
-    if (!peridynamics) o.fail("shape", "\"tet_mesh\" needs \"method\": \"peridynamics\" (MPM samples \"mesh\" surfaces)");
+    if (!peridynamics)
+      o.fail("shape",
+             "\"tet_mesh\" needs \"method\": \"peridynamics\" (MPM samples \"mesh\" surfaces)");
     s.shape = ObjectShape::TetMesh;
     s.tets = read_tet_object(o, scene_file);
     Vec3d lo = s.tets->nodes[0], hi = lo;
@@ -106,7 +114,8 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
     s.min = o.required_vec3("min");
     s.max = o.required_vec3("max");
     for (int a = 0; a < 3; ++a)
-      if (!(s.max[a] > s.min[a])) o.fail("max", "every component must exceed the matching one of \"min\"");
+      if (!(s.max[a] > s.min[a]))
+        o.fail("max", "every component must exceed the matching one of \"min\"");
     s.center = o.vec3("center", Real(0.5) * (s.min + s.max));
   } else if (shape == "sphere") {
     s.shape = ObjectShape::Sphere;
@@ -150,14 +159,16 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
   s.particles_per_cell = int(o.integer("particles_per_cell", peridynamics ? 1 : 8, 1, 64));
   s.jitter = Real(o.number("jitter", peridynamics || domains ? 0.0 : 0.5, 0, 1));
   // Particle domains are the lattice cells around the particles: corners are shared only on a lattice.
-  if (domains && s.jitter != 0) o.fail("jitter", "must be 0 with particle domains (/simulation/domains)");
+  if (domains && s.jitter != 0)
+    o.fail("jitter", "must be 0 with particle domains (/simulation/domains)");
   s.seed = std::uint64_t(o.integer("seed", 1, 0, (1LL << 62)));
   s.temperature = Real(o.number("temperature", 293.15, 0, kHuge));
   if (o.has("configuration")) {
     if (peridynamics) o.fail("configuration", "configuration maps (A-ULMPM) are for MPM objects");
     JsonObject c = o.object("configuration");
     s.has_configuration = true;
-    const std::string u = c.choice("update", "adaptive", {"adaptive", "total_lagrangian", "eulerian"});
+    const std::string u =
+        c.choice("update", "adaptive", {"adaptive", "total_lagrangian", "eulerian"});
     s.configuration.update = u == "adaptive"           ? ConfigurationUpdate::Adaptive
                              : u == "total_lagrangian" ? ConfigurationUpdate::TotalLagrangian
                                                        : ConfigurationUpdate::Eulerian;
@@ -176,8 +187,9 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
 // Geometry and motion shared by colliders and heat sources.
 Collider read_region(JsonObject& o, bool allow_mesh) {
   Collider c;
-  const std::string type = allow_mesh ? o.choice("type", "", {"half_space", "box", "sphere", "mesh"})
-                                      : o.choice("type", "", {"half_space", "box", "sphere"});
+  const std::string type = allow_mesh
+                               ? o.choice("type", "", {"half_space", "box", "sphere", "mesh"})
+                               : o.choice("type", "", {"half_space", "box", "sphere"});
   if (type == "mesh") {
     c.shape = ColliderShape::Mesh;
     return c;  // the caller reads the mesh
@@ -220,7 +232,8 @@ void read_mesh_collider(JsonObject& o, ColliderSpec& c, const std::string& scene
   for (auto& kf : o.objects("keyframes")) {
     RigidKeyframe key;
     key.time = Real(kf.required_number("time", 0, kHuge));
-    if (!c.keys.empty() && !(key.time > c.keys.back().time)) kf.fail("time", "keyframe times must increase");
+    if (!c.keys.empty() && !(key.time > c.keys.back().time))
+      kf.fail("time", "keyframe times must increase");
     key.translation = kf.vec3("translate", Vec3::Zero());
     const Vec3d deg = kf.vec3("rotate_degrees", Vec3::Zero()).cast<double>();
     key.rotation = Eigen::Quaternion<Real>((Eigen::AngleAxisd(deg[2] * k, Vec3d::UnitZ()) *
@@ -231,7 +244,8 @@ void read_mesh_collider(JsonObject& o, ColliderSpec& c, const std::string& scene
     kf.finish();
     c.keys.push_back(key);
   }
-  if (has_velocity && !c.keys.empty()) o.fail("velocity", "give either velocity or keyframes, not both");
+  if (has_velocity && !c.keys.empty())
+    o.fail("velocity", "give either velocity or keyframes, not both");
 }
 
 }  // namespace
@@ -249,7 +263,9 @@ ColliderSpec read_collider(JsonObject o, const std::string& scene_file) {
   if (c.shape == ColliderShape::Mesh) read_mesh_collider(o, c, scene_file);
   read_until(o, c);
   const std::string b = o.choice("boundary", "separate", {"sticky", "slip", "separate"});
-  c.boundary = b == "sticky" ? BoundaryType::Sticky : b == "slip" ? BoundaryType::Slip : BoundaryType::Separate;
+  c.boundary = b == "sticky" ? BoundaryType::Sticky
+               : b == "slip" ? BoundaryType::Slip
+                             : BoundaryType::Separate;
   c.friction = Real(o.number("friction", 0, 0, 100));
   o.finish();
   return c;
@@ -275,7 +291,8 @@ Scene parse_scene(const std::string& text, const std::string& file) {
 
   JsonObject sim = top.object("simulation");
   if (!top.has("simulation")) top.fail("simulation", "missing required object");
-  s.method = sim.choice("method", "mpm", {"mpm", "peridynamics"}) == "mpm" ? Method::Mpm : Method::Peridynamics;
+  s.method = sim.choice("method", "mpm", {"mpm", "peridynamics"}) == "mpm" ? Method::Mpm
+                                                                           : Method::Peridynamics;
   const bool pd = s.method == Method::Peridynamics;
   // Settings every method shares, then the method's own.
   s.mpm.dx = Real(sim.required_number("dx", 0, kHuge, true));
@@ -285,13 +302,16 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.mpm.gravity = sim.vec3("gravity", Vec3(0, Real(-9.81), 0));
   s.mpm.max_speed = Real(sim.number("max_speed", 1e4, 0, kHuge, true));
   s.frames = int(sim.integer("frames", 48, 1, 1000000));
-  if (pd) read_pd_simulation(sim, s);
-  else read_mpm_simulation(sim, s);
+  if (pd)
+    read_pd_simulation(sim, s);
+  else
+    read_mpm_simulation(sim, s);
   sim.finish();
 
   std::map<std::string, int> mat_index;
   JsonObject mats = top.object("materials");
-  if (!top.has("materials") || mats.keys().empty()) top.fail("materials", "define at least one material");
+  if (!top.has("materials") || mats.keys().empty())
+    top.fail("materials", "define at least one material");
   // Peridynamics: the lattice spacing comes from dx and the objects' particles_per_cell, and the
   // horizon (which yield_stress needs) from the spacing: read the objects first.
   for (const auto& name : mats.keys()) {
@@ -299,15 +319,22 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     s.material_names.push_back(name);
   }
   if (!top.has("objects")) top.fail("objects", "missing required array of objects");
-  for (auto& o : top.objects("objects")) s.objects.push_back(read_object(o, mat_index, file, pd, s.mpm.domains.enabled));
+  for (auto& o : top.objects("objects"))
+    s.objects.push_back(read_object(o, mat_index, file, pd, s.mpm.domains.enabled));
   if (s.objects.empty()) top.fail("objects", "define at least one object");
-  if (pd) pd_spacing(top, s);
-  else check_mpm_objects(sim, s);
-  if (pd) read_pd_materials(mats, s);
-  else read_mpm_materials(mats, s);
+  if (pd)
+    pd_spacing(top, s);
+  else
+    check_mpm_objects(sim, s);
+  if (pd)
+    read_pd_materials(mats, s);
+  else
+    read_mpm_materials(mats, s);
   mats.finish();
-  if (pd) read_pd_conditions(top, s);
-  else read_mpm_sources(top, s);
+  if (pd)
+    read_pd_conditions(top, s);
+  else
+    read_mpm_sources(top, s);
   for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c, file));
 
   JsonObject out = top.object("output");
@@ -326,12 +353,13 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     JsonObject pv = top.object("preview");
     s.preview.width = int(pv.integer("width", 640, 16, 8192));
     s.preview.height = int(pv.integer("height", 480, 16, 8192));
-    const std::string c = pv.choice("color_by", "material", {"material", "speed", "temperature", "plastic", "damage"});
-    s.preview.color_by = c == "speed" ? ColorBy::Speed
-                         : c == "damage" ? ColorBy::Damage
+    const std::string c = pv.choice("color_by", "material",
+                                    {"material", "speed", "temperature", "plastic", "damage"});
+    s.preview.color_by = c == "speed"         ? ColorBy::Speed
+                         : c == "damage"      ? ColorBy::Damage
                          : c == "temperature" ? ColorBy::Temperature
-                         : c == "plastic" ? ColorBy::Plastic
-                                          : ColorBy::Material;
+                         : c == "plastic"     ? ColorBy::Plastic
+                                              : ColorBy::Material;
     if (pv.has("camera")) {
       JsonObject cam = pv.object("camera");
       s.preview.camera_given = true;

@@ -14,8 +14,10 @@ namespace {
 // Elastic constants: Young's modulus and Poisson ratio, or the Lame parameters (not both).
 void read_elasticity(JsonObject& o, MaterialParams& m) {
   if (o.has("lame_mu") || o.has("lame_lambda")) {
-    if (o.has("youngs_modulus")) o.fail("youngs_modulus", "give either youngs_modulus/poisson_ratio or lame_mu/lame_lambda");
-    if (o.has("poisson_ratio")) o.fail("poisson_ratio", "give either youngs_modulus/poisson_ratio or lame_mu/lame_lambda");
+    if (o.has("youngs_modulus"))
+      o.fail("youngs_modulus", "give either youngs_modulus/poisson_ratio or lame_mu/lame_lambda");
+    if (o.has("poisson_ratio"))
+      o.fail("poisson_ratio", "give either youngs_modulus/poisson_ratio or lame_mu/lame_lambda");
     m.mu = Real(o.required_number("lame_mu", 0, kHuge, true));
     m.lambda = Real(o.required_number("lame_lambda", 0, kHuge));
     return;
@@ -30,8 +32,8 @@ void read_elasticity(JsonObject& o, MaterialParams& m) {
 MaterialParams read_material(JsonObject o) {
   MaterialParams m;
   const std::string model = o.choice("model", "fixed_corotated",
-                                     {"fixed_corotated", "neo_hookean", "stvk_hencky", "snow", "drucker_prager",
-                                      "von_mises", "fluid"});
+                                     {"fixed_corotated", "neo_hookean", "stvk_hencky", "snow",
+                                      "drucker_prager", "von_mises", "fluid"});
   for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
     if (model == material_model_name(MaterialModel(k))) m.model = MaterialModel(k);
   m.density = Real(o.required_number("density", 0, kHuge, true));
@@ -88,20 +90,26 @@ HeatSource read_heat_source(JsonObject o) {
 }  // namespace
 
 void read_mpm_simulation(JsonObject& sim, Scene& s) {
-  if (sim.has("peridynamics")) sim.fail("peridynamics", "set \"method\": \"peridynamics\" to use these settings");
+  if (sim.has("peridynamics"))
+    sim.fail("peridynamics", "set \"method\": \"peridynamics\" to use these settings");
   s.mpm.order = int(sim.integer("order", 2, 2, 3));
   const std::string tr = sim.choice("transfer", "mls", {"mls", "apic", "pic", "flip"});
   s.mpm.transfer = tr == "mls" ? Transfer::Mls : tr == "apic" ? Transfer::Apic : Transfer::PicFlip;
   s.mpm.flip_alpha = Real(sim.number("flip_alpha", tr == "pic" ? 0.0 : 0.95, 0, 1));
-  if (tr == "pic" && s.mpm.flip_alpha != 0) sim.fail("flip_alpha", "must be 0 (or absent) with transfer \"pic\"");
+  if (tr == "pic" && s.mpm.flip_alpha != 0)
+    sim.fail("flip_alpha", "must be 0 (or absent) with transfer \"pic\"");
   s.mpm.implicit = sim.choice("integrator", "explicit", {"explicit", "implicit"}) == "implicit";
   {
     JsonObject imp = sim.object("implicit");
-    if (imp.has("tolerance") || imp.has("max_iterations") || imp.has("solver") || imp.has("definiteness_fix"))
-      if (!s.mpm.implicit) sim.fail("implicit", "set \"integrator\": \"implicit\" to use these settings");
+    if (imp.has("tolerance") || imp.has("max_iterations") || imp.has("solver") ||
+        imp.has("definiteness_fix"))
+      if (!s.mpm.implicit)
+        sim.fail("implicit", "set \"integrator\": \"implicit\" to use these settings");
     s.mpm.solver.tolerance = imp.number("tolerance", 1e-4, 0, 1, true);
     s.mpm.solver.max_iterations = int(imp.integer("max_iterations", 200, 1, 100000));
-    s.mpm.solver.method = imp.choice("solver", "cg", {"cg", "minres"}) == "cg" ? KrylovMethod::Cg : KrylovMethod::Minres;
+    s.mpm.solver.method = imp.choice("solver", "cg", {"cg", "minres"}) == "cg"
+                              ? KrylovMethod::Cg
+                              : KrylovMethod::Minres;
     s.mpm.solver.definiteness_fix = imp.boolean("definiteness_fix", true);
     imp.finish();
   }
@@ -121,15 +129,20 @@ void read_mpm_simulation(JsonObject& sim, Scene& s) {
     s.mpm.domains.enabled = true;
     s.mpm.domains.enrichment = d.boolean("enrichment", true);
     s.mpm.domains.epsilon = Real(d.number("epsilon", 0.6, 0, 1));
-    if (d.has("epsilon") && !s.mpm.domains.enrichment) d.fail("epsilon", "only with \"enrichment\": true");
+    if (d.has("epsilon") && !s.mpm.domains.enrichment)
+      d.fail("epsilon", "only with \"enrichment\": true");
     s.mpm.domains.clamp = Real(d.number("inversion_clamp", 0.15, 0, 1, true));
     s.mpm.domains.elasticity_from = Real(d.number("elasticity_from", 0, 0, kHuge));
-    s.mpm.domains.gauss_quadrature = d.choice("quadrature", "gauss", {"gauss", "one_point"}) == "gauss";
+    s.mpm.domains.gauss_quadrature =
+        d.choice("quadrature", "gauss", {"gauss", "one_point"}) == "gauss";
     d.finish();
     if (sim.has("transfer") && tr != "flip" && tr != "pic")
-      sim.fail("transfer", "particle domains transfer by PIC/FLIP on linear weights: \"flip\" (flip_alpha, default "
-                           "0.95) or \"pic\"");
-    if (sim.has("order")) sim.fail("order", "particle domains use linear grid weights (enriched MPM eq. 3)");
+      sim.fail(
+          "transfer",
+          "particle domains transfer by PIC/FLIP on linear weights: \"flip\" (flip_alpha, default "
+          "0.95) or \"pic\"");
+    if (sim.has("order"))
+      sim.fail("order", "particle domains use linear grid weights (enriched MPM eq. 3)");
   }
 }
 
@@ -141,16 +154,21 @@ void check_mpm_objects(JsonObject& sim, Scene& s) {
   for (std::size_t k = 0; k < s.objects.size(); ++k)
     if (s.objects[k].has_configuration != s.objects[0].has_configuration) {
       const std::size_t bad = s.objects[0].has_configuration ? k : 0;
-      throw InputError(s.file + ": /objects/" + std::to_string(bad) +
-                       "/configuration: missing; when one object keeps a configuration map (A-ULMPM), every "
-                       "object must have a \"configuration\" block");
+      throw InputError(
+          s.file + ": /objects/" + std::to_string(bad) +
+          "/configuration: missing; when one object keeps a configuration map (A-ULMPM), every "
+          "object must have a \"configuration\" block");
     }
   s.mpm.configuration_maps = s.objects[0].has_configuration;
   if (s.mpm.domains.enabled && s.mpm.configuration_maps)
-    sim.fail("domains", "particle domains cannot be combined with configuration maps (objects' \"configuration\")");
+    sim.fail(
+        "domains",
+        "particle domains cannot be combined with configuration maps (objects' \"configuration\")");
   if (sim.has("contact") && !s.mpm.configuration_maps)
-    sim.fail("contact", "only for objects with a \"configuration\" block (A-ULMPM); objects on the shared grid "
-                        "already interact through it");
+    sim.fail(
+        "contact",
+        "only for objects with a \"configuration\" block (A-ULMPM); objects on the shared grid "
+        "already interact through it");
 }
 
 void read_mpm_materials(JsonObject& mats, Scene& s) {
@@ -160,10 +178,12 @@ void read_mpm_materials(JsonObject& mats, Scene& s) {
       mo.fail("model", "\"peridynamic\" needs \"method\": \"peridynamics\" in /simulation");
     s.materials.push_back(read_material(mats.object(name)));
     const MaterialParams& m = s.materials.back();
-    if (s.mpm.domains.enabled && (m.model == MaterialModel::Fluid || m.has_plastic_state() || m.viscosity > 0))
-      throw InputError(s.file + ": /materials/" + name +
-                       ": particle domains (/simulation/domains) need an elastic solid (fixed_corotated, "
-                       "neo_hookean or stvk_hencky, no viscosity; it may melt)");
+    if (s.mpm.domains.enabled &&
+        (m.model == MaterialModel::Fluid || m.has_plastic_state() || m.viscosity > 0))
+      throw InputError(
+          s.file + ": /materials/" + name +
+          ": particle domains (/simulation/domains) need an elastic solid (fixed_corotated, "
+          "neo_hookean or stvk_hencky, no viscosity; it may melt)");
   }
 }
 
@@ -175,7 +195,9 @@ void read_mpm_sources(JsonObject& top, Scene& s) {
   if (!s.heat_sources.empty()) {
     bool melts = false;
     for (const auto& m : s.materials) melts |= m.melting;
-    if (!melts) top.fail("heat_sources", "no material has a \"melting\" block, so heat sources would do nothing");
+    if (!melts)
+      top.fail("heat_sources",
+               "no material has a \"melting\" block, so heat sources would do nothing");
   }
 }
 

@@ -20,8 +20,12 @@ PdMaterial read_pd_material(JsonObject o, Real horizon) {
   o.choice("model", "", {"peridynamic"});
   m.density = Real(o.required_number("density", 0, kHuge, true));
   if (o.has("bulk_modulus") || o.has("shear_modulus")) {
-    if (o.has("youngs_modulus")) o.fail("youngs_modulus", "give either youngs_modulus/poisson_ratio or bulk_modulus/shear_modulus");
-    if (o.has("poisson_ratio")) o.fail("poisson_ratio", "give either youngs_modulus/poisson_ratio or bulk_modulus/shear_modulus");
+    if (o.has("youngs_modulus"))
+      o.fail("youngs_modulus",
+             "give either youngs_modulus/poisson_ratio or bulk_modulus/shear_modulus");
+    if (o.has("poisson_ratio"))
+      o.fail("poisson_ratio",
+             "give either youngs_modulus/poisson_ratio or bulk_modulus/shear_modulus");
     m.bulk = Real(o.required_number("bulk_modulus", 0, kHuge, true));
     m.shear = Real(o.required_number("shear_modulus", 0, kHuge, true));
   } else {
@@ -30,13 +34,18 @@ PdMaterial read_pd_material(JsonObject o, Real horizon) {
     m.bulk = Real(E / (3 * (1 - 2 * nu)));
     m.shear = Real(E / (2 * (1 + nu)));
   }
-  if (o.has("yield_stress") && o.has("psi0")) o.fail("psi0", "give either yield_stress or psi0, not both");
-  if (o.has("yield_stress")) m.psi0 = pd_psi0_from_yield_stress(Real(o.required_number("yield_stress", 0, kHuge, true)), horizon);
+  if (o.has("yield_stress") && o.has("psi0"))
+    o.fail("psi0", "give either yield_stress or psi0, not both");
+  if (o.has("yield_stress"))
+    m.psi0 =
+        pd_psi0_from_yield_stress(Real(o.required_number("yield_stress", 0, kHuge, true)), horizon);
   if (o.has("psi0")) m.psi0 = Real(o.required_number("psi0", 0, 1e38, true));
   const bool plastic = o.has("yield_stress") || o.has("psi0");
-  if (o.has("plastic_cap") && !plastic) o.fail("plastic_cap", "needs yield_stress or psi0 (the material is elastic)");
+  if (o.has("plastic_cap") && !plastic)
+    o.fail("plastic_cap", "needs yield_stress or psi0 (the material is elastic)");
   if (o.has("plastic_cap")) m.plastic_cap = Real(o.required_number("plastic_cap", 0, kHuge, true));
-  if (o.has("critical_stretch")) m.critical_stretch = Real(o.required_number("critical_stretch", 0, kHuge, true));
+  if (o.has("critical_stretch"))
+    m.critical_stretch = Real(o.required_number("critical_stretch", 0, kHuge, true));
   if (o.has("damage_alpha") && !o.has("critical_stretch"))
     o.fail("damage_alpha", "needs critical_stretch (the material does not fracture)");
   m.alpha = Real(o.number("damage_alpha", 0, 0, 1e6));
@@ -59,12 +68,15 @@ void read_pd_simulation(JsonObject& sim, Scene& s) {
   for (const char* k : {"transfer", "order", "flip_alpha", "integrator", "implicit"})
     if (sim.has(k)) sim.fail(k, "only for \"method\": \"mpm\"");
   if (sim.has("contact"))
-    sim.fail("contact", "only for \"method\": \"mpm\" (peridynamics sets its contact in \"peridynamics\")");
+    sim.fail("contact",
+             "only for \"method\": \"mpm\" (peridynamics sets its contact in \"peridynamics\")");
   if (sim.has("domains")) sim.fail("domains", "only for \"method\": \"mpm\"");
   {
     JsonObject p = sim.object("peridynamics");
     const double factor = p.number("horizon_factor", 3.015, 1, 8, true);
-    s.pd.deviatoric = p.choice("deviatoric", "paper", {"paper", "lps"}) == "paper" ? PdDeviatoric::Paper : PdDeviatoric::Lps;
+    s.pd.deviatoric = p.choice("deviatoric", "paper", {"paper", "lps"}) == "paper"
+                          ? PdDeviatoric::Paper
+                          : PdDeviatoric::Lps;
     s.pd.surface_correction = p.boolean("surface_correction", true);
     s.pd.partial_volume = p.boolean("partial_volume", true);
     s.pd.fracture = p.boolean("fracture", true);
@@ -88,7 +100,9 @@ void pd_spacing(JsonObject& top, Scene& s) {
       edge_count += double(o.tets->tets.size());
     }
   if (tet_objects > 0 && tet_objects < s.objects.size())
-    top.fail("objects", "tet_mesh objects cannot be mixed with lattice-sampled objects (their spacings differ)");
+    top.fail(
+        "objects",
+        "tet_mesh objects cannot be mixed with lattice-sampled objects (their spacings differ)");
   if (tet_objects > 0) {
     // One particle per tetrahedron: the spacing is the mean edge length (the paper's lambda).
     s.pd.spacing = Real(edge_sum / edge_count);
@@ -96,9 +110,11 @@ void pd_spacing(JsonObject& top, Scene& s) {
     const int ppc = s.objects[0].particles_per_cell;
     for (std::size_t k = 1; k < s.objects.size(); ++k)
       if (s.objects[k].particles_per_cell != ppc)
-        throw InputError(s.file + ": /objects/" + std::to_string(k) +
-                         "/particles_per_cell: peridynamic objects share one lattice spacing; use the same value as "
-                         "/objects/0 (" + std::to_string(ppc) + ")");
+        throw InputError(
+            s.file + ": /objects/" + std::to_string(k) +
+            "/particles_per_cell: peridynamic objects share one lattice spacing; use the same value as "
+            "/objects/0 (" +
+            std::to_string(ppc) + ")");
     s.pd.spacing = Real(double(s.mpm.dx) / std::cbrt(double(ppc)));
   }
   s.pd.horizon *= s.pd.spacing;
@@ -122,15 +138,18 @@ void read_pd_materials(JsonObject& mats, Scene& s) {
 }
 
 void read_pd_conditions(JsonObject& top, Scene& s) {
-  if (!top.objects("heat_sources").empty()) top.fail("heat_sources", "only for \"method\": \"mpm\"");
+  if (!top.objects("heat_sources").empty())
+    top.fail("heat_sources", "only for \"method\": \"mpm\"");
   for (auto& b : top.objects("boundary_conditions")) {
     PdBoundarySpec bc;
     bc.min = b.required_vec3("min");
     bc.max = b.required_vec3("max");
     for (int a = 0; a < 3; ++a)
-      if (!(bc.max[a] >= bc.min[a])) b.fail("max", "every component must be at least the matching one of \"min\"");
+      if (!(bc.max[a] >= bc.min[a]))
+        b.fail("max", "every component must be at least the matching one of \"min\"");
     if (b.has("velocity") && b.has("force_density"))
-      b.fail("force_density", "give either velocity (prescribed motion) or force_density (a load), not both");
+      b.fail("force_density",
+             "give either velocity (prescribed motion) or force_density (a load), not both");
     bc.velocity = b.vec3("velocity", Vec3::Zero());
     bc.load = b.has("force_density");
     bc.force_density = b.vec3("force_density", Vec3::Zero());
@@ -145,7 +164,8 @@ void read_pd_conditions(JsonObject& top, Scene& s) {
     pc.min = c.required_vec3("min");
     pc.max = c.required_vec3("max");
     for (int a = 0; a < 3; ++a)
-      if (!(pc.max[a] >= pc.min[a])) c.fail("max", "every component must be at least the matching one of \"min\"");
+      if (!(pc.max[a] >= pc.min[a]))
+        c.fail("max", "every component must be at least the matching one of \"min\"");
     c.finish();
     s.pd_precracks.push_back(pc);
   }

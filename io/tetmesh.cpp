@@ -53,12 +53,14 @@ TetMesh load_tetgen(const std::string& path) {
   long long n = 0, dim = 0, nattr = 0, nmark = 0;
   {
     std::istringstream h(nl.rows[0].second);
-    if (!(h >> n >> dim >> nattr >> nmark) || n <= 0 || dim != 3 || nattr < 0 || (nmark != 0 && nmark != 1))
+    if (!(h >> n >> dim >> nattr >> nmark) || n <= 0 || dim != 3 || nattr < 0 ||
+        (nmark != 0 && nmark != 1))
       fail(node_path, nl.rows[0].first, "expected header '<points> 3 <attributes> <0|1>'");
   }
   if (static_cast<long long>(nl.rows.size()) - 1 < n)
-    fail(node_path, nl.rows.back().first, "file ends after " + std::to_string(nl.rows.size() - 1) + " of " +
-                                              std::to_string(n) + " points");
+    fail(node_path, nl.rows.back().first,
+         "file ends after " + std::to_string(nl.rows.size() - 1) + " of " + std::to_string(n) +
+             " points");
   long long base = 0;
   m.nodes.resize(std::size_t(n));
   for (long long k = 0; k < n; ++k) {
@@ -69,7 +71,9 @@ TetMesh load_tetgen(const std::string& path) {
     if (!(r >> idx >> x >> y >> z) || !std::isfinite(x) || !std::isfinite(y) || !std::isfinite(z))
       fail(node_path, line, "expected '<index> <x> <y> <z>' with finite coordinates");
     if (k == 0) base = idx;
-    if (idx != base + k) fail(node_path, line, "point index " + std::to_string(idx) + ", expected " + std::to_string(base + k));
+    if (idx != base + k)
+      fail(node_path, line,
+           "point index " + std::to_string(idx) + ", expected " + std::to_string(base + k));
     m.nodes[std::size_t(k)] = Vec3d(x, y, z);
   }
   const Lines el = read_lines(ele_path);
@@ -82,24 +86,29 @@ TetMesh load_tetgen(const std::string& path) {
     h >> tattr;
   }
   if (static_cast<long long>(el.rows.size()) - 1 < nt)
-    fail(ele_path, el.rows.back().first, "file ends after " + std::to_string(el.rows.size() - 1) + " of " +
-                                             std::to_string(nt) + " tetrahedra");
+    fail(ele_path, el.rows.back().first,
+         "file ends after " + std::to_string(el.rows.size() - 1) + " of " + std::to_string(nt) +
+             " tetrahedra");
   m.tets.resize(std::size_t(nt));
   for (long long k = 0; k < nt; ++k) {
     const auto& [line, text] = el.rows[std::size_t(k + 1)];
     std::istringstream r(text);
     long long idx, v[4];
-    if (!(r >> idx >> v[0] >> v[1] >> v[2] >> v[3])) fail(ele_path, line, "expected '<index> <n1> <n2> <n3> <n4>'");
+    if (!(r >> idx >> v[0] >> v[1] >> v[2] >> v[3]))
+      fail(ele_path, line, "expected '<index> <n1> <n2> <n3> <n4>'");
     for (int c = 0; c < 4; ++c) {
       if (v[c] < base || v[c] >= base + n)
-        fail(ele_path, line, "node " + std::to_string(v[c]) + " does not exist (the .node file numbers " +
-                                 std::to_string(base) + ".." + std::to_string(base + n - 1) + ")");
+        fail(ele_path, line,
+             "node " + std::to_string(v[c]) + " does not exist (the .node file numbers " +
+                 std::to_string(base) + ".." + std::to_string(base + n - 1) + ")");
       m.tets[std::size_t(k)][std::size_t(c)] = std::int32_t(v[c] - base);
     }
     const auto& t = m.tets[std::size_t(k)];
     const Vec3d a = m.nodes[std::size_t(t[0])];
-    const double vol = std::abs((m.nodes[std::size_t(t[1])] - a).dot((m.nodes[std::size_t(t[2])] - a)
-                                                                        .cross(m.nodes[std::size_t(t[3])] - a))) / 6;
+    const double vol =
+        std::abs((m.nodes[std::size_t(t[1])] - a)
+                     .dot((m.nodes[std::size_t(t[2])] - a).cross(m.nodes[std::size_t(t[3])] - a))) /
+        6;
     if (!(vol > 0)) fail(ele_path, line, "tetrahedron " + std::to_string(idx) + " has zero volume");
   }
   return m;

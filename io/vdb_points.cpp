@@ -16,8 +16,9 @@ namespace amalgam {
 
 namespace {
 template <class T>
-void add_attribute(openvdb::points::PointDataGrid& grid, const openvdb::tools::PointIndexGrid& index,
-                   const std::string& name, const std::vector<T>& values) {
+void add_attribute(openvdb::points::PointDataGrid& grid,
+                   const openvdb::tools::PointIndexGrid& index, const std::string& name,
+                   const std::vector<T>& values) {
   using namespace openvdb::points;
   appendAttribute<T>(grid.tree(), name);
   populateAttribute<PointDataTree, openvdb::tools::PointIndexTree, PointAttributeVector<T>>(
@@ -25,7 +26,8 @@ void add_attribute(openvdb::points::PointDataGrid& grid, const openvdb::tools::P
 }
 }  // namespace
 
-void write_vdb_points(const std::string& path, const PointFields& p, double voxel_size, const exec::Space& space) {
+void write_vdb_points(const std::string& path, const PointFields& p, double voxel_size,
+                      const exec::Space& space) {
   static std::once_flag init;
   std::call_once(init, [] { openvdb::initialize(); });
   const size_t n = p.n;
@@ -36,14 +38,17 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
     P[i] = openvdb::Vec3R(double(p.x[i][0]), double(p.x[i][1]), double(p.x[i][2]));
     v[i] = openvdb::Vec3s(float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2]));
   }
-  const openvdb::math::Transform::Ptr xform = openvdb::math::Transform::createLinearTransform(voxel_size);
+  const openvdb::math::Transform::Ptr xform =
+      openvdb::math::Transform::createLinearTransform(voxel_size);
   const openvdb::points::PointAttributeVector<openvdb::Vec3R> positions(P);
   const std::string tmp = path + ".tmp";
   bool written = false;
   std::string error;
   exec::with_thread_limit(space, [&] {  // the grids' construction and destruction
-    const auto index = openvdb::tools::createPointIndexGrid<openvdb::tools::PointIndexGrid>(positions, *xform);
-    const auto grid = openvdb::points::createPointDataGrid<openvdb::points::NullCodec, openvdb::points::PointDataGrid>(
+    const auto index =
+        openvdb::tools::createPointIndexGrid<openvdb::tools::PointIndexGrid>(positions, *xform);
+    const auto grid = openvdb::points::createPointDataGrid<openvdb::points::NullCodec,
+                                                           openvdb::points::PointDataGrid>(
         *index, positions, *xform);
     add_attribute(*grid, *index, "v", v);
     for (const auto& s : p.primary) add_attribute(*grid, *index, s.first, s.second);
@@ -67,7 +72,8 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
   commit_temporary(tmp, path);
 }
 
-void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx, const exec::Space& space) {
+void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx,
+                           const exec::Space& space) {
   static std::once_flag init;
   std::call_once(init, [] { openvdb::initialize(); });
   const std::string tmp = path + ".tmp";

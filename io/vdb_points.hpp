@@ -16,11 +16,13 @@ namespace amalgam {
 
 // `voxel_size` sets the point grid's voxel (the simulation dx is a good choice). Every float
 // attribute of `p` (primary and extra) becomes a point attribute of that name.
-void write_vdb_points(const std::string& path, const PointFields& p, double voxel_size, const exec::Space& space);
+void write_vdb_points(const std::string& path, const PointFields& p, double voxel_size,
+                      const exec::Space& space);
 
 // Grid fields of the last substep as OpenVDB volumes: a FloatGrid "mass" (kg per node) and a
 // Vec3SGrid "velocity" (m/s, the updated grid velocity), voxel = node, voxel size dx, over the
 // active leaves (nodes with zero mass are left inactive). Houdini reads them with a File SOP.
-void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx, const exec::Space& space);
+void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx,
+                           const exec::Space& space);
 
 }  // namespace amalgam

@@ -68,19 +68,23 @@ void write_ply_points(const std::string& path, const PointFields& p) {
 }
 
 void write_surface_obj(const std::string& path, const std::vector<Vec3>& vertices,
-                       const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack) {
-  std::string out = "# written by Amalgam: deformed surface (group crack: peridynamic crack faces)\n";
+                       const std::vector<std::array<std::uint32_t, 3>>& triangles,
+                       const std::vector<std::uint8_t>& crack) {
+  std::string out =
+      "# written by Amalgam: deformed surface (group crack: peridynamic crack faces)\n";
   out.reserve(out.size() + vertices.size() * 40 + triangles.size() * 30);
   char line[96];
   for (const Vec3& v : vertices) {
-    std::snprintf(line, sizeof line, "v %.7g %.7g %.7g\n", double(v[0]), double(v[1]), double(v[2]));
+    std::snprintf(line, sizeof line, "v %.7g %.7g %.7g\n", double(v[0]), double(v[1]),
+                  double(v[2]));
     out += line;
   }
   for (int group = 0; group < 2; ++group) {
     out += group == 0 ? "g surface\n" : "g crack\n";
     for (std::size_t f = 0; f < triangles.size(); ++f) {
       if (int(crack[f] != 0) != group) continue;
-      std::snprintf(line, sizeof line, "f %u %u %u\n", triangles[f][0] + 1, triangles[f][1] + 1, triangles[f][2] + 1);
+      std::snprintf(line, sizeof line, "f %u %u %u\n", triangles[f][0] + 1, triangles[f][1] + 1,
+                    triangles[f][2] + 1);
       out += line;
     }
   }
@@ -88,11 +92,14 @@ void write_surface_obj(const std::string& path, const std::vector<Vec3>& vertice
 }
 
 void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertices,
-                       const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack) {
+                       const std::vector<std::array<std::uint32_t, 3>>& triangles,
+                       const std::vector<std::uint8_t>& crack) {
   std::ostringstream h;
   h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam: surface with crack faces\n"
-    << "element vertex " << vertices.size() << "\nproperty float x\nproperty float y\nproperty float z\n"
-    << "element face " << triangles.size() << "\nproperty list uchar int vertex_indices\nproperty uchar crack\n"
+    << "element vertex " << vertices.size()
+    << "\nproperty float x\nproperty float y\nproperty float z\n"
+    << "element face " << triangles.size()
+    << "\nproperty list uchar int vertex_indices\nproperty uchar crack\n"
     << "end_header\n";
   std::string buf = h.str();
   const std::size_t header = buf.size();
@@ -105,7 +112,8 @@ void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertice
   }
   for (std::size_t f = 0; f < triangles.size(); ++f) {
     *dst++ = 3;
-    const std::int32_t idx[3] = {std::int32_t(triangles[f][0]), std::int32_t(triangles[f][1]), std::int32_t(triangles[f][2])};
+    const std::int32_t idx[3] = {std::int32_t(triangles[f][0]), std::int32_t(triangles[f][1]),
+                                 std::int32_t(triangles[f][2])};
     std::memcpy(dst, idx, 12);
     dst += 12;
     *dst++ = char(crack[f]);

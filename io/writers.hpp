@@ -21,9 +21,11 @@ void write_ply_points(const std::string& path, const PointFields& p);
 // triangles with crack[f] = 1 go to "crack"), or binary PLY with a uchar face property "crack".
 // Both atomic; Houdini, Blender and ParaView read them.
 void write_surface_obj(const std::string& path, const std::vector<Vec3>& vertices,
-                       const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack);
+                       const std::vector<std::array<std::uint32_t, 3>>& triangles,
+                       const std::vector<std::uint8_t>& crack);
 void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertices,
-                       const std::vector<std::array<std::uint32_t, 3>>& triangles, const std::vector<std::uint8_t>& crack);
+                       const std::vector<std::array<std::uint32_t, 3>>& triangles,
+                       const std::vector<std::uint8_t>& crack);
 
 // Writes `content` to `path` atomically (temporary file, then rename). Throws InputError.
 void write_file_atomic(const std::string& path, const std::string& content);

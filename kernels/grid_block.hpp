@@ -31,11 +31,13 @@ struct GridBlock {
     for (int t = 0; t < 8; ++t) {
       const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
       const std::size_t leaf = std::size_t(nbr8[size_t(t)]);
-      const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim, nk = tz ? B - kLeafDim : kLeafDim;
+      const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
+                nk = tz ? B - kLeafDim : kLeafDim;
       for (int i = 0; i < ni; ++i)
         for (int j = 0; j < nj; ++j)
           for (int k = 0; k < nk; ++k)
-            fn(data + at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k), leaf, leaf_offset(i, j, k));
+            fn(data + at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k), leaf,
+               leaf_offset(i, j, k));
     }
   }
   // 4-lane node vectors [leaf][512][4] (the implicit solver's layout): block <- grid (CH == 4).

@@ -42,17 +42,18 @@ struct ImplicitKernelParams {
 };
 
 // One SVD per particle: U, sigma, the frame Hessian (made positive semi-definite if `psd`).
-void prepare_particle_hessians(const exec::Space& space, const MpmParticleView& p, const ImplicitKernelParams& prm,
-                               bool psd, ParticleHessian* out);
+void prepare_particle_hessians(const exec::Space& space, const MpmParticleView& p,
+                               const ImplicitKernelParams& prm, bool psd, ParticleHessian* out);
 
 // out += scale * H du over the grid (both [leaf][512][4]).
 void mpm_hessian_action(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
-                        const ImplicitKernelParams& prm, const ParticleHessian* hess, const Real* du, Real scale,
-                        Real* out);
+                        const ImplicitKernelParams& prm, const ParticleHessian* hess,
+                        const Real* du, Real scale, Real* out);
 
 // diag += scale * diag(H) (per node and axis; eq. 18 with the fix of eq. 19 if the cache has it).
 void mpm_hessian_diagonal(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
-                          const ImplicitKernelParams& prm, const ParticleHessian* hess, Real scale, Real* diag);
+                          const ImplicitKernelParams& prm, const ParticleHessian* hess, Real scale,
+                          Real* diag);
 
 // f += elastic force at grid displacement u (u == nullptr: zero displacement), recomputing
 // P(F_p(u)) from the materials. For finite-difference checks of the Hessian and for solvers that
@@ -62,8 +63,9 @@ void mpm_elastic_forces(const exec::Space& space, const MpmParticleView& p, cons
 
 // f += elastic force at zero displacement from the cached stresses (no SVD): what the implicit
 // solver subtracts from v* for its initial guess.
-void mpm_cached_elastic_forces(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
-                               const ImplicitKernelParams& prm, const ParticleHessian* hess, Real* f);
+void mpm_cached_elastic_forces(const exec::Space& space, const MpmParticleView& p,
+                               const MpmGridView& g, const ImplicitKernelParams& prm,
+                               const ParticleHessian* hess, Real* f);
 
 // Per-particle pieces, pure (no grid), for tests:
 // V_p^0 A_p F_p^T for a velocity-increment gradient grad_du.
@@ -72,8 +74,8 @@ inline Mat3 particle_stress_differential(const ParticleHessian& ph, const Mat3& 
   const Mat3 R = ph.h.apply(M);
   return ph.V0 * (ph.U * (R * ph.sigma.asDiagonal()) * ph.U.transpose());
 }
-ParticleHessian particle_hessian(const MaterialParams& m, const Mat3& F, Real plastic, Real temperature, Real V0,
-                                 bool psd);
+ParticleHessian particle_hessian(const MaterialParams& m, const Mat3& F, Real plastic,
+                                 Real temperature, Real V0, bool psd);
 
 }  // namespace amalgam
 
@@ -83,8 +85,8 @@ namespace amalgam {
 // a = (m, v) after the explicit grid update, for the active leaves (DOF = 512 leaf + offset).
 void grid_velocities_to_dofs(const exec::Space& space, const MpmGridView& g, Real* mass, Real* v);
 // v -= dt f / m on the active leaves' nodes with mass (the implicit solve's initial guess).
-void initial_guess_from_force(const exec::Space& space, const MpmGridView& g, const Real* mass, const Real* f,
-                              Real dt, Real* v);
+void initial_guess_from_force(const exec::Space& space, const MpmGridView& g, const Real* mass,
+                              const Real* f, Real dt, Real* v);
 // DOFs -> grid: a's velocity lanes <- v; PIC/FLIP's b (v_new - v_old) shifts by the same change.
 void dofs_to_grid_velocities(const exec::Space& space, const MpmGridView& g, const Real* v);
 

@@ -4,7 +4,8 @@
 
 namespace amalgam {
 
-void update_material_state(const exec::Space& space, const MpmParticleView& p, const MaterialUpdateParams& prm) {
+void update_material_state(const exec::Space& space, const MpmParticleView& p,
+                           const MaterialUpdateParams& prm) {
   exec::parallel_for(space, "mpm.material_update", exec::Index(p.n), [&](exec::Index i) {
     Real temperature = p.temperature ? p.temperature[i] : Real(0);
     if (p.temperature && prm.nsources > 0) {
@@ -16,12 +17,13 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p, c
       p.temperature[i] = temperature;
     }
     Real plastic = p.plastic ? p.plastic[i] : Real(0);
-    if (prm.materials[p.material[i]].project(p.F[i], plastic, temperature) && p.plastic) p.plastic[i] = plastic;
+    if (prm.materials[p.material[i]].project(p.F[i], plastic, temperature) && p.plastic)
+      p.plastic[i] = plastic;
   });
 }
 
-void collide_particles(const exec::Space& space, const MpmParticleView& p, const Collider* colliders, int n,
-                       Real time) {
+void collide_particles(const exec::Space& space, const MpmParticleView& p,
+                       const Collider* colliders, int n, Real time) {
   exec::parallel_for(space, "mpm.collide_particles", exec::Index(p.n), [&](exec::Index i) {
     for (int c = 0; c < n; ++c) {
       const Real phi = colliders[c].phi(p.x[i], time);

@@ -30,7 +30,8 @@ struct MaterialUpdateParams {
   Real time = 0;  // time at the end of the substep
 };
 
-void update_material_state(const exec::Space& space, const MpmParticleView& p, const MaterialUpdateParams& prm);
+void update_material_state(const exec::Space& space, const MpmParticleView& p,
+                           const MaterialUpdateParams& prm);
 
 // Particle-level collision after advection: grid-based colliders stop a particle only once all
 // its stencil nodes are inside, so particles sink up to 1.5 cells into walls (measured: the
@@ -39,7 +40,7 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p, c
 // collider normal and its velocity projected like a grid node's (with friction). A sticky
 // collider holds the particles inside it where they are, moving with it (a grip pulling a bar's
 // end would otherwise push that end out through its nearest face every substep).
-void collide_particles(const exec::Space& space, const MpmParticleView& p, const Collider* colliders, int n,
-                       Real time);
+void collide_particles(const exec::Space& space, const MpmParticleView& p,
+                       const Collider* colliders, int n, Real time);
 
 }  // namespace amalgam

@@ -13,9 +13,12 @@ namespace amalgam {
 
 const char* transfer_name(Transfer t) {
   switch (t) {
-    case Transfer::PicFlip: return "pic_flip";
-    case Transfer::Apic: return "apic";
-    case Transfer::Mls: return "mls";
+    case Transfer::PicFlip:
+      return "pic_flip";
+    case Transfer::Apic:
+      return "apic";
+    case Transfer::Mls:
+      return "mls";
   }
   return "?";
 }
@@ -42,7 +45,9 @@ namespace {
 template <int Order, int CH>
 using Block = GridBlock<Order, CH>;
 
-constexpr int channels_of(Transfer t) { return t == Transfer::PicFlip ? 8 : 4; }
+constexpr int channels_of(Transfer t) {
+  return t == Transfer::PicFlip ? 8 : 4;
+}
 
 // How many of the particles q0, q0 + 1, ... (at most W, none from q1 on) share q0's material.
 template <int W>
@@ -140,58 +145,65 @@ __attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const V
 }
 
 template <int Order, Transfer T, bool L, bool P = false>
-void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+              const MpmStepParams& prm) {
   constexpr int CH = P ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
   for (int c = 0; c < 8; ++c) {
     const std::uint32_t c0 = g.colour_start[c], c1 = g.colour_start[c + 1];
-    exec::parallel_for(space, "mpm.p2g", exec::Index(c1 - c0), [&](exec::Index ci) {
-      const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
-      Blk blk;
-      std::memset(blk.data, 0, sizeof(blk.data));
-      const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-      // Particles in batches of up to W of one material: their stresses at once (one per vector
-      // lane, the values of one at a time: MaterialParams::kirchhoff_lanes), then their scatter.
-      constexpr int W = lanes::kN<Real>;
-      const std::uint32_t q1 = g.bin_start[b + 1];
-      for (std::uint32_t q0 = g.bin_start[b]; q0 < q1;) {
-        const int n = one_material_run<W>(p.material, q0, q1);
-        Real plastic[W], temperature[W];
-        Mat3 tau[W], Lv[W], Fs_inv[W];
-        for (int l = 0; l < n; ++l) {
-          const std::uint32_t q = q0 + std::uint32_t(l);
-          plastic[l] = p.plastic ? p.plastic[q] : Real(0);
-          temperature[l] = p.temperature ? p.temperature[q] : Real(0);
-          if constexpr (L) {
-            // A-ULMPM eq. 20: P^0 (F^{0s})^T = tau (F^{sn})^{-T}; the material sees the spatial
-            // velocity gradient grad_s v (F^{sn})^{-1}.
-            Fs_inv[l] = p.F_s[q].inverse();
-            Lv[l] = p.C[q] * Fs_inv[l];
+    exec::parallel_for(
+        space, "mpm.p2g", exec::Index(c1 - c0),
+        [&](exec::Index ci) {
+          const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
+          Blk blk;
+          std::memset(blk.data, 0, sizeof(blk.data));
+          const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+          // Particles in batches of up to W of one material: their stresses at once (one per vector
+          // lane, the values of one at a time: MaterialParams::kirchhoff_lanes), then their scatter.
+          constexpr int W = lanes::kN<Real>;
+          const std::uint32_t q1 = g.bin_start[b + 1];
+          for (std::uint32_t q0 = g.bin_start[b]; q0 < q1;) {
+            const int n = one_material_run<W>(p.material, q0, q1);
+            Real plastic[W], temperature[W];
+            Mat3 tau[W], Lv[W], Fs_inv[W];
+            for (int l = 0; l < n; ++l) {
+              const std::uint32_t q = q0 + std::uint32_t(l);
+              plastic[l] = p.plastic ? p.plastic[q] : Real(0);
+              temperature[l] = p.temperature ? p.temperature[q] : Real(0);
+              if constexpr (L) {
+                // A-ULMPM eq. 20: P^0 (F^{0s})^T = tau (F^{sn})^{-T}; the material sees the spatial
+                // velocity gradient grad_s v (F^{sn})^{-1}.
+                Fs_inv[l] = p.F_s[q].inverse();
+                Lv[l] = p.C[q] * Fs_inv[l];
+              }
+            }
+            prm.materials[p.material[q0]].kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic,
+                                                          temperature, tau, n);
+            for (int l = 0; l < n; ++l) {
+              const std::uint32_t q = q0 + std::uint32_t(l);
+              if constexpr (!L) {
+                p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l], p.mass[q],
+                                           p.volume0[q], dx, inv_dx, dt);
+              } else {
+                p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q],
+                                              tau[l] * Fs_inv[l].transpose(), p.mass[q],
+                                              p.volume0[q], dx, inv_dx, dt, p.x[q], p.F_s[q]);
+              }
+            }
+            q0 += std::uint32_t(n);
           }
-        }
-        prm.materials[p.material[q0]].kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic, temperature, tau, n);
-        for (int l = 0; l < n; ++l) {
-          const std::uint32_t q = q0 + std::uint32_t(l);
-          if constexpr (!L) {
-            p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l], p.mass[q], p.volume0[q], dx,
-                                       inv_dx, dt);
-          } else {
-            p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q], tau[l] * Fs_inv[l].transpose(),
-                                          p.mass[q], p.volume0[q], dx, inv_dx, dt, p.x[q], p.F_s[q]);
-          }
-        }
-        q0 += std::uint32_t(n);
-      }
-      // Flush into the 8 target leaves; P: (m, m q) into q_out, PIC/FLIP: the force lanes into b
-      // (their lane 0 is 0, so b's stays 0).
-      Real* second = P ? g.q_out : g.b;
-      blk.for_each_node(g.nbr8[b], [&](const Real* s, std::size_t leaf, int off) {
-        const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
-        simd::store4(g.a + n, simd::load4(g.a + n) + simd::load4(s));
-        if constexpr (CH == 8) simd::store4(second + n, simd::load4(second + n) + simd::load4(s + 4));
-      });
-    }, 1);
+          // Flush into the 8 target leaves; P: (m, m q) into q_out, PIC/FLIP: the force lanes into b
+          // (their lane 0 is 0, so b's stays 0).
+          Real* second = P ? g.q_out : g.b;
+          blk.for_each_node(g.nbr8[b], [&](const Real* s, std::size_t leaf, int off) {
+            const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
+            simd::store4(g.a + n, simd::load4(g.a + n) + simd::load4(s));
+            if constexpr (CH == 8)
+              simd::store4(second + n, simd::load4(second + n) + simd::load4(s + 4));
+          });
+        },
+        1);
   }
 }
 
@@ -210,7 +222,8 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
   //   S = sum w v;  S_a = sum w v idx_a  ->  B.col(a) = sum w v o_a = dx (S_a - fx_a S)  (MLS, APIC)
   //   D_a = sum v dw/dx_a                ->  grad v = [D_0 D_1 D_2]                  (APIC, PIC/FLIP)
   //   dV = sum w dv                                                                  (FLIP)
-  constexpr bool kB = (T != Transfer::PicFlip), kGrad = (T != Transfer::Mls), kFlip = (T == Transfer::PicFlip);
+  constexpr bool kB = (T != Transfer::PicFlip), kGrad = (T != Transfer::Mls),
+                 kFlip = (T == Transfer::PicFlip);
   using simd::V4;
   V4 S{}, Si{}, Sj{}, Sk{}, D0{}, D1{}, D2{}, dV{};
   for (int i = 0; i < N; ++i) {
@@ -282,7 +295,8 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
     F = *Fs * *F0s;      // eq. 32: F^{0(n+1)} = F^{s(n+1)} F^{0s}
   } else {
     // F <- (I + dt grad v) F: column j is sum_a (e_a + dt g_a) F(a, j), on 4-lane columns.
-    const V4 M[3] = {V4{0, 1, 0, 0} + dt * Gcol[0], V4{0, 0, 1, 0} + dt * Gcol[1], V4{0, 0, 0, 1} + dt * Gcol[2]};
+    const V4 M[3] = {V4{0, 1, 0, 0} + dt * Gcol[0], V4{0, 0, 1, 0} + dt * Gcol[1],
+                     V4{0, 0, 0, 1} + dt * Gcol[2]};
     for (int j = 0; j < 3; ++j) {
       const V4 f = M[0] * F(0, j) + M[1] * F(1, j) + M[2] * F(2, j);
       F(0, j) = f[1], F(1, j) = f[2], F(2, j) = f[3];
@@ -292,43 +306,53 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
 }
 
 template <int Order, Transfer T, bool L>
-void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+              const MpmStepParams& prm) {
   constexpr int CH = (T == Transfer::PicFlip) ? 8 : 4;  // (m, v_new) (+ (-, dv)): the grid's rows
   using Blk = Block<Order, CH>;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
-  exec::parallel_for(space, "mpm.g2p", exec::Index(g.nbins), [&](exec::Index bi) {
-    const std::size_t b = std::size_t(bi);
-    Blk blk;  // (m, v_new) rows of the grid, and PIC/FLIP's (-, dv) beside them
-    blk.for_each_node(g.nbr8[b], [&](Real* d, std::size_t leaf, int off) {
-      const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
-      simd::store4(d, simd::load4(g.a + n));
-      if constexpr (CH == 8) simd::store4(d + 4, simd::load4(g.b + n));
-    });
-    const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-    for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
-      if constexpr (L)
-        g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], p.v[q], p.C[q], p.F[q], p.F_s + q,
-                                         p.F_0s + q, dx, inv_dx, dt, alpha);
-      else
-        g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], p.v[q], p.C[q], p.F[q], nullptr, nullptr, dx,
-                                          inv_dx, dt, alpha);
-    }
-  }, 1);
+  exec::parallel_for(
+      space, "mpm.g2p", exec::Index(g.nbins),
+      [&](exec::Index bi) {
+        const std::size_t b = std::size_t(bi);
+        Blk blk;  // (m, v_new) rows of the grid, and PIC/FLIP's (-, dv) beside them
+        blk.for_each_node(g.nbr8[b], [&](Real* d, std::size_t leaf, int off) {
+          const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
+          simd::store4(d, simd::load4(g.a + n));
+          if constexpr (CH == 8) simd::store4(d + 4, simd::load4(g.b + n));
+        });
+        const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+        for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
+          if constexpr (L)
+            g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], p.v[q], p.C[q],
+                                             p.F[q], p.F_s + q, p.F_0s + q, dx, inv_dx, dt, alpha);
+          else
+            g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], p.v[q], p.C[q], p.F[q],
+                                              nullptr, nullptr, dx, inv_dx, dt, alpha);
+        }
+      },
+      1);
 }
 
 template <template <int, Transfer> class Fn, class... Args>
 void dispatch(int order, Transfer t, Args&&... args) {
   if (order == 3) {
     switch (t) {
-      case Transfer::PicFlip: return Fn<3, Transfer::PicFlip>::run(args...);
-      case Transfer::Apic: return Fn<3, Transfer::Apic>::run(args...);
-      case Transfer::Mls: return Fn<3, Transfer::Mls>::run(args...);
+      case Transfer::PicFlip:
+        return Fn<3, Transfer::PicFlip>::run(args...);
+      case Transfer::Apic:
+        return Fn<3, Transfer::Apic>::run(args...);
+      case Transfer::Mls:
+        return Fn<3, Transfer::Mls>::run(args...);
     }
   } else {
     switch (t) {
-      case Transfer::PicFlip: return Fn<2, Transfer::PicFlip>::run(args...);
-      case Transfer::Apic: return Fn<2, Transfer::Apic>::run(args...);
-      case Transfer::Mls: return Fn<2, Transfer::Mls>::run(args...);
+      case Transfer::PicFlip:
+        return Fn<2, Transfer::PicFlip>::run(args...);
+      case Transfer::Apic:
+        return Fn<2, Transfer::Apic>::run(args...);
+      case Transfer::Mls:
+        return Fn<2, Transfer::Mls>::run(args...);
     }
   }
 }
@@ -337,41 +361,50 @@ void dispatch(int order, Transfer t, Args&&... args) {
 // per-particle branch cost 5-8 % in P2G/G2P, measured).
 template <int O, Transfer T>
 struct P2G {
-  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g,
+                  const MpmStepParams& prm) {
     if constexpr (T != Transfer::PicFlip) {
       if (p.X_ref && g.q_out) return p2g_impl<O, T, true, true>(s, p, g, prm);
     }
-    if (p.X_ref) p2g_impl<O, T, true>(s, p, g, prm);
-    else p2g_impl<O, T, false>(s, p, g, prm);
+    if (p.X_ref)
+      p2g_impl<O, T, true>(s, p, g, prm);
+    else
+      p2g_impl<O, T, false>(s, p, g, prm);
   }
 };
 template <int O, Transfer T>
 struct G2P {
-  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
-    if (p.X_ref) g2p_impl<O, T, true>(s, p, g, prm);
-    else g2p_impl<O, T, false>(s, p, g, prm);
+  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g,
+                  const MpmStepParams& prm) {
+    if (p.X_ref)
+      g2p_impl<O, T, true>(s, p, g, prm);
+    else
+      g2p_impl<O, T, false>(s, p, g, prm);
   }
 };
 
 template <int Order>
-void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, Real dx,
-                        Real* out) {
+void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                        Real dx, Real* out) {
   using Blk = Block<Order, 4>;
   const Real inv_dx = Real(1) / dx;
   const Mat3 zero = Mat3::Zero();
   for (int c = 0; c < 8; ++c) {
     const std::uint32_t c0 = g.colour_start[c], c1 = g.colour_start[c + 1];
-    exec::parallel_for(space, "aul.p2g_positions", exec::Index(c1 - c0), [&](exec::Index ci) {
-      const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
-      Blk blk;
-      blk.clear();
-      const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-      // The APIC scatter with v -> x_p and C -> F_s: m w (x_p + F_s (X_i - X_p)), no stress.
-      for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
-        p2g_particle<Order, Transfer::Apic, 4>(blk, origin, p.X_ref[q], p.x[q], p.F_s[q], zero, p.mass[q], 0, dx,
-                                               inv_dx, 0);
-      blk.flush_add4(g.nbr8[b], out);
-    }, 1);
+    exec::parallel_for(
+        space, "aul.p2g_positions", exec::Index(c1 - c0),
+        [&](exec::Index ci) {
+          const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
+          Blk blk;
+          blk.clear();
+          const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+          // The APIC scatter with v -> x_p and C -> F_s: m w (x_p + F_s (X_i - X_p)), no stress.
+          for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
+            p2g_particle<Order, Transfer::Apic, 4>(blk, origin, p.X_ref[q], p.x[q], p.F_s[q], zero,
+                                                   p.mass[q], 0, dx, inv_dx, 0);
+          blk.flush_add4(g.nbr8[b], out);
+        },
+        1);
   }
 }
 
@@ -380,8 +413,10 @@ void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, cons
 void p2g_positions(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                    const MpmStepParams& prm, Real* out) {
   clear_node4(space, g, out);
-  if (prm.order == 3) p2g_positions_impl<3>(space, p, g, prm.dx, out);
-  else p2g_positions_impl<2>(space, p, g, prm.dx, out);
+  if (prm.order == 3)
+    p2g_positions_impl<3>(space, p, g, prm.dx, out);
+  else
+    p2g_positions_impl<2>(space, p, g, prm.dx, out);
 }
 
 void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
@@ -393,17 +428,20 @@ void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepPar
   });
 }
 
-void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+         const MpmStepParams& prm) {
   dispatch<P2G>(prm.order, prm.transfer, space, p, g, prm);
 }
 
 void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out) {
   exec::parallel_for(space, "aul.positions_clear", exec::Index(g.nactive), [&](exec::Index i) {
-    std::memset(out + std::size_t(g.active_leaves[i]) * kLeafNodes * 4, 0, kLeafNodes * 4 * sizeof(Real));
+    std::memset(out + std::size_t(g.active_leaves[i]) * kLeafNodes * 4, 0,
+                kLeafNodes * 4 * sizeof(Real));
   });
 }
 
-void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm) {
+void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+         const MpmStepParams& prm) {
   dispatch<G2P>(prm.order, prm.transfer, space, p, g, prm);
 }
 
@@ -452,7 +490,8 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
   });
 }
 
-void grid_apply_colliders(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
+void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
+                          const MpmStepParams& prm) {
   if (prm.ncolliders == 0) return;
   const Real t_end = prm.time + prm.dt, dx = prm.dx;
   exec::parallel_for(space, "mpm.grid_colliders", exec::Index(g.nactive), [&](exec::Index li) {

@@ -93,7 +93,8 @@ struct MpmStepParams {
 // Zeroes the transfer channels of the active leaves.
 void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm);
 // Particle -> grid scatter of mass, momentum and (per scheme) force.
-void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm);
+void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+         const MpmStepParams& prm);
 // Zeroes the active leaves of a [leaf][512][4] array (g.q_out before a fused P2G).
 void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out);
 // Lagrangian mode: scatters (m_p, m_p (x_p + F_s (X_i - X_p))) into `out` ([leaf][512][4]),
@@ -107,6 +108,7 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
 // b = v_new - v_old consistent: the implicit solver's final pass (friction, separation).
 void grid_apply_colliders(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm);
 // Grid -> particle gather of v (and C), F update and advection.
-void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g, const MpmStepParams& prm);
+void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+         const MpmStepParams& prm);
 
 }  // namespace amalgam

@@ -12,9 +12,12 @@ namespace amalgam {
 
 const char* object_contact_mode_name(ObjectContactMode m) {
   switch (m) {
-    case ObjectContactMode::None: return "none";
-    case ObjectContactMode::Stick: return "stick";
-    case ObjectContactMode::Separate: return "separate";
+    case ObjectContactMode::None:
+      return "none";
+    case ObjectContactMode::Stick:
+      return "stick";
+    case ObjectContactMode::Separate:
+      return "separate";
   }
   return "?";
 }
@@ -58,8 +61,8 @@ ContactBoxes contact_boxes(const exec::Space& space, const MpmGridView& ref, con
 }
 
 void contact_count_points(const exec::Space& space, const MpmGridView& ref, const Real* q,
-                          const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin, Real dt,
-                          std::uint32_t* count) {
+                          const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin,
+                          Real dt, std::uint32_t* count) {
   exec::parallel_for(space, "contact.count", exec::Index(ref.nactive), [&](exec::Index li) {
     const std::int32_t leaf = ref.active_leaves[li];
     const int k = leaf_object[leaf];
@@ -67,14 +70,15 @@ void contact_count_points(const exec::Space& space, const MpmGridView& ref, cons
     const Real* ql = q + std::size_t(leaf) * kLeafNodes * 4;
     std::uint32_t c = 0;
     for (int o = 0; o < kLeafNodes; ++o)
-      if (a[o * 4] > 0 && boxes.near_other(point_position(a + o * 4, ql + o * 4, dt), k, margin)) ++c;
+      if (a[o * 4] > 0 && boxes.near_other(point_position(a + o * 4, ql + o * 4, dt), k, margin))
+        ++c;
     count[li] = c;
   });
 }
 
 void contact_collect_points(const exec::Space& space, const MpmGridView& ref, const Real* q,
-                            const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin, Real dt,
-                            const std::uint32_t* start, const ContactPointView& out) {
+                            const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin,
+                            Real dt, const std::uint32_t* start, const ContactPointView& out) {
   exec::parallel_for(space, "contact.collect", exec::Index(ref.nactive), [&](exec::Index li) {
     const std::int32_t leaf = ref.active_leaves[li];
     const int k = leaf_object[leaf];
@@ -97,8 +101,8 @@ void contact_collect_points(const exec::Space& space, const MpmGridView& ref, co
   });
 }
 
-void contact_scatter(const exec::Space& space, const ContactPointView& pts, const MpmGridView& global,
-                     const ObjectContactParams& prm) {
+void contact_scatter(const exec::Space& space, const ContactPointView& pts,
+                     const MpmGridView& global, const ObjectContactParams& prm) {
   using Blk = GridBlock<2, 8>;
   const Real inv_dx = Real(1) / prm.dx;
   exec::parallel_for(space, "contact.clear", exec::Index(global.nactive), [&](exec::Index i) {
@@ -108,37 +112,42 @@ void contact_scatter(const exec::Space& space, const ContactPointView& pts, cons
   });
   for (int c = 0; c < 8; ++c) {
     const std::uint32_t c0 = global.colour_start[c], c1 = global.colour_start[c + 1];
-    exec::parallel_for(space, "contact.scatter", exec::Index(c1 - c0), [&](exec::Index ci) {
-      const std::uint32_t b = global.colour_bins[c0 + std::uint32_t(ci)];
-      Blk blk;
-      blk.clear();
-      const Vec3i origin = global.bin_leaf[b] * kLeafDim;
-      for (std::uint32_t p = global.bin_start[b]; p < global.bin_start[b + 1]; ++p) {
-        const Stencil<2> st = Stencil<2>::at(pts.x[p], inv_dx);
-        const Vec3i l = st.base - origin;
-        const Real m = pts.m[p], k = Real(pts.object[p]);
-        const Real lanes[6] = {m, m * pts.v[p][0], m * pts.v[p][1], m * pts.v[p][2], m * k, m * k * k};
-        for (int i = 0; i < 3; ++i)
-          for (int j = 0; j < 3; ++j)
-            for (int kk = 0; kk < 3; ++kk) {
-              const Real w = st.weight(i, j, kk);
-              Real* d = blk.data + Blk::at(l[0] + i, l[1] + j, l[2] + kk);
-              for (int ch = 0; ch < 6; ++ch) d[ch] += w * lanes[ch];
-            }
-      }
-      blk.for_each_node(global.nbr8[b], [&](Real* s, std::size_t leaf, int off) {
-        Real* da = global.a + (leaf * kLeafNodes + std::size_t(off)) * 4;
-        Real* db = global.b + (leaf * kLeafNodes + std::size_t(off)) * 4;
-        for (int ch = 0; ch < 4; ++ch) da[ch] += s[ch];
-        db[0] += s[4];
-        db[1] += s[5];
-      });
-    }, 1);
+    exec::parallel_for(
+        space, "contact.scatter", exec::Index(c1 - c0),
+        [&](exec::Index ci) {
+          const std::uint32_t b = global.colour_bins[c0 + std::uint32_t(ci)];
+          Blk blk;
+          blk.clear();
+          const Vec3i origin = global.bin_leaf[b] * kLeafDim;
+          for (std::uint32_t p = global.bin_start[b]; p < global.bin_start[b + 1]; ++p) {
+            const Stencil<2> st = Stencil<2>::at(pts.x[p], inv_dx);
+            const Vec3i l = st.base - origin;
+            const Real m = pts.m[p], k = Real(pts.object[p]);
+            const Real lanes[6] = {m,     m * pts.v[p][0], m * pts.v[p][1], m * pts.v[p][2],
+                                   m * k, m * k * k};
+            for (int i = 0; i < 3; ++i)
+              for (int j = 0; j < 3; ++j)
+                for (int kk = 0; kk < 3; ++kk) {
+                  const Real w = st.weight(i, j, kk);
+                  Real* d = blk.data + Blk::at(l[0] + i, l[1] + j, l[2] + kk);
+                  for (int ch = 0; ch < 6; ++ch) d[ch] += w * lanes[ch];
+                }
+          }
+          blk.for_each_node(global.nbr8[b], [&](Real* s, std::size_t leaf, int off) {
+            Real* da = global.a + (leaf * kLeafNodes + std::size_t(off)) * 4;
+            Real* db = global.b + (leaf * kLeafNodes + std::size_t(off)) * 4;
+            for (int ch = 0; ch < 4; ++ch) da[ch] += s[ch];
+            db[0] += s[4];
+            db[1] += s[5];
+          });
+        },
+        1);
   }
 }
 
-std::size_t contact_gather(const exec::Space& space, const ContactPointView& pts, const MpmGridView& global,
-                           const MpmGridView& ref, const ObjectContactParams& prm) {
+std::size_t contact_gather(const exec::Space& space, const ContactPointView& pts,
+                           const MpmGridView& global, const MpmGridView& ref,
+                           const ObjectContactParams& prm) {
   using Blk = GridBlock<2, 8>;
   const Real inv_dx = Real(1) / prm.dx;
   const bool separate = prm.mode == ObjectContactMode::Separate;

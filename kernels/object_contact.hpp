@@ -64,7 +64,8 @@ struct ContactBoxes {
   // Whether x (a point of object k) lies in the box of another object grown by `margin`.
   bool near_other(const Vec3& x, int k, Real margin) const {
     for (int j = 0; j < n; ++j)
-      if (j != k && (x.array() >= lo[j].array() - margin).all() && (x.array() <= hi[j].array() + margin).all())
+      if (j != k && (x.array() >= lo[j].array() - margin).all() &&
+          (x.array() <= hi[j].array() + margin).all())
         return true;
     return false;
   }
@@ -79,18 +80,19 @@ ContactBoxes contact_boxes(const exec::Space& space, const MpmGridView& ref, con
 // result bit for bit unchanged while objects that are apart cost two passes over their nodes.
 // Pass 1: per active reference leaf li, the number of such points; pass 2 writes them at start[li].
 void contact_count_points(const exec::Space& space, const MpmGridView& ref, const Real* q,
-                          const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin, Real dt,
-                          std::uint32_t* count);
+                          const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin,
+                          Real dt, std::uint32_t* count);
 void contact_collect_points(const exec::Space& space, const MpmGridView& ref, const Real* q,
-                            const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin, Real dt,
-                            const std::uint32_t* start, const ContactPointView& out);
+                            const std::int32_t* leaf_object, const ContactBoxes& boxes, Real margin,
+                            Real dt, const std::uint32_t* start, const ContactPointView& out);
 // Scatter of the binned points (bins/colours of `global`) into global.a = (M, P) and
 // global.b = (K, S, 0, 0).
-void contact_scatter(const exec::Space& space, const ContactPointView& pts, const MpmGridView& global,
-                     const ObjectContactParams& prm);
+void contact_scatter(const exec::Space& space, const ContactPointView& pts,
+                     const MpmGridView& global, const ObjectContactParams& prm);
 // Gather and velocity correction written back into ref.a (and ref.b's v_new - v_old for
 // PIC/FLIP when ref.b is set). Returns the number of reference nodes whose velocity changed.
-std::size_t contact_gather(const exec::Space& space, const ContactPointView& pts, const MpmGridView& global,
-                           const MpmGridView& ref, const ObjectContactParams& prm);
+std::size_t contact_gather(const exec::Space& space, const ContactPointView& pts,
+                           const MpmGridView& global, const MpmGridView& ref,
+                           const ObjectContactParams& prm);
 
 }  // namespace amalgam

@@ -15,7 +15,9 @@
 
 namespace amalgam {
 
-const char* pd_deviatoric_name(PdDeviatoric d) { return d == PdDeviatoric::Paper ? "paper" : "lps"; }
+const char* pd_deviatoric_name(PdDeviatoric d) {
+  return d == PdDeviatoric::Paper ? "paper" : "lps";
+}
 
 namespace {
 
@@ -27,13 +29,16 @@ struct CellIndex {
   std::int64_t dims[3];
   std::vector<std::uint64_t> keys;      // sorted (sparse mode)
   std::vector<std::uint32_t> particle;  // particles in key order
-  std::vector<std::uint32_t> start;     // dense mode: particles of cell k are particle[start[k]..start[k+1])
+  std::vector<std::uint32_t>
+      start;  // dense mode: particles of cell k are particle[start[k]..start[k+1])
   std::uint64_t key(std::int64_t i, std::int64_t j, std::int64_t k) const {
-    return (std::uint64_t(i) * std::uint64_t(dims[1]) + std::uint64_t(j)) * std::uint64_t(dims[2]) + std::uint64_t(k);
+    return (std::uint64_t(i) * std::uint64_t(dims[1]) + std::uint64_t(j)) * std::uint64_t(dims[2]) +
+           std::uint64_t(k);
   }
   void cell_of(const Vec3& x, std::int64_t c[3]) const {
     for (int a = 0; a < 3; ++a)
-      c[a] = std::min<std::int64_t>(dims[a] - 1, std::max<std::int64_t>(0, std::int64_t((double(x[a]) - origin[a]) / h)));
+      c[a] = std::min<std::int64_t>(
+          dims[a] - 1, std::max<std::int64_t>(0, std::int64_t((double(x[a]) - origin[a]) / h)));
   }
 };
 
@@ -46,7 +51,8 @@ CellIndex make_cells(const exec::Space& space, const Vec3* x, std::size_t n, dou
   }
   c.origin = lo;
   c.h = h;
-  for (int a = 0; a < 3; ++a) c.dims[a] = std::max<std::int64_t>(1, std::int64_t((hi[a] - lo[a]) / h) + 1);
+  for (int a = 0; a < 3; ++a)
+    c.dims[a] = std::max<std::int64_t>(1, std::int64_t((hi[a] - lo[a]) / h) + 1);
   std::vector<std::uint64_t> key(n);
   exec::parallel_for(space, "pd.cell_keys", exec::Index(n), [&](exec::Index i) {
     std::int64_t ci[3];
@@ -55,7 +61,8 @@ CellIndex make_cells(const exec::Space& space, const Vec3* x, std::size_t n, dou
   });
   const double ncells = double(c.dims[0]) * double(c.dims[1]) * double(c.dims[2]);
   c.particle.resize(n);
-  if (ncells <= 8.0 * double(n) + 1e6) {  // dense: counting sort into a cell table (stable: index order)
+  if (ncells <=
+      8.0 * double(n) + 1e6) {  // dense: counting sort into a cell table (stable: index order)
     c.start.assign(std::size_t(ncells) + 1, 0);
     for (std::size_t i = 0; i < n; ++i) ++c.start[key[i] + 1];
     for (std::size_t k = 0; k + 1 < c.start.size(); ++k) c.start[k + 1] += c.start[k];
@@ -80,16 +87,20 @@ void for_neighbours(const CellIndex& c, const Vec3* x, std::uint32_t i, Real r, 
   c.cell_of(x[i], ci);
   const Real r2 = r * r;
   // Per (a, b) column the cells d0..d1 have consecutive keys: one binary search per column.
-  const std::int64_t d0 = std::max<std::int64_t>(0, ci[2] - 1), d1 = std::min(c.dims[2] - 1, ci[2] + 1);
-  for (std::int64_t a = std::max<std::int64_t>(0, ci[0] - 1); a <= std::min(c.dims[0] - 1, ci[0] + 1); ++a)
-    for (std::int64_t b = std::max<std::int64_t>(0, ci[1] - 1); b <= std::min(c.dims[1] - 1, ci[1] + 1); ++b) {
+  const std::int64_t d0 = std::max<std::int64_t>(0, ci[2] - 1),
+                     d1 = std::min(c.dims[2] - 1, ci[2] + 1);
+  for (std::int64_t a = std::max<std::int64_t>(0, ci[0] - 1);
+       a <= std::min(c.dims[0] - 1, ci[0] + 1); ++a)
+    for (std::int64_t b = std::max<std::int64_t>(0, ci[1] - 1);
+         b <= std::min(c.dims[1] - 1, ci[1] + 1); ++b) {
       const std::uint64_t k0 = c.key(a, b, d0), k1 = c.key(a, b, d1);
       std::size_t p0, p1;
       if (!c.start.empty()) {
         p0 = c.start[k0], p1 = c.start[k1 + 1];
       } else {
         p0 = std::size_t(std::lower_bound(c.keys.begin(), c.keys.end(), k0) - c.keys.begin());
-        p1 = std::size_t(std::upper_bound(c.keys.begin() + std::ptrdiff_t(p0), c.keys.end(), k1) - c.keys.begin());
+        p1 = std::size_t(std::upper_bound(c.keys.begin() + std::ptrdiff_t(p0), c.keys.end(), k1) -
+                         c.keys.begin());
       }
       for (std::size_t q = p0; q < p1; ++q) {
         const std::uint32_t j = c.particle[q];
@@ -103,8 +114,9 @@ void for_neighbours(const CellIndex& c, const Vec3* x, std::uint32_t i, Real r, 
 struct RowLabels {
   const char *count, *scan, *fill;
 };
-void neighbour_rows(const exec::Space& space, const RowLabels& label, const Vec3* x, std::size_t n, Real r,
-                    std::vector<std::uint64_t>& offsets, std::vector<std::uint32_t>& neighbor) {
+void neighbour_rows(const exec::Space& space, const RowLabels& label, const Vec3* x, std::size_t n,
+                    Real r, std::vector<std::uint64_t>& offsets,
+                    std::vector<std::uint32_t>& neighbor) {
   offsets.assign(n + 1, 0);
   neighbor.clear();
   if (n == 0) return;
@@ -116,7 +128,8 @@ void neighbour_rows(const exec::Space& space, const RowLabels& label, const Vec3
     count[std::size_t(i)] = c;
   });
   const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
-      space, label.scan, exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, offsets.data());
+      space, label.scan, exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; },
+      offsets.data());
   offsets[n] = total;
   neighbor.resize(total);
   exec::parallel_for(space, label.fill, exec::Index(n), [&](exec::Index ii) {
@@ -128,8 +141,9 @@ void neighbour_rows(const exec::Space& space, const RowLabels& label, const Vec3
 }
 
 // reverse[k] = the index of bond j -> i for the bond k = i -> j (rows sorted, bonds symmetric).
-void fill_reverse(const exec::Space& space, const char* label, const std::vector<std::uint64_t>& off,
-                  const std::vector<std::uint32_t>& neighbor, std::vector<std::uint64_t>& reverse) {
+void fill_reverse(const exec::Space& space, const char* label,
+                  const std::vector<std::uint64_t>& off, const std::vector<std::uint32_t>& neighbor,
+                  std::vector<std::uint64_t>& reverse) {
   reverse.resize(neighbor.size());
   const std::size_t n = off.empty() ? 0 : off.size() - 1;
   exec::parallel_for(space, label, exec::Index(n), [&](exec::Index ii) {
@@ -145,10 +159,12 @@ void fill_reverse(const exec::Space& space, const char* label, const std::vector
 
 }  // namespace
 
-void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume, const std::int32_t* material,
-                    std::size_t n, const PdParams& prm, bool partial_volume, PdBonds& bonds) {
+void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume,
+                    const std::int32_t* material, std::size_t n, const PdParams& prm,
+                    bool partial_volume, PdBonds& bonds) {
   const Real delta = prm.horizon, lc = prm.spacing;
-  neighbour_rows(space, {"pd.bond_count", "pd.bond_scan", "pd.bond_fill"}, x0, n, delta, bonds.offsets, bonds.neighbor);
+  neighbour_rows(space, {"pd.bond_count", "pd.bond_scan", "pd.bond_fill"}, x0, n, delta,
+                 bonds.offsets, bonds.neighbor);
   const std::size_t total = bonds.neighbor.size();
   bonds.length.resize(total);
   bonds.omega.resize(total);
@@ -186,8 +202,8 @@ namespace {
 // Hessian is singular or the iteration does not converge) or when the largest factor exceeds
 // 8 times the mean (a few bonds would carry the particle: too stiff for the time step).
 template <int N, class Basis>
-bool fit_factors(std::uint64_t k0, std::uint64_t k1, const double* w, Basis&& basis, const Eigen::Matrix<double, N, 1>& target,
-                 std::vector<double>& h) {
+bool fit_factors(std::uint64_t k0, std::uint64_t k1, const double* w, Basis&& basis,
+                 const Eigen::Matrix<double, N, 1>& target, std::vector<double>& h) {
   using Vec = Eigen::Matrix<double, N, 1>;
   using Mat = Eigen::Matrix<double, N, N>;
   const std::size_t nb = std::size_t(k1 - k0);
@@ -201,7 +217,8 @@ bool fit_factors(std::uint64_t k0, std::uint64_t k1, const double* w, Basis&& ba
     return F;
   };
   double F = dual(lambda);
-  const double tol = 1e-8 * target.norm();  // well above the round-off of the sums (~1e-14 relative)
+  const double tol =
+      1e-8 * target.norm();  // well above the round-off of the sums (~1e-14 relative)
   for (int it = 0; it < 60; ++it) {
     Vec grad = -target;
     Mat hess = Mat::Zero();
@@ -264,8 +281,8 @@ void isotropic4(double* out) {
 
 }  // namespace
 
-void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, PdBonds& bonds,
-                  const PdParams& prm, bool surface_correction, PdConstants& out) {
+void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
+                  PdBonds& bonds, const PdParams& prm, bool surface_correction, PdConstants& out) {
   const std::size_t n = bonds.particles();
   out.m.resize(n);
   out.a.resize(n);
@@ -276,7 +293,7 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   bonds.shear_omega.resize(bonds.size());
   const double delta = double(prm.horizon);
   const double m_cont = 4.0 * M_PI * std::pow(delta, 4) / 3.0;  // eq. 5: 3 / m = 9 / (4 pi delta^4)
-  const double s_cont = M_PI * std::pow(delta, 5) / 15.0;         // continuum M_xxyy of omega L^2
+  const double s_cont = M_PI * std::pow(delta, 5) / 15.0;       // continuum M_xxyy of omega L^2
   const double b_unit = 15.0 / (2.0 * M_PI * std::pow(delta, 5));  // eq. 9 per unit shear modulus
   // Targets: continuum moments of the isotropic weight omega0 = delta / L (eq. 4).
   Eigen::Matrix<double, 6, 1> t_dil;
@@ -286,7 +303,8 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   isotropic4(t_dev.data());
   t_dev.head<15>() *= s_cont / (delta * delta);  // sum omega L^2 n_a n_b n_c n_d V
   isotropic2(t_dev.data() + 15);
-  t_dev.tail<6>() *= m_cont / 3 / delta;  // sum omega L n_a n_b V (the paper's form: e^d exact under dilation)
+  t_dev.tail<6>() *=
+      m_cont / 3 / delta;  // sum omega L n_a n_b V (the paper's form: e^d exact under dilation)
   // Particles with the same family (material, bond vectors and volumes, to 1e-6 of delta and of
   // the largest volume) share one fit: on a lattice only the few hundred distinct positions
   // relative to the faces are fitted. The representative is the lowest index, so the result does
@@ -294,7 +312,8 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   double vmax = 0;
   for (std::size_t k = 0; k < bonds.size(); ++k) vmax = std::max(vmax, double(bonds.volume[k]));
   auto signature = [&](std::size_t i) {
-    std::vector<std::int64_t> sig{std::int64_t(material[i]), std::int64_t(bonds.offsets[i + 1] - bonds.offsets[i])};
+    std::vector<std::int64_t> sig{std::int64_t(material[i]),
+                                  std::int64_t(bonds.offsets[i + 1] - bonds.offsets[i])};
     for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) {
       const Vec3d xi = (x0[bonds.neighbor[k]] - x0[i]).cast<double>() / (1e-6 * delta);
       for (int a = 0; a < 3; ++a) sig.push_back(std::llround(xi[a]));
@@ -307,17 +326,20 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     const std::vector<std::int64_t> sig = signature(std::size_t(ii));
     std::uint64_t h = 1469598103934665603ull;  // FNV-1a over the signature
     for (std::int64_t v : sig)
-      for (int b = 0; b < 8; ++b) h = (h ^ ((std::uint64_t(v) >> (8 * b)) & 0xff)) * 1099511628211ull;
+      for (int b = 0; b < 8; ++b)
+        h = (h ^ ((std::uint64_t(v) >> (8 * b)) & 0xff)) * 1099511628211ull;
     key[std::size_t(ii)] = h;
   });
   std::vector<std::uint32_t> rep(n);
   {
     std::unordered_map<std::uint64_t, std::uint32_t> first;
-    for (std::size_t i = 0; i < n; ++i) rep[i] = first.emplace(key[i], std::uint32_t(i)).first->second;
+    for (std::size_t i = 0; i < n; ++i)
+      rep[i] = first.emplace(key[i], std::uint32_t(i)).first->second;
   }
   exec::parallel_for(space, "pd.constants_verify", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
-    if (rep[i] != i && signature(i) != signature(rep[i])) rep[i] = std::uint32_t(i);  // a hash collision
+    if (rep[i] != i && signature(i) != signature(rep[i]))
+      rep[i] = std::uint32_t(i);  // a hash collision
   });
   exec::parallel_for(space, "pd.constants", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
@@ -358,7 +380,8 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
         const Vec3d q = dir[k - k0].cwiseAbs2();
         const double l = L[k - k0] / delta;
         Eigen::Matrix<double, 9, 1> phi;
-        phi << q[0] * q[0], q[1] * q[1], q[2] * q[2], q[0] * q[1], q[1] * q[2], q[2] * q[0], q[0], q[1], q[2];
+        phi << q[0] * q[0], q[1] * q[1], q[2] * q[2], q[0] * q[1], q[1] * q[2], q[2] * q[0], q[0],
+            q[1], q[2];
         phi.head<6>() *= l * l;
         phi.tail<3>() *= l;
         return phi;
@@ -369,7 +392,8 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
       t_dev9.tail<3>().setConstant(m_cont / 3 / delta);
       // Dilatation: the full fit, else the diagonal one, else LPS's discrete normaliser m_i.
       const bool dil_full = fit_factors<6>(k0, k1, w.data(), basis_dil, t_dil, g);
-      const bool dil = dil_full || fit_factors<3>(k0, k1, w.data(), basis_dil3, Eigen::Vector3d(t_dil[0], t_dil[3], t_dil[5]), g);
+      const bool dil = dil_full || fit_factors<3>(k0, k1, w.data(), basis_dil3,
+                                                  Eigen::Vector3d(t_dil[0], t_dil[3], t_dil[5]), g);
       if (!dil) g.assign(nb, 1.0);
       // Deviatoric: the full fit, else the diagonal one, else one factor for the mean coordinate
       // shear sum (kappa then from the family).
@@ -408,7 +432,8 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     if (surface_correction && prm.deviatoric == PdDeviatoric::Paper) {
       double r = 0;
       for (std::uint64_t k = k0; k < k1; ++k)
-        r += double(bonds.shear_omega[k]) * (double(bonds.length[k]) - 3 * kappa) * kappa * double(bonds.volume[k]);
+        r += double(bonds.shear_omega[k]) * (double(bonds.length[k]) - 3 * kappa) * kappa *
+             double(bonds.volume[k]);
       a_extra = b_unit * double(mat.shear) * r / m;
     }
     out.m[i] = Real(m);
@@ -423,7 +448,8 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     if (r == i) return;
     out.m[i] = out.m[r], out.a[i] = out.a[r], out.b[i] = out.b[r], out.kappa[i] = out.kappa[r];
     out.bonds0[i] = out.bonds0[r], out.fitted[i] = out.fitted[r];
-    for (std::uint64_t k = bonds.offsets[i], q = bonds.offsets[r]; k < bonds.offsets[i + 1]; ++k, ++q) {
+    for (std::uint64_t k = bonds.offsets[i], q = bonds.offsets[r]; k < bonds.offsets[i + 1];
+         ++k, ++q) {
       bonds.omega[k] = bonds.omega[q];
       bonds.shear_omega[k] = bonds.shear_omega[q];
     }
@@ -463,17 +489,21 @@ static_assert(kBlock % kSumLanes == 0 && kDilBlock % kSumLanes == 0, "blocks sta
 // `quad` of each record (records `stride` bytes apart, 16-byte aligned). SSE: four records per
 // step loaded whole and transposed (4 loads, 8 shuffles, 4 stores for 16 values instead of 16
 // scalar loads and stores); the same values as the scalar loop.
-void gather_quads(const void* records, std::size_t stride, std::size_t quad, const std::uint32_t* idx, int n,
-                  const Real sub[4], Real* o0, Real* o1, Real* o2, Real* o3) {
+void gather_quads(const void* records, std::size_t stride, std::size_t quad,
+                  const std::uint32_t* idx, int n, const Real sub[4], Real* o0, Real* o1, Real* o2,
+                  Real* o3) {
   const char* base = static_cast<const char*>(records) + quad;
   int m = 0;
 #if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
   const __m128 sv = _mm_loadu_ps(sub);
-  auto at = [&](int k) { return _mm_sub_ps(_mm_load_ps(reinterpret_cast<const float*>(base + idx[k] * stride)), sv); };
+  auto at = [&](int k) {
+    return _mm_sub_ps(_mm_load_ps(reinterpret_cast<const float*>(base + idx[k] * stride)), sv);
+  };
   for (; m + 4 <= n; m += 4) {
     __m128 a = at(m), b = at(m + 1), c = at(m + 2), d = at(m + 3);
     _MM_TRANSPOSE4_PS(a, b, c, d);
-    _mm_storeu_ps(o0 + m, a), _mm_storeu_ps(o1 + m, b), _mm_storeu_ps(o2 + m, c), _mm_storeu_ps(o3 + m, d);
+    _mm_storeu_ps(o0 + m, a), _mm_storeu_ps(o1 + m, b), _mm_storeu_ps(o2 + m, c),
+        _mm_storeu_ps(o3 + m, d);
   }
 #endif
   for (; m < n; ++m) {
@@ -495,8 +525,10 @@ inline void lane_sum(const Real* t, const std::uint8_t* lane, int n, Real* acc) 
   for (int m = 0; m < n; ++m) acc[lane[m]] += t[m];
 }
 inline void lane_sum(const Real* t, const std::uint8_t* lane, bool dense, int n, Real* acc) {
-  if (dense) lane_sum(t, n, acc);
-  else lane_sum(t, lane, n, acc);
+  if (dense)
+    lane_sum(t, n, acc);
+  else
+    lane_sum(t, lane, n, acc);
 }
 // The lanes combined in a fixed order.
 inline Real lane_total(const Real* a) {
@@ -513,20 +545,20 @@ struct alignas(16) PosRec {
 // Gathered per block: the neighbour's current and reference position; the per-bond arrays are
 // read in place (DilSlice).
 struct DilBlock {
-  alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];  // eta = y_j - y_i
-  alignas(64) Real xx[kDilBlock], xy[kDilBlock], xz[kDilBlock];  // xi = x0_j - x0_i
-  alignas(64) Real pad[kDilBlock];                                // the gathers' unused lane
+  alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];     // eta = y_j - y_i
+  alignas(64) Real xx[kDilBlock], xy[kDilBlock], xz[kDilBlock];     // xi = x0_j - x0_i
+  alignas(64) Real pad[kDilBlock];                                  // the gathers' unused lane
   alignas(64) Real e[kDilBlock], lambda[kDilBlock], ok[kDilBlock];  // geometry (0 for dead bonds)
   alignas(64) Real t[kDilBlock], w1[kDilBlock], w2[kDilBlock], w3[kDilBlock];  // terms of the sums
-  alignas(64) Real ep_new[kDilBlock];  // plastic return
+  alignas(64) Real ep_new[kDilBlock];                                          // plastic return
 };
 struct DilSlice {
   const Real *L, *omega, *shear, *vol, *ep;
   const std::uint8_t* live;
 };
 
-void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t kb, int n, const Real sub_y[4],
-                       const Real sub_x0[4], DilBlock& B) {
+void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t kb, int n,
+                       const Real sub_y[4], const Real sub_x0[4], DilBlock& B) {
   const std::uint32_t* nb = bonds.neighbor.data() + kb;
   gather_quads(recs, sizeof(PosRec), offsetof(PosRec, y), nb, n, sub_y, B.ex, B.ey, B.ez, B.pad);
   gather_quads(recs, sizeof(PosRec), offsetof(PosRec, x0), nb, n, sub_x0, B.xx, B.xy, B.xz, B.pad);
@@ -543,7 +575,8 @@ void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
     const Real L = S.L[m];
     const Real live = ok ? Real(1) : Real(0);  // times 0, not a select (see force_block)
     const Real e = live * (l - L);
-    const Real lambda = live * ((B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) / (l * L));
+    const Real lambda =
+        live * ((B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) / (l * L));
     B.e[m] = e, B.lambda[m] = lambda, B.ok[m] = live;
     B.t[m] = S.omega[m] * e * lambda * S.vol[m];  // omega s Lambda |xi| V (eq. 5), s = e / |xi|
     const Real d = Paper ? kappa * lambda : L / Real(3);
@@ -557,37 +590,41 @@ void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
 // extension, B.t the term of Q (see header). (Not in place: a conditional store would stop the
 // vectorisation.)
 template <bool Paper>
-void plastic_block(DilBlock& B, const DilSlice& S, int n, Real theta, Real kappa, Real stiff_i, Real psi0, Real ac,
-                   Real cap_ratio) {
+void plastic_block(DilBlock& B, const DilSlice& S, int n, Real theta, Real kappa, Real stiff_i,
+                   Real psi0, Real ac, Real cap_ratio) {
   for (int m = 0; m < n; ++m) {  // vectorised
     const Real e = B.e[m], lambda = B.lambda[m], L = S.L[m];
     const Real ed = Paper ? e - kappa * lambda * theta : e - theta * L / Real(3);  // eq. 8 / LPS
-    const Real stiff = stiff_i * S.shear[m];  // 4 omega b
+    const Real stiff = stiff_i * S.shear[m];                                       // 4 omega b
     const Real ep = S.ep[m];
-    const Real adev = stiff * (ed - ep);  // eq. 11
-    const bool yield = Real(0.5) * adev * adev > psi0;  // eq. 12
+    const Real adev = stiff * (ed - ep);                         // eq. 11
+    const bool yield = Real(0.5) * adev * adev > psi0;           // eq. 12
     const Real flow = (adev - std::copysign(ac, adev)) / stiff;  // eqs. 13-14 (exact return)
     const Real ep1 = yield ? ep + flow : ep;
     const Real cap = cap_ratio * L;  // eq. 15
     const Real ep2 = std::copysign(std::min(std::abs(ep1), cap), ep1);
     const bool ok = B.ok[m] != 0;
     B.ep_new[m] = ok ? ep2 : ep;
-    B.t[m] = B.ok[m] * (S.shear[m] * (ed - ep2) * (Paper ? kappa * lambda : L / Real(3)) * S.vol[m]);
+    B.t[m] =
+        B.ok[m] * (S.shear[m] * (ed - ep2) * (Paper ? kappa * lambda : L / Real(3)) * S.vol[m]);
   }
 }
 
 // fn(std::true_type{}) or fn(std::false_type{}): a run-time flag as a template argument.
 template <class Fn>
 void with_flag(bool flag, Fn&& fn) {
-  if (flag) fn(std::true_type{});
-  else fn(std::false_type{});
+  if (flag)
+    fn(std::true_type{});
+  else
+    fn(std::false_type{});
 }
 
 // n records of type Rec in the caller's scratch (reused, not zeroed: every record is written
 // before it is read), or in `local` when there is none.
 template <class Rec>
 Rec* scratch_records(PdScratch* scratch, std::vector<Real>& local, std::size_t n) {
-  static_assert(sizeof(Rec) % sizeof(Real) == 0 && alignof(Rec) <= __STDCPP_DEFAULT_NEW_ALIGNMENT__, "Real storage");
+  static_assert(sizeof(Rec) % sizeof(Real) == 0 && alignof(Rec) <= __STDCPP_DEFAULT_NEW_ALIGNMENT__,
+                "Real storage");
   std::vector<Real>& v = scratch ? scratch->records : local;
   const std::size_t need = n * (sizeof(Rec) / sizeof(Real));
   if (v.size() < need) v.resize(need);
@@ -596,12 +633,14 @@ Rec* scratch_records(PdScratch* scratch, std::vector<Real>& local, std::size_t n
 
 }  // namespace
 
-void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, PdScratch* scratch) {
+void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
+                   PdScratch* scratch) {
   const bool consistent = prm.consistent;
   std::vector<Real> local;
   PosRec* const recs = scratch_records<PosRec>(scratch, local, p.n);
   exec::parallel_for(space, "pd.dilatation_rows", exec::Index(p.n), [&](exec::Index i) {
-    ::new (static_cast<void*>(recs + i)) PosRec{{p.x[i][0], p.x[i][1], p.x[i][2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
+    ::new (static_cast<void*>(recs + i))
+        PosRec{{p.x[i][0], p.x[i][1], p.x[i][2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
   });
   auto kernel = [&](auto paper_c, auto plastic_c) {
     constexpr bool Paper = decltype(paper_c)::value, Plastic = decltype(plastic_c)::value;
@@ -614,8 +653,9 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const bool one_block = k1 - k0 <= std::uint64_t(kDilBlock);
       DilBlock B;
       auto slice = [&](std::uint64_t kb) {
-        return DilSlice{bonds.length.data() + kb, bonds.omega.data() + kb, bonds.shear_omega.data() + kb,
-                        bonds.volume.data() + kb, bonds.plastic.data() + kb, bonds.intact.data() + kb};
+        return DilSlice{bonds.length.data() + kb,      bonds.omega.data() + kb,
+                        bonds.shear_omega.data() + kb, bonds.volume.data() + kb,
+                        bonds.plastic.data() + kb,     bonds.intact.data() + kb};
       };
       auto load = [&](std::uint64_t kb) {
         const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
@@ -629,7 +669,8 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       // plastic return below instead.
       const bool sums = consistent && !plastic;
       const bool dense = bonds.dense[i] != 0;
-      alignas(32) Real a0[kSumLanes] = {}, a1[kSumLanes] = {}, a2[kSumLanes] = {}, a3[kSumLanes] = {};
+      alignas(32) Real a0[kSumLanes] = {}, a1[kSumLanes] = {}, a2[kSumLanes] = {},
+                       a3[kSumLanes] = {};
       for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
         const int n = load(kb);
         const std::uint8_t* lane = bonds.lane.data() + kb;
@@ -637,7 +678,8 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
         if (sums) lane_sum(B.w1, lane, dense, n, a1), lane_sum(B.w2, lane, dense, n, a2);
         if (sums && Plastic) lane_sum(B.w3, lane, dense, n, a3);
       }
-      const Real sum = lane_total(a0), s1 = lane_total(a1), s2 = lane_total(a2), s3 = lane_total(a3);
+      const Real sum = lane_total(a0), s1 = lane_total(a1), s2 = lane_total(a2),
+                 s3 = lane_total(a3);
       const Real theta = Real(3) * sum / p.m[i];
       p.theta[i] = theta;
       const Real qscale = p.b[i] * Real(3) / p.m[i];
@@ -647,10 +689,12 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const Real ac = std::sqrt(Real(2) * mat.psi0);
       for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
         const int n = one_block ? int(k1 - k0) : load(kb);  // one block: still loaded
-        plastic_block<Paper>(B, slice(kb), n, theta, kap, Real(4) * p.b[i], mat.psi0, ac, mat.plastic_cap);
+        plastic_block<Paper>(B, slice(kb), n, theta, kap, Real(4) * p.b[i], mat.psi0, ac,
+                             mat.plastic_cap);
         for (int m = 0; m < n; ++m) {
           const std::uint64_t k = kb + std::uint64_t(m);
-          if (B.ep_new[m] != bonds.plastic[k]) {  // yielded: row j's force pass reads it from plastic_r
+          if (B.ep_new[m] !=
+              bonds.plastic[k]) {  // yielded: row j's force pass reads it from plastic_r
             bonds.plastic[k] = B.ep_new[m];
             bonds.plastic_r[bonds.reverse[k]] = B.ep_new[m];
           }
@@ -660,8 +704,9 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
     });
   };
-  with_flag(prm.deviatoric == PdDeviatoric::Paper,
-            [&](auto paper_c) { with_flag(prm.plastic, [&](auto plastic_c) { kernel(paper_c, plastic_c); }); });
+  with_flag(prm.deviatoric == PdDeviatoric::Paper, [&](auto paper_c) {
+    with_flag(prm.plastic, [&](auto plastic_c) { kernel(paper_c, plastic_c); });
+  });
 }
 
 namespace {
@@ -675,13 +720,15 @@ struct ForceBlock {
   alignas(64) Real xx[kBlock], xy[kBlock], xz[kBlock];  // xi = x0_j - x0_i
   alignas(64) Real dil_j[kBlock], b_j[kBlock], c_j[kBlock], crit_j[kBlock];
   alignas(64) Real pad0[kBlock], pad1[kBlock];  // the gathers' unused lanes
-  alignas(64) Real fx[kBlock], fy[kBlock], fz[kBlock];  // out: pair force density (0 for dead bonds)
-  alignas(64) std::uint8_t broken[kBlock];              // out: eq. 18 holds (fracture)
+  alignas(64) Real fx[kBlock], fy[kBlock],
+      fz[kBlock];                           // out: pair force density (0 for dead bonds)
+  alignas(64) std::uint8_t broken[kBlock];  // out: eq. 18 holds (fracture)
 };
 
 // Per particle i: the terms of A_ij that depend on i only.
 struct ForceRow {
-  Real dil, b, c, crit;  // a theta - q; b; ed = e - c g (g = Lambda: paper, L: LPS); critical stretch
+  Real dil, b, c,
+      crit;  // a theta - q; b; ed = e - c g (g = Lambda: paper, L: LPS); critical stretch
 };
 
 // What the force pass gathers per neighbour, in three 16-byte quads (gather_quads).
@@ -710,12 +757,15 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
     const Real lambda = (B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) * inv;
     const Real g = Paper ? lambda : L;
     // eqs. 3, 7, 11 from each end of the bond
-    const Real aij = Real(4) * (S.omega[m] * lambda * r.dil + S.shear[m] * r.b * (e - r.c * g - epi));
-    const Real aji = Real(4) * (S.omega_r[m] * lambda * B.dil_j[m] + S.shear_r[m] * B.b_j[m] * (e - B.c_j[m] * g - epj));
+    const Real aij =
+        Real(4) * (S.omega[m] * lambda * r.dil + S.shear[m] * r.b * (e - r.c * g - epi));
+    const Real aji = Real(4) * (S.omega_r[m] * lambda * B.dil_j[m] +
+                                S.shear_r[m] * B.b_j[m] * (e - B.c_j[m] * g - epj));
     // Dead bonds: times 0 (not a select, which would make the per-bond loads conditional and stop
     // the vectorisation); their operands are finite (l = 1 stands in when l2 = 0).
     const Real live = ok ? Real(1) : Real(0);
-    const Real c = live * (Real(0.5) * (aij + aji) * S.vol[m] * (inv * L));  // eq. 1 with eq. 2, / l
+    const Real c =
+        live * (Real(0.5) * (aij + aji) * S.vol[m] * (inv * L));  // eq. 1 with eq. 2, / l
     B.fx[m] = c * B.ex[m], B.fy[m] = c * B.ey[m], B.fz[m] = c * B.ez[m];
     if (Fracture)  // eq. 18, from both ends (symmetric decision)
       B.broken[m] = ok & (((e - epi) / delta > r.crit) | ((e - epj) / delta > B.crit_j[m]));
@@ -724,8 +774,8 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
 
 }  // namespace
 
-void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, bool fracture,
-               Vec3* force, Mat3* stress, PdScratch* scratch) {
+void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
+               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch) {
   const Real delta = prm.horizon;
   const bool paper = prm.deviatoric == PdDeviatoric::Paper;
   const PdMaterial* mats = prm.materials;
@@ -738,11 +788,13 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
     const std::size_t i = std::size_t(ii);
     const PdMaterial& mi = mats[p.material[i]];
     const Real ti = p.theta[i];
-    const Real dil = p.a[i] * ti - (consistent ? p.q[i] : Real(0));  // a theta (- q: consistent term)
+    const Real dil =
+        p.a[i] * ti - (consistent ? p.q[i] : Real(0));  // a theta (- q: consistent term)
     const Real c = paper ? p.kappa[i] * ti : ti / Real(3);
     const Real crit = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
-    ::new (static_cast<void*>(recs + i))
-        ForceRec{{p.x[i][0], p.x[i][1], p.x[i][2], dil}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]}, {c, crit, 0, 0}};
+    ::new (static_cast<void*>(recs + i)) ForceRec{{p.x[i][0], p.x[i][1], p.x[i][2], dil},
+                                                  {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]},
+                                                  {c, crit, 0, 0}};
   });
   auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
@@ -762,18 +814,25 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
         const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
         const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
         const ForceRec* rec = recs;
-        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, y), nb, n, sub_y, B.ex, B.ey, B.ez, B.dil_j);
-        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, x0), nb, n, sub_x0, B.xx, B.xy, B.xz, B.b_j);
-        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, cc), nb, n, sub_0, B.c_j, B.crit_j, B.pad0, B.pad1);
-        const BondSlice S{bonds.length.data() + kb,     bonds.omega.data() + kb,   bonds.shear_omega.data() + kb,
-                          bonds.volume.data() + kb,     bonds.plastic.data() + kb, bonds.omega_r.data() + kb,
-                          bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb, bonds.intact.data() + kb};
+        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, y), nb, n, sub_y, B.ex, B.ey, B.ez,
+                     B.dil_j);
+        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, x0), nb, n, sub_x0, B.xx, B.xy, B.xz,
+                     B.b_j);
+        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, cc), nb, n, sub_0, B.c_j, B.crit_j,
+                     B.pad0, B.pad1);
+        const BondSlice S{bonds.length.data() + kb,        bonds.omega.data() + kb,
+                          bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
+                          bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
+                          bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
+                          bonds.intact.data() + kb};
         force_block<Paper, Fracture, Plastic>(B, S, n, ri, delta);
         const std::uint8_t* lane = bonds.lane.data() + kb;
-        lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay), lane_sum(B.fz, lane, dense, n, az);
+        lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
+            lane_sum(B.fz, lane, dense, n, az);
         if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
           for (int m = 0; m < n; ++m)
-            s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) * Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
+            s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) *
+                 Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
         if (Fracture) {
           unsigned any = 0;  // vectorised OR first: bonds rarely break
           for (int m = 0; m < n; ++m) any |= B.broken[m];
@@ -793,21 +852,24 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
   });
 }
 
-void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius, PdContactList& list) {
+void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius,
+                           PdContactList& list) {
   list.x_built.assign(x, x + n);
-  neighbour_rows(space, {"pd.contact_count", "pd.contact_scan", "pd.contact_fill"}, x, n, radius, list.offsets,
-                 list.neighbor);
+  neighbour_rows(space, {"pd.contact_count", "pd.contact_scan", "pd.contact_fill"}, x, n, radius,
+                 list.offsets, list.neighbor);
 }
 
 Real pd_max_displacement(const exec::Space& space, const Vec3* x, const PdContactList& list) {
   return exec::parallel_reduce(
       space, "pd.contact_check", exec::Index(list.x_built.size()), Real(0),
-      [&](exec::Index i, Real& acc) { acc = std::max(acc, (x[i] - list.x_built[std::size_t(i)]).norm()); },
+      [&](exec::Index i, Real& acc) {
+        acc = std::max(acc, (x[i] - list.x_built[std::size_t(i)]).norm());
+      },
       [](Real a, Real b) { return std::max(a, b); });
 }
 
-void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds& bonds, const PdParams& prm,
-                       Real distance, const PdContactList& list, Vec3* force) {
+void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds& bonds,
+                       const PdParams& prm, Real distance, const PdContactList& list, Vec3* force) {
   if (p.n == 0 || !(distance > 0)) return;
   const double c0 = 15.0 * 18.0 / (M_PI * std::pow(double(prm.horizon), 4));
   const Real inv_delta = Real(1) / prm.horizon, d2 = distance * distance;
@@ -847,7 +909,8 @@ std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds
       [&](exec::Index ii, std::uint64_t& acc) {
         const std::size_t i = std::size_t(ii);
         std::int32_t c = 0;
-        for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) c += bonds.intact[k];
+        for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k)
+          c += bonds.intact[k];
         p.damage[i] = p.bonds0[i] > 0 ? Real(1) - Real(c) / Real(p.bonds0[i]) : Real(0);
         acc += std::uint64_t(c);
       },
@@ -864,11 +927,14 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
   std::vector<std::uint64_t> count(n), off(n + 1);
   exec::parallel_for(space, "pd.compact_count", exec::Index(n), [&](exec::Index i) {
     std::uint64_t c = 0;
-    for (std::uint64_t k = bonds.offsets[std::size_t(i)]; k < bonds.offsets[std::size_t(i) + 1]; ++k) c += keep[k] != 0;
+    for (std::uint64_t k = bonds.offsets[std::size_t(i)]; k < bonds.offsets[std::size_t(i) + 1];
+         ++k)
+      c += keep[k] != 0;
     count[std::size_t(i)] = c;
   });
   const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
-      space, "pd.compact_scan", exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; }, off.data());
+      space, "pd.compact_scan", exec::Index(n),
+      [&](exec::Index i) { return count[std::size_t(i)]; }, off.data());
   off[n] = total;
   const std::uint64_t removed = bonds.size() - total;
   if (removed == 0) return 0;
@@ -911,12 +977,15 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
 std::uint64_t pd_compact_bonds(const exec::Space& space, PdBonds& bonds, Real contact_distance) {
   std::vector<std::uint8_t> keep(bonds.size());
   exec::parallel_for(space, "pd.compact_mark", exec::Index(bonds.size()), [&](exec::Index k) {
-    keep[std::size_t(k)] = bonds.intact[std::size_t(k)] || pd_contact_reads_broken_bond(bonds.length[std::size_t(k)], contact_distance);
+    keep[std::size_t(k)] =
+        bonds.intact[std::size_t(k)] ||
+        pd_contact_reads_broken_bond(bonds.length[std::size_t(k)], contact_distance);
   });
   return select_bonds(space, "pd.compact_copy", bonds, keep);
 }
 
-bool pd_restrict_bonds(const exec::Space& space, PdBonds& bonds, const std::vector<std::uint64_t>& offsets,
+bool pd_restrict_bonds(const exec::Space& space, PdBonds& bonds,
+                       const std::vector<std::uint64_t>& offsets,
                        const std::vector<std::uint32_t>& neighbor) {
   const std::size_t n = bonds.particles();
   if (offsets.size() != n + 1 || offsets[0] != 0 || offsets[n] != neighbor.size()) return false;

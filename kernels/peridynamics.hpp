@@ -61,15 +61,15 @@ inline Real pd_psi0_from_yield_stress(Real sigma_y, Real delta) {
 constexpr int kSumLanes = 8;
 
 struct PdBonds {
-  std::vector<std::uint64_t> offsets;    // n + 1
-  std::vector<std::uint32_t> neighbor;   // j
-  std::vector<std::uint64_t> reverse;    // index of the bond j -> i in row j
-  std::vector<Real> length;              // L = |xi|
-  std::vector<Real> omega;               // omega_ij (eq. 16, G of particle i) x the correction g_ij
-  std::vector<Real> shear_omega;         // omega_ij (eq. 16) x the correction f_ij (PdConstants)
-  std::vector<Real> volume;              // nu_ij V_j: the neighbour's (partial) volume
-  std::vector<Real> plastic;             // e^p_ij (deviatoric plastic extension, eq. 10)
-  std::vector<std::uint8_t> intact;      // 1 until the bond breaks (irreversible)
+  std::vector<std::uint64_t> offsets;   // n + 1
+  std::vector<std::uint32_t> neighbor;  // j
+  std::vector<std::uint64_t> reverse;   // index of the bond j -> i in row j
+  std::vector<Real> length;             // L = |xi|
+  std::vector<Real> omega;              // omega_ij (eq. 16, G of particle i) x the correction g_ij
+  std::vector<Real> shear_omega;        // omega_ij (eq. 16) x the correction f_ij (PdConstants)
+  std::vector<Real> volume;             // nu_ij V_j: the neighbour's (partial) volume
+  std::vector<Real> plastic;            // e^p_ij (deviatoric plastic extension, eq. 10)
+  std::vector<std::uint8_t> intact;     // 1 until the bond breaks (irreversible)
   // The reverse bond j -> i's omega, shear_omega and plastic extension, stored in this row's order
   // so that the force pass reads them sequentially instead of gathering from row j (those
   // gathers were ~40 % of the force pass). omega_r and shear_omega_r are constants
@@ -139,7 +139,8 @@ struct PdParams {
 // omega f L V_j); else one factor normalising the mean coordinate shear sum.
 struct PdConstants {
   std::vector<Real> m, a, b, kappa;
-  std::vector<std::uint8_t> fitted;  // correction: 2 full fit, 1 axis-diagonal fit (edges), 0 scalar fallback (or off)
+  std::vector<std::uint8_t>
+      fitted;  // correction: 2 full fit, 1 axis-diagonal fit (edges), 0 scalar fallback (or off)
   std::vector<std::int32_t> bonds0;  // bonds at t = 0 (for the damage phi = 1 - n / N)
 };
 
@@ -151,7 +152,8 @@ struct PdView {
   const Real* volume = nullptr;
   const std::int32_t* material = nullptr;
   Real* theta = nullptr;
-  Real* q = nullptr;  // b_i (3 / m_i) Q_i: the consistent term (PdParams::consistent), written by pd_dilatation
+  Real* q =
+      nullptr;  // b_i (3 / m_i) Q_i: the consistent term (PdParams::consistent), written by pd_dilatation
   Real* damage = nullptr;
   const Real* m = nullptr;
   const Real* a = nullptr;
@@ -164,12 +166,13 @@ struct PdView {
 // search over cells of size delta; rows sorted by neighbour index, so the list does not depend
 // on the thread count. partial_volume: nu_ij = (delta + lc/2 - L) / lc for L > delta - lc/2
 // (the share of the neighbour's cell inside the horizon, as LAMMPS does), else 1.
-void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume, const std::int32_t* material,
-                    std::size_t n, const PdParams& prm, bool partial_volume, PdBonds& bonds);
+void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume,
+                    const std::int32_t* material, std::size_t n, const PdParams& prm,
+                    bool partial_volume, PdBonds& bonds);
 
 // m, a, b, kappa, bonds0 per particle and the bonds' shear_omega (see PdConstants).
-void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material, PdBonds& bonds,
-                  const PdParams& prm, bool surface_correction, PdConstants& out);
+void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
+                  PdBonds& bonds, const PdParams& prm, bool surface_correction, PdConstants& out);
 
 // Fills omega_r, shear_omega_r and plastic_r from the reverse bonds (after the constants, a
 // compaction or a restore).
@@ -198,8 +201,8 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
 // peridynamic stress of a homogeneous deformation). fracture: after the force, bonds whose
 // criterion (eq. 18) holds from either end break; both rows decide alike, so breaking stays
 // symmetric. Returns nothing; force is a density (N/m^3).
-void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm, bool fracture,
-               Vec3* force, Mat3* stress, PdScratch* scratch = nullptr);
+void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
+               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch = nullptr);
 
 // Short-range contact (fragments, or bodies, meeting), as LAMMPS's peri styles do: particles
 // closer than `distance` that share no intact bond repel with force density
@@ -210,23 +213,27 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
 // build (CSR, rows sorted), rebuilt by the caller once some particle moved more than skin / 2.
 // A pair whose bond broke touches below min(distance, 0.9 L) (LAMMPS's rule). Such a bond must
 // stay stored while 0.9 L < distance (pd_compact_bonds), since the contact reads its length.
-inline Real pd_broken_pair_distance(Real L, Real distance) { return std::min(distance, Real(0.9) * L); }
-inline bool pd_contact_reads_broken_bond(Real L, Real distance) { return Real(0.9) * L < distance; }
+inline Real pd_broken_pair_distance(Real L, Real distance) {
+  return std::min(distance, Real(0.9) * L);
+}
+inline bool pd_contact_reads_broken_bond(Real L, Real distance) {
+  return Real(0.9) * L < distance;
+}
 struct PdContactList {
   std::vector<std::uint64_t> offsets;
   std::vector<std::uint32_t> neighbor;
   std::vector<Vec3> x_built;  // positions at the build
 };
-void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius, PdContactList& list);
+void pd_build_contact_list(const exec::Space& space, const Vec3* x, std::size_t n, Real radius,
+                           PdContactList& list);
 // Largest displacement since the list was built.
 Real pd_max_displacement(const exec::Space& space, const Vec3* x, const PdContactList& list);
 // Adds the contact force densities.
-void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds& bonds, const PdParams& prm,
-                       Real distance, const PdContactList& list, Vec3* force);
+void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds& bonds,
+                       const PdParams& prm, Real distance, const PdContactList& list, Vec3* force);
 
 // phi_i = 1 - n_i / N_i (eq. 18's damage); returns the number of intact directed bonds.
 std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds& bonds);
-
 
 // Removes broken bonds from the CSR arrays (rows keep their order, every per-bond array is
 // copied, reverse indices rebuilt) and returns how many. Broken bonds with 0.9 L below
@@ -240,7 +247,8 @@ std::uint64_t pd_compact_bonds(const exec::Space& space, PdBonds& bonds, Real co
 // Restricts `bonds` (the full list built from the reference configuration) to the rows given by
 // offsets/neighbor (a compacted layout read from a checkpoint): each given row must be a sorted
 // subsequence of the full row; returns false (bonds unchanged) if not.
-bool pd_restrict_bonds(const exec::Space& space, PdBonds& bonds, const std::vector<std::uint64_t>& offsets,
+bool pd_restrict_bonds(const exec::Space& space, PdBonds& bonds,
+                       const std::vector<std::uint64_t>& offsets,
                        const std::vector<std::uint32_t>& neighbor);
 
 }  // namespace amalgam

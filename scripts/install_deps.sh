@@ -9,6 +9,7 @@ PKGS=(
   libeigen3-dev nlohmann-json3-dev
   libgtest-dev libgmock-dev libbenchmark-dev
   libcgal-demo tetgen
+  clang-format             # format.check (scripts/check_format.sh): Debian 12 ships clang-format 14
   libtrilinos-kokkos-dev   # the optional Kokkos exec backend (Kokkos 3.4.1, Serial space)
 )
 

@@ -25,7 +25,8 @@ BenchSceneOptions sphere(double scale) {
 
 double mpm_bytes(const MpmSolver& s) {
   return double(s.particles().bytes_per_particle() + MpmSolver::binning_bytes_per_particle()) +
-         double(s.grid().bytes_per_leaf()) * double(s.grid().leaf_count()) / double(s.particles().size());
+         double(s.grid().bytes_per_leaf()) * double(s.grid().leaf_count()) /
+             double(s.particles().size());
 }
 
 BenchInstance mpm_instance(MpmSolver&& solver, Real dt) {
@@ -87,9 +88,11 @@ std::vector<BenchCase> standard_bench_cases() {
   std::vector<BenchCase> out;
   out.push_back(transfer_case("mpm_mls", "explicit MPM, MLS, quadratic", Transfer::Mls, 2));
   out.push_back(transfer_case("mpm_apic", "explicit MPM, APIC, quadratic", Transfer::Apic, 2));
-  out.push_back(transfer_case("mpm_flip", "explicit MPM, PIC/FLIP 0.95, quadratic", Transfer::PicFlip, 2));
+  out.push_back(
+      transfer_case("mpm_flip", "explicit MPM, PIC/FLIP 0.95, quadratic", Transfer::PicFlip, 2));
   out.push_back(transfer_case("mpm_mls_cubic", "explicit MPM, MLS, cubic", Transfer::Mls, 3));
-  out.push_back({"mpm_implicit", "implicit MPM (backward Euler, Jacobi CG), MLS", "particle-substeps/s",
+  out.push_back({"mpm_implicit", "implicit MPM (backward Euler, Jacobi CG), MLS",
+                 "particle-substeps/s",
                  "the sphere stiffened to E = 1e7, 2^16 particles, dt = 10x the explicit CFL step",
                  [](double scale, const exec::Space& space) {
                    BenchSceneOptions o = sphere(scale / 4);
@@ -105,36 +108,39 @@ std::vector<BenchCase> standard_bench_cases() {
                    o.lagrangian = true;
                    return mpm_case(o, space, Real(1e-4));
                  }});
-  out.push_back({"enriched_mpm", "enriched MPM (particle domains), explicit, FLIP", "particle-substeps/s",
+  out.push_back({"enriched_mpm", "enriched MPM (particle domains), explicit, FLIP",
+                 "particle-substeps/s",
                  "the sphere on a lattice with connected domains, 2^16 particles, dt 1e-5 s",
                  [](double scale, const exec::Space& space) {
                    BenchSceneOptions o = sphere(scale / 4);
                    o.domains = true;
                    return mpm_case(o, space, Real(1e-5));
                  }});
-  out.push_back({"peridynamics", "peridynamics, state-based, plastic + fracture on", "bond-updates/s",
-                 "40^3 lattice block (64 000 particles, 7.2 M directed bonds), delta = 3.015 lc",
-                 [](double scale, const exec::Space& space) {
-                   const int n = std::max(12, int(std::lround(40 * std::cbrt(scale))));
-                   // One block per size, copied per configuration (its set-up takes seconds).
-                   static std::map<int, std::shared_ptr<const PdSolver>> built;
-                   if (!built.count(n)) built[n] = make_bench_pd_block(n, space);
-                   auto s = std::make_shared<PdSolver>(*built[n]);
-                   const Real dt = s->stable_dt(space);
-                   BenchInstance b;
-                   b.dt = dt;
-                   b.step = [s, dt](const exec::Space& sp) { s->step(sp, dt); };
-                   b.items = double(s->bonds().size());
-                   const PdBonds& bo = s->bonds();
-                   b.bytes_per_item = double(sizeof(std::uint32_t) + sizeof(std::uint64_t) + 5 * sizeof(Real) + 1) +
-                                      double(bo.offsets.size() * sizeof(std::uint64_t) +
-                                             s->particles().size() * s->particles().bytes_per_particle()) /
-                                          double(bo.size());
-                   b.extra = [] { return std::string(); };
-                   b.reset_extra = [] {};
-                   b.owner = s;
-                   return b;
-                 }});
+  out.push_back(
+      {"peridynamics", "peridynamics, state-based, plastic + fracture on", "bond-updates/s",
+       "40^3 lattice block (64 000 particles, 7.2 M directed bonds), delta = 3.015 lc",
+       [](double scale, const exec::Space& space) {
+         const int n = std::max(12, int(std::lround(40 * std::cbrt(scale))));
+         // One block per size, copied per configuration (its set-up takes seconds).
+         static std::map<int, std::shared_ptr<const PdSolver>> built;
+         if (!built.count(n)) built[n] = make_bench_pd_block(n, space);
+         auto s = std::make_shared<PdSolver>(*built[n]);
+         const Real dt = s->stable_dt(space);
+         BenchInstance b;
+         b.dt = dt;
+         b.step = [s, dt](const exec::Space& sp) { s->step(sp, dt); };
+         b.items = double(s->bonds().size());
+         const PdBonds& bo = s->bonds();
+         b.bytes_per_item =
+             double(sizeof(std::uint32_t) + sizeof(std::uint64_t) + 5 * sizeof(Real) + 1) +
+             double(bo.offsets.size() * sizeof(std::uint64_t) +
+                    s->particles().size() * s->particles().bytes_per_particle()) /
+                 double(bo.size());
+         b.extra = [] { return std::string(); };
+         b.reset_extra = [] {};
+         b.owner = s;
+         return b;
+       }});
   return out;
 }
 

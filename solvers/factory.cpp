@@ -31,8 +31,8 @@ MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol, space);
     const std::size_t first = solver.particles().size();
-    solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol, obj.temperature,
-                         obj.configuration);
+    solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol,
+                         obj.temperature, obj.configuration);
     if (scene.mpm.domains.enabled) {
       const Real h = Real(double(scene.mpm.dx) / std::cbrt(double(obj.particles_per_cell)));
       if (obj.mesh)  // the mesh is embedded in the domains and written deformed every frame (Sec. 4.1)
@@ -61,13 +61,14 @@ PdSolver build_pd_solver(const SceneSpec& scene, const exec::Space& space) {
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);
   }
   for (const auto& b : scene.pd_boundaries) {
-    if (b.load) solver.apply_force_density(b.min, b.max, b.force_density);
-    else solver.prescribe_velocity(b.min, b.max, b.velocity);
+    if (b.load)
+      solver.apply_force_density(b.min, b.max, b.force_density);
+    else
+      solver.prescribe_velocity(b.min, b.max, b.velocity);
   }
   for (const auto& c : scene.pd_precracks) solver.add_precrack(c.point, c.normal, c.min, c.max);
   return solver;
 }
-
 
 std::unique_ptr<Simulation> make_simulation(const SceneSpec& scene, const exec::Space& space) {
   if (scene.method == Method::Peridynamics) {

@@ -17,7 +17,8 @@
 namespace amalgam {
 
 // The scene's colliders, mesh colliders with their distance fields baked.
-std::vector<Collider> build_colliders(const SceneSpec& scene, const exec::Space& space = exec::Space());
+std::vector<Collider> build_colliders(const SceneSpec& scene,
+                                      const exec::Space& space = exec::Space());
 // The MPM solver of an MPM scene with its particles (and particle domains).
 MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space = exec::Space());
 // The peridynamic solver of a peridynamics scene with its particles and boundary sets, not yet

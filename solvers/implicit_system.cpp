@@ -8,7 +8,9 @@
 
 namespace amalgam {
 
-const char* krylov_name(KrylovMethod m) { return m == KrylovMethod::Cg ? "cg" : "minres"; }
+const char* krylov_name(KrylovMethod m) {
+  return m == KrylovMethod::Cg ? "cg" : "minres";
+}
 
 namespace {
 constexpr std::uint32_t kBlock = 512;
@@ -18,14 +20,16 @@ void ImplicitSystem::begin(std::size_t grid_dofs, const std::vector<std::int32_t
   grid_dofs_ = grid_dofs;
   ndof_ = grid_dofs;
   blocks_.clear();
-  for (const std::int32_t leaf : grid_leaves) blocks_.push_back({std::uint64_t(leaf) * kBlock, kBlock});
+  for (const std::int32_t leaf : grid_leaves)
+    blocks_.push_back({std::uint64_t(leaf) * kBlock, kBlock});
   terms_.clear();
 }
 
 std::size_t ImplicitSystem::add_dof_set(std::size_t count) {
   const std::size_t first = ndof_;
   for (std::size_t b = 0; b < count; b += kBlock)
-    blocks_.push_back({std::uint64_t(first + b), std::uint32_t(std::min<std::size_t>(kBlock, count - b))});
+    blocks_.push_back(
+        {std::uint64_t(first + b), std::uint32_t(std::min<std::size_t>(kBlock, count - b))});
   ndof_ += count;
   return first;
 }
@@ -103,7 +107,8 @@ double ImplicitSystem::dot(const exec::Space& space, const Real* a, const Real* 
       [](double x, double y) { return x + y; });
 }
 
-ImplicitSystem::Dots ImplicitSystem::dots(const exec::Space& space, const Real* r, const Real* z) const {
+ImplicitSystem::Dots ImplicitSystem::dots(const exec::Space& space, const Real* r,
+                                          const Real* z) const {
   const Block* blk = blocks_.data();
   const Real* m = mass_.data();
   return exec::parallel_reduce(
@@ -137,7 +142,8 @@ double ImplicitSystem::mass_norm2(const exec::Space& space, const Real* v) const
         double s = 0;
         for (std::uint64_t d = blk[i].first; d < blk[i].first + blk[i].count; ++d)
           if (m[d] > 0)
-            s += double(m[d]) * (double(v[d * 4]) * double(v[d * 4]) + double(v[d * 4 + 1]) * double(v[d * 4 + 1]) +
+            s += double(m[d]) * (double(v[d * 4]) * double(v[d * 4]) +
+                                 double(v[d * 4 + 1]) * double(v[d * 4 + 1]) +
                                  double(v[d * 4 + 2]) * double(v[d * 4 + 2]));
         acc += s;
       },
@@ -169,15 +175,16 @@ void ImplicitSystem::build_preconditioner(const exec::Space& space, Real dt) {
   const Mat3* P = con_P_.data();
   // D = m + dt^2 max(diag H, 0) (eq. 17; clamped so MINRES's preconditioner stays definite). A
   // massless or fully fixed DOF gets 0: its residual never enters the search directions.
-  exec::parallel_for(space, "implicit.preconditioner", exec::Index(blocks_.size()), [=](exec::Index i) {
-    for (std::uint64_t d = blk[i].first; d < blk[i].first + blk[i].count; ++d) {
-      const bool fixed = m[d] <= 0 || (con[d] >= 0 && P[con[d]].isZero());
-      for (int c = 0; c < 4; ++c) {
-        const Real D = m[d] + std::max(diag[d * 4 + c], Real(0));
-        diag[d * 4 + c] = (fixed || c == 3) ? Real(0) : Real(1) / D;
-      }
-    }
-  });
+  exec::parallel_for(space, "implicit.preconditioner", exec::Index(blocks_.size()),
+                     [=](exec::Index i) {
+                       for (std::uint64_t d = blk[i].first; d < blk[i].first + blk[i].count; ++d) {
+                         const bool fixed = m[d] <= 0 || (con[d] >= 0 && P[con[d]].isZero());
+                         for (int c = 0; c < 4; ++c) {
+                           const Real D = m[d] + std::max(diag[d * 4 + c], Real(0));
+                           diag[d * 4 + c] = (fixed || c == 3) ? Real(0) : Real(1) / D;
+                         }
+                       }
+                     });
 }
 
 void ImplicitSystem::apply_preconditioner(const exec::Space& space, const Real* r, Real* z) const {
@@ -207,20 +214,21 @@ SolveStats ImplicitSystem::solve(const exec::Space& space, Real dt, const Implic
   const Mat3* P = con_P_.data();
   const Vec3* val = con_val_.data();
   // x0: the guess with its constrained part replaced by the prescribed values; massless DOFs 0.
-  exec::parallel_for(space, "implicit.initial_guess", exec::Index(blocks_.size()), [=](exec::Index i) {
-    for (std::uint64_t d = blk[i].first; d < blk[i].first + blk[i].count; ++d) {
-      Real* xd = x + d * 4;
-      if (m[d] <= 0) {
-        xd[0] = xd[1] = xd[2] = xd[3] = 0;
-        continue;
-      }
-      if (con[d] >= 0) {
-        const Vec3 v = P[con[d]] * Vec3(xd[0], xd[1], xd[2]) + val[con[d]];
-        xd[0] = v[0], xd[1] = v[1], xd[2] = v[2];
-      }
-      xd[3] = 0;
-    }
-  });
+  exec::parallel_for(space, "implicit.initial_guess", exec::Index(blocks_.size()),
+                     [=](exec::Index i) {
+                       for (std::uint64_t d = blk[i].first; d < blk[i].first + blk[i].count; ++d) {
+                         Real* xd = x + d * 4;
+                         if (m[d] <= 0) {
+                           xd[0] = xd[1] = xd[2] = xd[3] = 0;
+                           continue;
+                         }
+                         if (con[d] >= 0) {
+                           const Vec3 v = P[con[d]] * Vec3(xd[0], xd[1], xd[2]) + val[con[d]];
+                           xd[0] = v[0], xd[1] = v[1], xd[2] = v[2];
+                         }
+                         xd[3] = 0;
+                       }
+                     });
   // r = P (M v* - A x0); the right-hand side's norm for the relative residual: b = P M v*.
   apply(space, dt, x, q);
   exec::parallel_for(space, "implicit.residual", exec::Index(blocks_.size()), [=](exec::Index i) {
@@ -261,7 +269,8 @@ SolveStats ImplicitSystem::solve(const exec::Space& space, Real dt, const Implic
       st.converged = true;
       break;
     }
-    if (!std::isfinite(st.residual)) throw SimulationError("implicit solve: the residual is not finite (NaN state)");
+    if (!std::isfinite(st.residual))
+      throw SimulationError("implicit solve: the residual is not finite (NaN state)");
     if (st.iterations >= s.max_iterations) break;
     apply(space, dt, p, q);
     project(space, q);
@@ -271,22 +280,24 @@ SolveStats ImplicitSystem::solve(const exec::Space& space, Real dt, const Implic
       return ms;
     }
     const Real alpha = Real(rz / pq);
-    exec::parallel_for(space, "implicit.cg_update", exec::Index(blocks_.size()), [=](exec::Index i) {
-      const std::uint64_t b = blk[i].first * 4, e = b + std::uint64_t(blk[i].count) * 4;
-      for (std::uint64_t k = b; k < e; ++k) {
-        x[k] += alpha * p[k];
-        r[k] -= alpha * q[k];
-      }
-    });
+    exec::parallel_for(
+        space, "implicit.cg_update", exec::Index(blocks_.size()), [=](exec::Index i) {
+          const std::uint64_t b = blk[i].first * 4, e = b + std::uint64_t(blk[i].count) * 4;
+          for (std::uint64_t k = b; k < e; ++k) {
+            x[k] += alpha * p[k];
+            r[k] -= alpha * q[k];
+          }
+        });
     apply_preconditioner(space, r, z);
     dz = dots(space, r, z);
     const double rz_new = dz.rz;
     const Real beta = Real(rz_new / rz);
     rz = rz_new;
-    exec::parallel_for(space, "implicit.cg_direction", exec::Index(blocks_.size()), [=](exec::Index i) {
-      const std::uint64_t b = blk[i].first * 4, e = b + std::uint64_t(blk[i].count) * 4;
-      for (std::uint64_t k = b; k < e; ++k) p[k] = z[k] + beta * p[k];
-    });
+    exec::parallel_for(
+        space, "implicit.cg_direction", exec::Index(blocks_.size()), [=](exec::Index i) {
+          const std::uint64_t b = blk[i].first * 4, e = b + std::uint64_t(blk[i].count) * 4;
+          for (std::uint64_t k = b; k < e; ++k) p[k] = z[k] + beta * p[k];
+        });
     ++st.iterations;
   }
   return st;
@@ -295,8 +306,8 @@ SolveStats ImplicitSystem::solve(const exec::Space& space, Real dt, const Implic
 // Preconditioned MINRES from the current x (Paige & Saunders 1975, in the form of Choi's
 // thesis / SciPy's minres), preconditioner D^{-1} (SPD), constraints projected. Stops when the
 // estimated ||r||_{D^-1} falls below tolerance * bnorm.
-SolveStats ImplicitSystem::minres(const exec::Space& space, Real dt, const ImplicitSettings& s, double bnorm,
-                                  int used) {
+SolveStats ImplicitSystem::minres(const exec::Space& space, Real dt, const ImplicitSettings& s,
+                                  double bnorm, int used) {
   const std::size_t n4 = ndof_ * 4;
   for (auto* v : {&m_r1_, &m_r2_, &m_w_, &m_w1_, &m_w2_}) v->assign(n4, Real(0));
   const Block* blk = blocks_.data();
@@ -374,7 +385,8 @@ SolveStats ImplicitSystem::minres(const exec::Space& space, Real dt, const Impli
       x[k] += ph * w[k];
     });
     st.residual = phibar / bnorm;
-    if (!std::isfinite(st.residual)) throw SimulationError("implicit solve: the residual is not finite (NaN state)");
+    if (!std::isfinite(st.residual))
+      throw SimulationError("implicit solve: the residual is not finite (NaN state)");
     if (st.residual <= s.tolerance) {
       st.converged = true;
       break;

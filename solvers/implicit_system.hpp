@@ -54,7 +54,8 @@ class ImplicitTerm {
  public:
   virtual ~ImplicitTerm() = default;
   // out += scale * H du
-  virtual void add_hessian_action(const exec::Space& space, const Real* du, Real scale, Real* out) const = 0;
+  virtual void add_hessian_action(const exec::Space& space, const Real* du, Real scale,
+                                  Real* out) const = 0;
   // diag += scale * diag(H)
   virtual void add_hessian_diagonal(const exec::Space& space, Real scale, Real* diag) const = 0;
 };
@@ -70,9 +71,9 @@ class ImplicitSystem {
   void finalize();
 
   std::size_t dof_count() const { return ndof_; }
-  Real* mass() { return mass_.data(); }          // 1 per DOF; <= 0 excludes the DOF
-  Real* rhs() { return vstar_.data(); }          // v*, 4 lanes per DOF
-  Real* solution() { return x_.data(); }         // v: initial guess in, solution out
+  Real* mass() { return mass_.data(); }   // 1 per DOF; <= 0 excludes the DOF
+  Real* rhs() { return vstar_.data(); }   // v*, 4 lanes per DOF
+  Real* solution() { return x_.data(); }  // v: initial guess in, solution out
   const Real* solution() const { return x_.data(); }
   void add_term(const ImplicitTerm* term) {
     terms_.push_back(term);
@@ -103,11 +104,11 @@ class ImplicitSystem {
   std::vector<Block> blocks_;
   std::vector<const ImplicitTerm*> terms_;
   std::vector<Real> mass_, vstar_, x_, inv_diag_;
-  std::vector<Real> r_, z_, p_, q_;                // CG
+  std::vector<Real> r_, z_, p_, q_;                    // CG
   std::vector<Real> m_r1_, m_r2_, m_w_, m_w1_, m_w2_;  // MINRES extras
   std::vector<std::uint64_t> con_dof_;
-  std::vector<Mat3> con_P_;    // projector onto the free directions
-  std::vector<Vec3> con_val_;  // the prescribed part of v
+  std::vector<Mat3> con_P_;              // projector onto the free directions
+  std::vector<Vec3> con_val_;            // the prescribed part of v
   std::vector<std::int32_t> con_index_;  // per DOF, index into the constraint list or -1
   Real preconditioner_dt_ = -1;          // dt the preconditioner was built for (-1: stale)
 
@@ -120,7 +121,8 @@ class ImplicitSystem {
   Dots dots(const exec::Space& space, const Real* r, const Real* z) const;
   double mass_norm2(const exec::Space& space, const Real* v) const;  // sum m |v|^2
   void build_preconditioner(const exec::Space& space, Real dt);
-  SolveStats minres(const exec::Space& space, Real dt, const ImplicitSettings& s, double bnorm, int used);
+  SolveStats minres(const exec::Space& space, Real dt, const ImplicitSettings& s, double bnorm,
+                    int used);
 };
 
 }  // namespace amalgam

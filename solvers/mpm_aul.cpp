@@ -39,16 +39,20 @@ void MpmAul::update_configurations(const exec::Space& space, MpmSolver& mpm) {
   const auto t0 = std::chrono::steady_clock::now();
   ParticleSet& ps = mpm.particles_;
   const bool any = maps_.decide(space, ps, cattr_, reset_flags_);
-  if (any) maps_.reset(space, ps, cattr_, mpm.attr_.x, mpm.attr_.F, mpm.attr_.C, mpm.settings_.dx, reset_flags_);
+  if (any)
+    maps_.reset(space, ps, cattr_, mpm.attr_.x, mpm.attr_.F, mpm.attr_.C, mpm.settings_.dx,
+                reset_flags_);
   if (any || !bins_valid_) {
     mpm.sort_particles(space);
     mpm.update_grid(space);
     // Which object owns each reference leaf (for the contact), and the check that no two
     // objects share reference nodes (an object that left its lane), with or without contact.
-    if (maps_.object_count() > 1) contact_.map_leaves(space, mpm.grid_, mpm.bins_, ps.int32(cattr_.object));
+    if (maps_.object_count() > 1)
+      contact_.map_leaves(space, mpm.grid_, mpm.bins_, ps.int32(cattr_.object));
     bins_valid_ = true;
   }
-  maps_.account(reset_flags_, std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  maps_.account(reset_flags_,
+                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
 }
 
 void MpmAul::couple_objects(const exec::Space& space, MpmSolver& mpm, Real dt) {

@@ -12,7 +12,8 @@ class MpmElasticTerm final : public ImplicitTerm {
   MpmElasticTerm(const MpmParticleView& p, const MpmGridView& g, const ImplicitKernelParams& prm,
                  const ParticleHessian* hess)
       : p_(p), g_(g), prm_(prm), hess_(hess) {}
-  void add_hessian_action(const exec::Space& space, const Real* du, Real scale, Real* out) const override {
+  void add_hessian_action(const exec::Space& space, const Real* du, Real scale,
+                          Real* out) const override {
     mpm_hessian_action(space, p_, g_, prm_, hess_, du, scale, out);
   }
   void add_hessian_diagonal(const exec::Space& space, Real scale, Real* diag) const override {

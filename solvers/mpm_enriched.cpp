@@ -13,7 +13,8 @@ class DomainElasticTerm final : public ImplicitTerm {
   DomainElasticTerm(ParticleDomains* d, const DomainParticleView& p, const MpmGridView& g, Real dx,
                     std::size_t corner_base)
       : d_(d), p_(p), g_(g), dx_(dx), base_(corner_base) {}
-  void add_hessian_action(const exec::Space& space, const Real* du, Real scale, Real* out) const override {
+  void add_hessian_action(const exec::Space& space, const Real* du, Real scale,
+                          Real* out) const override {
     d_->hessian_action(space, p_, g_, dx_, du, du + 4 * base_, scale, out, out + 4 * base_);
   }
   void add_hessian_diagonal(const exec::Space& space, Real scale, Real* diag) const override {
@@ -32,17 +33,26 @@ class DomainElasticTerm final : public ImplicitTerm {
 MpmEnriched::MpmEnriched(ParticleSet& particles) : dattr_(DomainAttributes::add_to(particles)) {}
 MpmEnriched::~MpmEnriched() = default;
 
-void MpmEnriched::add_object(MpmSolver& mpm, std::size_t first, Real h, const std::vector<Vec3d>* surface_vertices,
+void MpmEnriched::add_object(MpmSolver& mpm, std::size_t first, Real h,
+                             const std::vector<Vec3d>* surface_vertices,
                              const std::vector<std::array<std::int32_t, 3>>* surface_triangles) {
-  domains_.add_object(mpm.particles(), dattr_, mpm.attributes().x, first, h, surface_vertices, surface_triangles);
+  domains_.add_object(mpm.particles(), dattr_, mpm.attributes().x, first, h, surface_vertices,
+                      surface_triangles);
 }
 
 DomainParticleView MpmEnriched::particle_view(MpmSolver& mpm) {
   ParticleSet& ps = mpm.particles();
   const MpmAttributes& a = mpm.attributes();
-  DomainParticleView v{ps.vec3(a.x),         ps.vec3(a.v),           ps.mat3(a.F),         ps.real(a.mass),
-                       ps.real(a.volume0),   ps.int32(a.material),   ps.int32(dattr_.corners), ps.vec3(dattr_.h),
-                       ps.int32(dattr_.state), ps.size()};
+  DomainParticleView v{ps.vec3(a.x),
+                       ps.vec3(a.v),
+                       ps.mat3(a.F),
+                       ps.real(a.mass),
+                       ps.real(a.volume0),
+                       ps.int32(a.material),
+                       ps.int32(dattr_.corners),
+                       ps.vec3(dattr_.h),
+                       ps.int32(dattr_.state),
+                       ps.size()};
   if (a.plastic >= 0) v.plastic = ps.real(a.plastic);
   if (a.temperature >= 0) v.temperature = ps.real(a.temperature);
   v.C = ps.mat3(a.C);
@@ -50,7 +60,8 @@ DomainParticleView MpmEnriched::particle_view(MpmSolver& mpm) {
 }
 
 DomainParams MpmEnriched::params(const MpmSolver& mpm, Real dt) const {
-  const MpmStepParams s = mpm.step_params(dt);  // the fields both methods share, posed colliders included
+  const MpmStepParams s =
+      mpm.step_params(dt);  // the fields both methods share, posed colliders included
   const DomainSettings& ds = mpm.settings().domains;
   DomainParams p;
   p.dx = s.dx, p.dt = s.dt, p.flip_alpha = s.flip_alpha, p.gravity = s.gravity, p.time = s.time;
@@ -64,8 +75,8 @@ DomainParams MpmEnriched::params(const MpmSolver& mpm, Real dt) const {
 
 Real MpmEnriched::dt_limit(const exec::Space& space, const MpmSolver& mpm) const {
   const ParticleSet& ps = mpm.particles();
-  return domains_.enriched_dt_limit(space, ps.int32(dattr_.state), ps.vec3(dattr_.h), mpm.settings().cfl,
-                                    mpm.max_wave_speed_);
+  return domains_.enriched_dt_limit(space, ps.int32(dattr_.state), ps.vec3(dattr_.h),
+                                    mpm.settings().cfl, mpm.max_wave_speed_);
 }
 
 void MpmEnriched::solve_velocities(const exec::Space& space, MpmSolver& mpm, Real dt) {
@@ -79,8 +90,10 @@ void MpmEnriched::solve_velocities(const exec::Space& space, MpmSolver& mpm, Rea
   grid_velocities_to_dofs(space, g, sys.mass(), sys.rhs());
   domains_.enriched_to_dofs(space, sys.mass() + base, sys.rhs() + 4 * base);
   std::copy(sys.rhs(), sys.rhs() + sys.dof_count() * 4, sys.solution());
-  imp.add_collider_constraints(space, mpm, g, dt);  // grid nodes; corners meet the colliders after the solve
-  term_ = std::make_unique<DomainElasticTerm>(&domains_, particle_view(mpm), g, mpm.settings().dx, base);
+  imp.add_collider_constraints(space, mpm, g,
+                               dt);  // grid nodes; corners meet the colliders after the solve
+  term_ = std::make_unique<DomainElasticTerm>(&domains_, particle_view(mpm), g, mpm.settings().dx,
+                                              base);
   sys.add_term(term_.get());
   imp.solve_and_count(space, dt);
   Real* v = sys.solution();

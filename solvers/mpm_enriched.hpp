@@ -31,7 +31,8 @@ class MpmEnriched {
 
   // Domains for the particles from index `first` on, one object sampled on a lattice of spacing h
   // with jitter 0, optionally with an embedded surface mesh.
-  void add_object(MpmSolver& mpm, std::size_t first, Real h, const std::vector<Vec3d>* surface_vertices = nullptr,
+  void add_object(MpmSolver& mpm, std::size_t first, Real h,
+                  const std::vector<Vec3d>* surface_vertices = nullptr,
                   const std::vector<std::array<std::int32_t, 3>>* surface_triangles = nullptr);
   void step(const exec::Space& space, MpmSolver& mpm, Real dt);
   // The explicit stability limit of the enriched corners (infinity when none).

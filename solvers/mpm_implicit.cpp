@@ -17,8 +17,8 @@ inline Vec3 node_position(const MpmGridView& g, std::size_t d, const Vec3& latti
 }
 }  // namespace
 
-void MpmImplicit::add_collider_constraints(const exec::Space& space, const MpmSolver& mpm, const MpmGridView& g,
-                                           Real dt) {
+void MpmImplicit::add_collider_constraints(const exec::Space& space, const MpmSolver& mpm,
+                                           const MpmGridView& g, Real dt) {
   // Colliders -> constraints (enriched MPM Sec. 7 / Stomakhin et al. 2013, as projections): a
   // node inside a sticky collider takes its velocity; slip fixes the normal velocity; separating
   // only while v* approaches. Friction is applied after the solve from the normal velocity v*
@@ -51,7 +51,8 @@ void MpmImplicit::add_collider_constraints(const exec::Space& space, const MpmSo
     for (int o = 0; o < kLeafNodes; ++o) {
       const std::size_t d = std::size_t(leaf) * kLeafNodes + std::size_t(o);
       if (!flag[d]) continue;
-      const Vec3 xi = node_position(g, d, (node0 + Vec3i(o >> 6, (o >> 3) & 7, o & 7)).cast<Real>() * dx);
+      const Vec3 xi =
+          node_position(g, d, (node0 + Vec3i(o >> 6, (o >> 3) & 7, o & 7)).cast<Real>() * dx);
       const Vec3 vs(vstar[d * 4], vstar[d * 4 + 1], vstar[d * 4 + 2]);
       for (int c = 0; c < ncol; ++c) {
         const Collider& col = cols[c];

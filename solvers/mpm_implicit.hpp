@@ -41,7 +41,8 @@ class MpmImplicit {
   void assemble(const exec::Space& space, MpmSolver& mpm, Real dt);
 
   // Pieces the enriched step shares. Colliders -> constraints on the grid DOFs of `g`.
-  void add_collider_constraints(const exec::Space& space, const MpmSolver& mpm, const MpmGridView& g, Real dt);
+  void add_collider_constraints(const exec::Space& space, const MpmSolver& mpm,
+                                const MpmGridView& g, Real dt);
   // Solves the assembled system and adds the solve to the counters.
   void solve_and_count(const exec::Space& space, Real dt);
   // Coulomb friction at the contacts found by add_collider_constraints.

@@ -22,8 +22,9 @@ PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a) {
   for (std::size_t i = 0; i < p.n; ++i) J[i] = float(F[i].determinant());
   p.primary.emplace_back("J", std::move(J));
   // Method-specific state, when the scene's materials carry it.
-  for (const auto& [attr, name] : {std::pair<ParticleSet::Id, const char*>{a.plastic, "plastic"},
-                                   std::pair<ParticleSet::Id, const char*>{a.temperature, "temperature"}}) {
+  for (const auto& [attr, name] :
+       {std::pair<ParticleSet::Id, const char*>{a.plastic, "plastic"},
+        std::pair<ParticleSet::Id, const char*>{a.temperature, "temperature"}}) {
     if (attr < 0) continue;
     const Real* r = ps.real(attr);
     p.extra.emplace_back(name, std::vector<float>(r, r + p.n));
@@ -99,12 +100,14 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
                {"enriched_corners", double(dc.last_enriched_corners), true}};
   if (s_.settings().implicit) {
     char cg[64];
-    std::snprintf(cg, sizeof cg, "CG %.1f it/step", double(ic.iterations) / double(std::max(1LL, substeps)));
+    std::snprintf(cg, sizeof cg, "CG %.1f it/step",
+                  double(ic.iterations) / double(std::max(1LL, substeps)));
     r.progress = cg;
   }
   if (ic.unconverged > 0) {
     std::ostringstream w;
-    w << ic.unconverged << " implicit solve(s) stopped at max_iterations = " << s_.settings().solver.max_iterations
+    w << ic.unconverged
+      << " implicit solve(s) stopped at max_iterations = " << s_.settings().solver.max_iterations
       << " (worst relative residual " << ic.max_residual
       << "); raise simulation.implicit.max_iterations or lower max_dt";
     r.warnings.push_back(w.str());
@@ -120,9 +123,10 @@ int MpmSimulation::profile_column(const std::string& l) const {
   auto starts = [&l](const char* p) { return l.rfind(p, 0) == 0; };
   // Particle domains: particle -> corner -> grid is the P2G side, grid -> corner -> particle (with
   // the corner collisions and the advection) the G2P side.
-  if (l == "mpm.p2g" || l == "domain.p2c" || l == "domain.points_to_grid" || l == "domain.stress") return 0;
-  if (l == "mpm.g2p" || l == "domain.grid_to_corners" || l == "domain.c2p" || l == "domain.collide_corners" ||
-      starts("domain.advect"))
+  if (l == "mpm.p2g" || l == "domain.p2c" || l == "domain.points_to_grid" || l == "domain.stress")
+    return 0;
+  if (l == "mpm.g2p" || l == "domain.grid_to_corners" || l == "domain.c2p" ||
+      l == "domain.collide_corners" || starts("domain.advect"))
     return 1;
   if (starts("bin.") || l == "particles.permute") return 2;
   if (starts("grid.") || l == "mpm.grid_clear" || l == "mpm.grid_update") return 3;
@@ -140,8 +144,8 @@ std::string MpmSimulation::substep_log_row(int frame, Real dt) const {
   const SolveStats& ls = s_.implicit()->last_solve();
   char row[160];
   std::snprintf(row, sizeof row, "%d,%llu,%.9g,%.9g,%d,%.4g,%d,%d\n", frame,
-                (unsigned long long)(s_.step_count() - 1), s_.time(), double(dt), ls.iterations, ls.residual,
-                ls.converged ? 1 : 0, ls.used_minres ? 1 : 0);
+                (unsigned long long)(s_.step_count() - 1), s_.time(), double(dt), ls.iterations,
+                ls.residual, ls.converged ? 1 : 0, ls.used_minres ? 1 : 0);
   return row;
 }
 
@@ -153,18 +157,20 @@ std::string MpmSimulation::run_summary(double wall) const {
   for (int k = 0; aul && k < aul->maps().object_count(); ++k) {
     const ConfigurationMaps& maps = aul->maps();
     const ConfigurationStats& st = maps.stats(k);
-    os << "amalgam: object " << k << " (" << configuration_update_name(maps.policy(k).update) << "): " << st.updates
-       << " configuration updates in " << st.steps << " substeps, " << st.update_seconds << " s updating ("
-       << 100.0 * st.update_seconds / wall << " % of the run)\n";
+    os << "amalgam: object " << k << " (" << configuration_update_name(maps.policy(k).update)
+       << "): " << st.updates << " configuration updates in " << st.steps << " substeps, "
+       << st.update_seconds << " s updating (" << 100.0 * st.update_seconds / wall
+       << " % of the run)\n";
   }
   if (s_.enriched())
-    os << "amalgam: particle domains: " << s_.enriched()->domains().corner_count() << " corners; enriched particles "
-       << 100.0 * enriched_sum_ / double(std::max(1, frames_)) << " % on average over frames, at most "
-       << 100.0 * enriched_max_ << " % in a substep" << (s_.settings().domains.enrichment ? "" : " (enrichment off)")
-       << "\n";
+    os << "amalgam: particle domains: " << s_.enriched()->domains().corner_count()
+       << " corners; enriched particles " << 100.0 * enriched_sum_ / double(std::max(1, frames_))
+       << " % on average over frames, at most " << 100.0 * enriched_max_ << " % in a substep"
+       << (s_.settings().domains.enrichment ? "" : " (enrichment off)") << "\n";
   if (aul && aul->contact_active())
-    os << "amalgam: contact between objects (" << object_contact_mode_name(s_.settings().contact.mode)
-       << ", friction " << s_.settings().contact.friction << "): " << aul->contact_nodes()
+    os << "amalgam: contact between objects ("
+       << object_contact_mode_name(s_.settings().contact.mode) << ", friction "
+       << s_.settings().contact.friction << "): " << aul->contact_nodes()
        << " reference-node velocity corrections, " << aul->contact_seconds() << " s ("
        << 100.0 * aul->contact_seconds() / wall << " % of the run)\n";
   return os.str();

@@ -24,7 +24,9 @@ class MpmSimulation final : public Simulation {
 
   std::string describe() const override;
   std::size_t particle_count() const override { return s_.particles().size(); }
-  double work_done() const override { return double(s_.particles().size()) * double(s_.step_count()); }
+  double work_done() const override {
+    return double(s_.particles().size()) * double(s_.step_count());
+  }
   const char* work_unit() const override { return "p-steps"; }
 
   double time() const override { return s_.time(); }
@@ -46,7 +48,9 @@ class MpmSimulation final : public Simulation {
   std::string substep_log_row(int frame, Real dt) const override;
   std::string run_summary(double wall) const override;
 
-  PointFields point_fields() const override { return mpm_point_fields(s_.particles(), s_.attributes()); }
+  PointFields point_fields() const override {
+    return mpm_point_fields(s_.particles(), s_.attributes());
+  }
   double point_voxel_size() const override { return double(s_.settings().dx); }
   bool surface(SurfaceMesh& out) const override;
   const char* surface_pattern() const override { return "frame_%04d_surface"; }

@@ -70,13 +70,15 @@ void MpmSolver::save(Snapshot& s) const {
 }
 void MpmSolver::restore(const Snapshot& s) {
   particles_.restore(s.particles);
-  if (enriched_) std::copy(s.corners.begin(), s.corners.end(), enriched_->domains().corner_positions());
+  if (enriched_)
+    std::copy(s.corners.begin(), s.corners.end(), enriched_->domains().corner_positions());
   if (aul_) aul_->invalidate_bins();
 }
 void MpmSolver::restore_clock(double time, std::uint64_t steps) {
   time_ = time;
   steps_ = steps;
-  if (aul_) aul_->invalidate_bins();  // particles may have been replaced: re-bin before the next transfer
+  if (aul_)
+    aul_->invalidate_bins();  // particles may have been replaced: re-bin before the next transfer
 }
 
 void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega,
@@ -131,7 +133,8 @@ MpmParticleView MpmSolver::particle_view() {
 
 MpmGridView MpmSolver::grid_view() {
   Real* second = channels_.second >= 0 ? grid_.node4(channels_.second) : nullptr;
-  return make_grid_view(grid_, enriched_ ? enriched_->domains().bins() : bins_, grid_.node4(0), second);
+  return make_grid_view(grid_, enriched_ ? enriched_->domains().bins() : bins_, grid_.node4(0),
+                        second);
 }
 
 const Collider* MpmSolver::colliders_at(Real t) const {
@@ -162,8 +165,8 @@ MpmStepParams MpmSolver::step_params(Real dt) const {
 }
 
 void MpmSolver::sort_particles(const exec::Space& space) {
-  binning_.sort_and_bin(space, particles_, aul_ ? aul_->attributes().X_s : attr_.x, settings_.dx, settings_.order,
-                        bins_);
+  binning_.sort_and_bin(space, particles_, aul_ ? aul_->attributes().X_s : attr_.x, settings_.dx,
+                        settings_.order, bins_);
 }
 
 void MpmSolver::update_grid(const exec::Space& space) {
@@ -196,7 +199,8 @@ void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
   if (implicit_) prm.ncolliders = 0;  // the implicit solve takes the colliders as constraints
   MpmGridView g = grid_view();
   if (positions_needed()) {  // Lagrangian: colliders act at the nodes' current positions
-    if (!fused_positions()) p2g_positions(space, particle_view(), g, prm, grid_.node4(channels_.positions));
+    if (!fused_positions())
+      p2g_positions(space, particle_view(), g, prm, grid_.node4(channels_.positions));
     g.q = grid_.node4(channels_.positions);
   }
   grid_update(space, g, prm);
@@ -214,8 +218,10 @@ void MpmSolver::grid_to_particle(const exec::Space& space, Real dt) {
 
 void MpmSolver::collide_particles(const exec::Space& space, Real dt) {
   if (colliders_.empty()) return;
-  const Real t_end = Real(time_) + dt;  // the grid update's end-of-substep time (same posed colliders)
-  amalgam::collide_particles(space, particle_view(), colliders_at(t_end), int(colliders_.size()), t_end);
+  const Real t_end =
+      Real(time_) + dt;  // the grid update's end-of-substep time (same posed colliders)
+  amalgam::collide_particles(space, particle_view(), colliders_at(t_end), int(colliders_.size()),
+                             t_end);
 }
 
 void MpmSolver::update_materials(const exec::Space& space, Real dt) {

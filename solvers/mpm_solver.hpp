@@ -157,7 +157,8 @@ class MpmSolver {
   // grid_view() plus, in A-ULMPM with colliders, the rasterised node positions q_i of this
   // substep (valid after update_grid_velocities).
   MpmGridView grid_view_with_positions();
-  bool fused_positions() const;   // q_i come out of the momentum P2G (MLS/APIC) instead of p2g_positions
+  bool fused_positions()
+      const;  // q_i come out of the momentum P2G (MLS/APIC) instead of p2g_positions
   bool positions_needed() const;  // q_i are rasterised this substep (colliders or contact)
   MpmStepParams step_params(Real dt) const;
   // Colliders with keyframed poses evaluated at time t (the kernels see rigid poses only).

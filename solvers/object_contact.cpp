@@ -19,8 +19,8 @@ ObjectContact::ObjectContact() {
   grid_.set_node4_channels(2);  // (M, P), (K, var)
 }
 
-void ObjectContact::map_leaves(const exec::Space& space, const SparseGrid& ref, const BinTable& bins,
-                               const std::int32_t* particle_object) {
+void ObjectContact::map_leaves(const exec::Space& space, const SparseGrid& ref,
+                               const BinTable& bins, const std::int32_t* particle_object) {
   leaf_object_.assign(ref.leaf_count(), -1);
   objects_ = 0;
   ordered_leaves_ = ref.active_leaves();
@@ -47,10 +47,12 @@ void ObjectContact::map_leaves(const exec::Space& space, const SparseGrid& ref, 
           const std::uint32_t b = cbins[c0 + std::uint32_t(ci)];
           const std::int32_t k = particle_object[bins.start[b]];
           for (std::uint32_t p = bins.start[b] + 1; p < bins.start[b + 1]; ++p)
-            if (particle_object[p] != k && acc.bin < 0) acc.bin = std::int64_t(b), acc.a = k, acc.b = particle_object[p];
+            if (particle_object[p] != k && acc.bin < 0)
+              acc.bin = std::int64_t(b), acc.a = k, acc.b = particle_object[p];
           for (const std::int32_t leaf : nbr8[b]) {
             std::int32_t& owner = lo[leaf];
-            if (owner >= 0 && owner != k && acc.bin < 0) acc.bin = std::int64_t(b), acc.a = owner, acc.b = k;
+            if (owner >= 0 && owner != k && acc.bin < 0)
+              acc.bin = std::int64_t(b), acc.a = owner, acc.b = k;
             owner = k;
           }
           acc.objects = std::max(acc.objects, k + 1);
@@ -76,15 +78,17 @@ void ObjectContact::map_leaves(const exec::Space& space, const SparseGrid& ref, 
 }
 
 ContactPointView ObjectContact::point_view() {
-  return {points_.vec3(x_),     points_.vec3(v_),      points_.real(m_), points_.int32(object_),
+  return {points_.vec3(x_),     points_.vec3(v_),       points_.real(m_), points_.int32(object_),
           points_.int32(leaf_), points_.int32(offset_), points_.size()};
 }
 
-std::size_t ObjectContact::apply(const exec::Space& space, const MpmGridView& ref_view, const Real* q,
-                                 const ObjectContactSettings& settings, Real dx, Real dt) {
+std::size_t ObjectContact::apply(const exec::Space& space, const MpmGridView& ref_view,
+                                 const Real* q, const ObjectContactSettings& settings, Real dx,
+                                 Real dt) {
   if (settings.mode == ObjectContactMode::None) return 0;
   if (ordered_leaves_.size() != ref_view.nactive)
-    throw std::logic_error("ObjectContact::apply: map_leaves was not called after the topology changed");
+    throw std::logic_error(
+        "ObjectContact::apply: map_leaves was not called after the topology changed");
   MpmGridView ref = ref_view;
   ref.active_leaves = ordered_leaves_.data();
   // 1. broad phase (object boxes) and collection: a deterministic compaction (count per active
@@ -96,7 +100,8 @@ std::size_t ObjectContact::apply(const exec::Space& space, const MpmGridView& re
   contact_count_points(space, ref, q, leaf_object_.data(), boxes, margin, dt, count_.data());
   const std::uint32_t* cnt = count_.data();
   const std::uint32_t total = exec::parallel_scan<std::uint32_t>(
-      space, "contact.scan", exec::Index(ref.nactive), [cnt](exec::Index i) { return cnt[i]; }, start_.data());
+      space, "contact.scan", exec::Index(ref.nactive), [cnt](exec::Index i) { return cnt[i]; },
+      start_.data());
   points_.resize(total);
   if (total == 0) return 0;  // objects apart: no global grid this substep
   ContactPointView pts = point_view();

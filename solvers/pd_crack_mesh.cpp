@@ -17,7 +17,8 @@ std::uint32_t find(std::vector<std::uint32_t>& parent, std::uint32_t a) {
 }
 }  // namespace
 
-PdCrackMesh::PdCrackMesh(const std::vector<Vec3d>& nodes, const std::vector<std::array<std::int32_t, 4>>& tets,
+PdCrackMesh::PdCrackMesh(const std::vector<Vec3d>& nodes,
+                         const std::vector<std::array<std::int32_t, 4>>& tets,
                          std::uint32_t first_particle)
     : first_particle_(first_particle) {
   const std::size_t nt = tets.size();
@@ -32,7 +33,8 @@ PdCrackMesh::PdCrackMesh(const std::vector<Vec3d>& nodes, const std::vector<std:
   std::map<std::array<std::int32_t, 3>, std::uint32_t> index;
   for (std::size_t t = 0; t < nt; ++t) {
     for (int c = 0; c < 4; ++c) tets_[t][c] = std::uint32_t(tets[t][c]);
-    const Vec3d c0 = (nodes[tets[t][0]] + nodes[tets[t][1]] + nodes[tets[t][2]] + nodes[tets[t][3]]) / 4;
+    const Vec3d c0 =
+        (nodes[tets[t][0]] + nodes[tets[t][1]] + nodes[tets[t][2]] + nodes[tets[t][3]]) / 4;
     for (std::uint8_t o = 0; o < 4; ++o) {
       // Outward order: the normal points away from the tetrahedron's centre.
       std::array<std::uint8_t, 3> l = {kFace[o][0], kFace[o][1], kFace[o][2]};
@@ -40,7 +42,8 @@ PdCrackMesh::PdCrackMesh(const std::vector<Vec3d>& nodes, const std::vector<std:
       const Vec3d n = (nodes[tets[t][l[1]]] - a).cross(nodes[tets[t][l[2]]] - a);
       if (n.dot(a - c0) < 0) std::swap(l[1], l[2]);
       for (int k = 0; k < 3; ++k) outward_[t][3 * o + k] = l[k];
-      std::array<std::int32_t, 3> key = {tets[t][kFace[o][0]], tets[t][kFace[o][1]], tets[t][kFace[o][2]]};
+      std::array<std::int32_t, 3> key = {tets[t][kFace[o][0]], tets[t][kFace[o][1]],
+                                         tets[t][kFace[o][2]]};
       std::sort(key.begin(), key.end());
       auto it = index.find(key);
       if (it == index.end()) {
@@ -55,7 +58,8 @@ PdCrackMesh::PdCrackMesh(const std::vector<Vec3d>& nodes, const std::vector<std:
       } else {
         Face& f = faces_[it->second];
         if (f.tet[1] != ~std::uint32_t(0))
-          throw std::invalid_argument("tetrahedral mesh: a face is shared by more than two tetrahedra");
+          throw std::invalid_argument(
+              "tetrahedral mesh: a face is shared by more than two tetrahedra");
         f.tet[1] = std::uint32_t(t);
         f.local[1] = o;
         tet_faces_[t][o] = it->second;
@@ -143,7 +147,8 @@ void PdCrackMesh::split_vertex(std::uint32_t v) {
   for (std::uint32_t a = 0; a < inc.size(); ++a) {
     const std::uint32_t r = find(parent, a);
     if (root_vertex[r] == ~std::uint32_t(0)) {
-      if (vertex_count_ >= x_.size()) throw std::logic_error("PdCrackMesh: vertex capacity exceeded");
+      if (vertex_count_ >= x_.size())
+        throw std::logic_error("PdCrackMesh: vertex capacity exceeded");
       root_vertex[r] = std::uint32_t(vertex_count_);
       x_[vertex_count_] = x_[v];
       ++vertex_count_;
@@ -177,7 +182,8 @@ void PdCrackMesh::move_vertices(const Vec3* v, const Real* volume, const std::in
     if (weight_[k] > 0) x_[k] += (dt * (velocity_[k] / weight_[k])).cast<Real>();
 }
 
-void PdCrackMesh::surface(std::vector<Vec3>& vertices, std::vector<std::array<std::uint32_t, 3>>& triangles,
+void PdCrackMesh::surface(std::vector<Vec3>& vertices,
+                          std::vector<std::array<std::uint32_t, 3>>& triangles,
                           std::vector<std::uint8_t>& crack) const {
   vertices.clear();
   triangles.clear();
@@ -187,7 +193,8 @@ void PdCrackMesh::surface(std::vector<Vec3>& vertices, std::vector<std::array<st
     std::array<std::uint32_t, 3> tri;
     for (int k = 0; k < 3; ++k) {
       const std::uint32_t g = tets_[t][outward_[t][3 * o + k]];
-      if (remap[g] == ~std::uint32_t(0)) remap[g] = std::uint32_t(vertices.size()), vertices.push_back(x_[g]);
+      if (remap[g] == ~std::uint32_t(0))
+        remap[g] = std::uint32_t(vertices.size()), vertices.push_back(x_[g]);
       tri[k] = remap[g];
     }
     triangles.push_back(tri);

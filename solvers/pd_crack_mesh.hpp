@@ -43,8 +43,8 @@ class PdCrackMesh {
   std::size_t update_topology(const PdBonds& bonds);
   // x_v += dt v_v, v_v the 1/4 m_p-weighted mean of the incident particles' velocities (eqs.
   // 19-21); mass = density x volume per particle.
-  void move_vertices(const Vec3* v, const Real* volume, const std::int32_t* material, const PdMaterial* materials,
-                     Real dt);
+  void move_vertices(const Vec3* v, const Real* volume, const std::int32_t* material,
+                     const PdMaterial* materials, Real dt);
 
   // The surface: original boundary faces and both sides of every crack face, outward-oriented
   // triangles over the used vertices only (compact indices); crack[f] = 1 for crack faces.
@@ -75,18 +75,20 @@ class PdCrackMesh {
   };
   static constexpr std::uint64_t kNone = ~std::uint64_t(0);
   void split_vertex(std::uint32_t v);
-  std::uint64_t find_bond(const PdBonds& bonds, const Face& f) const;  // kNone: no bond joins the pair
+  std::uint64_t find_bond(const PdBonds& bonds,
+                          const Face& f) const;  // kNone: no bond joins the pair
 
   std::uint32_t first_particle_;
-  std::vector<std::array<std::uint32_t, 4>> tets_;         // current vertex indices (split copies)
-  std::vector<std::array<std::uint32_t, 4>> tet_faces_;    // face index opposite each local vertex
-  std::vector<std::array<std::uint8_t, 12>> outward_;      // per face: local vertex order, outward
+  std::vector<std::array<std::uint32_t, 4>> tets_;       // current vertex indices (split copies)
+  std::vector<std::array<std::uint32_t, 4>> tet_faces_;  // face index opposite each local vertex
+  std::vector<std::array<std::uint8_t, 12>> outward_;    // per face: local vertex order, outward
   std::vector<Face> faces_;
-  std::vector<std::uint8_t> cracked_;                      // per face
-  std::vector<Vec3> x_;                                    // capacity 4 x tetrahedra
+  std::vector<std::uint8_t> cracked_;  // per face
+  std::vector<Vec3> x_;                // capacity 4 x tetrahedra
   std::uint64_t vertex_count_ = 0;
-  std::vector<std::vector<std::uint32_t>> incident_;       // per vertex: its tetrahedra (rebuilt on resume)
-  std::vector<double> weight_;                             // scratch for move_vertices
+  std::vector<std::vector<std::uint32_t>>
+      incident_;                // per vertex: its tetrahedra (rebuilt on resume)
+  std::vector<double> weight_;  // scratch for move_vertices
   std::vector<Vec3d> velocity_;
   void rebuild_incidence();
 };

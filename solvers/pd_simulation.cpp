@@ -12,9 +12,10 @@ PdSimulation::PdSimulation(PdSolver solver, const exec::Space& space) : s_(std::
   const std::size_t np = s_.particles().size();
   std::ostringstream os;
   os << "peridynamics, " << np << " particles, " << d.bonds << " directed bonds ("
-     << double(d.bonds) / double(std::max<std::size_t>(1, np)) << " per particle), spacing " << s_.settings().spacing
-     << " m, horizon " << s_.settings().horizon << " m, deviatoric " << pd_deviatoric_name(s_.settings().deviatoric)
-     << ", stable dt " << s_.stable_dt(space) << " s";
+     << double(d.bonds) / double(std::max<std::size_t>(1, np)) << " per particle), spacing "
+     << s_.settings().spacing << " m, horizon " << s_.settings().horizon << " m, deviatoric "
+     << pd_deviatoric_name(s_.settings().deviatoric) << ", stable dt " << s_.stable_dt(space)
+     << " s";
   description_ = os.str();
 }
 
@@ -41,7 +42,9 @@ FrameReport PdSimulation::end_frame(const exec::Space& space, long long) {
 }
 
 // The dilatation (with plasticity), force (with fracture) and contact passes.
-std::vector<std::string> PdSimulation::profile_columns() const { return {"dilatation_s", "force_s", "contact_s"}; }
+std::vector<std::string> PdSimulation::profile_columns() const {
+  return {"dilatation_s", "force_s", "contact_s"};
+}
 int PdSimulation::profile_column(const std::string& l) const {
   if (l == "pd.dilatation") return 0;
   if (l.rfind("pd.forces", 0) == 0) return 1;  // with pd.forces_rows
@@ -100,7 +103,8 @@ template <class T>
 std::function<char*(std::uint64_t)> resize_into(std::vector<T>& v, const char* name) {
   return [&v, name](std::uint64_t bytes) {
     if (bytes % sizeof(T) != 0)
-      throw InputError(std::string("checkpoint section '") + name + "' has " + std::to_string(bytes) +
+      throw InputError(std::string("checkpoint section '") + name + "' has " +
+                       std::to_string(bytes) +
                        " bytes, not a whole number of entries (corrupt file)");
     v.resize(std::size_t(bytes / sizeof(T)));
     return reinterpret_cast<char*>(v.data());
@@ -113,8 +117,10 @@ std::function<char*(std::uint64_t)> resize_into(std::vector<T>& v, const char* n
 std::vector<StateSection> PdSimulation::checkpoint_sections() {
   PdBonds& m = s_.bonds();
   std::vector<StateSection> out = {
-      {"bonds.offsets", reinterpret_cast<char*>(m.offsets.data()), m.offsets.size() * sizeof(std::uint64_t)},
-      {"bonds.neighbor", reinterpret_cast<char*>(m.neighbor.data()), m.neighbor.size() * sizeof(std::uint32_t)},
+      {"bonds.offsets", reinterpret_cast<char*>(m.offsets.data()),
+       m.offsets.size() * sizeof(std::uint64_t)},
+      {"bonds.neighbor", reinterpret_cast<char*>(m.neighbor.data()),
+       m.neighbor.size() * sizeof(std::uint32_t)},
       {"bonds.plastic", reinterpret_cast<char*>(m.plastic.data()), m.plastic.size() * sizeof(Real)},
       {"bonds.intact", reinterpret_cast<char*>(m.intact.data()), m.intact.size()}};
   add_mesh_sections(s_, out);
@@ -125,8 +131,10 @@ std::vector<StateSection> PdSimulation::restore_sections() {
   offsets_.assign(s_.bonds().offsets.size(), 0);
   const std::size_t nb = s_.bonds().size();
   std::vector<StateSection> out = {
-      {"bonds.offsets", reinterpret_cast<char*>(offsets_.data()), offsets_.size() * sizeof(std::uint64_t)},
-      {"bonds.neighbor", nullptr, nb * sizeof(std::uint32_t), resize_into(neighbor_, "bonds.neighbor")},
+      {"bonds.offsets", reinterpret_cast<char*>(offsets_.data()),
+       offsets_.size() * sizeof(std::uint64_t)},
+      {"bonds.neighbor", nullptr, nb * sizeof(std::uint32_t),
+       resize_into(neighbor_, "bonds.neighbor")},
       {"bonds.plastic", nullptr, nb * sizeof(Real), resize_into(plastic_, "bonds.plastic")},
       {"bonds.intact", nullptr, nb, resize_into(intact_, "bonds.intact")}};
   add_mesh_sections(s_, out);
@@ -135,12 +143,14 @@ std::vector<StateSection> PdSimulation::restore_sections() {
 
 void PdSimulation::restored(double time, std::uint64_t steps) {
   if (plastic_.size() != neighbor_.size() || intact_.size() != neighbor_.size())
-    throw InputError("checkpoint's bond sections disagree in length (" + std::to_string(neighbor_.size()) +
-                     " neighbours, " + std::to_string(plastic_.size()) + " plastic extensions, " +
+    throw InputError("checkpoint's bond sections disagree in length (" +
+                     std::to_string(neighbor_.size()) + " neighbours, " +
+                     std::to_string(plastic_.size()) + " plastic extensions, " +
                      std::to_string(intact_.size()) + " flags)");
   if (!s_.restore_bonds(offsets_, neighbor_, plastic_, intact_))
-    throw InputError("checkpoint's bond list is not a subset of this scene's bonds (written for other "
-                     "particles or another horizon?)");
+    throw InputError(
+        "checkpoint's bond list is not a subset of this scene's bonds (written for other "
+        "particles or another horizon?)");
   for (PdCrackMesh& m : s_.crack_meshes()) m.restored();
   s_.restore_clock(time, steps);
   offsets_ = {};

@@ -28,7 +28,8 @@ PdAttributes PdAttributes::add_to(ParticleSet& ps) {
   return a;
 }
 
-PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials, std::vector<Collider> colliders)
+PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials,
+                   std::vector<Collider> colliders)
     : settings_(settings), materials_(std::move(materials)), colliders_(std::move(colliders)) {
   if (materials_.empty()) throw std::invalid_argument("PdSolver: no materials");
   if (!(settings_.spacing > 0) || !(settings_.horizon > settings_.spacing))
@@ -40,15 +41,16 @@ PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials
   params_.consistent = settings_.surface_correction;
 }
 
-void PdSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega, const Vec3& centre,
-                             int material, Real volume) {
+void PdSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega,
+                             const Vec3& centre, int material, Real volume) {
   add_particles(x, std::vector<Real>(x.size(), volume), v, omega, centre, material);
 }
 
-void PdSolver::add_particles(const std::vector<Vec3>& x, const std::vector<Real>& volume, const Vec3& v,
-                             const Vec3& omega, const Vec3& centre, int material) {
+void PdSolver::add_particles(const std::vector<Vec3>& x, const std::vector<Real>& volume,
+                             const Vec3& v, const Vec3& omega, const Vec3& centre, int material) {
   if (initialized_) throw std::logic_error("PdSolver: particles added after initialize()");
-  if (material < 0 || std::size_t(material) >= materials_.size()) throw std::invalid_argument("PdSolver: bad material");
+  if (material < 0 || std::size_t(material) >= materials_.size())
+    throw std::invalid_argument("PdSolver: bad material");
   const std::size_t n0 = particles_.size();
   particles_.resize(n0 + x.size());
   Vec3* px = particles_.vec3(attr_.x);
@@ -84,10 +86,12 @@ void PdSolver::apply_force_density(const Vec3& lo, const Vec3& hi, const Vec3& f
   const Vec3* x0 = particles_.vec3(attr_.x0);
   Vec3* fe = particles_.vec3(attr_.f_ext);
   for (std::size_t i = 0; i < particles_.size(); ++i)
-    if ((x0[i].array() >= lo.array()).all() && (x0[i].array() <= hi.array()).all()) fe[i] += force_density;
+    if ((x0[i].array() >= lo.array()).all() && (x0[i].array() <= hi.array()).all())
+      fe[i] += force_density;
 }
 
-void PdSolver::add_crack_mesh(const std::vector<Vec3d>& nodes, const std::vector<std::array<std::int32_t, 4>>& tets,
+void PdSolver::add_crack_mesh(const std::vector<Vec3d>& nodes,
+                              const std::vector<std::array<std::int32_t, 4>>& tets,
                               std::uint32_t first_particle) {
   if (initialized_) throw std::logic_error("PdSolver: mesh added after initialize()");
   if (std::size_t(first_particle) + tets.size() > particles_.size())
@@ -97,8 +101,8 @@ void PdSolver::add_crack_mesh(const std::vector<Vec3d>& nodes, const std::vector
 
 void PdSolver::move_meshes(Real dt) {
   for (PdCrackMesh& m : meshes_)
-    m.move_vertices(particles_.vec3(attr_.v), particles_.real(attr_.volume), particles_.int32(attr_.material),
-                    materials_.data(), dt);
+    m.move_vertices(particles_.vec3(attr_.v), particles_.real(attr_.volume),
+                    particles_.int32(attr_.material), materials_.data(), dt);
 }
 
 void PdSolver::split_meshes() {
@@ -132,8 +136,8 @@ PdView PdSolver::view() {
 
 void PdSolver::initialize(const exec::Space& space) {
   const std::size_t n = particles_.size();
-  pd_build_bonds(space, particles_.vec3(attr_.x0), particles_.real(attr_.volume), particles_.int32(attr_.material), n,
-                 params(), settings_.partial_volume, bonds_);
+  pd_build_bonds(space, particles_.vec3(attr_.x0), particles_.real(attr_.volume),
+                 particles_.int32(attr_.material), n, params(), settings_.partial_volume, bonds_);
   pd_constants(space, particles_.vec3(attr_.x0), particles_.int32(attr_.material), bonds_, params(),
                settings_.surface_correction, constants_);
   // Pre-cracks break bonds after the constants: the material around a crack is the same material,
@@ -146,13 +150,17 @@ void PdSolver::initialize(const exec::Space& space) {
     exec::parallel_for(space, "pd.precracks", exec::Index(n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       for (std::uint64_t k = b.offsets[i]; k < b.offsets[i + 1]; ++k) {
-        const std::uint32_t j = b.neighbor[k];  // evaluate from the lower index: both rows decide alike
+        const std::uint32_t j =
+            b.neighbor[k];  // evaluate from the lower index: both rows decide alike
         const Vec3 &a = x0[std::min<std::size_t>(i, j)], &c = x0[std::max<std::size_t>(i, j)];
         for (std::size_t q = 0; q < nc; ++q) {
-          const Real sa = (a - cracks[q].point).dot(cracks[q].n), sc = (c - cracks[q].point).dot(cracks[q].n);
+          const Real sa = (a - cracks[q].point).dot(cracks[q].n),
+                     sc = (c - cracks[q].point).dot(cracks[q].n);
           if (!(sa * sc < 0)) continue;
           const Vec3 hit = a + (sa / (sa - sc)) * (c - a);
-          if ((hit.array() >= cracks[q].lo.array()).all() && (hit.array() <= cracks[q].hi.array()).all()) b.intact[k] = 0;
+          if ((hit.array() >= cracks[q].lo.array()).all() &&
+              (hit.array() <= cracks[q].hi.array()).all())
+            b.intact[k] = 0;
         }
       }
     });
@@ -190,8 +198,10 @@ Real PdSolver::critical_dt(const exec::Space& space) {
   pd_forces(space, p, bonds_, prm, false, f0.data(), nullptr, &scratch_);
   std::mt19937 rng(20261123);  // a fixed start vector: the estimate is reproducible
   std::uniform_real_distribution<double> u(-1, 1);
-  for (std::size_t i = 0; i < n; ++i) v[i] = fixed[i] ? Vec3::Zero() : Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
-  const Real amp = Real(3e-3) * settings_.spacing;  // probe displacement: linear, above float round-off
+  for (std::size_t i = 0; i < n; ++i)
+    v[i] = fixed[i] ? Vec3::Zero() : Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
+  const Real amp =
+      Real(3e-3) * settings_.spacing;  // probe displacement: linear, above float round-off
   double lambda = 0;
   for (int it = 0; it < 40; ++it) {
     double vmax = 0, vv = 0;
@@ -206,7 +216,8 @@ Real PdSolver::critical_dt(const exec::Space& space) {
     pd_forces(space, p, bonds_, prm, false, f.data(), nullptr, &scratch_);
     double aa = 0;
     for (std::size_t i = 0; i < n; ++i) {
-      v[i] = fixed[i] ? Vec3::Zero() : Vec3(-(f[i] - f0[i]) / (amp * materials_[std::size_t(mat[i])].density));
+      v[i] = fixed[i] ? Vec3::Zero()
+                      : Vec3(-(f[i] - f0[i]) / (amp * materials_[std::size_t(mat[i])].density));
       aa += double(v[i].squaredNorm());
     }
     lambda = std::sqrt(aa / vv);  // |A v| / |v| -> the largest |eigenvalue| of A = rho^-1 K
@@ -243,9 +254,13 @@ Real PdSolver::stable_dt(const exec::Space& space) const {
     std::ostringstream os;
     os << "step " << steps_ << " (t = " << time_ << " s): particle " << c.bad << " (id "
        << particles_.int32(attr_.id)[c.bad] << ") ";
-    if (c.what == 1) os << "has a non-finite velocity (" << v[c.bad].transpose() << ")";
-    else if (c.what == 2) os << "has a non-finite position";
-    else os << "moves at " << v[c.bad].norm() << " m/s, above the stability limit max_speed = " << limit << " m/s";
+    if (c.what == 1)
+      os << "has a non-finite velocity (" << v[c.bad].transpose() << ")";
+    else if (c.what == 2)
+      os << "has a non-finite position";
+    else
+      os << "moves at " << v[c.bad].norm()
+         << " m/s, above the stability limit max_speed = " << limit << " m/s";
     os << "; the simulation blew up (reduce cfl or max_dt, or check the material stiffness)";
     throw SimulationError(os.str());
   }
@@ -282,40 +297,48 @@ void PdSolver::apply_colliders(const exec::Space& space, Real t) {
     for (int c = 0; c < nc; ++c) {
       const Real phi = cols[c].phi(x[i], t);
       if (phi >= 0) continue;
-      cols[c].project(x[i], t, v[i]);                // velocity: sticky / slip / separating + friction
+      cols[c].project(x[i], t, v[i]);  // velocity: sticky / slip / separating + friction
       x[i] -= phi * cols[c].outward_normal(x[i], t);  // position back onto the surface
     }
   });
 }
 
-void PdSolver::compute_dilatation(const exec::Space& space) { pd_dilatation(space, view(), bonds_, params(), &scratch_); }
+void PdSolver::compute_dilatation(const exec::Space& space) {
+  pd_dilatation(space, view(), bonds_, params(), &scratch_);
+}
 
 void PdSolver::compute_forces(const exec::Space& space) {
   pd_forces(space, view(), bonds_, params(), settings_.fracture, force_.data(), nullptr, &scratch_);
 }
 
 Real PdSolver::contact_distance() const {
-  return settings_.contact_distance > 0 ? settings_.contact_distance : Real(0.9) * settings_.spacing;
+  return settings_.contact_distance > 0 ? settings_.contact_distance
+                                        : Real(0.9) * settings_.spacing;
 }
 
 void PdSolver::contact_forces(const exec::Space& space) {
   if (!settings_.contact) return;
   const Real d = contact_distance();
-  const Real skin = settings_.contact_skin > 0 ? settings_.contact_skin : Real(0.5) * settings_.spacing;
+  const Real skin =
+      settings_.contact_skin > 0 ? settings_.contact_skin : Real(0.5) * settings_.spacing;
   const Vec3* x = particles_.vec3(attr_.x);
-  if (contact_list_.x_built.size() != particles_.size() || pd_max_displacement(space, x, contact_list_) > skin / 2) {
+  if (contact_list_.x_built.size() != particles_.size() ||
+      pd_max_displacement(space, x, contact_list_) > skin / 2) {
     pd_build_contact_list(space, x, particles_.size(), d + skin, contact_list_);
     ++contact_builds_;
   }
   pd_contact_forces(space, view(), bonds_, params(), d, contact_list_, force_.data());
 }
 
-void PdSolver::update_damage(const exec::Space& space) { intact_ = pd_damage(space, view(), bonds_); }
+void PdSolver::update_damage(const exec::Space& space) {
+  intact_ = pd_damage(space, view(), bonds_);
+}
 
 void PdSolver::compact_bonds(const exec::Space& space) {
   if (!(settings_.compact_fraction > 0)) return;
   const std::uint64_t stored = bonds_.size();
-  const std::uint64_t removable = stored - intact_ - kept_broken_;  // broken since the last compaction
+  const std::uint64_t removable =
+      stored - intact_ - kept_broken_;  // broken since the last compaction
   if (!(double(removable) > double(settings_.compact_fraction) * double(stored))) return;
   if (armed_ && !armed_->layout_saved) {  // a retry of this frame needs the layout back
     armed_->layout = bonds_;
@@ -327,8 +350,10 @@ void PdSolver::compact_bonds(const exec::Space& space) {
   for (PdCrackMesh& m : meshes_) m.reattach(bonds_);
 }
 
-bool PdSolver::restore_bonds(const std::vector<std::uint64_t>& offsets, const std::vector<std::uint32_t>& neighbor,
-                             const std::vector<Real>& plastic, const std::vector<std::uint8_t>& intact) {
+bool PdSolver::restore_bonds(const std::vector<std::uint64_t>& offsets,
+                             const std::vector<std::uint32_t>& neighbor,
+                             const std::vector<Real>& plastic,
+                             const std::vector<std::uint8_t>& intact) {
   if (!initialized_) throw std::logic_error("PdSolver: restore_bonds() before initialize()");
   if (plastic.size() != neighbor.size() || intact.size() != neighbor.size()) return false;
   const exec::Space serial;
@@ -340,7 +365,8 @@ bool PdSolver::restore_bonds(const std::vector<std::uint64_t>& offsets, const st
   intact_ = kept_broken_ = 0;
   for (std::size_t k = 0; k < bonds_.size(); ++k) {
     intact_ += bonds_.intact[k];
-    kept_broken_ += !bonds_.intact[k] && pd_contact_reads_broken_bond(bonds_.length[k], d);  // what compaction keeps
+    kept_broken_ += !bonds_.intact[k] &&
+                    pd_contact_reads_broken_bond(bonds_.length[k], d);  // what compaction keeps
   }
   meshes_intact_ = intact_;
   for (PdCrackMesh& m : meshes_) m.reattach(bonds_);
@@ -394,7 +420,8 @@ void PdSolver::kick(const exec::Space& space, Real dt) {
 
 void PdSolver::step(const exec::Space& space, Real dt) {
   if (!initialized_) throw std::logic_error("PdSolver: step() before initialize()");
-  if (!(dt > 0) || !std::isfinite(dt)) throw SimulationError("peridynamics: invalid time step " + std::to_string(dt));
+  if (!(dt > 0) || !std::isfinite(dt))
+    throw SimulationError("peridynamics: invalid time step " + std::to_string(dt));
   kick_drift(space, dt);
   move_meshes(dt);  // with the half-step velocities that moved the particles
   apply_colliders(space, Real(time_ + double(dt)));

@@ -22,17 +22,17 @@
 namespace amalgam {
 
 struct PdSettings {
-  Real spacing = Real(0.01);  // lattice spacing lc of the particles (m)
+  Real spacing = Real(0.01);    // lattice spacing lc of the particles (m)
   Real horizon = Real(0.0301);  // delta (m); 3.01 lc by default
   PdDeviatoric deviatoric = PdDeviatoric::Paper;
   bool partial_volume = true;      // nu_ij for bonds cut by the horizon
   bool surface_correction = true;  // discrete theta normaliser and shear factor (see PdConstants)
   bool fracture = true;
-  bool contact = true;              // repulsion between unbonded particles closer than contact_distance
-  Real contact_distance = 0;        // 0: 0.9 lc
-  Real contact_skin = 0;            // Verlet-list skin; 0: 0.5 lc
+  bool contact = true;        // repulsion between unbonded particles closer than contact_distance
+  Real contact_distance = 0;  // 0: 0.9 lc
+  Real contact_skin = 0;      // Verlet-list skin; 0: 0.5 lc
   Vec3 gravity = Vec3(0, Real(-9.81), 0);
-  Real cfl = Real(0.7);             // safety factor on the critical Verlet step (PdSolver::critical_dt)
+  Real cfl = Real(0.7);  // safety factor on the critical Verlet step (PdSolver::critical_dt)
   Real max_dt = std::numeric_limits<Real>::infinity();
   Real max_speed = Real(1e4);  // stability guard: faster particles stop the run
   // Viscous damping (1/s): each half kick multiplies velocities by exp(-damping dt / 2). For dynamic
@@ -48,9 +48,9 @@ struct PdSettings {
 // Particle attributes of a peridynamic body.
 struct PdAttributes {
   ParticleSet::Id x, x0, v, acc, volume, material, id, theta, damage;
-  ParticleSet::Id fixed;     // int32: 1 = velocity prescribed (fixed_velocity), 0 = free
-  ParticleSet::Id fixed_v;   // prescribed velocity
-  ParticleSet::Id f_ext;     // external force density (N/m^3), e.g. a traction on an end layer
+  ParticleSet::Id fixed;    // int32: 1 = velocity prescribed (fixed_velocity), 0 = free
+  ParticleSet::Id fixed_v;  // prescribed velocity
+  ParticleSet::Id f_ext;    // external force density (N/m^3), e.g. a traction on an end layer
   static PdAttributes add_to(ParticleSet& ps);
 };
 
@@ -60,20 +60,21 @@ struct PdDiagnostics {
   double max_speed = 0;
   double max_damage = 0;
   std::uint64_t bonds = 0, intact = 0;  // directed bonds: at the start, and intact now
-  std::uint64_t stored = 0;             // directed bonds in the CSR arrays (bonds minus those compacted away)
+  std::uint64_t stored = 0;  // directed bonds in the CSR arrays (bonds minus those compacted away)
   std::uint64_t compactions = 0;
 };
 
 class PdSolver {
  public:
-  PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials, std::vector<Collider> colliders = {});
+  PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials,
+           std::vector<Collider> colliders = {});
 
   // Adds particles of one material with a velocity v + omega x (x - centre) and a volume each.
-  void add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega, const Vec3& centre, int material,
-                     Real volume);
+  void add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega,
+                     const Vec3& centre, int material, Real volume);
   // Same with a volume per particle (tetrahedron barycentres).
-  void add_particles(const std::vector<Vec3>& x, const std::vector<Real>& volume, const Vec3& v, const Vec3& omega,
-                     const Vec3& centre, int material);
+  void add_particles(const std::vector<Vec3>& x, const std::vector<Real>& volume, const Vec3& v,
+                     const Vec3& omega, const Vec3& centre, int material);
   // Prescribes the velocity of the particles inside the box [lo, hi] (at their reference
   // position): zero velocity fixes them.
   void prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& velocity);
@@ -86,7 +87,8 @@ class PdSolver {
   void add_precrack(const Vec3& point, const Vec3& n, const Vec3& lo, const Vec3& hi);
   // Embeds a tetrahedral mesh whose tetrahedron t is particle first_particle + t (the particles
   // added from its barycentres): it follows the particles and splits along crack faces (Sec. 5.2).
-  void add_crack_mesh(const std::vector<Vec3d>& nodes, const std::vector<std::array<std::int32_t, 4>>& tets,
+  void add_crack_mesh(const std::vector<Vec3d>& nodes,
+                      const std::vector<std::array<std::int32_t, 4>>& tets,
                       std::uint32_t first_particle);
   std::vector<PdCrackMesh>& crack_meshes() { return meshes_; }
   const std::vector<PdCrackMesh>& crack_meshes() const { return meshes_; }
@@ -116,10 +118,11 @@ class PdSolver {
     ParticleSet::Snapshot particles;
     std::vector<Real> plastic, plastic_r;
     std::vector<std::uint8_t> intact;
-    PdBonds layout;             // the bonds as saved, when a compaction replaced them since
+    PdBonds layout;  // the bonds as saved, when a compaction replaced them since
     bool layout_saved = false;
     std::vector<PdCrackMesh> meshes;
-    std::uint64_t intact_count = 0, meshes_intact = 0, kept_broken = 0, compactions = 0, bond_updates = 0;
+    std::uint64_t intact_count = 0, meshes_intact = 0, kept_broken = 0, compactions = 0,
+                  bond_updates = 0;
     double time = 0;
     std::uint64_t steps = 0;
   };
@@ -141,7 +144,8 @@ class PdSolver {
     PdParams p = params_;
     p.materials = materials_.data();
     p.plastic = false;
-    for (const PdMaterial& m : materials_) p.plastic |= m.psi0 < std::numeric_limits<Real>::infinity();
+    for (const PdMaterial& m : materials_)
+      p.plastic |= m.psi0 < std::numeric_limits<Real>::infinity();
     return p;
   }
   const PdConstants& constants() const { return constants_; }
@@ -169,8 +173,9 @@ class PdSolver {
   // A checkpoint's bond rows and per-bond state (see read_checkpoint): restricts the bonds built
   // from the reference configuration to the given rows and takes the state. Returns false
   // (nothing changed) when the rows are not a subset of this solver's bonds.
-  bool restore_bonds(const std::vector<std::uint64_t>& offsets, const std::vector<std::uint32_t>& neighbor,
-                     const std::vector<Real>& plastic, const std::vector<std::uint8_t>& intact);
+  bool restore_bonds(const std::vector<std::uint64_t>& offsets,
+                     const std::vector<std::uint32_t>& neighbor, const std::vector<Real>& plastic,
+                     const std::vector<std::uint8_t>& intact);
 
  private:
   PdSettings settings_;
@@ -191,18 +196,21 @@ class PdSolver {
   // critical step of a corrected 8^3 block, i.e. that many more steps for nothing.
   Real critical_dt(const exec::Space& space);
   std::vector<Vec3> force_;
-  PdScratch scratch_;  // the passes' per-particle records, reused every step
+  PdScratch scratch_;    // the passes' per-particle records, reused every step
   std::vector<Real> q_;  // consistent term per particle (PdView::q), recomputed every step
   struct Precrack {
     Vec3 point, n, lo, hi;
   };
   std::vector<Precrack> precracks_;
   std::vector<PdCrackMesh> meshes_;
-  std::uint64_t intact_ = 0, meshes_intact_ = 0;  // intact directed bonds: now, and when the meshes last split
+  std::uint64_t intact_ = 0,
+                meshes_intact_ = 0;  // intact directed bonds: now, and when the meshes last split
   std::uint64_t bonds_initial_ = 0;  // directed bonds at initialize()
-  std::uint64_t kept_broken_ = 0;    // broken bonds the last compaction kept (short ones, for contact)
+  std::uint64_t kept_broken_ =
+      0;  // broken bonds the last compaction kept (short ones, for contact)
   std::uint64_t compactions_ = 0, bond_updates_ = 0;
-  Snapshot* armed_ = nullptr;  // the snapshot of the frame start, given the layout a compaction replaces
+  Snapshot* armed_ =
+      nullptr;  // the snapshot of the frame start, given the layout a compaction replaces
   Real contact_distance() const;
   Real crit_dt_ = 0;  // critical Verlet step of the reference configuration (critical_dt)
   double time_ = 0;

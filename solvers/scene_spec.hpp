@@ -25,10 +25,10 @@ struct ObjectSpec {
   std::shared_ptr<const TetMesh> tets;       // TetMesh (peridynamics): one particle per tetrahedron
   Vec3 min = Vec3::Zero(), max = Vec3::Ones();  // box
   Vec3 center = Vec3::Zero();                   // sphere (and rotation centre of both)
-  Real radius = 1;        // sphere, cylinder; torus: major radius
-  Real height = 1;        // cylinder
-  Real minor_radius = 0;  // torus: tube radius
-  int axis = 1;           // cylinder and torus axis: 0 x, 1 y, 2 z
+  Real radius = 1;                              // sphere, cylinder; torus: major radius
+  Real height = 1;                              // cylinder
+  Real minor_radius = 0;                        // torus: tube radius
+  int axis = 1;                                 // cylinder and torus axis: 0 x, 1 y, 2 z
   int material = 0;
   Vec3 velocity = Vec3::Zero();
   Vec3 angular_velocity = Vec3::Zero();

@@ -45,9 +45,9 @@ struct Column {
 
 // What a simulation reports at the end of a frame.
 struct FrameReport {
-  std::vector<Column> columns;      // its diagnostics.csv columns, the same names every frame
+  std::vector<Column> columns;        // its diagnostics.csv columns, the same names every frame
   double kinetic = 0, max_speed = 0;  // for the progress line
-  std::string progress;             // method figures for the progress line ("CG 4.2 it/step")
+  std::string progress;               // method figures for the progress line ("CG 4.2 it/step")
   std::vector<std::string> warnings;  // printed after the frame ("2 implicit solves stopped ...")
 };
 

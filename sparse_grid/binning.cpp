@@ -74,15 +74,18 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
                                    : leaf_box<2>(space, x, n, inv_dx);
   if (box.first_bad >= 0) {
     const Vec3 xb = x[box.first_bad];
-    throw SimulationError("particle " + std::to_string(box.first_bad) + " has a non-finite or runaway position (" +
-                          std::to_string(double(xb[0])) + ", " + std::to_string(double(xb[1])) + ", " +
-                          std::to_string(double(xb[2])) + ")");
+    throw SimulationError("particle " + std::to_string(box.first_bad) +
+                          " has a non-finite or runaway position (" +
+                          std::to_string(double(xb[0])) + ", " + std::to_string(double(xb[1])) +
+                          ", " + std::to_string(double(xb[2])) + ")");
   }
-  const std::int64_t ext[3] = {box.hi[0] - box.lo[0] + 1, box.hi[1] - box.lo[1] + 1, box.hi[2] - box.lo[2] + 1};
+  const std::int64_t ext[3] = {box.hi[0] - box.lo[0] + 1, box.hi[1] - box.lo[1] + 1,
+                               box.hi[2] - box.lo[2] + 1};
   const std::int64_t nkeys = ext[0] * ext[1] * ext[2];
   if (nkeys > (std::int64_t(1) << 32) - 1)
-    throw SimulationError("particles span " + std::to_string(ext[0]) + "x" + std::to_string(ext[1]) + "x" +
-                          std::to_string(ext[2]) + " leaves, more than a 32-bit key can address");
+    throw SimulationError("particles span " + std::to_string(ext[0]) + "x" +
+                          std::to_string(ext[1]) + "x" + std::to_string(ext[2]) +
+                          " leaves, more than a 32-bit key can address");
 
   keys_.resize(size_t(n));
   keys_tmp_.resize(size_t(n));
@@ -97,13 +100,17 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
       constexpr int O = decltype(order_tag)::value;
       exec::parallel_for(space, "bin.keys", n, [=](exec::Index i) {
         const Vec3i l = leaf_of<O>(x[i], inv_dx);
-        keys[i] = std::uint32_t(((std::int64_t(l[0] - lo0) * e1) + (l[1] - lo1)) * e2 + (l[2] - lo2));
+        keys[i] =
+            std::uint32_t(((std::int64_t(l[0] - lo0) * e1) + (l[1] - lo1)) * e2 + (l[2] - lo2));
         perm[i] = std::uint32_t(i);
       });
     };
-    if (order == 3) key_pass(std::integral_constant<int, 3>{});
-    else if (order == 1) key_pass(std::integral_constant<int, 1>{});
-    else key_pass(std::integral_constant<int, 2>{});
+    if (order == 3)
+      key_pass(std::integral_constant<int, 3>{});
+    else if (order == 1)
+      key_pass(std::integral_constant<int, 1>{});
+    else
+      key_pass(std::integral_constant<int, 2>{});
   }
 
   // Stable LSD radix sort of (key, index) with a fixed number of chunks.
@@ -117,18 +124,22 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
     const int shift = pass * kDigitBits;
     // Digits this pass can take (keys < nkeys): the histogram and its serial prefix cover only
     // these, not all 2^11 (a small grid's sort was dominated by the 64 x 2048 prefix).
-    const std::uint32_t ndig = std::uint32_t(std::min<std::int64_t>(kRadix, ((nkeys - 1) >> shift) + 1));
+    const std::uint32_t ndig =
+        std::uint32_t(std::min<std::int64_t>(kRadix, ((nkeys - 1) >> shift) + 1));
     std::uint32_t* hist = hist_.data();
     const std::uint32_t* kin = keys_.data();
     const std::uint32_t* pin = perm_.data();
     std::uint32_t* kout = keys_tmp_.data();
     std::uint32_t* pout = perm_tmp_.data();
-    exec::parallel_for(space, "bin.radix_hist", nchunks, [=](exec::Index c) {
-      std::uint32_t* h = hist + size_t(c) * kRadix;
-      std::fill(h, h + ndig, 0u);
-      const exec::Index e = std::min(n, (c + 1) * chunk);
-      for (exec::Index i = c * chunk; i < e; ++i) ++h[(kin[i] >> shift) & (kRadix - 1)];
-    }, 1);
+    exec::parallel_for(
+        space, "bin.radix_hist", nchunks,
+        [=](exec::Index c) {
+          std::uint32_t* h = hist + size_t(c) * kRadix;
+          std::fill(h, h + ndig, 0u);
+          const exec::Index e = std::min(n, (c + 1) * chunk);
+          for (exec::Index i = c * chunk; i < e; ++i) ++h[(kin[i] >> shift) & (kRadix - 1)];
+        },
+        1);
     // Exclusive offsets in (digit, chunk) order: stable.
     std::uint32_t running = 0;
     for (std::uint32_t d = 0; d < ndig; ++d)
@@ -138,15 +149,18 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
         h = running;
         running += cnt;
       }
-    exec::parallel_for(space, "bin.radix_scatter", nchunks, [=](exec::Index c) {
-      std::uint32_t* h = hist + size_t(c) * kRadix;
-      const exec::Index e = std::min(n, (c + 1) * chunk);
-      for (exec::Index i = c * chunk; i < e; ++i) {
-        const std::uint32_t dst = h[(kin[i] >> shift) & (kRadix - 1)]++;
-        kout[dst] = kin[i];
-        pout[dst] = pin[i];
-      }
-    }, 1);
+    exec::parallel_for(
+        space, "bin.radix_scatter", nchunks,
+        [=](exec::Index c) {
+          std::uint32_t* h = hist + size_t(c) * kRadix;
+          const exec::Index e = std::min(n, (c + 1) * chunk);
+          for (exec::Index i = c * chunk; i < e; ++i) {
+            const std::uint32_t dst = h[(kin[i] >> shift) & (kRadix - 1)]++;
+            kout[dst] = kin[i];
+            pout[dst] = pin[i];
+          }
+        },
+        1);
     keys_.swap(keys_tmp_);
     perm_.swap(perm_tmp_);
   }
@@ -158,8 +172,8 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
   const std::uint32_t* keys = keys_.data();
   std::uint32_t* flags = flags_.data();
   const std::uint32_t nbins = exec::parallel_scan<std::uint32_t>(
-      space, "bin.find_runs", n, [=](exec::Index i) { return (i == 0 || keys[i] != keys[i - 1]) ? 1u : 0u; },
-      flags);
+      space, "bin.find_runs", n,
+      [=](exec::Index i) { return (i == 0 || keys[i] != keys[i - 1]) ? 1u : 0u; }, flags);
   bins.start.resize(size_t(nbins) + 1);
   bins.leaf.resize(nbins);
   std::uint32_t* start = bins.start.data();

@@ -28,8 +28,8 @@ class ParticleBinning {
   // `order` is the B-spline order (1, 2 or 3) whose stencil base defines the key.
   // Sorts `ps` in place by leaf key (attribute `x_id` holds positions), fills `bins`.
   // Throws SimulationError naming the first particle whose position is not finite.
-  void sort_and_bin(const exec::Space& space, ParticleSet& ps, ParticleSet::Id x_id, Real dx, int order,
-                    BinTable& bins);
+  void sort_and_bin(const exec::Space& space, ParticleSet& ps, ParticleSet::Id x_id, Real dx,
+                    int order, BinTable& bins);
 
  private:
   std::vector<std::uint32_t> keys_, keys_tmp_, perm_, perm_tmp_, flags_;

@@ -27,8 +27,8 @@ void SparseGrid::set_node4_channels(int count) {
 
 std::size_t SparseGrid::bytes_per_leaf() const {
   // channel data + OpenVDB index leaf (512 int32 + masks) + tables
-  return node4_.size() * 4 * kLeafNodes * sizeof(Real) + kLeafNodes * 4 + 128 +
-         27 * 4 + sizeof(Vec3i);
+  return node4_.size() * 4 * kLeafNodes * sizeof(Real) + kLeafNodes * 4 + 128 + 27 * 4 +
+         sizeof(Vec3i);
 }
 
 void SparseGrid::grow_channels() {
@@ -128,7 +128,8 @@ void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins)
   for (int c = 0; c < 8; ++c) count[size_t(c) + 1] += count[size_t(c)];
   colour_start_ = count;
   colour_bins_.resize(nb);
-  for (size_t b = 0; b < nb; ++b) colour_bins_[count[size_t(colour(bins.leaf[b]))]++] = std::uint32_t(b);
+  for (size_t b = 0; b < nb; ++b)
+    colour_bins_[count[size_t(colour(bins.leaf[b]))]++] = std::uint32_t(b);
 
   if (nbr27_stale_) {
     nbr27_.resize(leaf_coord_.size());

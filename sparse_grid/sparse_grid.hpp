@@ -33,7 +33,9 @@ namespace amalgam {
 constexpr int kLeafDim = 8;
 constexpr int kLeafNodes = 512;
 
-inline int leaf_offset(int i, int j, int k) { return (i << 6) | (j << 3) | k; }
+inline int leaf_offset(int i, int j, int k) {
+  return (i << 6) | (j << 3) | k;
+}
 
 class SparseGrid {
  public:
@@ -81,7 +83,7 @@ class SparseGrid {
   // Per slot: topology updates since a bin last touched the leaf (0: in use this update, i.e.
   // active), or kRetired.
   std::vector<std::uint32_t> leaf_idle_;
-  std::vector<std::int32_t> free_;        // retired slots, highest first (reuse takes the lowest)
+  std::vector<std::int32_t> free_;  // retired slots, highest first (reuse takes the lowest)
   std::uint64_t updates_ = 0;
   std::vector<std::array<std::int32_t, 8>> nbr8_;
   std::vector<std::array<std::int32_t, 27>> nbr27_;

@@ -230,9 +230,10 @@ TEST(AulMpm, SpinningDiscConservesAngularMomentumWithoutSeparation) {
 TEST(AulMpm, FastSpinningDiscFracturesOnlyInEulerian) {
   const DiscRun tl = run_disc("total_lagrangian", 60, 0.3);
   const DiscRun eu = run_disc("eulerian", 60, 0.3);
-  std::printf("60 rad/s, 0.3 s: pieces (links < 1 cell) TL %d, Eulerian %d; particles farther than a cell from "
-              "their nearest neighbour: TL %d, Eulerian %d\n",
-              tl.pieces, eu.pieces, tl.torn, eu.torn);
+  std::printf(
+      "60 rad/s, 0.3 s: pieces (links < 1 cell) TL %d, Eulerian %d; particles farther than a cell from "
+      "their nearest neighbour: TL %d, Eulerian %d\n",
+      tl.pieces, eu.pieces, tl.torn, eu.torn);
   EXPECT_EQ(tl.torn, 0);
   EXPECT_EQ(tl.pieces, 1);
   EXPECT_GE(eu.pieces, 2);
@@ -361,12 +362,14 @@ struct TwistRun {
 // two sticky grips; the right grip (a keyframed mesh box) twists it by `degrees` about its axis
 // and pulls it 25 % longer in 0.3 s, then both grips let go (`until`) and the bar, without
 // gravity, recovers under light Kelvin-Voigt damping.
-TwistRun run_twist(const std::string& update, double degrees, double seconds, const exec::Space& space) {
+TwistRun run_twist(const std::string& update, double degrees, double seconds,
+                   const exec::Space& space) {
   std::string keys;
   const int n = 8;
   for (int k = 0; k <= n; ++k) {
     char buf[160];
-    std::snprintf(buf, sizeof buf, R"(%s{"time": %g, "rotate_degrees": [%g, 0, 0], "translate": [%g, 0, 0]})",
+    std::snprintf(buf, sizeof buf,
+                  R"(%s{"time": %g, "rotate_degrees": [%g, 0, 0], "translate": [%g, 0, 0]})",
                   k ? ", " : "", 0.3 * k / n, degrees * k / n, 0.04 * k / n);
     keys += buf;
   }
@@ -376,16 +379,20 @@ TwistRun run_twist(const std::string& update, double degrees, double seconds, co
     "materials": {"rubber": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 5e4,
                              "poisson_ratio": 0.3, "viscosity": 30}},
     "objects": [{"shape": "box", "min": [0.42, 0.48, 0.48], "max": [0.58, 0.52, 0.52], "material": "rubber",
-                 "jitter": 0, "configuration": {"update": ")" + update + R"("}}],
+                 "jitter": 0, "configuration": {"update": ")" +
+                           update + R"("}}],
     "colliders": [{"type": "box", "center": [0.42, 0.5, 0.5], "half_extent": [0.02, 0.05, 0.05],
                    "boundary": "sticky", "until": 0.3},
-                  {"type": "mesh", "file": ")" + grip + R"(", "translate": [0.58, 0.5, 0.5],
-                   "boundary": "sticky", "until": 0.3, "keyframes": [)" + keys + "]}]}";
+                  {"type": "mesh", "file": ")" +
+                           grip + R"(", "translate": [0.58, 0.5, 0.5],
+                   "boundary": "sticky", "until": 0.3, "keyframes": [)" +
+                           keys + "]}]}";
   MpmSolver s = build_solver(parse_scene(text, "twist.json"));
   const std::vector<Vec3d> rest = positions_by_id(s);
   TwistRun r;
   auto advance = [&](double until) {
-    while (s.time() < until) s.step(space, std::min(s.stable_dt(space), Real(until - s.time()) + Real(1e-9)));
+    while (s.time() < until)
+      s.step(space, std::min(s.stable_dt(space), Real(until - s.time()) + Real(1e-9)));
   };
   advance(0.3);
   r.twisted = rest_shape_deviation(rest, positions_by_id(s));
@@ -406,10 +413,11 @@ TEST(AulMpm, TwistedBarReleasedReturnsToRestShape) {
   const double diagonal = std::sqrt(0.16 * 0.16 + 2 * 0.04 * 0.04);
   const TwistRun ad = run_twist("adaptive", 720, 0.8, space);
   const TwistRun eu = run_twist("eulerian", 720, 0.8, space);
-  std::printf("twisted bar: deviation at release / at the end, %% of diagonal: A-UL %.2f / %.3f (%llu resets), "
-              "Eulerian %.2f / %.3f\n",
-              100 * ad.twisted / diagonal, 100 * ad.deviation / diagonal, (unsigned long long)ad.updates,
-              100 * eu.twisted / diagonal, 100 * eu.deviation / diagonal);
+  std::printf(
+      "twisted bar: deviation at release / at the end, %% of diagonal: A-UL %.2f / %.3f (%llu resets), "
+      "Eulerian %.2f / %.3f\n",
+      100 * ad.twisted / diagonal, 100 * ad.deviation / diagonal, (unsigned long long)ad.updates,
+      100 * eu.twisted / diagonal, 100 * eu.deviation / diagonal);
   EXPECT_GT(ad.twisted, 0.05 * diagonal);  // the grips really deformed it
   EXPECT_LT(ad.deviation, 0.01 * diagonal);
   EXPECT_LT(ad.deviation, eu.deviation);
@@ -418,11 +426,17 @@ TEST(AulMpm, TwistedBarReleasedReturnsToRestShape) {
 namespace {
 // A total-Lagrangian bar (0.3 x 0.04 x 0.04 m, 8 particles per cell) started with the stretching
 // velocity v = (a (x - 0.5), 0, 0), explicit or semi-implicit (A-ULMPM eqs. 24-26).
-MpmSolver stretching_bar(const std::string& integrator, double E, double a, double tolerance = 1e-4) {
+MpmSolver stretching_bar(const std::string& integrator, double E, double a,
+                         double tolerance = 1e-4) {
   const std::string text = R"({
-    "simulation": {"dx": 0.01, "frames": 1, "gravity": [0, 0, 0], "integrator": ")" + integrator + "\"" +
-                           (integrator == "implicit" ? R"(, "implicit": {"tolerance": )" + std::to_string(tolerance) + "}" : "") + R"(},
-    "materials": {"rubber": {"model": "neo_hookean", "density": 1000, "youngs_modulus": )" + std::to_string(E) +
+    "simulation": {"dx": 0.01, "frames": 1, "gravity": [0, 0, 0], "integrator": ")" +
+                           integrator + "\"" +
+                           (integrator == "implicit" ? R"(, "implicit": {"tolerance": )" +
+                                                           std::to_string(tolerance) + "}"
+                                                     : "") +
+                           R"(},
+    "materials": {"rubber": {"model": "neo_hookean", "density": 1000, "youngs_modulus": )" +
+                           std::to_string(E) +
                            R"(, "poisson_ratio": 0.3}},
     "objects": [{"shape": "box", "min": [0.35, 0.48, 0.48], "max": [0.65, 0.52, 0.52], "material": "rubber",
                  "jitter": 0, "configuration": {"update": "total_lagrangian"}}]})";
@@ -441,7 +455,8 @@ MpmSolver stretching_bar(const std::string& integrator, double E, double a, doub
 TEST(AulMpm, SemiImplicitLagrangianMatchesExplicitAndIsStableAtTenTimesCfl) {
   const exec::Space space(test::parallel_backend(), 2);
   {
-    MpmSolver ex = stretching_bar("explicit", 1e4, 5), im = stretching_bar("implicit", 1e4, 5, 1e-6);
+    MpmSolver ex = stretching_bar("explicit", 1e4, 5),
+              im = stretching_bar("implicit", 1e4, 5, 1e-6);
     const std::vector<Vec3d> x0 = positions_by_id(ex);
     const Real dt = Real(0.1) * ex.stable_dt(space);
     const int steps = int(std::lround(0.02 / double(dt)));
@@ -452,10 +467,12 @@ TEST(AulMpm, SemiImplicitLagrangianMatchesExplicitAndIsStableAtTenTimesCfl) {
     }
     const std::vector<Vec3d> xe = positions_by_id(ex), xi = positions_by_id(im);
     double diff = 0, disp = 0;
-    for (size_t p = 0; p < x0.size(); ++p) diff += (xi[p] - xe[p]).squaredNorm(), disp += (xe[p] - x0[p]).squaredNorm();
+    for (size_t p = 0; p < x0.size(); ++p)
+      diff += (xi[p] - xe[p]).squaredNorm(), disp += (xe[p] - x0[p]).squaredNorm();
     const double rel = std::sqrt(diff / disp);
-    std::printf("TL semi-implicit vs explicit, %d steps at 0.1 CFL: rms difference %.3g of the rms displacement\n",
-                steps, rel);
+    std::printf(
+        "TL semi-implicit vs explicit, %d steps at 0.1 CFL: rms difference %.3g of the rms displacement\n",
+        steps, rel);
     EXPECT_GT(rel, 1e-5);
     EXPECT_LT(rel, 0.01);
   }
@@ -479,8 +496,9 @@ TEST(AulMpm, SemiImplicitLagrangianMatchesExplicitAndIsStableAtTenTimesCfl) {
   std::sort(xs.begin(), xs.end());
   double gap = 0;
   for (size_t i = 1; i < xs.size(); ++i) gap = std::max(gap, xs[i] - xs[i - 1]);
-  std::printf("TL semi-implicit at 10x CFL (dt %.3g s): energy %.4g -> %.4g J, largest gap %.4f m\n", double(dt),
-              d0.kinetic + d0.elastic, e_prev, gap);
+  std::printf(
+      "TL semi-implicit at 10x CFL (dt %.3g s): energy %.4g -> %.4g J, largest gap %.4f m\n",
+      double(dt), d0.kinetic + d0.elastic, e_prev, gap);
   EXPECT_LT(e_prev, 0.5 * (d0.kinetic + d0.elastic));
   EXPECT_LT(gap, 0.01);
   bool blew_up = false;
@@ -489,7 +507,8 @@ TEST(AulMpm, SemiImplicitLagrangianMatchesExplicitAndIsStableAtTenTimesCfl) {
       ex.stable_dt(space);  // the guard
       ex.step(space, dt);
       const MpmDiagnostics d = ex.diagnostics(space);
-      blew_up = !std::isfinite(d.kinetic + d.elastic) || d.kinetic + d.elastic > 10 * (d0.kinetic + d0.elastic);
+      blew_up = !std::isfinite(d.kinetic + d.elastic) ||
+                d.kinetic + d.elastic > 10 * (d0.kinetic + d0.elastic);
     }
   } catch (const SimulationError&) {
     blew_up = true;
@@ -506,7 +525,8 @@ TEST(AulMpm, SemiImplicitBitwiseIdenticalOnEveryBackend) {
     for (int i = 0; i < 6; ++i) s.step(space, Real(1e-3));
     const auto& ps = s.particles();
     std::vector<Real> st;
-    for (auto id : {s.attributes().x, s.attributes().v, s.attributes().F, s.aul()->attributes().F_s})
+    for (auto id :
+         {s.attributes().x, s.attributes().v, s.attributes().F, s.aul()->attributes().F_s})
       st.insert(st.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
     if (ref.empty()) {
       ref = st;
@@ -523,7 +543,8 @@ TEST(AulMpm, SemiImplicitBitwiseIdenticalOnEveryBackend) {
 TEST(AulMpm, FusedNodePositionsEqualTheSeparatePass) {
   for (const char* transfer : {"mls", "apic"}) {
     const std::string text = std::string(R"({
-      "simulation": {"dx": 0.02, "frames": 1, "transfer": ")") + transfer + R"("},
+      "simulation": {"dx": 0.02, "frames": 1, "transfer": ")") +
+                             transfer + R"("},
       "materials": {"jelly": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 3e4, "poisson_ratio": 0.3}},
       "objects": [{"shape": "sphere", "center": [0.5, 0.45, 0.5], "radius": 0.1, "material": "jelly",
                    "velocity": [0, -3, 0], "angular_velocity": [0, 4, 2], "configuration": {"update": "total_lagrangian"}}],

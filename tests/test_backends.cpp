@@ -15,10 +15,13 @@
 using namespace amalgam;
 
 namespace {
-Scene small_scene(const std::string& transfer, int order, const std::string& integrator = "explicit") {
+Scene small_scene(const std::string& transfer, int order,
+                  const std::string& integrator = "explicit") {
   const std::string text = R"({
-    "simulation": {"dx": 0.04, "order": )" + std::to_string(order) + R"(, "transfer": ")" + transfer +
-                           R"(", "frames": 1, "integrator": ")" + integrator + R"(", "max_dt": 4e-3},
+    "simulation": {"dx": 0.04, "order": )" +
+                           std::to_string(order) + R"(, "transfer": ")" + transfer +
+                           R"(", "frames": 1, "integrator": ")" + integrator +
+                           R"(", "max_dt": 4e-3},
     "materials": {"a": {"model": "fixed_corotated", "density": 1000, "youngs_modulus": 2e4, "poisson_ratio": 0.3},
                   "b": {"model": "neo_hookean", "density": 500, "youngs_modulus": 1e4, "poisson_ratio": 0.2}},
     "objects": [
@@ -45,11 +48,13 @@ std::vector<Real> state_bytes(const MpmSolver& s) {
 // Every material model with state (return mappings, F reset, melting under a heat source), the
 // particle collision pass and a keyframed mesh collider (a cube sweeping through the snow).
 Scene material_scene() {
-  const std::string cube = (std::filesystem::temp_directory_path() / "amalgam_backend_cube.obj").string();
+  const std::string cube =
+      (std::filesystem::temp_directory_path() / "amalgam_backend_cube.obj").string();
   {
     std::ofstream f(cube);
     for (int i = 0; i < 8; ++i)
-      f << "v " << ((i & 1) ? 0.06 : -0.06) << " " << ((i & 2) ? 0.06 : -0.06) << " " << ((i & 4) ? 0.06 : -0.06) << "\n";
+      f << "v " << ((i & 1) ? 0.06 : -0.06) << " " << ((i & 2) ? 0.06 : -0.06) << " "
+        << ((i & 4) ? 0.06 : -0.06) << "\n";
     f << "f 1 3 4 2\nf 5 6 8 7\nf 1 2 6 5\nf 3 7 8 4\nf 1 5 7 3\nf 2 4 8 6\n";
   }
   const std::string text = R"({
@@ -68,7 +73,8 @@ Scene material_scene() {
       {"shape": "box", "min": [0.6, 0.55, 0.3], "max": [0.75, 0.7, 0.45], "material": "water", "velocity": [0, -1, 0]},
       {"shape": "box", "min": [0.2, 0.26, 0.6], "max": [0.4, 0.4, 0.75], "material": "wax", "temperature": 300}],
     "colliders": [{"type": "half_space", "point": [0, 0.25, 0], "normal": [0, 1, 0], "boundary": "sticky"},
-                  {"type": "mesh", "file": ")" + cube + R"(", "translate": [0.25, 0.4, 0.4], "boundary": "separate",
+                  {"type": "mesh", "file": ")" +
+                           cube + R"(", "translate": [0.25, 0.4, 0.4], "boundary": "separate",
                    "friction": 0.5, "keyframes": [{"time": 0}, {"time": 0.05, "translate": [0.3, 0, 0], "rotate_degrees": [0, 0, 60]}]}],
     "heat_sources": [{"type": "half_space", "point": [0, 0.3, 0], "normal": [0, 1, 0], "temperature": 400, "rate": 200}]
   })";
@@ -112,9 +118,11 @@ TEST_P(BackendDeterminism, TwentySubstepsBitwiseIdentical) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Transfers, BackendDeterminism,
-                         ::testing::Combine(::testing::Values("mls", "apic", "flip", "pic"), ::testing::Values(2, 3)),
+                         ::testing::Combine(::testing::Values("mls", "apic", "flip", "pic"),
+                                            ::testing::Values(2, 3)),
                          [](const auto& info) {
-                           return std::get<0>(info.param) + "_order" + std::to_string(std::get<1>(info.param));
+                           return std::get<0>(info.param) + "_order" +
+                                  std::to_string(std::get<1>(info.param));
                          });
 
 // The implicit integrator: Hessian cache, matrix-free action and diagonal (colour scatter), CG

@@ -66,7 +66,9 @@ TEST(Checkpoint, RoundTripIsBitwise) {
     b.step(space, b.stable_dt(space));
   }
   const auto x = a.attributes().x;
-  EXPECT_EQ(std::memcmp(a.particles().words(x), b.particles().words(x), a.particles().size() * sizeof(Vec3)), 0);
+  EXPECT_EQ(std::memcmp(a.particles().words(x), b.particles().words(x),
+                        a.particles().size() * sizeof(Vec3)),
+            0);
   std::remove(path.c_str());
 }
 
@@ -78,18 +80,23 @@ TEST(Checkpoint, DamagedFilesAreClearErrors) {
   const std::string good = slurp(path);
 
   spit(bad, good.substr(0, good.size() / 2));  // truncated
-  EXPECT_NE(error_reading(bad, scene.fingerprint).find(bad + ": checkpoint is corrupt or truncated"), std::string::npos);
+  EXPECT_NE(
+      error_reading(bad, scene.fingerprint).find(bad + ": checkpoint is corrupt or truncated"),
+      std::string::npos);
   std::string flipped = good;
   flipped[good.size() / 3] ^= 0x10;  // one bit flipped in the particle data
   spit(bad, flipped);
   EXPECT_NE(error_reading(bad, scene.fingerprint).find("checksum mismatch"), std::string::npos);
   spit(bad, "not a checkpoint at all");
-  EXPECT_NE(error_reading(bad, scene.fingerprint).find("not an Amalgam checkpoint"), std::string::npos);
-  spit(bad, good.substr(0, 5));
-  EXPECT_NE(error_reading(bad, scene.fingerprint).find("not an Amalgam checkpoint"), std::string::npos);
-  EXPECT_NE(error_reading(path, scene.fingerprint + 1).find("different scene"), std::string::npos);
-  EXPECT_NE(error_reading(tmp_path("missing.amck"), scene.fingerprint).find("cannot open checkpoint"),
+  EXPECT_NE(error_reading(bad, scene.fingerprint).find("not an Amalgam checkpoint"),
             std::string::npos);
+  spit(bad, good.substr(0, 5));
+  EXPECT_NE(error_reading(bad, scene.fingerprint).find("not an Amalgam checkpoint"),
+            std::string::npos);
+  EXPECT_NE(error_reading(path, scene.fingerprint + 1).find("different scene"), std::string::npos);
+  EXPECT_NE(
+      error_reading(tmp_path("missing.amck"), scene.fingerprint).find("cannot open checkpoint"),
+      std::string::npos);
   std::remove(path.c_str());
   std::remove(bad.c_str());
 }

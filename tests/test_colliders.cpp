@@ -23,7 +23,9 @@ Collider floor_at(Real y, BoundaryType b, Real mu) {
   c.friction = mu;
   return c;
 }
-void expect_vec(const Vec3& a, const Vec3& b) { EXPECT_LT(double((a - b).norm()), 1e-5) << a.transpose() << " vs " << b.transpose(); }
+void expect_vec(const Vec3& a, const Vec3& b) {
+  EXPECT_LT(double((a - b).norm()), 1e-5) << a.transpose() << " vs " << b.transpose();
+}
 }  // namespace
 
 TEST(Colliders, SignedDistances) {
@@ -111,7 +113,8 @@ std::string write_cube(const std::string& name, const Vec3d& c, double a) {
   const std::string path = (std::filesystem::temp_directory_path() / name).string();
   std::ofstream f(path);
   for (int i = 0; i < 8; ++i)
-    f << "v " << c[0] + ((i & 1) ? a : -a) << " " << c[1] + ((i & 2) ? a : -a) << " " << c[2] + ((i & 4) ? a : -a) << "\n";
+    f << "v " << c[0] + ((i & 1) ? a : -a) << " " << c[1] + ((i & 2) ? a : -a) << " "
+      << c[2] + ((i & 4) ? a : -a) << "\n";
   // faces (1-based), counter-clockwise seen from outside
   f << "f 1 3 4 2\nf 5 6 8 7\nf 1 2 6 5\nf 3 7 8 4\nf 1 5 7 3\nf 2 4 8 6\n";
   return path;
@@ -124,7 +127,8 @@ Scene mesh_collider_scene(const std::string& obj, const std::string& collider_ex
   return parse_scene(R"({"simulation": {"dx": 0.02, "frames": 1},
     "materials": {"a": {"density": 1000, "youngs_modulus": 2e4}},
     "objects": [{"shape": "box", "min": [0.4, 0.55, 0.4], "max": [0.6, 0.65, 0.6], "material": "a"}],
-    "colliders": [{"type": "mesh", "file": ")" + obj + R"(", "boundary": "slip")" + collider_extra + R"(}]})",
+    "colliders": [{"type": "mesh", "file": ")" +
+                         obj + R"(", "boundary": "slip")" + collider_extra + R"(}]})",
                      "inline.json");
 }
 }  // namespace
@@ -142,7 +146,8 @@ TEST(MeshCollider, BakedDistanceMatchesTheBox) {
   double worst = 0;
   for (int t = 0; t < 2000; ++t) {
     const Vec3d x(u(rng), u(rng) - 0.2, u(rng));
-    worst = std::max(worst, std::abs(double(c.phi(x.cast<Real>(), 0)) - box_sdf(x, Vec3d(0.5, 0.3, 0.5), 0.2)));
+    worst = std::max(
+        worst, std::abs(double(c.phi(x.cast<Real>(), 0)) - box_sdf(x, Vec3d(0.5, 0.3, 0.5), 0.2)));
   }
   EXPECT_LT(worst, 0.02);
   // Normals point out of the faces.
@@ -155,7 +160,8 @@ TEST(MeshCollider, BakedDistanceMatchesTheBox) {
 // velocity is the segment's v + omega x r.
 TEST(MeshCollider, KeyframedPoseAndVelocity) {
   const std::string obj = write_cube("amalgam_cube2.obj", Vec3d(0.5, 0.3, 0.5), 0.1);
-  const Scene s = mesh_collider_scene(obj, R"(, "keyframes": [{"time": 0}, {"time": 1, "translate": [0.2, 0, 0],
+  const Scene s =
+      mesh_collider_scene(obj, R"(, "keyframes": [{"time": 0}, {"time": 1, "translate": [0.2, 0, 0],
                                               "rotate_degrees": [0, 90, 0]}])");
   const Collider c = build_colliders(s)[0];
   // At t = 1 the cube is at (0.7, 0.3, 0.5); at t = 0.5 at (0.6, 0.3, 0.5), turned 45 deg.
@@ -163,7 +169,7 @@ TEST(MeshCollider, KeyframedPoseAndVelocity) {
   EXPECT_NEAR(double(c.phi(Vec3(0.7, 0.45, 0.5), 1)), 0.05, 0.01);
   const double diag = 0.1 * std::sqrt(2.0);  // half diagonal of the turned square along x
   EXPECT_NEAR(double(c.phi(Vec3(Real(0.6 + diag + 0.03), 0.3, 0.5), 0.5)), 0.03 / 1.0, 0.012);
-  const Vec3 v = c.velocity_at(Vec3(0.6, 0.3, 0.6), 0.5);  // 0.1 m from the pivot along z
+  const Vec3 v = c.velocity_at(Vec3(0.6, 0.3, 0.6), 0.5);   // 0.1 m from the pivot along z
   EXPECT_NEAR(double(v[0]), 0.2 + (M_PI / 2) * 0.1, 1e-4);  // v + omega x r: omega = pi/2 about y
   EXPECT_NEAR(double(v[2]), 0.0, 1e-4);
   // The pose evaluated once per substep (what the kernels get) agrees with the keyframes.
@@ -171,7 +177,8 @@ TEST(MeshCollider, KeyframedPoseAndVelocity) {
   EXPECT_TRUE(posed.keys.empty());
   for (const Vec3& x : {Vec3(0.6, 0.3, 0.6), Vec3(0.72, 0.35, 0.45), Vec3(0.5, 0.2, 0.5)}) {
     EXPECT_NEAR(double(posed.phi(x, Real(0.5))), double(c.phi(x, Real(0.5))), 1e-5);
-    EXPECT_NEAR(double((posed.velocity_at(x, Real(0.5)) - c.velocity_at(x, Real(0.5))).norm()), 0.0, 1e-5);
+    EXPECT_NEAR(double((posed.velocity_at(x, Real(0.5)) - c.velocity_at(x, Real(0.5))).norm()), 0.0,
+                1e-5);
   }
   // Before the first and after the last key the collider rests.
   EXPECT_NEAR(double(c.velocity_at(Vec3(0.7, 0.3, 0.5), 2).norm()), 0.0, 1e-9);

@@ -30,7 +30,8 @@ TEST(Exec, ReduceIsBitwiseIdenticalAcrossBackends) {
   // A float sum whose value depends on the combine order: it must not depend on the backend.
   const exec::Index n = 200001;
   std::vector<float> x(static_cast<size_t>(n));
-  for (exec::Index i = 0; i < n; ++i) x[size_t(i)] = float(std::sin(double(i)) * 1e3 + 1.0 / (1.0 + double(i)));
+  for (exec::Index i = 0; i < n; ++i)
+    x[size_t(i)] = float(std::sin(double(i)) * 1e3 + 1.0 / (1.0 + double(i)));
   float ref = 0;
   bool first = true;
   for (const auto& c : test::all_configs()) {
@@ -68,7 +69,8 @@ TEST(Exec, ProfilerTimesLabelledRegions) {
   exec::Space s(test::parallel_backend(), 2, &prof);
   std::vector<double> v(100000);
   for (int r = 0; r < 3; ++r)
-    exec::parallel_for(s, "t.work", exec::Index(v.size()), [&](exec::Index i) { v[size_t(i)] = std::sqrt(double(i)); });
+    exec::parallel_for(s, "t.work", exec::Index(v.size()),
+                       [&](exec::Index i) { v[size_t(i)] = std::sqrt(double(i)); });
   ASSERT_EQ(prof.regions().size(), 1u);
   EXPECT_EQ(prof.regions()[0].label, "t.work");
   EXPECT_EQ(prof.regions()[0].calls, 3);
@@ -96,7 +98,8 @@ TEST(Exec, ParseBackendRejectsUnknownNames) {
 // the arena, TBB's default arena on a 2-core machine takes a worker for this much work.
 TEST(Exec, ThreadLimitBoundsLibraryThreads) {
   for (const int threads : {1, 2}) {
-    for (const exec::Backend b : {exec::Backend::Serial, exec::Backend::OpenMP, exec::Backend::TBB}) {
+    for (const exec::Backend b :
+         {exec::Backend::Serial, exec::Backend::OpenMP, exec::Backend::TBB}) {
       const exec::Space space(b, threads);
       test::WorkerRecorder rec;
       std::atomic<long> sum{0};
@@ -109,7 +112,8 @@ TEST(Exec, ThreadLimitBoundsLibraryThreads) {
         });
       });
       EXPECT_EQ(sum.load(), 1999L * 2000 / 2);
-      EXPECT_LE(rec.workers(), std::size_t(space.threads() - 1)) << exec::backend_name(b) << " x" << threads;
+      EXPECT_LE(rec.workers(), std::size_t(space.threads() - 1))
+          << exec::backend_name(b) << " x" << threads;
     }
   }
 }

@@ -120,7 +120,8 @@ TEST(SparseGrid, TablesMatchTreeAndColoursAreDisjoint) {
     for (int c = 0; c < 8; ++c) {
       std::set<std::int32_t> seen;
       for (auto k = grid.colour_start()[size_t(c)]; k < grid.colour_start()[size_t(c) + 1]; ++k)
-        for (auto li : grid.nbr8()[grid.colour_bins()[k]]) ASSERT_TRUE(seen.insert(li).second) << "colour " << c;
+        for (auto li : grid.nbr8()[grid.colour_bins()[k]])
+          ASSERT_TRUE(seen.insert(li).second) << "colour " << c;
     }
     EXPECT_EQ(grid.colour_start()[8], bins.count());
   }
@@ -135,7 +136,8 @@ TEST(SparseGrid, LeavesOfAMovingBodyAreRetiredAndTheirSlotsReused) {
   ps.resize(20000);
   std::mt19937 rng(4);
   std::uniform_real_distribution<double> u(0.0, 0.25);
-  for (size_t i = 0; i < ps.size(); ++i) ps.vec3(xid)[i] = Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
+  for (size_t i = 0; i < ps.size(); ++i)
+    ps.vec3(xid)[i] = Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
   ParticleBinning binning;
   BinTable bins;
   const exec::Space s;
@@ -167,7 +169,8 @@ TEST(SparseGrid, LeavesOfAMovingBodyAreRetiredAndTheirSlotsReused) {
       for (int a = -1; a <= 1; ++a)
         for (int b = -1; b <= 1; ++b)
           for (int c = -1; c <= 1; ++c, ++t)
-            ASSERT_EQ(grid.nbr27()[li][size_t(t)], grid.find_leaf((lc[li] + Vec3i(a, b, c)) * kLeafDim));
+            ASSERT_EQ(grid.nbr27()[li][size_t(t)],
+                      grid.find_leaf((lc[li] + Vec3i(a, b, c)) * kLeafDim));
     }
   }
   EXPECT_FALSE(seen_retired.empty());

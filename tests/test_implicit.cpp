@@ -40,7 +40,8 @@ M3d random_F(std::mt19937& rng, double spread, bool invert) {
 template <class Model>
 Eigen::Matrix<double, 9, 9> frame_hessian_matrix(const Model& m, const M3d& F, bool psd) {
   const Svd3<double> d = svd3(F);
-  SvdFrameHessian<double> h = SvdFrameHessian<double>::from(d.sigma, m.sigma_stress(d.sigma), m.sigma_hessian(d.sigma));
+  SvdFrameHessian<double> h =
+      SvdFrameHessian<double>::from(d.sigma, m.sigma_stress(d.sigma), m.sigma_hessian(d.sigma));
   if (psd) h.make_psd();
   Eigen::Matrix<double, 9, 9> K;
   for (int c = 0; c < 9; ++c) {
@@ -87,9 +88,11 @@ TEST(FrameHessian, DefinitenessFixOnInvertedF) {
   int indefinite = 0;
   for (int t = 0; t < 40; ++t) {
     const M3d F = random_F(rng, 0.4, true);
-    auto check = [&](const Eigen::Matrix<double, 9, 9>& raw, const Eigen::Matrix<double, 9, 9>& fixed) {
+    auto check = [&](const Eigen::Matrix<double, 9, 9>& raw,
+                     const Eigen::Matrix<double, 9, 9>& fixed) {
       Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 9, 9>> a(0.5 * (raw + raw.transpose()));
-      Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 9, 9>> b(0.5 * (fixed + fixed.transpose()));
+      Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 9, 9>> b(0.5 *
+                                                                   (fixed + fixed.transpose()));
       indefinite += a.eigenvalues().minCoeff() < -1e-6 * a.eigenvalues().cwiseAbs().maxCoeff();
       EXPECT_GE(b.eigenvalues().minCoeff(), -1e-9 * b.eigenvalues().cwiseAbs().maxCoeff());
     };
@@ -117,14 +120,18 @@ struct Rig {
 
   // config: an object-level "configuration" block (A-ULMPM Lagrangian mode): then F_s and F_0s
   // are random too and F = F_s F_0s.
-  Rig(const std::string& transfer, int order, double spread, double invert_fraction, const std::string& model,
-      const std::string& extra = "", const std::string& config = "")
+  Rig(const std::string& transfer, int order, double spread, double invert_fraction,
+      const std::string& model, const std::string& extra = "", const std::string& config = "")
       : scene(parse_scene(R"({
-          "simulation": {"dx": 0.05, "order": )" + std::to_string(order) + R"(, "transfer": ")" + transfer +
+          "simulation": {"dx": 0.05, "order": )" +
+                              std::to_string(order) + R"(, "transfer": ")" + transfer +
                               R"(", "gravity": [0, 0, 0], "integrator": "implicit"},
-          "materials": {"m": {"model": ")" + model + R"(", "density": 1000, "youngs_modulus": 1e5, "poisson_ratio": 0.3}},
+          "materials": {"m": {"model": ")" +
+                              model +
+                              R"(", "density": 1000, "youngs_modulus": 1e5, "poisson_ratio": 0.3}},
           "objects": [{"shape": "box", "min": [0.3, 0.3, 0.3], "max": [0.5, 0.55, 0.45], "material": "m",
-                       "velocity": [0.2, -0.1, 0.3], "angular_velocity": [1, 0.5, -2])" + config + "}]" + extra + "}",
+                       "velocity": [0.2, -0.1, 0.3], "angular_velocity": [1, 0.5, -2])" +
+                              config + "}]" + extra + "}",
                           "rig.json")),
         solver(build_solver(scene)) {
     std::mt19937 rng(3);
@@ -133,11 +140,13 @@ struct Rig {
     Mat3* F = ps.mat3(solver.attributes().F);
     const Real dt = Real(1e-3);
     if (config.empty()) {
-      for (size_t p = 0; p < ps.size(); ++p) F[p] = random_F(rng, spread, u01(rng) < invert_fraction).cast<Real>();
+      for (size_t p = 0; p < ps.size(); ++p)
+        F[p] = random_F(rng, spread, u01(rng) < invert_fraction).cast<Real>();
       solver.sort_particles(space);
       solver.update_grid(space);
     } else {
-      solver.aul()->update_configurations(space, solver);  // bins by X^s (permutes: fetch the arrays after it)
+      solver.aul()->update_configurations(
+          space, solver);  // bins by X^s (permutes: fetch the arrays after it)
       F = ps.mat3(solver.attributes().F);
       Mat3* Fs = ps.mat3(solver.aul()->attributes().F_s);
       Mat3* F0s = ps.mat3(solver.aul()->attributes().F_0s);
@@ -172,12 +181,14 @@ struct Rig {
   }
   std::vector<Real> H(const std::vector<Real>& du) {
     std::vector<Real> out(ngrid * 4, 0);
-    mpm_hessian_action(space, solver.particle_view(), solver.grid_view(), kp, hess.data(), du.data(), 1, out.data());
+    mpm_hessian_action(space, solver.particle_view(), solver.grid_view(), kp, hess.data(),
+                       du.data(), 1, out.data());
     return out;
   }
   std::vector<Real> force(const std::vector<Real>* u) {
     std::vector<Real> f(ngrid * 4, 0);
-    mpm_elastic_forces(space, solver.particle_view(), solver.grid_view(), kp, u ? u->data() : nullptr, f.data());
+    mpm_elastic_forces(space, solver.particle_view(), solver.grid_view(), kp,
+                       u ? u->data() : nullptr, f.data());
     return f;
   }
 };
@@ -187,7 +198,9 @@ double dotv(const std::vector<Real>& a, const std::vector<Real>& b) {
   for (size_t i = 0; i < a.size(); ++i) s += double(a[i]) * double(b[i]);
   return s;
 }
-double normv(const std::vector<Real>& a) { return std::sqrt(dotv(a, a)); }
+double normv(const std::vector<Real>& a) {
+  return std::sqrt(dotv(a, a));
+}
 
 // <u, H v> = <H u, v> on random vectors, to float round-off.
 void expect_symmetric(Rig& rig, unsigned samples) {
@@ -216,8 +229,8 @@ std::vector<Real> expect_hessian_is_force_derivative(Rig& rig, const char* model
 // The Jacobi diagonal (eqs. 18-19) equals e_k^T H e_k computed through the action, and is >= 0.
 void expect_diagonal_matches_action(Rig& rig, int nodes) {
   std::vector<Real> diag(rig.ngrid * 4, 0);
-  mpm_hessian_diagonal(rig.space, rig.solver.particle_view(), rig.solver.grid_view(), rig.kp, rig.hess.data(), 1,
-                       diag.data());
+  mpm_hessian_diagonal(rig.space, rig.solver.particle_view(), rig.solver.grid_view(), rig.kp,
+                       rig.hess.data(), 1, diag.data());
   const Real* a = rig.solver.grid().node4(0);
   int checked = 0;
   for (size_t d = 0; d < rig.ngrid && checked < nodes; d += 7) {
@@ -326,7 +339,8 @@ TEST_P(ImplicitOperator, LagrangianModeSymmetricDerivativeAndDiagonal) {
   };
   const auto m1 = momentum(Real(1e-3)), m2 = momentum(Real(2e-3));
   std::vector<Real> fx(f0.size());
-  for (size_t i = 0; i < f0.size(); ++i) fx[i] = i % 4 == 0 ? Real(0) : (m2[i] - m1[i]) / Real(1e-3);
+  for (size_t i = 0; i < f0.size(); ++i)
+    fx[i] = i % 4 == 0 ? Real(0) : (m2[i] - m1[i]) / Real(1e-3);
   std::vector<Real> f0m(f0.size());  // the implicit force's lanes 0..2 are the P2G lanes 1..3
   for (size_t d = 0; d < rig.ngrid; ++d)
     for (int c = 0; c < 3; ++c) f0m[d * 4 + 1 + c] = f0[d * 4 + c];
@@ -336,9 +350,11 @@ TEST_P(ImplicitOperator, LagrangianModeSymmetricDerivativeAndDiagonal) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Transfers, ImplicitOperator,
-                         ::testing::Combine(::testing::Values("mls", "apic", "flip"), ::testing::Values(2, 3)),
+                         ::testing::Combine(::testing::Values("mls", "apic", "flip"),
+                                            ::testing::Values(2, 3)),
                          [](const auto& info) {
-                           return std::get<0>(info.param) + "_order" + std::to_string(std::get<1>(info.param));
+                           return std::get<0>(info.param) + "_order" +
+                                  std::to_string(std::get<1>(info.param));
                          });
 
 namespace {
@@ -348,18 +364,21 @@ namespace {
 class DenseTerm final : public ImplicitTerm {
  public:
   DenseTerm(Eigen::MatrixXd K, std::size_t first) : K_(std::move(K)), first_(first) {}
-  void add_hessian_action(const exec::Space&, const Real* du, Real scale, Real* out) const override {
+  void add_hessian_action(const exec::Space&, const Real* du, Real scale,
+                          Real* out) const override {
     const Eigen::Index n = K_.rows();
     for (Eigen::Index i = 0; i < n; ++i)
       for (int c = 0; c < 3; ++c) {
         double s = 0;
-        for (Eigen::Index j = 0; j < n; ++j) s += K_(i, j) * double(du[(first_ + size_t(j)) * 4 + size_t(c)]);
+        for (Eigen::Index j = 0; j < n; ++j)
+          s += K_(i, j) * double(du[(first_ + size_t(j)) * 4 + size_t(c)]);
         out[(first_ + size_t(i)) * 4 + size_t(c)] += Real(double(scale) * s);
       }
   }
   void add_hessian_diagonal(const exec::Space&, Real scale, Real* diag) const override {
     for (Eigen::Index i = 0; i < K_.rows(); ++i)
-      for (int c = 0; c < 3; ++c) diag[(first_ + size_t(i)) * 4 + size_t(c)] += Real(double(scale) * K_(i, i));
+      for (int c = 0; c < 3; ++c)
+        diag[(first_ + size_t(i)) * 4 + size_t(c)] += Real(double(scale) * K_(i, i));
   }
 
  private:
@@ -406,7 +425,8 @@ TEST(ImplicitSolver, CgAndMinresMatchDenseSolve) {
     sys.add_term(&term);
     for (int i = 0; i < 40; ++i) {
       sys.mass()[first + size_t(i)] = Real(pb.m[i]);
-      for (int c = 0; c < 3; ++c) sys.rhs()[(first + size_t(i)) * 4 + size_t(c)] = Real(pb.vstar(i, c));
+      for (int c = 0; c < 3; ++c)
+        sys.rhs()[(first + size_t(i)) * 4 + size_t(c)] = Real(pb.vstar(i, c));
     }
     std::copy(sys.rhs(), sys.rhs() + 160, sys.solution());
     ImplicitSettings st;
@@ -423,10 +443,11 @@ TEST(ImplicitSolver, CgAndMinresMatchDenseSolve) {
     const Eigen::MatrixXd x = A.lu().solve(pb.m.asDiagonal() * pb.vstar);
     double err = 0;
     for (int i = 0; i < 40; ++i)
-      for (int c = 0; c < 3; ++c) err = std::max(err, std::abs(double(sys.solution()[size_t(i) * 4 + size_t(c)]) - x(i, c)));
+      for (int c = 0; c < 3; ++c)
+        err = std::max(err, std::abs(double(sys.solution()[size_t(i) * 4 + size_t(c)]) - x(i, c)));
     EXPECT_LT(err, 2e-3 * x.cwiseAbs().maxCoeff()) << "indefinite " << indefinite;
-    std::printf("%s: %d iterations, relative residual %.2e\n", indefinite ? "MINRES" : "CG", res.iterations,
-                res.residual);
+    std::printf("%s: %d iterations, relative residual %.2e\n", indefinite ? "MINRES" : "CG",
+                res.iterations, res.residual);
   }
 }
 
@@ -454,7 +475,9 @@ TEST(ImplicitSolver, ConstraintsAreProjections) {
   st.tolerance = 1e-6;
   const SolveStats res = sys.solve(exec::Space(), Real(dt), st);
   ASSERT_TRUE(res.converged);
-  auto v = [&](int i) { return Vec3(sys.solution()[i * 4], sys.solution()[i * 4 + 1], sys.solution()[i * 4 + 2]); };
+  auto v = [&](int i) {
+    return Vec3(sys.solution()[i * 4], sys.solution()[i * 4 + 1], sys.solution()[i * 4 + 2]);
+  };
   EXPECT_LT((v(3) - Vec3(0.5, -0.25, 1)).norm(), 1e-6);
   EXPECT_NEAR(v(7).dot(n), 0.3, 1e-5);
   EXPECT_NEAR(v(11).dot(n), -0.2, 1e-5);
@@ -464,10 +487,11 @@ TEST(ImplicitSolver, ConstraintsAreProjections) {
   double worst = 0, scale = 0;
   for (int i = 0; i < 30; ++i) {
     Vec3 r;
-    for (int c = 0; c < 3; ++c) r[c] = Real(pb.m[i] * pb.vstar(i, c)) - Av[size_t(i) * 4 + size_t(c)];
+    for (int c = 0; c < 3; ++c)
+      r[c] = Real(pb.m[i] * pb.vstar(i, c)) - Av[size_t(i) * 4 + size_t(c)];
     if (i == 3 || i == 7 || i == 11) scale = std::max(scale, double(r.norm()));
-    if (i == 3) continue;                        // fully fixed: reaction force, free part empty
-    if (i == 7) r -= r.dot(n) * n;               // only the tangential part must vanish
+    if (i == 3) continue;           // fully fixed: reaction force, free part empty
+    if (i == 7) r -= r.dot(n) * n;  // only the tangential part must vanish
     if (i == 11) r = r.dot(n.cross(n2).normalized()) * n.cross(n2).normalized();
     worst = std::max(worst, double(r.norm()));
   }
@@ -480,14 +504,19 @@ namespace {
 Scene physics_scene(const std::string& integrator, double E, const std::string& extra_sim = "",
                     const std::string& colliders = "", double y0 = 0.3) {
   char mat[256];
-  std::snprintf(mat, sizeof mat,
-                R"("materials": {"jelly": {"model": "fixed_corotated", "density": 1000, "youngs_modulus": %g, "poisson_ratio": 0.3}},)",
-                E);
+  std::snprintf(
+      mat, sizeof mat,
+      R"("materials": {"jelly": {"model": "fixed_corotated", "density": 1000, "youngs_modulus": %g, "poisson_ratio": 0.3}},)",
+      E);
   return parse_scene(R"({
-    "simulation": {"dx": 0.025, "transfer": "apic", "integrator": ")" + integrator + R"(")" + extra_sim + R"(},
+    "simulation": {"dx": 0.025, "transfer": "apic", "integrator": ")" +
+                         integrator + R"(")" + extra_sim + R"(},
     )" + mat + R"(
-    "objects": [{"shape": "box", "min": [0.4, )" + std::to_string(y0) + R"(, 0.4], "max": [0.6, )" + std::to_string(y0 + 0.15) + R"(, 0.55], "material": "jelly",
-                 "velocity": [0.5, -1.5, 0], "angular_velocity": [0, 0, 4]}])" + colliders + "}",
+    "objects": [{"shape": "box", "min": [0.4, )" +
+                         std::to_string(y0) + R"(, 0.4], "max": [0.6, )" +
+                         std::to_string(y0 + 0.15) + R"(, 0.55], "material": "jelly",
+                 "velocity": [0.5, -1.5, 0], "angular_velocity": [0, 0, 4]}])" +
+                         colliders + "}",
                      "physics.json");
 }
 
@@ -520,7 +549,8 @@ TEST(ImplicitPhysics, SmallStepMatchesExplicit) {
   const std::string floor =
       R"(, "colliders": [{"type": "half_space", "point": [0, 0.2, 0], "normal": [0, 1, 0], "boundary": "separate", "friction": 0.2}])";
   MpmSolver ex = build_solver(physics_scene("explicit", 1e5, "", floor, 0.22));
-  MpmSolver im = build_solver(physics_scene("implicit", 1e5, R"(, "implicit": {"tolerance": 1e-6})", floor, 0.22));
+  MpmSolver im = build_solver(
+      physics_scene("implicit", 1e5, R"(, "implicit": {"tolerance": 1e-6})", floor, 0.22));
   for (MpmSolver* s : {&ex, &im}) prestrain(*s);
   const exec::Space space(test::parallel_backend(), 2);
   const std::vector<Vec3> x0 = positions_by_id(ex);
@@ -540,8 +570,9 @@ TEST(ImplicitPhysics, SmallStepMatchesExplicit) {
     disp += double((xe[p] - x0[p]).squaredNorm());
   }
   const double rel = std::sqrt(diff / disp);
-  std::printf("%d steps of %.3g s, max CG iterations %d: rms difference %.3g of rms displacement %.3g m\n", steps,
-              double(dt), max_iter, rel, std::sqrt(disp / double(x0.size())));
+  std::printf(
+      "%d steps of %.3g s, max CG iterations %d: rms difference %.3g of rms displacement %.3g m\n",
+      steps, double(dt), max_iter, rel, std::sqrt(disp / double(x0.size())));
   EXPECT_GE(max_iter, 1);  // the solve did work: not v* handed back
   EXPECT_GT(rel, 1e-4);    // and the two integrators are not trivially identical
   EXPECT_LT(rel, 0.01);
@@ -576,8 +607,9 @@ TEST(ImplicitPhysics, TenTimesCflIsStableAndDissipative) {
   }
   // What remains is the rigid motion: the translation's kinetic energy |p|^2 / 2m at least.
   const double translation = 0.5 * d0.momentum.squaredNorm() / d0.mass;
-  std::printf("dt %.3g s (10x CFL): energy %.4g J -> %.4g J (translation %.4g J); %.1f CG iterations per step\n",
-              double(dt), e0, e_last, translation, iters / 150.0);
+  std::printf(
+      "dt %.3g s (10x CFL): energy %.4g J -> %.4g J (translation %.4g J); %.1f CG iterations per step\n",
+      double(dt), e0, e_last, translation, iters / 150.0);
   EXPECT_LT(e_last, 0.5 * e0);
   EXPECT_GT(e_last, translation);
   // Explicit at the same step: energy explodes or the stability guard stops it.

@@ -76,11 +76,13 @@ TEST(MaterialValidation, WaterColumnHydrostaticPressure) {
   water.gamma = 7;
   water.viscosity = 1;
   const BoundaryType slip = BoundaryType::Slip;
-  MpmSolver solver(s, {water},
-                     {wall(Vec3(0, 0.1, 0), Vec3::UnitY(), slip), wall(Vec3(0.1, 0, 0), Vec3::UnitX(), slip),
-                      wall(Vec3(0.3, 0, 0), -Vec3::UnitX(), slip), wall(Vec3(0, 0, 0.1), Vec3::UnitZ(), slip),
-                      wall(Vec3(0, 0, 0.3), -Vec3::UnitZ(), slip)});
-  const std::vector<Vec3> x = lattice(lo, lo + Vec3d(W, H, W), dx, [](const Vec3d&) { return true; });
+  MpmSolver solver(
+      s, {water},
+      {wall(Vec3(0, 0.1, 0), Vec3::UnitY(), slip), wall(Vec3(0.1, 0, 0), Vec3::UnitX(), slip),
+       wall(Vec3(0.3, 0, 0), -Vec3::UnitX(), slip), wall(Vec3(0, 0, 0.1), Vec3::UnitZ(), slip),
+       wall(Vec3(0, 0, 0.3), -Vec3::UnitZ(), slip)});
+  const std::vector<Vec3> x =
+      lattice(lo, lo + Vec3d(W, H, W), dx, [](const Vec3d&) { return true; });
   solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(std::pow(dx / 2, 3)));
   const exec::Space space(exec::Backend::OpenMP, 2);
   run_until(solver, space, 1.5);
@@ -100,7 +102,8 @@ TEST(MaterialValidation, WaterColumnHydrostaticPressure) {
     std::vector<double> ys(ps.size());
     for (size_t p = 0; p < ps.size(); ++p) ys[p] = double(ps.vec3(a.x)[p][1]);
     std::vector<double> sorted = ys;
-    std::nth_element(sorted.begin(), sorted.begin() + long(0.99 * double(sorted.size())), sorted.end());
+    std::nth_element(sorted.begin(), sorted.begin() + long(0.99 * double(sorted.size())),
+                     sorted.end());
     top += sorted[size_t(0.99 * double(sorted.size()))] + dx / 4;
     ++samples;
     for (size_t p = 0; p < ps.size(); ++p) {
@@ -129,9 +132,10 @@ TEST(MaterialValidation, WaterColumnHydrostaticPressure) {
   const double slope = (n * syp - sy * sp) / (n * syy - sy * sy);
   const double k = -slope, ys_fit = (sp - slope * sy) / n / k;  // p = -k (y - y_s)
   const MpmDiagnostics d = solver.diagnostics(space);
-  std::printf("water column: dp/dy = %.1f Pa/m, rho g = %.1f Pa/m (%+.2f %%), fitted surface %.4f m, water top %.4f m, "
-              "max speed %.4f m/s\n",
-              slope, -rho * g, 100 * (k / (rho * g) - 1), ys_fit, top, d.max_speed);
+  std::printf(
+      "water column: dp/dy = %.1f Pa/m, rho g = %.1f Pa/m (%+.2f %%), fitted surface %.4f m, water top %.4f m, "
+      "max speed %.4f m/s\n",
+      slope, -rho * g, 100 * (k / (rho * g) - 1), ys_fit, top, d.max_speed);
   double worst = 0, sq = 0;
   for (const Layer& l : interior) {
     const double expect = rho * g * (ys_fit - l.y);
@@ -157,8 +161,8 @@ TEST(MaterialValidation, WaterColumnHydrostaticPressure) {
 // theta_c, 1), J_P = s / (1 - theta_c) and tau_yy = e^{xi (1 - J_P)} (2 mu + lambda)(-theta_c)(1 -
 // theta_c). We compare the particles' mean tau_yy with it at the measured mean strain.
 TEST(MaterialValidation, SnowConfinedCompressionHardensAsModelPredicts) {
-  const double dx = 0.01, W = 0.06, H = 0.1, rho = 400, E = 1.4e5, nu = 0.2, theta_c = 0.025, theta_s = 0.0075,
-               xi = 10, v_lid = 0.05;
+  const double dx = 0.01, W = 0.06, H = 0.1, rho = 400, E = 1.4e5, nu = 0.2, theta_c = 0.025,
+               theta_s = 0.0075, xi = 10, v_lid = 0.05;
   const Vec3d lo(0.1, 0.1, 0.1);
   MpmSettings s;
   s.dx = Real(dx);
@@ -174,12 +178,13 @@ TEST(MaterialValidation, SnowConfinedCompressionHardensAsModelPredicts) {
   Collider lid = wall(Vec3(0, Real(lo[1] + H), 0), -Vec3::UnitY(), BoundaryType::Slip);
   lid.velocity = Vec3(0, Real(-v_lid), 0);
   MpmSolver solver(s, {snow},
-                     {wall(Vec3(0, Real(lo[1]), 0), Vec3::UnitY(), slip), lid,
-                      wall(Vec3(Real(lo[0]), 0, 0), Vec3::UnitX(), slip),
-                      wall(Vec3(Real(lo[0] + W), 0, 0), -Vec3::UnitX(), slip),
-                      wall(Vec3(0, 0, Real(lo[2])), Vec3::UnitZ(), slip),
-                      wall(Vec3(0, 0, Real(lo[2] + W)), -Vec3::UnitZ(), slip)});
-  const std::vector<Vec3> x = lattice(lo, lo + Vec3d(W, H, W), dx, [](const Vec3d&) { return true; });
+                   {wall(Vec3(0, Real(lo[1]), 0), Vec3::UnitY(), slip), lid,
+                    wall(Vec3(Real(lo[0]), 0, 0), Vec3::UnitX(), slip),
+                    wall(Vec3(Real(lo[0] + W), 0, 0), -Vec3::UnitX(), slip),
+                    wall(Vec3(0, 0, Real(lo[2])), Vec3::UnitZ(), slip),
+                    wall(Vec3(0, 0, Real(lo[2] + W)), -Vec3::UnitZ(), slip)});
+  const std::vector<Vec3> x =
+      lattice(lo, lo + Vec3d(W, H, W), dx, [](const Vec3d&) { return true; });
   solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(std::pow(dx / 2, 3)));
   const exec::Space space(exec::Backend::OpenMP, 2);
   const auto closed_form = [&](double sy) {
@@ -204,8 +209,9 @@ TEST(MaterialValidation, SnowConfinedCompressionHardensAsModelPredicts) {
     tau /= double(ps.size());
     sy /= double(ps.size());
     const double expect = closed_form(sy);
-    std::printf("snow: lid strain %.3f, mean stretch %.4f: tau_yy = %9.1f Pa, closed form %9.1f Pa (%+.1f %%)\n",
-                strain, sy, tau, expect, 100 * (tau / expect - 1));
+    std::printf(
+        "snow: lid strain %.3f, mean stretch %.4f: tau_yy = %9.1f Pa, closed form %9.1f Pa (%+.1f %%)\n",
+        strain, sy, tau, expect, 100 * (tau / expect - 1));
     if (sy < 1 - theta_c) ++plastic_points;
     worst = std::max(worst, std::abs(tau / expect - 1));
   }
@@ -227,10 +233,9 @@ TEST(MaterialValidation, SandPileSlopeMatchesFrictionAngle) {
   MaterialParams sand{MaterialModel::DruckerPrager, l.mu, l.lambda, 2200};
   sand.friction_alpha = DruckerPragerT<Real>::friction_alpha(Real(phi_deg * M_PI / 180));
   MpmSolver solver(s, {sand}, {wall(Vec3(0, Real(c[1]), 0), Vec3::UnitY(), BoundaryType::Sticky)});
-  const std::vector<Vec3> x =
-      lattice(c - Vec3d(R, 0, R), c + Vec3d(R, Hc, R), dx, [&](const Vec3d& p) {
-        return (Vec3d(p[0], 0, p[2]) - Vec3d(c[0], 0, c[2])).norm() <= R;
-      });
+  const std::vector<Vec3> x = lattice(
+      c - Vec3d(R, 0, R), c + Vec3d(R, Hc, R), dx,
+      [&](const Vec3d& p) { return (Vec3d(p[0], 0, p[2]) - Vec3d(c[0], 0, c[2])).norm() <= R; });
   solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(std::pow(dx / 2, 3)));
   const exec::Space space(exec::Backend::OpenMP, 2);
   run_until(solver, space, 0.8);
@@ -258,9 +263,10 @@ TEST(MaterialValidation, SandPileSlopeMatchesFrictionAngle) {
   const double slope = (n * srh - sr * sh) / (n * srr - sr * sr);
   const double angle = std::atan(-slope) * 180 / M_PI;
   const MpmDiagnostics d = solver.diagnostics(space);
-  std::printf("sand pile: height %.4f m (column %.3f m), flank slope %.2f deg over %d bins (friction angle %.0f), "
-              "max speed %.4f m/s\n",
-              hmax, Hc, angle, n, phi_deg, d.max_speed);
+  std::printf(
+      "sand pile: height %.4f m (column %.3f m), flank slope %.2f deg over %d bins (friction angle %.0f), "
+      "max speed %.4f m/s\n",
+      hmax, Hc, angle, n, phi_deg, d.max_speed);
   EXPECT_NEAR(angle, phi_deg, 3.0);
   EXPECT_LT(d.max_speed, 0.05);  // came to rest
 }

@@ -32,7 +32,8 @@ void check_model(const M& m) {
   for (int t = 0; t < 200; ++t) {
     const Mat3 F = random_F(rng), R = random_rotation(rng);
     const double e = double(m.energy(F));
-    EXPECT_NEAR(double(m.energy(R * F)), e, 1e-4 * (1 + std::abs(e))) << "energy not rotation invariant";
+    EXPECT_NEAR(double(m.energy(R * F)), e, 1e-4 * (1 + std::abs(e)))
+        << "energy not rotation invariant";
     EXPECT_LT(double((m.first_piola(R * F) - R * m.first_piola(F)).norm()),
               1e-4 * (1 + double(m.first_piola(F).norm())));  // objectivity
     EXPECT_LT(double((m.kirchhoff(F) - m.first_piola(F) * F.transpose()).norm()),
@@ -87,7 +88,9 @@ void check_dP(const M& m, double min_det = -1e9) {
     if (F.determinant() <= min_det) continue;
     const Mat3d fd = fd_dP(m, F, dF);
     const Mat3d an = m.dP(F, dF);
-    EXPECT_LT((fd - an).norm(), 1e-6 * (1 + an.norm())) << "t=" << t << "\nfd=\n" << fd << "\nan=\n" << an;
+    EXPECT_LT((fd - an).norm(), 1e-6 * (1 + an.norm())) << "t=" << t << "\nfd=\n"
+                                                        << fd << "\nan=\n"
+                                                        << an;
     ++checked;
   }
   EXPECT_GT(checked, 100);
@@ -117,7 +120,8 @@ void check_objective_double(const M& m) {
     Mat3d F = Mat3d::Identity(), A;
     for (int i = 0; i < 9; ++i) F(i) += u(rng), A(i) = u(rng);
     const Mat3d R = polar_rotation(A);
-    EXPECT_LT((m.first_piola(R * F) - R * m.first_piola(F)).norm(), 1e-9 * (1 + m.first_piola(F).norm()));
+    EXPECT_LT((m.first_piola(R * F) - R * m.first_piola(F)).norm(),
+              1e-9 * (1 + m.first_piola(F).norm()));
     EXPECT_NEAR(m.energy(R * F), m.energy(F), 1e-9 * (1 + std::abs(m.energy(F))));
   }
 }
@@ -247,7 +251,8 @@ Mat3d random_rotation_d(std::mt19937& rng) {
 }
 // A projection is idempotent: projecting its result again changes neither F nor the state.
 template <class Model>
-void check_idempotent_and_objective(const Model& m, double init_state, double amp, int* projected_count) {
+void check_idempotent_and_objective(const Model& m, double init_state, double amp,
+                                    int* projected_count) {
   std::mt19937 rng(11);
   for (int t = 0; t < 300; ++t) {
     Mat3d F = random_trial_F(rng, amp);
@@ -292,7 +297,7 @@ TEST(Plasticity, SnowClampsSingularValuesAndConservesTotalVolume) {
       EXPECT_LE(sig[i], 1 + 0.0075 + 1e-12);
       on_bound |= std::abs(sig[i] - (1 - 0.025)) < 1e-12 || std::abs(sig[i] - (1 + 0.0075)) < 1e-12;
     }
-    EXPECT_TRUE(on_bound);  // lands on the yield surface (a clamp bound)
+    EXPECT_TRUE(on_bound);                         // lands on the yield surface (a clamp bound)
     EXPECT_NEAR(F.determinant() * JP, J0, 1e-12);  // J_E J_P = J
   }
 }
@@ -301,7 +306,8 @@ TEST(Plasticity, DruckerPragerLandsOnConeAndIsIdempotent) {
   const Lame l = Lame::from_young_poisson(3.5e5, 0.3);
   for (const double cohesion : {0.0, 200.0}) {
     const double phi = 30 * M_PI / 180;
-    DruckerPragerT<double> dp{double(l.mu), double(l.lambda), DruckerPragerT<double>::friction_alpha(phi),
+    DruckerPragerT<double> dp{double(l.mu), double(l.lambda),
+                              DruckerPragerT<double>::friction_alpha(phi),
                               DruckerPragerT<double>::apex_trace(l.mu, l.lambda, phi, cohesion)};
     int projected = 0;
     check_idempotent_and_objective(dp, 0.0, 0.05, &projected);
@@ -335,7 +341,8 @@ TEST(Plasticity, DruckerPragerLandsOnConeAndIsIdempotent) {
 
 TEST(Plasticity, DruckerPragerVolumeCorrectionGivesBackGainedVolume) {
   const Lame l = Lame::from_young_poisson(3.5e5, 0.3);
-  const DruckerPragerT<double> dp{double(l.mu), double(l.lambda), DruckerPragerT<double>::friction_alpha(0.5), 0};
+  const DruckerPragerT<double> dp{double(l.mu), double(l.lambda),
+                                  DruckerPragerT<double>::friction_alpha(0.5), 0};
   // Expanded by 3 % in volume: projected to the apex (stress free), v_c records log 1.03.
   Mat3d F = std::cbrt(1.03) * Mat3d::Identity();
   double vc = 0;
@@ -384,8 +391,10 @@ TEST(Materials, EveryModelIsStressFreeAtRest) {
     m.friction_alpha = Real(0.4);
     m.yield_stress = Real(1e3);
     Real plastic = m.initial_plastic();
-    EXPECT_LT(double(m.kirchhoff(Mat3::Identity(), Mat3::Zero(), plastic, 0).norm()), 1e-6) << material_model_name(m.model);
-    EXPECT_NEAR(double(m.energy(Mat3::Identity(), plastic, 0)), 0.0, 1e-6) << material_model_name(m.model);
+    EXPECT_LT(double(m.kirchhoff(Mat3::Identity(), Mat3::Zero(), plastic, 0).norm()), 1e-6)
+        << material_model_name(m.model);
+    EXPECT_NEAR(double(m.energy(Mat3::Identity(), plastic, 0)), 0.0, 1e-6)
+        << material_model_name(m.model);
     Mat3 F = Mat3::Identity();
     m.project(F, plastic, 0);
     EXPECT_LT(double((F - Mat3::Identity()).norm()), 1e-6) << material_model_name(m.model);
@@ -403,9 +412,10 @@ TEST(Materials, MeltingSwitchesToViscousLiquid) {
   Mat3 F = Mat3::Identity();
   F(0, 1) = Real(0.2);  // sheared solid
   Real plastic = 0;
-  EXPECT_GT(double(m.kirchhoff(F, Mat3::Zero(), plastic, 290).norm()), 1e3);  // elastic shear stress
-  EXPECT_FALSE(m.project(F, plastic, 290));                                    // solid keeps its shear
-  EXPECT_TRUE(m.project(F, plastic, 310));                                     // melted: F reset
+  EXPECT_GT(double(m.kirchhoff(F, Mat3::Zero(), plastic, 290).norm()),
+            1e3);                            // elastic shear stress
+  EXPECT_FALSE(m.project(F, plastic, 290));  // solid keeps its shear
+  EXPECT_TRUE(m.project(F, plastic, 310));   // melted: F reset
   EXPECT_LT(double((F - Mat3::Identity()).norm()), 1e-6);
   Mat3 L = Mat3::Zero();
   L(0, 1) = 1;
@@ -430,7 +440,8 @@ TEST(Materials, KirchhoffOfABatchIsBitwiseThatOfOneParticle) {
       m.friction_alpha = Real(0.4);
       m.yield_stress = Real(1e3);
       m.viscosity = variant == 1 ? Real(0.1) : Real(0);
-      if (variant == 2) m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
+      if (variant == 2)
+        m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
       for (int t = 0; t < 200; ++t) {
         const int n = 1 + t % W;
         Mat3 F[W], L[W], tau[W];
@@ -439,7 +450,8 @@ TEST(Materials, KirchhoffOfABatchIsBitwiseThatOfOneParticle) {
           F[i] = random_F(rng);
           if (t % 5 == 0 && i == 0) F[i].col(2) *= Real(-1);  // inverted: the SVD fallback
           L[i] = random_F(rng) - Mat3::Identity();
-          plastic[i] = m.model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
+          plastic[i] =
+              m.model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
           temperature[i] = Real(300 + 5 * u(rng));  // some lanes melted, some not
         }
         m.kirchhoff_lanes(F, L, plastic, temperature, tau, n);

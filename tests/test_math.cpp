@@ -38,18 +38,22 @@ void check_weights() {
           sum_wrr += w * r * r.transpose();
           ASSERT_LT((r - (xi - xp)).norm(), 1e-4);
         }
-    EXPECT_NEAR(sum_w, 1, tol);                                   // partition of unity
-    EXPECT_LT((sum_wx - xp).norm(), tol * 40);                    // linear reproduction
-    EXPECT_LT(sum_grad.norm(), tol * 100);                        // gradient of unity
-    EXPECT_LT((sum_x_grad - Mat3::Identity()).norm(), tol * 100); // gradient of x is I
+    EXPECT_NEAR(sum_w, 1, tol);                                    // partition of unity
+    EXPECT_LT((sum_wx - xp).norm(), tol * 40);                     // linear reproduction
+    EXPECT_LT(sum_grad.norm(), tol * 100);                         // gradient of unity
+    EXPECT_LT((sum_x_grad - Mat3::Identity()).norm(), tol * 100);  // gradient of x is I
     // D_p = sum w r r^T = (dx^2 / Dinv_scale) I: the APIC/MLS inertia tensor.
     const Mat3 D = Mat3::Identity() * (dx * dx / BSpline<Order>::kDinvScale);
     EXPECT_LT((sum_wrr - D).norm(), tol * 1e-2) << "order " << Order;
   }
 }
 
-TEST(BSpline, QuadraticPartitionOfUnityAndLinearReproduction) { check_weights<2>(); }
-TEST(BSpline, CubicPartitionOfUnityAndLinearReproduction) { check_weights<3>(); }
+TEST(BSpline, QuadraticPartitionOfUnityAndLinearReproduction) {
+  check_weights<2>();
+}
+TEST(BSpline, CubicPartitionOfUnityAndLinearReproduction) {
+  check_weights<3>();
+}
 
 namespace {
 void expect_rotation(const Mat3& R, double tol) {
@@ -88,9 +92,9 @@ TEST(Svd3, NearSingularInvertedAndDegenerate) {
   std::vector<Mat3> cases;
   cases.push_back(Mat3::Identity());
   cases.push_back(Mat3::Zero());
-  cases.push_back(Vec3(1, 1, -1).asDiagonal());   // reflection: inverted
-  cases.push_back(Vec3(2, 2, 2).asDiagonal());    // repeated singular values
-  cases.push_back(Vec3(1, 1e-7, 0).asDiagonal()); // rank 1
+  cases.push_back(Vec3(1, 1, -1).asDiagonal());    // reflection: inverted
+  cases.push_back(Vec3(2, 2, 2).asDiagonal());     // repeated singular values
+  cases.push_back(Vec3(1, 1e-7, 0).asDiagonal());  // rank 1
   for (int t = 0; t < 2000; ++t) {
     // F = R1 diag(s) R2 with one tiny or negative stretch: flattened and inverted elements.
     Mat3 A, B;
@@ -125,7 +129,8 @@ TEST(Polar, FastRotationMatchesSvdIncludingFallbacks) {
     const Mat3 Rf = polar_rotation_fast(F);
     const Mat3 Rs = polar_rotation(F);
     expect_rotation(Rf, tol);
-    const double kappa = double(svd3(F).sigma[0] / std::max(std::abs(svd3(F).sigma[2]), Real(1e-30)));
+    const double kappa =
+        double(svd3(F).sigma[0] / std::max(std::abs(svd3(F).sigma[2]), Real(1e-30)));
     if (kappa < 1e3) {
       EXPECT_LT(double((Rf - Rs).norm()), tol * kappa) << F;
     }
@@ -155,14 +160,16 @@ void check_lanes_match_one_at_a_time() {
   std::shuffle(F.begin(), F.end(), rng);
   int batches = 0, mixed = 0;
   for (std::size_t s = 0; s < F.size(); s += W) {
-    const int n = int(std::min<std::size_t>(W, F.size() - s)) - int(batches % 2);  // also partial batches
+    const int n =
+        int(std::min<std::size_t>(W, F.size() - s)) - int(batches % 2);  // also partial batches
     if (n < 1) continue;
     M R[W];
     polar_rotation_fast_lanes<T>(&F[s], R, n);
     int fallback = 0;
     for (int l = 0; l < n; ++l) {
       const M one = polar_rotation_fast<T>(F[s + l]);
-      ASSERT_EQ(0, std::memcmp(one.data(), R[l].data(), sizeof(M))) << "lane " << l << " of\n" << F[s + l];
+      ASSERT_EQ(0, std::memcmp(one.data(), R[l].data(), sizeof(M))) << "lane " << l << " of\n"
+                                                                    << F[s + l];
       fallback += F[s + l].determinant() <= 0;
     }
     mixed += fallback > 0 && fallback < n;

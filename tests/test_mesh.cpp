@@ -15,8 +15,10 @@ using namespace amalgam;
 
 namespace {
 namespace fs = std::filesystem;
-const double kCube[8][3] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0}, {0, 0, 1}, {1, 0, 1}, {1, 1, 1}, {0, 1, 1}};
-const int kQuads[6][4] = {{0, 3, 2, 1}, {4, 5, 6, 7}, {0, 1, 5, 4}, {2, 3, 7, 6}, {1, 2, 6, 5}, {0, 4, 7, 3}};
+const double kCube[8][3] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0},
+                            {0, 0, 1}, {1, 0, 1}, {1, 1, 1}, {0, 1, 1}};
+const int kQuads[6][4] = {{0, 3, 2, 1}, {4, 5, 6, 7}, {0, 1, 5, 4},
+                          {2, 3, 7, 6}, {1, 2, 6, 5}, {0, 4, 7, 3}};
 
 std::string write(const std::string& name, const std::string& text) {
   const std::string p = (fs::temp_directory_path() / ("amalgam_test_" + name)).string();
@@ -31,15 +33,27 @@ std::string mesh_dir() {
 
 TEST(Mesh, CubeInEveryFormat) {
   std::string obj, off = "OFF\n8 6 0\n", ply_a, ply_b_header, ply_b;
-  for (auto& v : kCube) obj += "v " + std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) + "\n";
-  for (auto& q : kQuads) obj += "f " + std::to_string(q[0] + 1) + "/1 " + std::to_string(q[1] + 1) + "//2 " + std::to_string(q[2] + 1) + " " + std::to_string(q[3] + 1) + "\n";
-  for (auto& v : kCube) off += std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) + "\n";
-  for (auto& q : kQuads) off += "4 " + std::to_string(q[0]) + " " + std::to_string(q[1]) + " " + std::to_string(q[2]) + " " + std::to_string(q[3]) + "\n";
-  const std::string header = "element vertex 8\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\n"
-                             "element face 6\nproperty list uchar int vertex_indices\nend_header\n";
+  for (auto& v : kCube)
+    obj += "v " + std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) +
+           "\n";
+  for (auto& q : kQuads)
+    obj += "f " + std::to_string(q[0] + 1) + "/1 " + std::to_string(q[1] + 1) + "//2 " +
+           std::to_string(q[2] + 1) + " " + std::to_string(q[3] + 1) + "\n";
+  for (auto& v : kCube)
+    off += std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) + "\n";
+  for (auto& q : kQuads)
+    off += "4 " + std::to_string(q[0]) + " " + std::to_string(q[1]) + " " + std::to_string(q[2]) +
+           " " + std::to_string(q[3]) + "\n";
+  const std::string header =
+      "element vertex 8\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\n"
+      "element face 6\nproperty list uchar int vertex_indices\nend_header\n";
   ply_a = "ply\nformat ascii 1.0\n" + header;
-  for (auto& v : kCube) ply_a += std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) + " 7\n";
-  for (auto& q : kQuads) ply_a += "4 " + std::to_string(q[0]) + " " + std::to_string(q[1]) + " " + std::to_string(q[2]) + " " + std::to_string(q[3]) + "\n";
+  for (auto& v : kCube)
+    ply_a +=
+        std::to_string(v[0]) + " " + std::to_string(v[1]) + " " + std::to_string(v[2]) + " 7\n";
+  for (auto& q : kQuads)
+    ply_a += "4 " + std::to_string(q[0]) + " " + std::to_string(q[1]) + " " + std::to_string(q[2]) +
+             " " + std::to_string(q[3]) + "\n";
   ply_b = "ply\nformat binary_little_endian 1.0\n" + header;
   for (auto& v : kCube) {
     const float f[3] = {float(v[0]), float(v[1]), float(v[2])};
@@ -81,14 +95,17 @@ TEST(Mesh, BadFilesAreClearErrors) {
   };
   EXPECT_NE(err("/nonexistent/a.obj").find("cannot open mesh file"), std::string::npos);
   EXPECT_NE(err(write("x.stl", "solid")).find("unknown mesh format '.stl'"), std::string::npos);
-  EXPECT_NE(err(write("bad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 9\n")).find("vertex index 9 out of range"),
+  EXPECT_NE(err(write("bad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 9\n"))
+                .find("vertex index 9 out of range"),
             std::string::npos);
   EXPECT_NE(err(write("short.off", "OFF\n4 1 0\n0 0 0\n")).find("truncated"), std::string::npos);
-  EXPECT_NE(err(write("bad.obj", "v 0 0\n")).find("bad.obj:1: expected 'v x y z'"), std::string::npos);
+  EXPECT_NE(err(write("bad.obj", "v 0 0\n")).find("bad.obj:1: expected 'v x y z'"),
+            std::string::npos);
 }
 
 TEST(Mesh, ArmadilloSampledVolumeWithinTwoPercent) {
-  if (mesh_dir().empty()) GTEST_SKIP() << "AMALGAM_MESH_DIR not set (ctest sets it via scripts/get_meshes.sh)";
+  if (mesh_dir().empty())
+    GTEST_SKIP() << "AMALGAM_MESH_DIR not set (ctest sets it via scripts/get_meshes.sh)";
   const TriangleMesh m = load_mesh(mesh_dir() + "/armadillo.off");
   EXPECT_TRUE(check_mesh(m).watertight());
   const double V = std::abs(enclosed_volume(m));
@@ -97,8 +114,8 @@ TEST(Mesh, ArmadilloSampledVolumeWithinTwoPercent) {
   const double h = (hi - lo).maxCoeff() / 100.0;  // 100 lattice spacings across the largest extent
   const auto pts = sample_mesh(m, h, 0.5, 7, exec::Space());
   const double sampled = double(pts.size()) * h * h * h;
-  std::printf("armadillo: enclosed volume %.6g, sampled %zu particles x h^3 = %.6g (%.3f %%)\n", V, pts.size(),
-              sampled, 100 * (sampled / V - 1));
+  std::printf("armadillo: enclosed volume %.6g, sampled %zu particles x h^3 = %.6g (%.3f %%)\n", V,
+              pts.size(), sampled, 100 * (sampled / V - 1));
   EXPECT_NEAR(sampled / V, 1.0, 0.02);
 }
 
@@ -119,7 +136,8 @@ TEST(Mesh, VoxelisationUsesTheSpacesThreadCount) {
   for (int j = 0; j <= nv; ++j)
     for (int i = 0; i < nu; ++i) {
       const double th = M_PI * j / nv, ph = 2 * M_PI * i / nu;
-      m.vertices.emplace_back(0.5 * std::sin(th) * std::cos(ph), 0.5 * std::cos(th), 0.5 * std::sin(th) * std::sin(ph));
+      m.vertices.emplace_back(0.5 * std::sin(th) * std::cos(ph), 0.5 * std::cos(th),
+                              0.5 * std::sin(th) * std::sin(ph));
     }
   auto at = [&](int i, int j) { return std::int32_t(j * nu + (i % nu)); };
   for (int j = 0; j < nv; ++j)

@@ -26,10 +26,12 @@ Scene head_on(const std::string& contact, double v = 0.5) {
                            (contact.empty() ? std::string() : ", \"contact\": " + contact) + R"(},
     "materials": {"rubber": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 2e4, "poisson_ratio": 0.3}},
     "objects": [{"shape": "box", "min": [0.3, 0.45, 0.45], "max": [0.4, 0.55, 0.55], "material": "rubber",
-                 "jitter": 0, "velocity": [)" + std::to_string(v) + R"(, 0, 0],
+                 "jitter": 0, "velocity": [)" +
+                           std::to_string(v) + R"(, 0, 0],
                  "configuration": {"update": "total_lagrangian"}},
                 {"shape": "box", "min": [0.46, 0.45, 0.45], "max": [0.56, 0.55, 0.55], "material": "rubber",
-                 "jitter": 0, "velocity": [)" + std::to_string(-v) + R"(, 0, 0],
+                 "jitter": 0, "velocity": [)" +
+                           std::to_string(-v) + R"(, 0, 0],
                  "configuration": {"update": "total_lagrangian"}}]})";
   return parse_scene(text, "head_on.json");
 }
@@ -76,11 +78,12 @@ TEST(ObjectContact, HeadOnCubesCollideInsteadOfPassingThrough) {
     double v0;
     const char* integrator;
   };
-  for (const Case c : {Case{"none", 0.5, "explicit"}, Case{"stick", 0.5, "explicit"}, Case{"separate", 0.5, "explicit"},
-                       Case{"stick", 2.0, "explicit"}, Case{"separate", 2.0, "explicit"},
-                       Case{"separate", 0.5, "implicit"}}) {
-    MpmSolver s = build_solver(head_on(std::string("{\"mode\": \"") + c.mode + "\"}, \"integrator\": \"" +
-                                           c.integrator + "\"", c.v0));
+  for (const Case c : {Case{"none", 0.5, "explicit"}, Case{"stick", 0.5, "explicit"},
+                       Case{"separate", 0.5, "explicit"}, Case{"stick", 2.0, "explicit"},
+                       Case{"separate", 2.0, "explicit"}, Case{"separate", 0.5, "implicit"}}) {
+    MpmSolver s = build_solver(head_on(
+        std::string("{\"mode\": \"") + c.mode + "\"}, \"integrator\": \"" + c.integrator + "\"",
+        c.v0));
     const Bodies b0 = measure(s);
     const double p0 = b0.ma * c.v0;  // |p| of one body
     double t = 0, min_gap = 1e30, max_px = 0;
@@ -93,11 +96,13 @@ TEST(ObjectContact, HeadOnCubesCollideInsteadOfPassingThrough) {
       max_px = std::max(max_px, std::abs(b.px));
     }
     const Bodies b = measure(s);
-    std::printf("%-8s v0 %.1f %-8s: centroids %.4f %.4f, velocities %+.4f %+.4f, min gap %+.4f m, "
-                "max |p_x| / p0 %.1e, contact nodes %llu\n",
-                c.mode, c.v0, c.integrator, b.xa, b.xb, b.va, b.vb, min_gap, max_px / p0,
-                (unsigned long long)s.aul()->contact_nodes());
-    const std::string what = std::string(c.mode) + " " + c.integrator + " v0 " + std::to_string(c.v0);
+    std::printf(
+        "%-8s v0 %.1f %-8s: centroids %.4f %.4f, velocities %+.4f %+.4f, min gap %+.4f m, "
+        "max |p_x| / p0 %.1e, contact nodes %llu\n",
+        c.mode, c.v0, c.integrator, b.xa, b.xb, b.va, b.vb, min_gap, max_px / p0,
+        (unsigned long long)s.aul()->contact_nodes());
+    const std::string what =
+        std::string(c.mode) + " " + c.integrator + " v0 " + std::to_string(c.v0);
     if (std::string(c.mode) == "none") {
       EXPECT_LT(min_gap, -0.15) << "without contact the cubes must pass through each other";
       EXPECT_EQ(s.aul()->contact_nodes(), 0u);
@@ -118,7 +123,8 @@ namespace {
 // A 0.1 m block (object 1) slides at 1 m/s along a slab (object 0) held by a sticky floor.
 Scene sliding_block(const std::string& contact) {
   const std::string text = R"({
-    "simulation": {"dx": 0.02, "frames": 1, "cfl": 0.4, "contact": )" + contact + R"(},
+    "simulation": {"dx": 0.02, "frames": 1, "cfl": 0.4, "contact": )" +
+                           contact + R"(},
     "materials": {"rubber": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 2e5, "poisson_ratio": 0.3}},
     "objects": [{"shape": "box", "min": [0.2, 0.1, 0.4], "max": [0.8, 0.2, 0.6], "material": "rubber",
                  "jitter": 0, "configuration": {"update": "total_lagrangian"}},
@@ -134,7 +140,8 @@ Scene sliding_block(const std::string& contact) {
 TEST(ObjectContact, SlidingBlockDeceleratesAtMuG) {
   const exec::Space space(test::parallel_backend(), 2);
   for (const double mu : {0.0, 0.2, 0.5}) {
-    MpmSolver s = build_solver(sliding_block("{\"mode\": \"separate\", \"friction\": " + std::to_string(mu) + "}"));
+    MpmSolver s = build_solver(
+        sliding_block("{\"mode\": \"separate\", \"friction\": " + std::to_string(mu) + "}"));
     double t = 0;
     std::vector<double> ts, vs;
     while (t < 0.16) {
@@ -147,10 +154,12 @@ TEST(ObjectContact, SlidingBlockDeceleratesAtMuG) {
     // least-squares slope of v(t) over [0.05, 0.15] s
     double st = 0, sv = 0, stt = 0, stv = 0, n = 0;
     for (size_t i = 0; i < ts.size(); ++i)
-      if (ts[i] >= 0.05 && ts[i] <= 0.15) st += ts[i], sv += vs[i], stt += ts[i] * ts[i], stv += ts[i] * vs[i], ++n;
+      if (ts[i] >= 0.05 && ts[i] <= 0.15)
+        st += ts[i], sv += vs[i], stt += ts[i] * ts[i], stv += ts[i] * vs[i], ++n;
     const double slope = (n * stv - st * sv) / (n * stt - st * st);
-    std::printf("mu %.1f: v(%.2f s) %.4f, deceleration over [0.05, 0.15] s %.3f m/s^2 (mu g = %.3f)\n", mu,
-                ts.back(), vs.back(), -slope, mu * 9.81);
+    std::printf(
+        "mu %.1f: v(%.2f s) %.4f, deceleration over [0.05, 0.15] s %.3f m/s^2 (mu g = %.3f)\n", mu,
+        ts.back(), vs.back(), -slope, mu * 9.81);
     // Measured: 0.021 (mu 0), 1.942 (mu 0.2: 1 % under mu g), 4.484 (mu 0.5: 9 % under).
     EXPECT_NEAR(-slope, mu * 9.81, 0.05 + 0.12 * mu * 9.81) << "mu " << mu;
   }
@@ -162,7 +171,8 @@ TEST(ObjectContact, SlidingBlockDeceleratesAtMuG) {
 TEST(ObjectContact, BitwiseIdenticalOnEveryBackend) {
   for (const char* transfer : {"flip", "mls"}) {
     const std::string text = std::string(R"({
-      "simulation": {"dx": 0.02, "frames": 1, "gravity": [0, 0, 0], "transfer": ")") + transfer + R"(",
+      "simulation": {"dx": 0.02, "frames": 1, "gravity": [0, 0, 0], "transfer": ")") +
+                             transfer + R"(",
                      "contact": {"mode": "separate", "friction": 0.4}},
       "materials": {"rubber": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 2e4, "poisson_ratio": 0.3}},
       "objects": [{"shape": "box", "min": [0.3, 0.45, 0.45], "max": [0.4, 0.55, 0.55], "material": "rubber",
@@ -183,12 +193,14 @@ TEST(ObjectContact, BitwiseIdenticalOnEveryBackend) {
       if (ref.empty()) {
         ref = st;
         ref_nodes = s.aul()->contact_nodes();
-        std::printf("%s: %llu contact node corrections in 30 substeps\n", transfer, (unsigned long long)ref_nodes);
+        std::printf("%s: %llu contact node corrections in 30 substeps\n", transfer,
+                    (unsigned long long)ref_nodes);
         EXPECT_GT(ref_nodes, 100u) << "the test must exercise contact";
         continue;
       }
       ASSERT_EQ(st.size(), ref.size());
-      EXPECT_TRUE(test::bitwise_equal(st.data(), ref.data(), st.size())) << transfer << " " << c.name();
+      EXPECT_TRUE(test::bitwise_equal(st.data(), ref.data(), st.size()))
+          << transfer << " " << c.name();
       EXPECT_EQ(s.aul()->contact_nodes(), ref_nodes) << transfer << " " << c.name();
     }
   }
@@ -212,7 +224,8 @@ TEST(ObjectContact, SceneKeys) {
 TEST(ObjectContact, ObjectsSharingALaneAreAnError) {
   for (const char* mode : {"stick", "none"}) {
     const std::string text = std::string(R"({
-      "simulation": {"dx": 0.01, "frames": 1, "contact": {"mode": ")") + mode + R"("}},
+      "simulation": {"dx": 0.01, "frames": 1, "contact": {"mode": ")") +
+                             mode + R"("}},
       "materials": {"rubber": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 2e4, "poisson_ratio": 0.3}},
       "objects": [{"shape": "box", "min": [0.5, 0.5, 0.5], "max": [0.6, 0.6, 0.6], "material": "rubber",
                    "configuration": {"update": "total_lagrangian"}},
@@ -224,7 +237,8 @@ TEST(ObjectContact, ObjectsSharingALaneAreAnError) {
       s.step(space, Real(1e-4));
       ADD_FAILURE() << mode << ": expected a SimulationError";
     } catch (const SimulationError& e) {
-      EXPECT_NE(std::string(e.what()).find("objects 0 and 1 reach the same reference-grid leaf"), std::string::npos)
+      EXPECT_NE(std::string(e.what()).find("objects 0 and 1 reach the same reference-grid leaf"),
+                std::string::npos)
           << e.what();
     }
   }

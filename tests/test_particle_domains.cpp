@@ -173,7 +173,9 @@ TEST(ParticleDomains, TranslationIsExact) {
   EXPECT_LT(dx, 2e-6);
   EXPECT_LT(dF, 2e-5);
   EXPECT_LT(dv, 2e-6);
-  EXPECT_EQ(s.enriched()->domains().last_counts().enriched + s.enriched()->domains().last_counts().transitional, 0u);
+  EXPECT_EQ(s.enriched()->domains().last_counts().enriched +
+                s.enriched()->domains().last_counts().transitional,
+            0u);
 }
 
 // Every kernel of the method, explicit and implicit, with enrichment, a floor and a sticky box:
@@ -235,7 +237,8 @@ TEST(ParticleDomains, SceneKeys) {
   EXPECT_EQ(sc.objects[0].jitter, 0);  // domains sample an exact lattice by default
   MpmSolver s = build_solver(sc);
   EXPECT_EQ(s.particles().size(), 5u * 4 * 3 * 8);
-  EXPECT_EQ(s.enriched()->domains().corner_count(), 11u * 9 * 7);  // shared corners: (n + 1)^3 for n^3 cells
+  EXPECT_EQ(s.enriched()->domains().corner_count(),
+            11u * 9 * 7);  // shared corners: (n + 1)^3 for n^3 cells
   auto fails = [](const std::string& text, const std::string& what) {
     try {
       parse_scene(text, "bad.json");
@@ -544,17 +547,19 @@ TEST(ParticleDomains, MeltedParticlesLeaveTheirDomains) {
       st.insert(st.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
     const std::int32_t* state = ps.int32(s.enriched()->attributes().state);
     std::size_t disabled = 0;
-    for (size_t p = 0; p < ps.size(); ++p) st.push_back(Real(state[p])), disabled += state[p] == kDomainDisabled;
+    for (size_t p = 0; p < ps.size(); ++p)
+      st.push_back(Real(state[p])), disabled += state[p] == kDomainDisabled;
     if (ref.empty()) {
       ref = st;
-      std::printf("melting: %zu of %zu particles left their domains, |dp| / (M vmax) = %.2e\n", disabled, ps.size(),
-                  worst / (t0.mass * t0.max_speed));
+      std::printf("melting: %zu of %zu particles left their domains, |dp| / (M vmax) = %.2e\n",
+                  disabled, ps.size(), worst / (t0.mass * t0.max_speed));
       EXPECT_GT(disabled, ps.size() / 5);
       EXPECT_LT(disabled, ps.size());
       EXPECT_EQ(s.enriched()->domains().disabled_count(), disabled);
       EXPECT_LT(worst / (t0.mass * t0.max_speed), 1e-6);
       for (auto id : {s.attributes().x, s.attributes().v, s.attributes().F})
-        for (size_t k = 0; k < ps.size() * size_t(ps.width(id)); ++k) ASSERT_TRUE(std::isfinite(ps.real(id)[k]));
+        for (size_t k = 0; k < ps.size() * size_t(ps.width(id)); ++k)
+          ASSERT_TRUE(std::isfinite(ps.real(id)[k]));
       continue;
     }
     ASSERT_EQ(st.size(), ref.size());

@@ -53,7 +53,8 @@ PdSettings settings(PdDeviatoric dev, bool correction, bool partial_volume = tru
 // A solver over an n^3 cube, initialised (bonds, constants) at rest.
 PdSolver make_block(int n, const PdSettings& s, const PdMaterial& m, const exec::Space& space) {
   PdSolver solver(s, {m});
-  solver.add_particles(lattice(n), Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
+  solver.add_particles(lattice(n), Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0,
+                       Real(kLc * kLc * kLc));
   solver.initialize(space);
   return solver;
 }
@@ -75,7 +76,9 @@ std::vector<Vec3> forces_now(PdSolver& solver, const exec::Space& space) {
 }
 
 // Index of the particle nearest the cube's centre, and whether i is at least `depth` from every face.
-std::size_t centre_particle(int n) { return std::size_t((n / 2) * n * n + (n / 2) * n + n / 2); }
+std::size_t centre_particle(int n) {
+  return std::size_t((n / 2) * n * n + (n / 2) * n + n / 2);
+}
 bool interior(const Vec3& x0, int n, double depth) {
   for (int a = 0; a < 3; ++a)
     if (double(x0[a]) < depth || double(x0[a]) > n * kLc - depth) return false;
@@ -83,7 +86,9 @@ bool interior(const Vec3& x0, int n, double depth) {
 }
 
 // Force scale: |f| of a surface particle under a 1e-3 uniaxial strain.
-double force_scale(const PdMaterial& m) { return double(m.bulk) * 1e-3 / kLc; }
+double force_scale(const PdMaterial& m) {
+  return double(m.bulk) * 1e-3 / kLc;
+}
 
 struct Form {
   PdDeviatoric dev;
@@ -116,8 +121,8 @@ TEST_P(PdForms, HomogeneousDeformationGivesZeroForceInTheBulk) {
   const int n = 18;
   PdSolver solver = make_block(n, settings(GetParam().dev, GetParam().correction), m, space);
   Mat3 H;
-  H << Real(1.0e-3), Real(0.4e-3), Real(-0.2e-3), Real(0.1e-3), Real(-0.5e-3), Real(0.3e-3), Real(0.2e-3),
-      Real(0.6e-3), Real(0.8e-3);
+  H << Real(1.0e-3), Real(0.4e-3), Real(-0.2e-3), Real(0.1e-3), Real(-0.5e-3), Real(0.3e-3),
+      Real(0.2e-3), Real(0.6e-3), Real(0.8e-3);
   deform(solver, space, [&](const Vec3& x0) { return Vec3(x0 + H * x0); });
   const std::vector<Vec3> f = forces_now(solver, space);
   const Vec3* x0 = solver.particles().vec3(solver.attributes().x0);
@@ -144,7 +149,9 @@ TEST_P(PdForms, PairForcesConserveMomentum) {
   PdSolver solver = make_block(8, settings(GetParam().dev, GetParam().correction), m, space);
   std::mt19937 rng(7);
   std::uniform_real_distribution<double> u(-1, 1);
-  deform(solver, space, [&](const Vec3& x0) { return Vec3(x0 + Vec3d(u(rng), u(rng), u(rng)).cast<Real>() * Real(2e-4)); });
+  deform(solver, space, [&](const Vec3& x0) {
+    return Vec3(x0 + Vec3d(u(rng), u(rng), u(rng)).cast<Real>() * Real(2e-4));
+  });
   const std::vector<Vec3> f = forces_now(solver, space);
   const Vec3* x = solver.particles().vec3(solver.attributes().x);
   const Real* V = solver.particles().real(solver.attributes().volume);
@@ -171,7 +178,9 @@ TEST_P(PdForms, ElasticPathIsBitwiseThePlasticPath) {
   PdSolver solver = make_block(8, settings(GetParam().dev, GetParam().correction), m, space);
   std::mt19937 rng(11);
   std::uniform_real_distribution<double> u(-1, 1);
-  deform(solver, space, [&](const Vec3& x0) { return Vec3(x0 + Vec3d(u(rng), u(rng), u(rng)).cast<Real>() * Real(2e-4)); });
+  deform(solver, space, [&](const Vec3& x0) {
+    return Vec3(x0 + Vec3d(u(rng), u(rng), u(rng)).cast<Real>() * Real(2e-4));
+  });
   ASSERT_FALSE(solver.params().plastic);
   const PdBonds bonds0 = solver.bonds();
   const PdView v = solver.view();
@@ -186,7 +195,10 @@ TEST_P(PdForms, ElasticPathIsBitwiseThePlasticPath) {
     prm.plastic = plastic;
     PdBonds b = bonds0;
     pd_dilatation(space, v, b, prm);
-    Out o{std::vector<Real>(v.theta, v.theta + v.n), std::vector<Real>(v.q, v.q + v.n), std::vector<Vec3>(v.n), {}};
+    Out o{std::vector<Real>(v.theta, v.theta + v.n),
+          std::vector<Real>(v.q, v.q + v.n),
+          std::vector<Vec3>(v.n),
+          {}};
     pd_forces(space, v, b, prm, true, o.f.data(), nullptr);
     o.intact = b.intact;
     return o;
@@ -196,13 +208,16 @@ TEST_P(PdForms, ElasticPathIsBitwiseThePlasticPath) {
   EXPECT_TRUE(test::bitwise_equal(a.q.data(), b.q.data(), a.q.size()));
   EXPECT_TRUE(test::bitwise_equal(a.f.data(), b.f.data(), a.f.size()));
   EXPECT_EQ(a.intact, b.intact);
-  EXPECT_NE(std::count(a.intact.begin(), a.intact.end(), 0), 0) << "no bond broke: the fracture test is vacuous";
+  EXPECT_NE(std::count(a.intact.begin(), a.intact.end(), 0), 0)
+      << "no bond broke: the fracture test is vacuous";
   EXPECT_NE(std::count(a.intact.begin(), a.intact.end(), 1), 0);
 }
 
 INSTANTIATE_TEST_SUITE_P(Peridynamics, PdForms,
-                         ::testing::Values(Form{PdDeviatoric::Paper, false}, Form{PdDeviatoric::Paper, true},
-                                           Form{PdDeviatoric::Lps, false}, Form{PdDeviatoric::Lps, true}),
+                         ::testing::Values(Form{PdDeviatoric::Paper, false},
+                                           Form{PdDeviatoric::Paper, true},
+                                           Form{PdDeviatoric::Lps, false},
+                                           Form{PdDeviatoric::Lps, true}),
                          [](const ::testing::TestParamInfo<Form>& i) {
                            return std::string(pd_deviatoric_name(i.param.dev)) +
                                   (i.param.correction ? "_corrected" : "_uncorrected");
@@ -228,7 +243,8 @@ Moduli lattice_moduli(PdDeviatoric dev, bool correction, bool partial_volume) {
   // terms cancel, which a one-sided probe leaves at ~0.5 e relative in C11 and C12 (seen in the
   // double build, whose tolerance is 1e-6).
   const auto slope = [&](const Mat3& strain) {
-    return Mat3d((centre_stress(solver, space, n, strain) - centre_stress(solver, space, n, -strain)) / 2);
+    return Mat3d(
+        (centre_stress(solver, space, n, strain) - centre_stress(solver, space, n, -strain)) / 2);
   };
   Moduli r;
   const Mat3d iso = slope(Mat3::Identity() * Real(e));
@@ -259,11 +275,12 @@ TEST(PdModuli, SurfaceCorrectionMakesBulkAndShearModuliExact) {
     EXPECT_NEAR(c.C12 / 28.8e9, 1.0, tol) << pd_deviatoric_name(dev);
     const Moduli raw = lattice_moduli(dev, false, false);
     const Moduli pv = lattice_moduli(dev, false, true);
-    std::printf("%s: K/K0 uncorrected %.4f, partial volume %.4f, corrected %.4f; C44/G %.4f %.4f %.4f; "
-                "(C11-C12)/2G %.4f %.4f %.4f\n",
-                pd_deviatoric_name(dev), raw.K / 48e9, pv.K / 48e9, c.K / 48e9, raw.C44 / 28.8e9, pv.C44 / 28.8e9,
-                c.C44 / 28.8e9, (raw.C11 - raw.C12) / 2 / 28.8e9, (pv.C11 - pv.C12) / 2 / 28.8e9,
-                (c.C11 - c.C12) / 2 / 28.8e9);
+    std::printf(
+        "%s: K/K0 uncorrected %.4f, partial volume %.4f, corrected %.4f; C44/G %.4f %.4f %.4f; "
+        "(C11-C12)/2G %.4f %.4f %.4f\n",
+        pd_deviatoric_name(dev), raw.K / 48e9, pv.K / 48e9, c.K / 48e9, raw.C44 / 28.8e9,
+        pv.C44 / 28.8e9, c.C44 / 28.8e9, (raw.C11 - raw.C12) / 2 / 28.8e9,
+        (pv.C11 - pv.C12) / 2 / 28.8e9, (c.C11 - c.C12) / 2 / 28.8e9);
     EXPECT_GT(std::abs((pv.C11 - pv.C12) / 2 / 28.8e9 - 1), 0.05) << pd_deviatoric_name(dev);
     // The notes' lattice sums (Madenci/Chen constants): K +6.3 % uncorrected... the test must
     // see the error it corrects.
@@ -281,13 +298,17 @@ TEST(PdPlasticity, HydrostaticLoadYieldsOnlyWithThePapersDeviatoricForm) {
     m.psi0 = pd_psi0_from_yield_stress(Real(20e6), Real(kDelta));  // yield at 20 MPa
     const int n = 13;
     PdSolver solver = make_block(n, settings(dev, true), m, space);
-    deform(solver, space, [&](const Vec3& x0) { return Vec3(x0 * Real(1.001)); });  // p = 3 K 1e-3 = 144 MPa
+    deform(solver, space,
+           [&](const Vec3& x0) { return Vec3(x0 * Real(1.001)); });  // p = 3 K 1e-3 = 144 MPa
     const PdBonds& b = solver.bonds();
     const std::size_t c = centre_particle(n);
     double ep_max = 0;
-    for (std::uint64_t k = b.offsets[c]; k < b.offsets[c + 1]; ++k) ep_max = std::max(ep_max, std::abs(double(b.plastic[k])));
-    if (dev == PdDeviatoric::Lps) EXPECT_LT(ep_max, 1e-12 * kLc);
-    else EXPECT_GT(ep_max, 1e-7 * kLc);
+    for (std::uint64_t k = b.offsets[c]; k < b.offsets[c + 1]; ++k)
+      ep_max = std::max(ep_max, std::abs(double(b.plastic[k])));
+    if (dev == PdDeviatoric::Lps)
+      EXPECT_LT(ep_max, 1e-12 * kLc);
+    else
+      EXPECT_GT(ep_max, 1e-7 * kLc);
   }
 }
 
@@ -317,8 +338,10 @@ TEST(PdPlasticity, ReturnMappingLandsOnTheYieldSurfaceAndIsCapped) {
     const double cap = double(m.plastic_cap) * L;
     EXPECT_LE(std::abs(double(b.plastic[k])), cap * (1 + 1e-6));
     // On the yield surface, unless the cap stopped the plastic flow (then above it).
-    if (std::abs(double(b.plastic[k])) < cap * (1 - 1e-6)) EXPECT_LE(std::abs(adev), ac * (1 + 1e-3));
-    else ++capped;
+    if (std::abs(double(b.plastic[k])) < cap * (1 - 1e-6))
+      EXPECT_LE(std::abs(adev), ac * (1 + 1e-3));
+    else
+      ++capped;
     yielded += b.plastic[k] != 0;
   }
   EXPECT_GT(yielded, 10);
@@ -331,7 +354,8 @@ TEST(PdPlasticity, ReturnMappingLandsOnTheYieldSurfaceAndIsCapped) {
   for (std::uint64_t k = b.offsets[c]; k < b.offsets[c + 1]; ++k) {
     if (ep[k] == 0) continue;
     EXPECT_GT(double(b.plastic[k]) * double(ep[k]), 0.0);
-    const double adev = 4 * double(b.shear_omega[k]) * double(p.b[c]) * (0.0 - double(b.plastic[k]));
+    const double adev =
+        4 * double(b.shear_omega[k]) * double(p.b[c]) * (0.0 - double(b.plastic[k]));
     EXPECT_LE(std::abs(adev), ac * (1 + 1e-3));
   }
 }
@@ -367,8 +391,10 @@ TEST(PdFracture, NoBondBreaksBelowTheCriticalStretch) {
 TEST(PdFracture, PrecrackBreaksExactlyTheCrossingBonds) {
   const exec::Space space(test::parallel_backend(), 2);
   PdSolver solver(settings(PdDeviatoric::Paper, true), {glass()});
-  solver.add_particles(lattice(10), Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
-  solver.add_precrack(Vec3(Real(0.05), 0, 0), Vec3(1, 0, 0), Vec3(-1, -1, -1), Vec3(1, Real(0.05), 1));
+  solver.add_particles(lattice(10), Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0,
+                       Real(kLc * kLc * kLc));
+  solver.add_precrack(Vec3(Real(0.05), 0, 0), Vec3(1, 0, 0), Vec3(-1, -1, -1),
+                      Vec3(1, Real(0.05), 1));
   solver.initialize(space);
   const PdBonds& b = solver.bonds();
   const Vec3* x0 = solver.particles().vec3(solver.attributes().x0);
@@ -402,7 +428,8 @@ TEST(PdBonds, CsrIsSymmetricSortedAndCompactionKeepsIntactBonds) {
       ASSERT_EQ(b.reverse[b.reverse[k]], k);
     }
   // Break every bond of particle 0 (both directions), compact, check the rest survives.
-  for (std::uint64_t k = b.offsets[0]; k < b.offsets[1]; ++k) b.intact[k] = b.intact[b.reverse[k]] = 0;
+  for (std::uint64_t k = b.offsets[0]; k < b.offsets[1]; ++k)
+    b.intact[k] = b.intact[b.reverse[k]] = 0;
   const std::size_t before = b.size(), row0 = b.offsets[1] - b.offsets[0];
   pd_compact_bonds(space, b);
   EXPECT_EQ(b.size(), before - 2 * row0);
@@ -416,7 +443,8 @@ TEST(PdBonds, CsrIsSymmetricSortedAndCompactionKeepsIntactBonds) {
   // length): of the centre particle's broken bonds, its 6 nearest neighbours' remain.
   const std::size_t p = centre_particle(7);
   const std::size_t before2 = b.size(), row = b.offsets[p + 1] - b.offsets[p];
-  for (std::uint64_t k = b.offsets[p]; k < b.offsets[p + 1]; ++k) b.intact[k] = b.intact[b.reverse[k]] = 0;
+  for (std::uint64_t k = b.offsets[p]; k < b.offsets[p + 1]; ++k)
+    b.intact[k] = b.intact[b.reverse[k]] = 0;
   EXPECT_EQ(pd_compact_bonds(space, b, Real(kLc)), 2 * (row - 6));
   EXPECT_EQ(b.size(), before2 - 2 * (row - 6));
   ASSERT_EQ(b.offsets[p + 1] - b.offsets[p], 6u);
@@ -448,9 +476,11 @@ TEST(PdBonds, CsrIsSymmetricSortedAndCompactionKeepsIntactBonds) {
 void expect_same_state(const PdSolver& a, const PdSolver& b, const std::string& what) {
   const ParticleSet &pa = a.particles(), &pb = b.particles();
   for (int k = 0; k < pa.attribute_count(); ++k)
-    EXPECT_TRUE(test::bitwise_equal(pa.words(k), pb.words(k), pa.size() * std::size_t(pa.words_per_particle(k))))
+    EXPECT_TRUE(test::bitwise_equal(pa.words(k), pb.words(k),
+                                    pa.size() * std::size_t(pa.words_per_particle(k))))
         << what << ": attribute " << pa.name(k);
-  EXPECT_TRUE(test::bitwise_equal(a.forces().data(), b.forces().data(), a.forces().size())) << what << ": forces";
+  EXPECT_TRUE(test::bitwise_equal(a.forces().data(), b.forces().data(), a.forces().size()))
+      << what << ": forces";
 }
 
 PdMaterial breakable() {
@@ -474,7 +504,8 @@ PdSolver pulled_bar(const exec::Space& space, Real compact_fraction) {
   std::vector<Vec3> x;
   for (int i = 0; i < 24; ++i)
     for (int j = 0; j < 6; ++j)
-      for (int k = 0; k < 6; ++k) x.push_back((kLc * Vec3d(i + 0.5, j + 0.5, k + 0.5)).cast<Real>());
+      for (int k = 0; k < 6; ++k)
+        x.push_back((kLc * Vec3d(i + 0.5, j + 0.5, k + 0.5)).cast<Real>());
   solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
   solver.prescribe_velocity(Vec3(-1, -1, -1), Vec3(Real(0.03), 1, 1), Vec3(-3, 0, 0));
   solver.prescribe_velocity(Vec3(Real(0.21), -1, -1), Vec3(1, 1, 1), Vec3(3, 0, 0));
@@ -514,7 +545,8 @@ TEST(PdSolverCopy, CopyStepsLikeTheOriginalAfterTheSourceIsGone) {
   auto make = [&](Real bulk) {
     PdMaterial mm = m;
     mm.bulk = bulk;
-    auto s = std::make_unique<PdSolver>(make_block(6, settings(PdDeviatoric::Paper, true), mm, space));
+    auto s =
+        std::make_unique<PdSolver>(make_block(6, settings(PdDeviatoric::Paper, true), mm, space));
     s->prescribe_velocity(Vec3(-1, -1, -1), Vec3(Real(0.015), 1, 1), Vec3(-2, 0, 0));
     return s;
   };
@@ -535,7 +567,9 @@ TEST(PdSolverCopy, CopyStepsLikeTheOriginalAfterTheSourceIsGone) {
   const auto& a = twin->particles();
   const auto& b = copy.particles();
   for (int i = 0; i < a.attribute_count(); ++i)
-    EXPECT_TRUE(test::bitwise_equal(a.words(i), b.words(i), a.size() * std::size_t(a.words_per_particle(i)))) << a.name(i);
+    EXPECT_TRUE(test::bitwise_equal(a.words(i), b.words(i),
+                                    a.size() * std::size_t(a.words_per_particle(i))))
+        << a.name(i);
   EXPECT_GT(copy.diagnostics(space).kinetic, 0.0);
 }
 
@@ -551,7 +585,8 @@ TEST(PdDynamics, VerletAtTheStableStepConservesMomentumAndStaysBounded) {
   PdSolver solver(s, {m});
   std::vector<Vec3> x = lattice(8);
   for (Vec3& p : x) p[0] *= Real(1.02);  // prestretched along x: it will vibrate
-  solver.add_particles(x, Vec3(1, 0, 0), Vec3(0, 0, 3), Vec3::Constant(Real(0.04)), 0, Real(kLc * kLc * kLc));
+  solver.add_particles(x, Vec3(1, 0, 0), Vec3(0, 0, 3), Vec3::Constant(Real(0.04)), 0,
+                       Real(kLc * kLc * kLc));
   // Reference configuration = the unstretched lattice: rebuild x0 so the body starts strained.
   {
     ParticleSet& ps = solver.particles();
@@ -579,7 +614,8 @@ std::vector<Vec3> bar(int nx, int ny, int nz) {
   std::vector<Vec3> x;
   for (int i = 0; i < nx; ++i)
     for (int j = 0; j < ny; ++j)
-      for (int k = 0; k < nz; ++k) x.push_back((kLc * Vec3d(i + 0.5, j + 0.5, k + 0.5)).cast<Real>());
+      for (int k = 0; k < nz; ++k)
+        x.push_back((kLc * Vec3d(i + 0.5, j + 0.5, k + 0.5)).cast<Real>());
   return x;
 }
 
@@ -597,7 +633,8 @@ TEST(PdValidation, LongitudinalWaveTravelsAtTheBarSpeed) {
     solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
     ParticleSet& ps = solver.particles();
     Vec3* v = ps.vec3(solver.attributes().v);
-    for (std::size_t i = 0; i < x.size(); ++i) v[i] = Vec3(Real(5 * std::cos(M_PI * double(x[i][0]) / Lb)), 0, 0);
+    for (std::size_t i = 0; i < x.size(); ++i)
+      v[i] = Vec3(Real(5 * std::cos(M_PI * double(x[i][0]) / Lb)), 0, 0);
     solver.initialize(space);
     const double E = 9 * 48e9 * 28.8e9 / (3 * 48e9 + 28.8e9), c = std::sqrt(E / 2200);
     auto amplitude = [&] {
@@ -619,8 +656,8 @@ TEST(PdValidation, LongitudinalWaveTravelsAtTheBarSpeed) {
       a_prev = a;
     }
     const double c_measured = Lb / crossing;
-    std::printf("%s: bar wave speed %.1f m/s, sqrt(E/rho) = %.1f m/s: ratio %.4f\n", pd_deviatoric_name(dev),
-                c_measured, c, c_measured / c);
+    std::printf("%s: bar wave speed %.1f m/s, sqrt(E/rho) = %.1f m/s: ratio %.4f\n",
+                pd_deviatoric_name(dev), c_measured, c, c_measured / c);
     EXPECT_NEAR(c_measured / c, 1.0, 0.02) << pd_deviatoric_name(dev);
   }
 }
@@ -642,7 +679,8 @@ TEST(PdModuli, CorrectionFitsEveryParticleOfABar) {
     diagonal += fitted[i] == 1;
     // Away from the bar's ends: a particle on a face, mid-width, gets the full fit; one on an
     // edge of the bar, the diagonal fit.
-    const long xx = std::lround(double(x[i][0]) / kLc - 0.5), y = std::lround(double(x[i][1]) / kLc - 0.5),
+    const long xx = std::lround(double(x[i][0]) / kLc - 0.5),
+               y = std::lround(double(x[i][1]) / kLc - 0.5),
                z = std::lround(double(x[i][2]) / kLc - 0.5);
     if (xx < 4 || xx > 19 || y != 0) continue;
     if (z == 2) {
@@ -674,7 +712,8 @@ TEST(PdValidation, StaticTensionMatchesTheAnalyticElongation) {
   const std::vector<Vec3> x = bar(nx, ny, nz);
   solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
   solver.prescribe_velocity(Vec3(-1, -1, -1), Vec3(Real(3 * kLc), 1, 1), Vec3::Zero());
-  solver.apply_force_density(Vec3(Real(Lb - kLc), -1, -1), Vec3(1, 1, 1), Vec3(Real(sigma / kLc), 0, 0));
+  solver.apply_force_density(Vec3(Real(Lb - kLc), -1, -1), Vec3(1, 1, 1),
+                             Vec3(Real(sigma / kLc), 0, 0));
   solver.initialize(space);
   const Real dt = solver.stable_dt(space);
   ParticleSet& ps = solver.particles();
@@ -703,8 +742,9 @@ TEST(PdValidation, StaticTensionMatchesTheAnalyticElongation) {
     suy += y * double(px[i][1] - x[i][1]);
   }
   const double nu = -(suy / syy) / (elongation / gauge);
-  std::printf("gauge elongation %.4e m, analytic %.4e m: ratio %.4f; Poisson ratio %.3f (input 0.25)\n", elongation,
-              expected, elongation / expected, nu);
+  std::printf(
+      "gauge elongation %.4e m, analytic %.4e m: ratio %.4f; Poisson ratio %.3f (input 0.25)\n",
+      elongation, expected, elongation / expected, nu);
   EXPECT_NEAR(elongation / expected, 1.0, 0.03);
   EXPECT_NEAR(nu, 0.25, 0.03);
 }
@@ -729,7 +769,8 @@ TEST(PdDynamics, StabilityGuardNamesParticleAndQuantity) {
     solver.stable_dt(space);
     FAIL() << "no error on a runaway speed";
   } catch (const SimulationError& e) {
-    EXPECT_NE(std::string(e.what()).find("above the stability limit max_speed"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("above the stability limit max_speed"), std::string::npos)
+        << e.what();
   }
   EXPECT_THROW(solver.step(space, Real(-1)), SimulationError);
 }
@@ -742,7 +783,8 @@ namespace {
 
 // A conforming tetrahedral mesh of an n x n x n grid of cubes of side h (6 Kuhn tetrahedra per
 // cube: the paths from corner 000 to 111 along the three axes in every order).
-void kuhn_grid(int n, double h, std::vector<Vec3d>& nodes, std::vector<std::array<std::int32_t, 4>>& tets) {
+void kuhn_grid(int n, double h, std::vector<Vec3d>& nodes,
+               std::vector<std::array<std::int32_t, 4>>& tets) {
   const int m = n + 1;
   auto id = [m](int i, int j, int k) { return std::int32_t((i * m + j) * m + k); };
   nodes.clear();
@@ -811,10 +853,11 @@ TEST(PdCrackMesh, ACrackThroughTheBodySplitsThePlaneVerticesAndClosesBothPieces)
   solver.crack_meshes()[0].surface(v, tris, crack);
   EXPECT_EQ(tris.size(), std::size_t(6 * 16 * 2));  // 6 faces x 16 squares x 2 triangles
   EXPECT_TRUE(closed_oriented_manifold(tris));
-  solver.add_precrack(Vec3(Real(2 * h), 0, 0), Vec3(1, 0, 0), Vec3::Constant(-1), Vec3::Constant(1));
+  solver.add_precrack(Vec3(Real(2 * h), 0, 0), Vec3(1, 0, 0), Vec3::Constant(-1),
+                      Vec3::Constant(1));
   solver.initialize(space);
   const PdCrackMesh& mesh = solver.crack_meshes()[0];
-  EXPECT_EQ(mesh.vertices(), std::size_t(125 + 25));  // the 5 x 5 vertices of the plane, twice
+  EXPECT_EQ(mesh.vertices(), std::size_t(125 + 25));   // the 5 x 5 vertices of the plane, twice
   EXPECT_EQ(mesh.crack_faces(), std::size_t(16 * 2));  // 16 squares of 2 triangles in the plane
   mesh.surface(v, tris, crack);
   EXPECT_EQ(tris.size(), std::size_t(6 * 16 * 2 + 2 * 32));
@@ -823,10 +866,14 @@ TEST(PdCrackMesh, ACrackThroughTheBodySplitsThePlaneVerticesAndClosesBothPieces)
   // No vertex is shared across the plane any more.
   for (const auto& t : mesh.tets()) {
     const bool left = (mesh.positions()[t[0]] + mesh.positions()[t[1]] + mesh.positions()[t[2]] +
-                       mesh.positions()[t[3]])[0] / 4 < Real(2 * h);
+                       mesh.positions()[t[3]])[0] /
+                          4 <
+                      Real(2 * h);
     for (const auto& u : mesh.tets()) {
       const bool uleft = (mesh.positions()[u[0]] + mesh.positions()[u[1]] + mesh.positions()[u[2]] +
-                          mesh.positions()[u[3]])[0] / 4 < Real(2 * h);
+                          mesh.positions()[u[3]])[0] /
+                             4 <
+                         Real(2 * h);
       if (left == uleft) continue;
       for (auto a : t)
         for (auto b : u) ASSERT_NE(a, b);
@@ -850,8 +897,9 @@ TEST(PdCrackMesh, VerticesFollowTheParticles) {
     PdCrackMesh mesh = solver.crack_meshes()[0];
     const std::vector<Vec3> before = mesh.positions();
     const std::vector<Vec3> v(ps.size(), Vec3(1, -2, 3));
-    mesh.move_vertices(v.data(), ps.real(solver.attributes().volume), ps.int32(solver.attributes().material),
-                       solver.materials().data(), Real(1e-3));
+    mesh.move_vertices(v.data(), ps.real(solver.attributes().volume),
+                       ps.int32(solver.attributes().material), solver.materials().data(),
+                       Real(1e-3));
     for (std::size_t k = 0; k < mesh.vertices(); ++k)
       EXPECT_LT((mesh.positions()[k] - before[k] - Vec3(1, -2, 3) * Real(1e-3)).norm(), 1e-6) << k;
   }
@@ -994,16 +1042,18 @@ TEST(PdCompaction, CheckpointOfACompactedRunResumesBitwise) {
   s.contact = true;
   s.horizon = Real(2.2 * kLc);
   PdSolver other(s, {breakable()});
-  other.add_particles(std::vector<Vec3>(a2.particles().vec3(a2.attributes().x0),
-                                        a2.particles().vec3(a2.attributes().x0) + a2.particles().size()),
-                      Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
+  other.add_particles(
+      std::vector<Vec3>(a2.particles().vec3(a2.attributes().x0),
+                        a2.particles().vec3(a2.attributes().x0) + a2.particles().size()),
+      Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(kLc * kLc * kLc));
   other.initialize(space);
   PdSimulation sim_other(std::move(other), space);
   try {
     read_checkpoint(path, sim_other, 42);
     ADD_FAILURE() << "a foreign bond list was accepted";
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("not a subset of this scene's bonds"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("not a subset of this scene's bonds"), std::string::npos)
+        << e.what();
     EXPECT_NE(std::string(e.what()).find(path), std::string::npos) << e.what();
   }
 }

@@ -14,7 +14,8 @@ using namespace amalgam;
 
 namespace {
 std::uint32_t be32(const std::string& s, size_t at) {
-  return (std::uint32_t(std::uint8_t(s[at])) << 24) | (std::uint32_t(std::uint8_t(s[at + 1])) << 16) |
+  return (std::uint32_t(std::uint8_t(s[at])) << 24) |
+         (std::uint32_t(std::uint8_t(s[at + 1])) << 16) |
          (std::uint32_t(std::uint8_t(s[at + 2])) << 8) | std::uint32_t(std::uint8_t(s[at + 3]));
 }
 
@@ -28,7 +29,9 @@ Image decode(const std::string& png) {
     const std::uint32_t len = be32(png, at);
     const std::string type = png.substr(at + 4, 4);
     const std::string body = png.substr(at + 4, 4 + len);
-    EXPECT_EQ(be32(png, at + 8 + len), std::uint32_t(crc32(0, reinterpret_cast<const Bytef*>(body.data()), uInt(body.size()))))
+    EXPECT_EQ(
+        be32(png, at + 8 + len),
+        std::uint32_t(crc32(0, reinterpret_cast<const Bytef*>(body.data()), uInt(body.size()))))
         << type;
     if (type == "IHDR") {
       img.width = int(be32(png, at + 8));
@@ -40,19 +43,20 @@ Image decode(const std::string& png) {
   }
   std::string raw(size_t(img.height) * (size_t(img.width) * 3 + 1), '\0');
   uLongf n = uLongf(raw.size());
-  EXPECT_EQ(uncompress(reinterpret_cast<Bytef*>(raw.data()), &n, reinterpret_cast<const Bytef*>(idat.data()),
-                       uLong(idat.size())),
+  EXPECT_EQ(uncompress(reinterpret_cast<Bytef*>(raw.data()), &n,
+                       reinterpret_cast<const Bytef*>(idat.data()), uLong(idat.size())),
             Z_OK);
   img.rgb.resize(size_t(img.width) * size_t(img.height) * 3);
   for (int y = 0; y < img.height; ++y) {
     EXPECT_EQ(raw[size_t(y) * (size_t(img.width) * 3 + 1)], 0);
-    std::memcpy(img.rgb.data() + size_t(y) * size_t(img.width) * 3, raw.data() + size_t(y) * (size_t(img.width) * 3 + 1) + 1,
-                size_t(img.width) * 3);
+    std::memcpy(img.rgb.data() + size_t(y) * size_t(img.width) * 3,
+                raw.data() + size_t(y) * (size_t(img.width) * 3 + 1) + 1, size_t(img.width) * 3);
   }
   return img;
 }
 
-ParticleSet particles(const std::vector<Vec3>& x, const std::vector<int>& material, MpmAttributes& a) {
+ParticleSet particles(const std::vector<Vec3>& x, const std::vector<int>& material,
+                      MpmAttributes& a) {
   ParticleSet ps;
   a = MpmAttributes::add_to(ps);
   ps.resize(x.size());
@@ -89,18 +93,22 @@ TEST(Preview, SplatLandsWhereTheCameraLooksAndNearerWins) {
   EXPECT_GT(centre[0], centre[2]);  // material 0 is orange
   // Two particles on the line of sight: the nearer (material 1, blue) hides the other.
   const ParticleSet two = particles({Vec3(0, 0, 0), Vec3(0, 0, 1)}, {0, 1}, a);
-  const Vec3d front = render_particles(two, a, cam, 0.2, 64, 48, ColorBy::Material, std::nan("")).get(32, 24);
+  const Vec3d front =
+      render_particles(two, a, cam, 0.2, 64, 48, ColorBy::Material, std::nan("")).get(32, 24);
   EXPECT_GT(front[2], front[0]);
   // Same result when the nearer one comes first in memory.
   const ParticleSet swapped = particles({Vec3(0, 0, 1), Vec3(0, 0, 0)}, {1, 0}, a);
-  EXPECT_EQ(render_particles(swapped, a, cam, 0.2, 64, 48, ColorBy::Material, std::nan("")).get(32, 24), front);
+  EXPECT_EQ(
+      render_particles(swapped, a, cam, 0.2, 64, 48, ColorBy::Material, std::nan("")).get(32, 24),
+      front);
 }
 
 TEST(Preview, FittedCameraSeesTheWholeBox) {
   const Camera cam = fit_camera(Vec3d(0, 0, 0), Vec3d(1, 0.5, 2), 35, 4.0 / 3.0);
   MpmAttributes a;
   std::vector<Vec3> corners;
-  for (int i = 0; i < 8; ++i) corners.push_back(Vec3(Real(i & 1), Real(0.5 * ((i >> 1) & 1)), Real(2 * ((i >> 2) & 1))));
+  for (int i = 0; i < 8; ++i)
+    corners.push_back(Vec3(Real(i & 1), Real(0.5 * ((i >> 1) & 1)), Real(2 * ((i >> 2) & 1))));
   const ParticleSet ps = particles(corners, std::vector<int>(8, 2), a);
   const Image img = render_particles(ps, a, cam, 0.02, 160, 120, ColorBy::Material, std::nan(""));
   // Every corner's splat is inside the frame: count distinctly coloured (green) pixel clusters.
@@ -129,8 +137,8 @@ TEST(Plot, CsvErrorsNameFileAndLine) {
 
 TEST(Plot, DrawsEveryPanel) {
   std::map<std::string, std::vector<double>> cols;
-  for (const char* k : {"frame", "time_s", "kinetic_J", "elastic_J", "last_dt_s", "p2g_s", "g2p_s", "sort_s", "grid_s",
-                        "other_s"})
+  for (const char* k : {"frame", "time_s", "kinetic_J", "elastic_J", "last_dt_s", "p2g_s", "g2p_s",
+                        "sort_s", "grid_s", "other_s"})
     cols[k] = {};
   for (int f = 1; f <= 10; ++f) {
     cols["frame"].push_back(f);
@@ -138,7 +146,8 @@ TEST(Plot, DrawsEveryPanel) {
     cols["kinetic_J"].push_back(10.0 / f);
     cols["elastic_J"].push_back(f);
     cols["last_dt_s"].push_back(1e-4 * f);
-    for (const char* k : {"p2g_s", "g2p_s", "sort_s", "grid_s", "other_s"}) cols[k].push_back(0.1 * f);
+    for (const char* k : {"p2g_s", "g2p_s", "sort_s", "grid_s", "other_s"})
+      cols[k].push_back(0.1 * f);
   }
   const Image img = plot_diagnostics(cols, "TEST");
   // Each of the three panels has coloured (non-grey) pixels: the series were drawn.

@@ -57,9 +57,12 @@ TEST(Scene, ObjectsGetTheirNamedMaterials) {
   for (const char* method : {"mpm", "peridynamics"}) {
     const std::string model = std::string(method) == "mpm" ? "fixed_corotated" : "peridynamic";
     const std::string text = std::string(R"({
-      "simulation": {"method": ")") + method + R"(", "dx": 0.05},
-      "materials": {"soft": {"model": ")" + model + R"(", "density": 1000, "youngs_modulus": 1e4},
-                    "hard": {"model": ")" + model + R"(", "density": 3000, "youngs_modulus": 1e7}},
+      "simulation": {"method": ")") +
+                             method + R"(", "dx": 0.05},
+      "materials": {"soft": {"model": ")" +
+                             model + R"(", "density": 1000, "youngs_modulus": 1e4},
+                    "hard": {"model": ")" +
+                             model + R"(", "density": 3000, "youngs_modulus": 1e7}},
       "objects": [{"shape": "box", "min": [0,0,0], "max": [0.2,0.2,0.2], "material": "hard"},
                   {"shape": "box", "min": [0.5,0,0], "max": [0.7,0.2,0.2], "material": "soft"},
                   {"shape": "box", "min": [1,0,0], "max": [1.2,0.2,0.2], "material": "hard"}]
@@ -68,7 +71,8 @@ TEST(Scene, ObjectsGetTheirNamedMaterials) {
     ASSERT_EQ(s.objects.size(), 3u) << method;
     for (int k = 0; k < 3; ++k) {
       const int m = s.objects[std::size_t(k)].material;
-      EXPECT_EQ(s.material_names[std::size_t(m)], k == 1 ? "soft" : "hard") << method << " object " << k;
+      EXPECT_EQ(s.material_names[std::size_t(m)], k == 1 ? "soft" : "hard")
+          << method << " object " << k;
       EXPECT_EQ(double(s.materials[std::size_t(m)].density), k == 1 ? 1000.0 : 3000.0) << method;
     }
     if (std::string(method) == "peridynamics") {
@@ -84,25 +88,35 @@ TEST(Scene, ObjectsGetTheirNamedMaterials) {
 }
 
 TEST(Scene, ErrorsNameFileAndPath) {
-  EXPECT_NE(error_of(replace(kGood, "\"jelly\"}", "\"steel\"}")).find("s.json: /objects/0/material: unknown material \"steel\""),
+  EXPECT_NE(error_of(replace(kGood, "\"jelly\"}", "\"steel\"}"))
+                .find("s.json: /objects/0/material: unknown material \"steel\""),
             std::string::npos);
-  EXPECT_NE(error_of(replace(kGood, "\"frames\": 2", "\"frames\": 2, \"max_dt\": -1")).find("s.json: /simulation/max_dt"),
+  EXPECT_NE(error_of(replace(kGood, "\"frames\": 2", "\"frames\": 2, \"max_dt\": -1"))
+                .find("s.json: /simulation/max_dt"),
             std::string::npos);
-  EXPECT_NE(error_of(replace(kGood, "\"dx\": 0.05", "\"dx\": 0.05, \"gravty\": [0,0,0]")).find("/simulation/gravty: unknown key"),
+  EXPECT_NE(error_of(replace(kGood, "\"dx\": 0.05", "\"dx\": 0.05, \"gravty\": [0,0,0]"))
+                .find("/simulation/gravty: unknown key"),
             std::string::npos);
-  EXPECT_NE(error_of(replace(kGood, "\"dx\": 0.05", "\"dx\": \"small\"")).find("/simulation/dx: expected a number"),
+  EXPECT_NE(error_of(replace(kGood, "\"dx\": 0.05", "\"dx\": \"small\""))
+                .find("/simulation/dx: expected a number"),
             std::string::npos);
-  EXPECT_NE(error_of(replace(kGood, "1e4", "-5")).find("/materials/jelly/youngs_modulus"), std::string::npos);
-  EXPECT_NE(error_of(replace(kGood, "\"box\"", "\"cone\"")).find("/objects/0/shape: unknown value \"cone\""),
+  EXPECT_NE(error_of(replace(kGood, "1e4", "-5")).find("/materials/jelly/youngs_modulus"),
             std::string::npos);
-  EXPECT_NE(error_of(replace(kGood, "[0.6,0.6,0.6]", "[0.6,0.3,0.6]")).find("/objects/0/max"), std::string::npos);
-  EXPECT_NE(error_of(replace(kGood, "}]\n}", "}], \"colliders\": [{\"type\": \"half_space\", \"point\": [0,0,0], "
-                                            "\"normal\": [0,0,0]}]\n}"))
+  EXPECT_NE(error_of(replace(kGood, "\"box\"", "\"cone\""))
+                .find("/objects/0/shape: unknown value \"cone\""),
+            std::string::npos);
+  EXPECT_NE(error_of(replace(kGood, "[0.6,0.6,0.6]", "[0.6,0.3,0.6]")).find("/objects/0/max"),
+            std::string::npos);
+  EXPECT_NE(error_of(replace(kGood, "}]\n}",
+                             "}], \"colliders\": [{\"type\": \"half_space\", \"point\": [0,0,0], "
+                             "\"normal\": [0,0,0]}]\n}"))
                 .find("/colliders/0/normal: must be a non-zero vector"),
             std::string::npos);
-  EXPECT_NE(error_of(replace(kGood, "[0.4,0.4,0.4]", "[0.4,1e999,0.4]")).find("s.json"), std::string::npos);
+  EXPECT_NE(error_of(replace(kGood, "[0.4,0.4,0.4]", "[0.4,1e999,0.4]")).find("s.json"),
+            std::string::npos);
   EXPECT_NE(error_of("{ not json").find("s.json: not valid JSON"), std::string::npos);
-  EXPECT_NE(error_of(R"({"materials": {}})").find("s.json: /simulation: missing"), std::string::npos);
+  EXPECT_NE(error_of(R"({"materials": {}})").find("s.json: /simulation: missing"),
+            std::string::npos);
 }
 
 TEST(Scene, MissingFileIsInputError) {
@@ -110,7 +124,8 @@ TEST(Scene, MissingFileIsInputError) {
     load_scene("/nonexistent/scene.json");
     FAIL();
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("/nonexistent/scene.json: cannot open"), std::string::npos);
+    EXPECT_NE(std::string(e.what()).find("/nonexistent/scene.json: cannot open"),
+              std::string::npos);
   }
 }
 
@@ -166,8 +181,10 @@ TEST(Scene, MalformedScenesGiveExactMessages) {
       std::ifstream in(p);
       return std::string(std::istreambuf_iterator<char>(in), {});
     };
-    if (fs::exists(exact)) EXPECT_EQ(message, read(exact)) << entry.path();
-    else EXPECT_EQ(message.rfind(read(start), 0), 0u) << entry.path() << " gave: " << message;
+    if (fs::exists(exact))
+      EXPECT_EQ(message, read(exact)) << entry.path();
+    else
+      EXPECT_EQ(message.rfind(read(start), 0), 0u) << entry.path() << " gave: " << message;
   }
   EXPECT_GE(count, 20);
 }
@@ -182,7 +199,8 @@ TEST(Scene, PrimitiveVolumesMatchClosedForms) {
       {"shape": "sphere", "center": [0.5,0.5,0.5], "radius": 0.2, "material": "m"}]
   })";
   const Scene s = parse_scene(text, "p.json");
-  const double expected[3] = {M_PI * 0.04 * 0.3, 2 * M_PI * M_PI * 0.25 * 0.08 * 0.08, 4.0 / 3.0 * M_PI * 0.008};
+  const double expected[3] = {M_PI * 0.04 * 0.3, 2 * M_PI * M_PI * 0.25 * 0.08 * 0.08,
+                              4.0 / 3.0 * M_PI * 0.008};
   for (int i = 0; i < 3; ++i) {
     Real vol = 0;
     const auto x = sample_object(s.objects[size_t(i)], s.mpm.dx, vol);
@@ -198,15 +216,18 @@ TEST(Scene, PrimitiveVolumesMatchClosedForms) {
 }
 
 TEST(Scene, MeshScaleRotateTranslate) {
-  const std::string off = (std::filesystem::temp_directory_path() / "amalgam_test_unit_cube.off").string();
+  const std::string off =
+      (std::filesystem::temp_directory_path() / "amalgam_test_unit_cube.off").string();
   std::ofstream(off) << "OFF\n8 6 0\n0 0 0\n1 0 0\n1 1 0\n0 1 0\n0 0 1\n1 0 1\n1 1 1\n0 1 1\n"
                         "4 0 3 2 1\n4 4 5 6 7\n4 0 1 5 4\n4 2 3 7 6\n4 1 2 6 5\n4 0 4 7 3\n";
   const Scene s = parse_scene(R"({
     "simulation": {"dx": 0.02, "frames": 1},
     "materials": {"m": {"density": 1000, "youngs_modulus": 1e4}},
-    "objects": [{"shape": "mesh", "file": ")" + off + R"(", "scale": 0.2, "rotate_degrees": [0, 0, 45],
+    "objects": [{"shape": "mesh", "file": ")" +
+                                  off + R"(", "scale": 0.2, "rotate_degrees": [0, 0, 45],
                  "translate": [0.5, 0.5, 0.5], "material": "m"}]
-  })", "m.json");
+  })",
+                              "m.json");
   const ObjectSpec& o = s.objects[0];
   EXPECT_NEAR(enclosed_volume(*o.mesh), 0.008, 1e-12);
   EXPECT_NEAR(double(o.max[0] - o.min[0]), 0.2 * std::sqrt(2.0), 1e-6);  // 45 degrees about z
@@ -227,7 +248,8 @@ std::string write_cube_tets(const std::string& stem, int n, double h) {
   auto id = [m](int i, int j, int k) { return 1 + (i * m + j) * m + k; };
   for (int i = 0; i < m; ++i)
     for (int j = 0; j < m; ++j)
-      for (int k = 0; k < m; ++k) node << id(i, j, k) << " " << i * h << " " << j * h << " " << k * h << " 0\n";
+      for (int k = 0; k < m; ++k)
+        node << id(i, j, k) << " " << i * h << " " << j * h << " " << k * h << " 0\n";
   ele << 6 * n * n * n << "  4  0\n";
   int t = 1;
   const int perm[6][3] = {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}};
@@ -241,7 +263,8 @@ std::string write_cube_tets(const std::string& stem, int n, double h) {
           const int b = id(c[0], c[1], c[2]);
           c[p[1]]++;
           const int d = id(c[0], c[1], c[2]);
-          ele << t++ << " " << a << " " << b << " " << d << " " << id(i + 1, j + 1, k + 1) << "  # tet\n";
+          ele << t++ << " " << a << " " << b << " " << d << " " << id(i + 1, j + 1, k + 1)
+              << "  # tet\n";
         }
   return stem;
 }
@@ -264,7 +287,8 @@ TEST(TetMesh, ReadsTetgenFilesAndSamplesBarycentres) {
   const std::string text = R"({
     "simulation": {"method": "peridynamics", "dx": 0.01, "peridynamics": {"horizon_factor": 2.5}},
     "materials": {"m": {"model": "peridynamic", "density": 1000, "youngs_modulus": 1e6}},
-    "objects": [{"shape": "tet_mesh", "file": ")" + stem + R"(.ele", "translate": [1, 0, 0], "material": "m"}]
+    "objects": [{"shape": "tet_mesh", "file": ")" +
+                           stem + R"(.ele", "translate": [1, 0, 0], "material": "m"}]
   })";
   const Scene s = parse_scene(text, "s.json");
   EXPECT_NEAR(double(s.pd.spacing), tet_mean_edge(m), 1e-6);
@@ -292,7 +316,8 @@ TEST(TetMesh, BadFilesNameFileAndLine) {
     load_tetgen(stem);
     FAIL();
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("bad.ele:2: node 99 does not exist (the .node file numbers 1..8)"),
+    EXPECT_NE(std::string(e.what()).find(
+                  "bad.ele:2: node 99 does not exist (the .node file numbers 1..8)"),
               std::string::npos)
         << e.what();
   }
@@ -304,14 +329,18 @@ TEST(TetMesh, BadFilesNameFileAndLine) {
     load_tetgen(stem);
     FAIL();
   } catch (const InputError& e) {
-    EXPECT_NE(std::string(e.what()).find("bad.ele:2: tetrahedron 1 has zero volume"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("bad.ele:2: tetrahedron 1 has zero volume"),
+              std::string::npos)
+        << e.what();
   }
   EXPECT_THROW(load_tetgen(dir + "/missing"), InputError);
   const std::string mpm = R"({
     "simulation": {"dx": 0.01},
     "materials": {"m": {"density": 1000, "youngs_modulus": 1e6}},
-    "objects": [{"shape": "tet_mesh", "file": ")" + stem + R"(", "material": "m"}]
+    "objects": [{"shape": "tet_mesh", "file": ")" +
+                          stem + R"(", "material": "m"}]
   })";
-  EXPECT_NE(error_of(mpm).find("/objects/0/shape: \"tet_mesh\" needs \"method\": \"peridynamics\""), std::string::npos)
+  EXPECT_NE(error_of(mpm).find("/objects/0/shape: \"tet_mesh\" needs \"method\": \"peridynamics\""),
+            std::string::npos)
       << error_of(mpm);
 }

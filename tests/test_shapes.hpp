@@ -9,6 +9,8 @@
 namespace amalgam::test {
 
 using amalgam::rest_shape_deviation;
-inline std::vector<Vec3d> positions_by_id(const MpmSolver& s) { return s.positions_by_id(); }
+inline std::vector<Vec3d> positions_by_id(const MpmSolver& s) {
+  return s.positions_by_id();
+}
 
 }  // namespace amalgam::test

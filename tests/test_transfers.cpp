@@ -25,9 +25,10 @@ MpmSolver make_blob(Transfer t, int order, Real dt_stress_scale = 1) {
   std::mt19937 rng(17);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   std::vector<Vec3> x;
-  for (int i = 0; i < 6000; ++i) x.push_back(Vec3(Real(0.5 + 0.25 * u(rng)), Real(0.5 + 0.2 * u(rng)), Real(0.3 * u(rng))));
-  solver.add_particles(x, Vec3(Real(0.3), Real(-0.2), Real(0.1)), Vec3(1, 2, 3), Vec3::Constant(Real(0.5)), 0,
-                       Real(1e-5));
+  for (int i = 0; i < 6000; ++i)
+    x.push_back(Vec3(Real(0.5 + 0.25 * u(rng)), Real(0.5 + 0.2 * u(rng)), Real(0.3 * u(rng))));
+  solver.add_particles(x, Vec3(Real(0.3), Real(-0.2), Real(0.1)), Vec3(1, 2, 3),
+                       Vec3::Constant(Real(0.5)), 0, Real(1e-5));
   // Random affine velocity fields and deformations so every term is exercised.
   auto& ps = solver.particles();
   const auto& a = solver.attributes();
@@ -53,7 +54,8 @@ Moments grid_moments(const MpmSolver& s) {
   for (auto li : g.active_leaves())
     for (int o = 0; o < kLeafNodes; ++o) {
       const Real* n = a + (size_t(li) * kLeafNodes + size_t(o)) * 4;
-      const Vec3i node = g.leaf_coords()[size_t(li)] * kLeafDim + Vec3i(o >> 6, (o >> 3) & 7, o & 7);
+      const Vec3i node =
+          g.leaf_coords()[size_t(li)] * kLeafDim + Vec3i(o >> 6, (o >> 3) & 7, o & 7);
       const Vec3d xi = node.cast<double>() * double(s.settings().dx);
       const Vec3d pi(n[1], n[2], n[3]);
       r.m += n[0];
@@ -69,7 +71,8 @@ Moments particle_moments(const MpmSolver& s, bool affine) {
   Moments r;
   const auto& ps = s.particles();
   const auto& a = s.attributes();
-  const double D = double(s.settings().dx) * double(s.settings().dx) / (s.settings().order == 2 ? 4.0 : 3.0);
+  const double D =
+      double(s.settings().dx) * double(s.settings().dx) / (s.settings().order == 2 ? 4.0 : 3.0);
   for (size_t p = 0; p < ps.size(); ++p) {
     const double m = ps.real(a.mass)[p];
     const Vec3d x = ps.vec3(a.x)[p].cast<double>(), v = ps.vec3(a.v)[p].cast<double>();
@@ -83,7 +86,8 @@ Moments particle_moments(const MpmSolver& s, bool affine) {
 }
 
 void expect_close(const Vec3d& a, const Vec3d& b, double tol, const char* what) {
-  EXPECT_LT((a - b).norm(), tol * (1 + b.norm())) << what << ": " << a.transpose() << " vs " << b.transpose();
+  EXPECT_LT((a - b).norm(), tol * (1 + b.norm()))
+      << what << ": " << a.transpose() << " vs " << b.transpose();
 }
 
 const double kTol = sizeof(Real) == 4 ? 2e-5 : 1e-11;
@@ -137,7 +141,8 @@ TEST_P(TransferConservation, RoundTripConservesOnParticles) {
 }
 
 INSTANTIATE_TEST_SUITE_P(AllTransfers, TransferConservation,
-                         ::testing::Combine(::testing::Values(Transfer::PicFlip, Transfer::Apic, Transfer::Mls),
+                         ::testing::Combine(::testing::Values(Transfer::PicFlip, Transfer::Apic,
+                                                              Transfer::Mls),
                                             ::testing::Values(2, 3)),
                          [](const auto& info) {
                            return std::string(transfer_name(std::get<0>(info.param))) + "_order" +
@@ -187,9 +192,12 @@ TEST_P(KernelDeterminism, P2GGridUpdateG2PBitwiseAcrossBackends) {
       continue;
     }
     ASSERT_EQ(grid.size(), ref_grid_p2g.size());
-    EXPECT_TRUE(test::bitwise_equal(grid.data(), ref_grid_p2g.data(), grid.size())) << "p2g " << c.name();
-    EXPECT_TRUE(test::bitwise_equal(upd.data(), ref_grid_upd.data(), upd.size())) << "grid update " << c.name();
-    EXPECT_TRUE(test::bitwise_equal(parts.data(), ref_particles.data(), parts.size())) << "g2p " << c.name();
+    EXPECT_TRUE(test::bitwise_equal(grid.data(), ref_grid_p2g.data(), grid.size()))
+        << "p2g " << c.name();
+    EXPECT_TRUE(test::bitwise_equal(upd.data(), ref_grid_upd.data(), upd.size()))
+        << "grid update " << c.name();
+    EXPECT_TRUE(test::bitwise_equal(parts.data(), ref_particles.data(), parts.size()))
+        << "g2p " << c.name();
   }
 }
 

@@ -13,7 +13,9 @@ namespace amalgam::test {
 struct Config {
   exec::Backend backend;
   int threads;
-  std::string name() const { return std::string(exec::backend_name(backend)) + "_" + std::to_string(threads); }
+  std::string name() const {
+    return std::string(exec::backend_name(backend)) + "_" + std::to_string(threads);
+  }
 };
 
 // Backends the tests may use: all, or those named in AMALGAM_TEST_BACKENDS (e.g. "serial,tbb":
@@ -41,10 +43,12 @@ inline std::vector<Config> all_configs() {
                                              {exec::Backend::TBB, 2},
                                              {exec::Backend::Kokkos, 1},
                                              {exec::Backend::Threads, 2}})
-    if (!exec::backend_compiled(c.backend)) continue;
-    else if (c.backend == exec::Backend::Serial || (c.backend == exec::Backend::Threads ? std::getenv("AMALGAM_TEST_BACKENDS") &&
-                                                                                       backend_enabled(c.backend)
-                                                                                 : backend_enabled(c.backend)))
+    if (!exec::backend_compiled(c.backend))
+      continue;
+    else if (c.backend == exec::Backend::Serial ||
+             (c.backend == exec::Backend::Threads
+                  ? std::getenv("AMALGAM_TEST_BACKENDS") && backend_enabled(c.backend)
+                  : backend_enabled(c.backend)))
       out.push_back(c);
   return out;
 }

@@ -43,7 +43,9 @@ BarResult run_bar(Transfer transfer, int order) {
   std::vector<Vec3> x;
   for (int i = 0; i < 2 * cells; ++i)
     for (int j = 0; j < 8; ++j)
-      for (int k = 0; k < 8; ++k) x.push_back(Vec3d(x0 + (i + 0.5) * h, 0.5 + (j + 0.5) * h, 0.5 + (k + 0.5) * h).cast<Real>());
+      for (int k = 0; k < 8; ++k)
+        x.push_back(
+            Vec3d(x0 + (i + 0.5) * h, 0.5 + (j + 0.5) * h, 0.5 + (k + 0.5) * h).cast<Real>());
   solver.add_particles(x, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(h * h * h));
   auto& ps = solver.particles();
   const auto& a = solver.attributes();
@@ -66,7 +68,8 @@ BarResult run_bar(Transfer transfer, int order) {
     if (e0 < 0) e0 = e;
     drift = std::max(drift, std::abs(e - e0) / e0);
     const double px = d.momentum[0];
-    if (t > dt && ((p_prev > 0) != (px > 0))) crossings.push_back(t - dt + dt * p_prev / (p_prev - px));
+    if (t > dt && ((p_prev > 0) != (px > 0)))
+      crossings.push_back(t - dt + dt * p_prev / (p_prev - px));
     p_prev = px;
   }
   EXPECT_GE(crossings.size(), 4u);
@@ -82,15 +85,17 @@ TEST_P(AxialBar, PeriodMatchesAnalyticWithinTwoPercent) {
   const auto [transfer, order] = GetParam();
   const BarResult r = run_bar(transfer, order);
   const double T = 4.0 * 1.0 / std::sqrt(100.0);
-  std::printf("axial bar %s order %d: period %.5f s, analytic %.5f s, error %.3f %%, energy drift %.3f %%\n",
-              transfer_name(transfer), order, r.period, T, 100 * (r.period / T - 1), 100 * r.energy_drift);
+  std::printf(
+      "axial bar %s order %d: period %.5f s, analytic %.5f s, error %.3f %%, energy drift %.3f %%\n",
+      transfer_name(transfer), order, r.period, T, 100 * (r.period / T - 1), 100 * r.energy_drift);
   EXPECT_NEAR(r.period / T, 1.0, 0.02);
   // APIC/MLS are nearly energy conserving for this smooth small-strain motion.
   EXPECT_LT(r.energy_drift, 0.05);
 }
 
 INSTANTIATE_TEST_SUITE_P(Transfers, AxialBar,
-                         ::testing::Values(std::make_tuple(Transfer::Mls, 2), std::make_tuple(Transfer::Apic, 2),
+                         ::testing::Values(std::make_tuple(Transfer::Mls, 2),
+                                           std::make_tuple(Transfer::Apic, 2),
                                            std::make_tuple(Transfer::Mls, 3)),
                          [](const auto& info) {
                            return std::string(transfer_name(std::get<0>(info.param))) + "_order" +

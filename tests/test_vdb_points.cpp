@@ -23,12 +23,15 @@ TEST(VdbPoints, ReadBackFieldByField) {
     "objects": [{"shape": "box", "min": [0.2,0.2,0.2], "max": [0.5,0.4,0.5], "material": "a", "velocity": [1,2,3]},
                 {"shape": "sphere", "center": [0.7,0.7,0.7], "radius": 0.1, "material": "b", "angular_velocity": [0,5,0]}],
     "heat_sources": [{"type": "sphere", "center": [0.7,0.7,0.7], "radius": 0.05, "temperature": 350, "rate": 100}]
-  })", "s.json");
+  })",
+                                  "s.json");
   MpmSolver solver = build_solver(scene);
   const exec::Space space(exec::Backend::TBB, 2);
   for (int i = 0; i < 5; ++i) solver.step(space, solver.stable_dt(space));  // sorted: index != id
-  const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_points.vdb").string();
-  write_vdb_points(path, mpm_point_fields(solver.particles(), solver.attributes()), double(scene.mpm.dx), exec::Space());
+  const std::string path =
+      (std::filesystem::temp_directory_path() / "amalgam_test_points.vdb").string();
+  write_vdb_points(path, mpm_point_fields(solver.particles(), solver.attributes()),
+                   double(scene.mpm.dx), exec::Space());
 
   openvdb::initialize();
   openvdb::io::File file(path);
@@ -57,7 +60,8 @@ TEST(VdbPoints, ReadBackFieldByField) {
       const int r = row_of_id[size_t(pid)];
       ASSERT_GE(r, 0) << "id " << pid << " appears twice";
       row_of_id[size_t(pid)] = -1;
-      const openvdb::Vec3d world = grid->transform().indexToWorld(it.getCoord().asVec3d() + P.get(*it));
+      const openvdb::Vec3d world =
+          grid->transform().indexToWorld(it.getCoord().asVec3d() + P.get(*it));
       const Vec3 x = ps.vec3(at.x)[size_t(r)];
       for (int a = 0; a < 3; ++a) {
         EXPECT_NEAR(world[a], double(x[a]), 1e-6);
@@ -83,11 +87,13 @@ TEST(VdbGridFields, ReadBackMassAndVelocity) {
     "simulation": {"dx": 0.04, "frames": 1},
     "materials": {"a": {"density": 1000, "youngs_modulus": 1e4}},
     "objects": [{"shape": "sphere", "center": [0.5,0.5,0.5], "radius": 0.15, "material": "a", "velocity": [1,-2,0.5]}]
-  })", "s.json");
+  })",
+                                  "s.json");
   MpmSolver solver = build_solver(scene);
   const exec::Space space(exec::Backend::Serial, 1);
   for (int i = 0; i < 3; ++i) solver.step(space, solver.stable_dt(space));
-  const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_grid.vdb").string();
+  const std::string path =
+      (std::filesystem::temp_directory_path() / "amalgam_test_grid.vdb").string();
   write_vdb_grid_fields(path, solver.grid(), double(scene.mpm.dx), exec::Space());
   openvdb::initialize();
   openvdb::io::File file(path);
@@ -101,7 +107,8 @@ TEST(VdbGridFields, ReadBackMassAndVelocity) {
   size_t voxels = 0;
   for (auto it = mass->cbeginValueOn(); it; ++it) total += double(*it), ++voxels;
   double particles = 0;
-  for (size_t p = 0; p < solver.particles().size(); ++p) particles += double(solver.particles().real(solver.attributes().mass)[p]);
+  for (size_t p = 0; p < solver.particles().size(); ++p)
+    particles += double(solver.particles().real(solver.attributes().mass)[p]);
   EXPECT_NEAR(total, particles, 1e-4 * particles);
   EXPECT_EQ(vel->activeVoxelCount(), voxels);
   // Spot-check velocities against the grid's own storage.
@@ -130,7 +137,8 @@ TEST(VdbPoints, WritingUsesTheSpacesThreadCount) {
   std::vector<Vec3> x(n), v(n, Vec3(1, 2, 3));
   std::vector<std::int32_t> material(n, 0), id(n);
   for (std::size_t i = 0; i < n; ++i) {
-    x[i] = Vec3(Real(i % 97) * Real(0.01), Real((i / 97) % 89) * Real(0.01), Real(i / (97 * 89)) * Real(0.01));
+    x[i] = Vec3(Real(i % 97) * Real(0.01), Real((i / 97) % 89) * Real(0.01),
+                Real(i / (97 * 89)) * Real(0.01));
     id[i] = std::int32_t(i);
   }
   PointFields p;
@@ -140,7 +148,8 @@ TEST(VdbPoints, WritingUsesTheSpacesThreadCount) {
   p.material = material.data();
   p.id = id.data();
   p.primary.emplace_back("J", std::vector<float>(n, 1.0f));
-  const std::string path = (std::filesystem::temp_directory_path() / "amalgam_test_points_threads.vdb").string();
+  const std::string path =
+      (std::filesystem::temp_directory_path() / "amalgam_test_points_threads.vdb").string();
   for (const int threads : {1, 2}) {
     test::WorkerRecorder rec;
     write_vdb_points(path, p, 0.02, exec::Space(exec::Backend::TBB, threads));

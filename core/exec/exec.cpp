@@ -33,7 +33,8 @@ struct BackendState {
 
 void run_chunks(const BackendState& s, Index nchunks, ChunkFn fn, void* ctx) {
   // Kokkos runs even one thread through Kokkos, so its path is the one measured and tested.
-  if (s.backend != Backend::Kokkos && (nchunks == 1 || s.threads == 1 || s.backend == Backend::Serial)) {
+  if (s.backend != Backend::Kokkos &&
+      (nchunks == 1 || s.threads == 1 || s.backend == Backend::Serial)) {
     for (Index c = 0; c < nchunks; ++c) fn(ctx, c);
     return;
   }
@@ -78,11 +79,16 @@ void run_chunks(const BackendState& s, Index nchunks, ChunkFn fn, void* ctx) {
 
 const char* backend_name(Backend b) {
   switch (b) {
-    case Backend::Serial: return "serial";
-    case Backend::OpenMP: return "openmp";
-    case Backend::TBB: return "tbb";
-    case Backend::Threads: return "threads";
-    case Backend::Kokkos: return "kokkos";
+    case Backend::Serial:
+      return "serial";
+    case Backend::OpenMP:
+      return "openmp";
+    case Backend::TBB:
+      return "tbb";
+    case Backend::Threads:
+      return "threads";
+    case Backend::Kokkos:
+      return "kokkos";
   }
   return "?";
 }
@@ -96,11 +102,13 @@ Backend parse_backend(const std::string& name) {
   if (s == "threads") return Backend::Threads;
   if (s == "kokkos") {
     if (!backend_compiled(Backend::Kokkos))
-      throw std::invalid_argument("backend 'kokkos' is not in this build (CMake did not find Kokkos; install "
-                                  "libtrilinos-kokkos-dev and reconfigure)");
+      throw std::invalid_argument(
+          "backend 'kokkos' is not in this build (CMake did not find Kokkos; install "
+          "libtrilinos-kokkos-dev and reconfigure)");
     return Backend::Kokkos;
   }
-  throw std::invalid_argument("unknown backend '" + name + "' (expected serial, openmp, tbb, threads or kokkos)");
+  throw std::invalid_argument("unknown backend '" + name +
+                              "' (expected serial, openmp, tbb, threads or kokkos)");
 }
 
 bool backend_compiled(Backend b) {
@@ -133,8 +141,10 @@ int hardware_threads() {
 
 Space::Space(Backend backend, int threads, Profiler* profiler)
     : backend_(backend), threads_(backend == Backend::Serial ? 1 : threads), profiler_(profiler) {
-  if (threads < 1) throw std::invalid_argument("thread count must be >= 1, got " + std::to_string(threads));
-  if (!backend_compiled(backend)) throw std::invalid_argument("backend 'kokkos' is not in this build");
+  if (threads < 1)
+    throw std::invalid_argument("thread count must be >= 1, got " + std::to_string(threads));
+  if (!backend_compiled(backend))
+    throw std::invalid_argument("backend 'kokkos' is not in this build");
 #ifdef AMALGAM_HAVE_KOKKOS
   if (backend_ == Backend::Kokkos) threads_ = std::min(threads_, detail::kokkos_concurrency());
 #endif

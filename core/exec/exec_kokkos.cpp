@@ -32,7 +32,8 @@ void ensure_initialized() {
 
 void kokkos_run_chunks(Index nchunks, ChunkFn fn, void* ctx) {
   ensure_initialized();
-  Kokkos::parallel_for("amalgam.chunks", Kokkos::RangePolicy<HostSpace, Kokkos::IndexType<Index>>(0, nchunks),
+  Kokkos::parallel_for("amalgam.chunks",
+                       Kokkos::RangePolicy<HostSpace, Kokkos::IndexType<Index>>(0, nchunks),
                        [fn, ctx](const Index c) { fn(ctx, c); });
   HostSpace().fence();
 }
@@ -43,8 +44,9 @@ int kokkos_concurrency() {
 }
 
 std::string kokkos_version() {
-  return "Kokkos " + std::to_string(KOKKOS_VERSION / 10000) + "." + std::to_string(KOKKOS_VERSION / 100 % 100) + "." +
-         std::to_string(KOKKOS_VERSION % 100) + " (" + HostSpace::name() + ")";
+  return "Kokkos " + std::to_string(KOKKOS_VERSION / 10000) + "." +
+         std::to_string(KOKKOS_VERSION / 100 % 100) + "." + std::to_string(KOKKOS_VERSION % 100) +
+         " (" + HostSpace::name() + ")";
 }
 
 }  // namespace amalgam::exec::detail

@@ -26,11 +26,14 @@ struct SdfGrid {
   std::vector<float> phi;
   float outside = 1;
 
-  float at(int i, int j, int k) const { return phi[(size_t(k) * size_t(n[1]) + size_t(j)) * size_t(n[0]) + size_t(i)]; }
+  float at(int i, int j, int k) const {
+    return phi[(size_t(k) * size_t(n[1]) + size_t(j)) * size_t(n[0]) + size_t(i)];
+  }
   // Trilinear phi and its gradient (of the interpolant) at rest-pose point p.
   Real sample(const Vec3& p, Vec3* grad) const {
     Vec3d g = (p.cast<double>() - origin) / h;
-    const Vec3d clamped = g.cwiseMax(Vec3d::Zero()).cwiseMin(Vec3d(n[0] - 1.001, n[1] - 1.001, n[2] - 1.001));
+    const Vec3d clamped =
+        g.cwiseMax(Vec3d::Zero()).cwiseMin(Vec3d(n[0] - 1.001, n[1] - 1.001, n[2] - 1.001));
     const double box = (g - clamped).norm() * h;
     const int i = int(clamped[0]), j = int(clamped[1]), k = int(clamped[2]);
     const double fx = clamped[0] - i, fy = clamped[1] - j, fz = clamped[2] - k;
@@ -67,9 +70,9 @@ struct Collider {
   static constexpr Real kReleased = Real(1e30);  // phi of every point once the collider is released
   ColliderShape shape = ColliderShape::HalfSpace;
   BoundaryType boundary = BoundaryType::Separate;
-  Real friction = 0;           // Coulomb coefficient mu
-  Vec3 origin = Vec3::Zero();  // half-space: a point on the plane; box/sphere: centre (at t = 0)
-  Vec3 normal = Vec3::UnitY(); // half-space: unit normal pointing into the free region
+  Real friction = 0;            // Coulomb coefficient mu
+  Vec3 origin = Vec3::Zero();   // half-space: a point on the plane; box/sphere: centre (at t = 0)
+  Vec3 normal = Vec3::UnitY();  // half-space: unit normal pointing into the free region
   Vec3 half_extent = Vec3::Ones();
   Real radius = 1;
   Vec3 velocity = Vec3::Zero();  // rigid translation velocity of the collider
@@ -148,8 +151,10 @@ struct Collider {
         pose(t, R, T, v, w);
         return sdf->sample(R.transpose() * (x - pivot - T) + pivot, nullptr);
       }
-      case ColliderShape::HalfSpace: return (x - c).dot(normal);
-      case ColliderShape::Sphere: return (x - c).norm() - radius;
+      case ColliderShape::HalfSpace:
+        return (x - c).dot(normal);
+      case ColliderShape::Sphere:
+        return (x - c).norm() - radius;
       case ColliderShape::Box: {
         const Vec3 q = (x - c).cwiseAbs() - half_extent;
         return q.cwiseMax(Real(0)).norm() + std::min(q.maxCoeff(), Real(0));
@@ -169,7 +174,8 @@ struct Collider {
         const Vec3 n = R * g;
         return n.norm() > 0 ? Vec3(n.normalized()) : Vec3::UnitY();
       }
-      case ColliderShape::HalfSpace: return normal;
+      case ColliderShape::HalfSpace:
+        return normal;
       case ColliderShape::Sphere: {
         const Vec3 d = x - c;
         const Real n = d.norm();

@@ -18,23 +18,27 @@ inline std::uint64_t splitmix64(std::uint64_t z) {
   z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
   return z ^ (z >> 31);
 }
-inline double centred_unit(std::uint64_t h) { return double(h >> 11) * (1.0 / 9007199254740992.0) - 0.5; }
+inline double centred_unit(std::uint64_t h) {
+  return double(h >> 11) * (1.0 / 9007199254740992.0) - 0.5;
+}
 }  // namespace detail
 
 template <class Inside>
-std::vector<Vec3> sample_lattice(const Vec3d& lo, const long long n[3], double h, double jitter, std::uint64_t seed,
-                                 Inside&& inside) {
+std::vector<Vec3> sample_lattice(const Vec3d& lo, const long long n[3], double h, double jitter,
+                                 std::uint64_t seed, Inside&& inside) {
   using detail::centred_unit;
   using detail::splitmix64;
   std::vector<Vec3> pts;
   for (long long i = 0; i < n[0]; ++i)
     for (long long j = 0; j < n[1]; ++j)
       for (long long k = 0; k < n[2]; ++k) {
-        const std::uint64_t id = splitmix64(
-            seed ^ splitmix64(std::uint64_t(i) * 0x1000003ULL ^ std::uint64_t(j) * 0x10007ULL ^ std::uint64_t(k)));
+        const std::uint64_t id =
+            splitmix64(seed ^ splitmix64(std::uint64_t(i) * 0x1000003ULL ^
+                                         std::uint64_t(j) * 0x10007ULL ^ std::uint64_t(k)));
         Vec3d p = lo + h * Vec3d(double(i) + 0.5, double(j) + 0.5, double(k) + 0.5);
-        p += (jitter * h) *
-             Vec3d(centred_unit(splitmix64(id + 1)), centred_unit(splitmix64(id + 2)), centred_unit(splitmix64(id + 3)));
+        p +=
+            (jitter * h) * Vec3d(centred_unit(splitmix64(id + 1)), centred_unit(splitmix64(id + 2)),
+                                 centred_unit(splitmix64(id + 3)));
         if (inside(p)) pts.push_back(p.cast<Real>());
       }
   return pts;

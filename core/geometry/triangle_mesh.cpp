@@ -27,8 +27,10 @@ MeshCheck check_mesh(const TriangleMesh& m) {
     }
   MeshCheck c;
   for (const auto& kv : uses) {
-    if (kv.second == 1) ++c.boundary_edges;
-    else if (kv.second > 2) ++c.nonmanifold_edges;
+    if (kv.second == 1)
+      ++c.boundary_edges;
+    else if (kv.second > 2)
+      ++c.nonmanifold_edges;
   }
   return c;
 }
@@ -59,7 +61,8 @@ struct VdbMesh {
 namespace {
 // The bodies below run whole inside the space's task arena (sample_mesh, bake_sdf): the level set's
 // construction and also its destruction, which OpenVDB parallelises too.
-std::vector<Vec3> sample_mesh_limited(const TriangleMesh& m, double h, double jitter, std::uint64_t seed) {
+std::vector<Vec3> sample_mesh_limited(const TriangleMesh& m, double h, double jitter,
+                                      std::uint64_t seed) {
   const VdbMesh vm(m);
   const auto& pts = vm.pts;
   const auto& tris = vm.tris;
@@ -72,7 +75,8 @@ std::vector<Vec3> sample_mesh_limited(const TriangleMesh& m, double h, double ji
     hi = hi.cwiseMax(v);
   }
   const auto acc = sdf->getConstAccessor();
-  openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler> sampler(acc, *xform);
+  openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler>
+      sampler(acc, *xform);
   long long n[3];
   for (int a = 0; a < 3; ++a) n[a] = (long long)std::ceil((hi[a] - lo[a]) / h);
   const std::vector<Vec3> out = sample_lattice(lo, n, h, jitter, seed, [&](const Vec3d& p) {
@@ -95,13 +99,15 @@ std::shared_ptr<const SdfGrid> bake_sdf_limited(const TriangleMesh& m, double h,
   sdf->origin = lo - Vec3d::Constant(margin);
   for (int a = 0; a < 3; ++a) sdf->n[a] = int(std::ceil((hi[a] - lo[a] + 2 * margin) / h)) + 2;
   if (double(sdf->n[0]) * sdf->n[1] * sdf->n[2] > 2e8)
-    throw InputError("mesh collider: the baked distance field would exceed 2e8 samples; coarsen dx");
-  const auto grid =
-      openvdb::tools::meshToSignedDistanceField<openvdb::FloatGrid>(*xform, pts, tris, quads, band_out, band_in);
+    throw InputError(
+        "mesh collider: the baked distance field would exceed 2e8 samples; coarsen dx");
+  const auto grid = openvdb::tools::meshToSignedDistanceField<openvdb::FloatGrid>(
+      *xform, pts, tris, quads, band_out, band_in);
   sdf->outside = float(margin);
   sdf->phi.resize(size_t(sdf->n[0]) * size_t(sdf->n[1]) * size_t(sdf->n[2]));
   const auto acc = grid->getConstAccessor();
-  openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler> sampler(acc, *xform);
+  openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler>
+      sampler(acc, *xform);
   size_t q = 0;
   for (int k = 0; k < sdf->n[2]; ++k)
     for (int j = 0; j < sdf->n[1]; ++j)
@@ -121,7 +127,8 @@ std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, st
   return out;
 }
 
-std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin, const exec::Space& space) {
+std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin,
+                                        const exec::Space& space) {
   std::shared_ptr<const SdfGrid> out;
   exec::with_thread_limit(space, [&] { out = bake_sdf_limited(m, h, margin); });
   return out;

@@ -38,6 +38,7 @@ std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, st
 // Signed distance field of the mesh (tools::meshToSignedDistanceField, exact distance inside
 // and out to `margin` beyond the surface), baked into a dense array of spacing h covering the
 // mesh's box plus margin: what a mesh collider samples.
-std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin, const exec::Space& space);
+std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin,
+                                        const exec::Space& space);
 
 }  // namespace amalgam

@@ -60,7 +60,8 @@ struct FixedCorotatedT {
     M3 H;
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j)
-        H(i, j) = i == j ? T(2) * mu + lambda * c[i] * c[i] : lambda * (c[i] * c[j] + (J - 1) * s[3 - i - j]);
+        H(i, j) = i == j ? T(2) * mu + lambda * c[i] * c[i]
+                         : lambda * (c[i] * c[j] + (J - 1) * s[3 - i - j]);
     return H;
   }
   M3 dP(const M3& F, const M3& dF) const {
@@ -94,7 +95,8 @@ struct FixedCorotatedT {
     V a[9];
     for (int e = 0; e < 9; ++e) a[e] = (mu + mu) * (f[e] - r[e]);  // 2 mu (F - R)
     for (int j = 0; j < 3; ++j)
-      for (int i = 0; i < 3; ++i) tau[i + 3 * j] = a[i] * f[j] + a[i + 3] * f[j + 3] + a[i + 6] * f[j + 6];
+      for (int i = 0; i < 3; ++i)
+        tau[i + 3 * j] = a[i] * f[j] + a[i + 3] * f[j + 3] + a[i + 6] * f[j + 6];
     const V J = f[0] * (f[4] * f[8] - f[7] * f[5]) + f[3] * (f[7] * f[2] - f[1] * f[8]) +
                 f[6] * (f[1] * f[5] - f[4] * f[2]);
     const V p = lambda * (J - T(1)) * J;
@@ -129,7 +131,8 @@ struct NeoHookeanT {
     const T J = std::max(F.determinant(), kMinJ);
     const M3 FinvT = detail::cofactor3(F) / J;
     const T lj = std::log(J);
-    return mu * dF + (mu - lambda * lj) * FinvT * dF.transpose() * FinvT + lambda * (FinvT.cwiseProduct(dF)).sum() * FinvT;
+    return mu * dF + (mu - lambda * lj) * FinvT * dF.transpose() * FinvT +
+           lambda * (FinvT.cwiseProduct(dF)).sum() * FinvT;
   }
   M3 kirchhoff(const M3& F) const {
     const T J = std::max(F.determinant(), kMinJ);
@@ -153,7 +156,8 @@ struct NeoHookeanT {
     M3 H;
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j)
-        H(i, j) = i == j ? mu + (mu + l - lambda * lj) / (safe(s[i]) * safe(s[i])) : l / (safe(s[i]) * safe(s[j]));
+        H(i, j) = i == j ? mu + (mu + l - lambda * lj) / (safe(s[i]) * safe(s[i]))
+                         : l / (safe(s[i]) * safe(s[j]));
     return H;
   }
 };
@@ -171,7 +175,8 @@ struct StvkHenckyT {
   static constexpr T kMinSigma = T(1e-4);
 
   static V3 log_strain(const V3& s) {
-    return V3(std::log(std::max(std::abs(s[0]), kMinSigma)), std::log(std::max(std::abs(s[1]), kMinSigma)),
+    return V3(std::log(std::max(std::abs(s[0]), kMinSigma)),
+              std::log(std::max(std::abs(s[1]), kMinSigma)),
               std::log(std::max(std::abs(s[2]), kMinSigma)));
   }
   static T safe(T s) { return std::abs(s) >= kMinSigma ? s : std::copysign(kMinSigma, s); }
@@ -193,7 +198,8 @@ struct StvkHenckyT {
     M3 H;
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j)
-        H(i, j) = i == j ? (T(2) * mu + lambda - T(2) * mu * e[i] - lambda * tr) / (safe(s[i]) * safe(s[i]))
+        H(i, j) = i == j ? (T(2) * mu + lambda - T(2) * mu * e[i] - lambda * tr) /
+                               (safe(s[i]) * safe(s[i]))
                          : lambda / (safe(s[i]) * safe(s[j]));
     return H;
   }

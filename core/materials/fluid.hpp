@@ -28,14 +28,17 @@ struct WeaklyCompressibleT {
   T energy(const M3& F) const {
     const T J = std::max(F.determinant(), kMinJ);
     // -int_1^J K/gamma (j^-gamma - 1) dj; gamma = 1 is the logarithmic limit.
-    const T a = std::abs(gamma - T(1)) < T(1e-9) ? std::log(J) : (std::pow(J, T(1) - gamma) - T(1)) / (T(1) - gamma);
+    const T a = std::abs(gamma - T(1)) < T(1e-9)
+                    ? std::log(J)
+                    : (std::pow(J, T(1) - gamma) - T(1)) / (T(1) - gamma);
     return -bulk / gamma * (a - (J - T(1)));
   }
   M3 first_piola(const M3& F) const { return -pressure(F.determinant()) * detail::cofactor3(F); }
   M3 dP(const M3& F, const M3& dF) const {
     const M3 cof = detail::cofactor3(F);
     const T J = F.determinant();
-    return -dpressure_dJ(J) * cof.cwiseProduct(dF).sum() * cof - pressure(J) * cofactor_derivative(F, dF);
+    return -dpressure_dJ(J) * cof.cwiseProduct(dF).sum() * cof -
+           pressure(J) * cofactor_derivative(F, dF);
   }
   // SVD frame of Psi(J), J = s0 s1 s2, c_i = J / s_i: p_i = -p(J) c_i,
   // H_ii = -p'(J) c_i^2, H_ij = -p'(J) c_i c_j - p(J) s_k (k the third index).
@@ -49,7 +52,8 @@ struct WeaklyCompressibleT {
     const V3 c(s[1] * s[2], s[0] * s[2], s[0] * s[1]);
     M3 H;
     for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < 3; ++j) H(i, j) = i == j ? -dp * c[i] * c[i] : -dp * c[i] * c[j] - pr * s[3 - i - j];
+      for (int j = 0; j < 3; ++j)
+        H(i, j) = i == j ? -dp * c[i] * c[i] : -dp * c[i] * c[j] - pr * s[3 - i - j];
     return H;
   }
   M3 kirchhoff(const M3& F, const M3& L) const {

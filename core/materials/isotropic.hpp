@@ -34,8 +34,8 @@ template <class T>
 struct SvdFrameHessian {
   using M3 = Eigen::Matrix<T, 3, 3>;
   using V3 = Eigen::Matrix<T, 3, 1>;
-  M3 H;      // d p_i / d sigma_j (symmetric)
-  V3 c1, c2; // pairs (0,1), (0,2), (1,2)
+  M3 H;       // d p_i / d sigma_j (symmetric)
+  V3 c1, c2;  // pairs (0,1), (0,2), (1,2)
 
   // From p_i = d psi / d sigma_i and H_ij = d p_i / d sigma_j at singular values sigma.
   static SvdFrameHessian from(const V3& sigma, const V3& p, const M3& H) {
@@ -76,7 +76,8 @@ struct SvdFrameHessian {
     int k = 0;
     for (int i = 0; i < 3; ++i)
       for (int j = i + 1; j < 3; ++j, ++k)
-        s += c1[k] * (a[i] * a[i] * b[j] * b[j] + a[j] * a[j] * b[i] * b[i]) + T(2) * c2[k] * q[i] * q[j];
+        s += c1[k] * (a[i] * a[i] * b[j] * b[j] + a[j] * a[j] * b[i] * b[i]) +
+             T(2) * c2[k] * q[i] * q[j];
     return s;
   }
   // Teran et al. 2005: clamp each block's eigenvalues at zero.
@@ -95,7 +96,8 @@ struct SvdFrameHessian {
 
 template <class T>
 inline Eigen::Matrix<T, 3, 3> isotropic_dP(const Svd3<T>& d, const Eigen::Matrix<T, 3, 1>& p,
-                                           const Eigen::Matrix<T, 3, 3>& H, const Eigen::Matrix<T, 3, 3>& dF) {
+                                           const Eigen::Matrix<T, 3, 3>& H,
+                                           const Eigen::Matrix<T, 3, 3>& dF) {
   const SvdFrameHessian<T> h = SvdFrameHessian<T>::from(d.sigma, p, H);
   return d.U * h.apply(d.U.transpose() * dF * d.V) * d.V.transpose();
 }
@@ -103,7 +105,8 @@ inline Eigen::Matrix<T, 3, 3> isotropic_dP(const Svd3<T>& d, const Eigen::Matrix
 // d cof(F)[dF]: cof(F) has columns f1 x f2, f2 x f0, f0 x f1 (f_k the columns of F), so its
 // derivative is bilinear in F and dF. Finite for singular F, unlike d(J F^{-T}) written with F^{-1}.
 template <class T>
-inline Eigen::Matrix<T, 3, 3> cofactor_derivative(const Eigen::Matrix<T, 3, 3>& F, const Eigen::Matrix<T, 3, 3>& dF) {
+inline Eigen::Matrix<T, 3, 3> cofactor_derivative(const Eigen::Matrix<T, 3, 3>& F,
+                                                  const Eigen::Matrix<T, 3, 3>& dF) {
   using V3 = Eigen::Matrix<T, 3, 1>;
   Eigen::Matrix<T, 3, 3> out;
   for (int k = 0; k < 3; ++k) {

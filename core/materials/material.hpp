@@ -50,11 +50,14 @@ struct MaterialParams {
   bool melted(Real temperature) const { return melting && temperature >= melting_point; }
   // Whether particles of this material carry a plastic scalar, and its value at rest.
   bool has_plastic_state() const {
-    return model == MaterialModel::Snow || model == MaterialModel::DruckerPrager || model == MaterialModel::VonMises;
+    return model == MaterialModel::Snow || model == MaterialModel::DruckerPrager ||
+           model == MaterialModel::VonMises;
   }
   Real initial_plastic() const { return model == MaterialModel::Snow ? Real(1) : Real(0); }
   // Whether the per-particle state update (return mapping, F reset) has anything to do.
-  bool needs_state_update() const { return has_plastic_state() || model == MaterialModel::Fluid || melting; }
+  bool needs_state_update() const {
+    return has_plastic_state() || model == MaterialModel::Fluid || melting;
+  }
 
   WeaklyCompressibleT<Real> liquid() const { return {liquid_bulk, gamma, liquid_viscosity}; }
   WeaklyCompressibleT<Real> fluid() const { return {bulk, gamma, viscosity}; }
@@ -74,8 +77,8 @@ struct MaterialParams {
   // kirchhoff(F[l], L[l], plastic[l], temperature[l]) gives. The fixed corotated models (also
   // snow's elasticity) take the rotations of all n at once, one particle per vector lane (P2G's
   // hot spot); the others, and any batch with a melted particle, go one particle at a time.
-  void kirchhoff_lanes(const Mat3* F, const Mat3* L, const Real* plastic, const Real* temperature, Mat3* tau,
-                       int n) const {
+  void kirchhoff_lanes(const Mat3* F, const Mat3* L, const Real* plastic, const Real* temperature,
+                       Mat3* tau, int n) const {
     bool batch = model == MaterialModel::FixedCorotated || model == MaterialModel::Snow;
     for (int l = 0; l < n && batch && melting; ++l) batch = !melted(temperature[l]);
     if (!batch) {
@@ -84,23 +87,30 @@ struct MaterialParams {
     }
     Real lmu[lanes::kN<Real>], llambda[lanes::kN<Real>];
     for (int l = 0; l < n; ++l) {
-      const FixedCorotated m = model == MaterialModel::Snow ? snow().elastic(plastic[l]) : FixedCorotated{mu, lambda};
+      const FixedCorotated m =
+          model == MaterialModel::Snow ? snow().elastic(plastic[l]) : FixedCorotated{mu, lambda};
       lmu[l] = m.mu, llambda[l] = m.lambda;
     }
     FixedCorotated::kirchhoff_lanes(F, lmu, llambda, tau, n);
     if (viscosity > 0)
-      for (int l = 0; l < n; ++l) tau[l] += (F[l].determinant() * viscosity) * (L[l] + L[l].transpose());
+      for (int l = 0; l < n; ++l)
+        tau[l] += (F[l].determinant() * viscosity) * (L[l] + L[l].transpose());
   }
   // The elastic Kirchhoff stress of a solid model (fluids: zero).
   Mat3 solid_kirchhoff(const Mat3& F, Real plastic) const {
     switch (model) {
-      case MaterialModel::FixedCorotated: return FixedCorotated{mu, lambda}.kirchhoff(F);
-      case MaterialModel::NeoHookean: return NeoHookean{mu, lambda}.kirchhoff(F);
+      case MaterialModel::FixedCorotated:
+        return FixedCorotated{mu, lambda}.kirchhoff(F);
+      case MaterialModel::NeoHookean:
+        return NeoHookean{mu, lambda}.kirchhoff(F);
       case MaterialModel::StvkHencky:
       case MaterialModel::DruckerPrager:
-      case MaterialModel::VonMises: return StvkHencky{mu, lambda}.kirchhoff(F);
-      case MaterialModel::Snow: return snow().elastic(plastic).kirchhoff(F);
-      case MaterialModel::Fluid: break;
+      case MaterialModel::VonMises:
+        return StvkHencky{mu, lambda}.kirchhoff(F);
+      case MaterialModel::Snow:
+        return snow().elastic(plastic).kirchhoff(F);
+      case MaterialModel::Fluid:
+        break;
     }
     return Mat3::Zero();
   }
@@ -108,13 +118,18 @@ struct MaterialParams {
   Real energy(const Mat3& F, Real plastic, Real temperature) const {
     if (melting && temperature >= melting_point) return liquid().energy(F);
     switch (model) {
-      case MaterialModel::FixedCorotated: return FixedCorotated{mu, lambda}.energy(F);
-      case MaterialModel::NeoHookean: return NeoHookean{mu, lambda}.energy(F);
+      case MaterialModel::FixedCorotated:
+        return FixedCorotated{mu, lambda}.energy(F);
+      case MaterialModel::NeoHookean:
+        return NeoHookean{mu, lambda}.energy(F);
       case MaterialModel::StvkHencky:
       case MaterialModel::DruckerPrager:
-      case MaterialModel::VonMises: return StvkHencky{mu, lambda}.energy(F);
-      case MaterialModel::Snow: return snow().elastic(plastic).energy(F);
-      case MaterialModel::Fluid: return fluid().energy(F);
+      case MaterialModel::VonMises:
+        return StvkHencky{mu, lambda}.energy(F);
+      case MaterialModel::Snow:
+        return snow().elastic(plastic).energy(F);
+      case MaterialModel::Fluid:
+        return fluid().energy(F);
     }
     return 0;
   }
@@ -151,7 +166,9 @@ struct MaterialParams {
         p = m.sigma_stress(s), H = m.sigma_hessian(s);
         return;
       }
-      case MaterialModel::Fluid: p = fluid().sigma_stress(s), H = fluid().sigma_hessian(s); return;
+      case MaterialModel::Fluid:
+        p = fluid().sigma_stress(s), H = fluid().sigma_hessian(s);
+        return;
     }
     p.setZero(), H.setZero();
   }
@@ -159,11 +176,16 @@ struct MaterialParams {
   bool project(Mat3& F, Real& plastic, Real temperature) const {
     if (melting && temperature >= melting_point) return WeaklyCompressibleT<Real>::reset(F);
     switch (model) {
-      case MaterialModel::Snow: return snow().project(F, plastic);
-      case MaterialModel::DruckerPrager: return drucker_prager().project(F, plastic);
-      case MaterialModel::VonMises: return VonMisesT<Real>{mu, lambda, yield_stress, hardening_modulus}.project(F, plastic);
-      case MaterialModel::Fluid: return WeaklyCompressibleT<Real>::reset(F);
-      default: return false;
+      case MaterialModel::Snow:
+        return snow().project(F, plastic);
+      case MaterialModel::DruckerPrager:
+        return drucker_prager().project(F, plastic);
+      case MaterialModel::VonMises:
+        return VonMisesT<Real>{mu, lambda, yield_stress, hardening_modulus}.project(F, plastic);
+      case MaterialModel::Fluid:
+        return WeaklyCompressibleT<Real>::reset(F);
+      default:
+        return false;
     }
   }
   SnowT<Real> snow() const {
@@ -198,13 +220,20 @@ struct MaterialParams {
 
 inline const char* material_model_name(MaterialModel m) {
   switch (m) {
-    case MaterialModel::FixedCorotated: return "fixed_corotated";
-    case MaterialModel::NeoHookean: return "neo_hookean";
-    case MaterialModel::StvkHencky: return "stvk_hencky";
-    case MaterialModel::Snow: return "snow";
-    case MaterialModel::DruckerPrager: return "drucker_prager";
-    case MaterialModel::VonMises: return "von_mises";
-    case MaterialModel::Fluid: return "fluid";
+    case MaterialModel::FixedCorotated:
+      return "fixed_corotated";
+    case MaterialModel::NeoHookean:
+      return "neo_hookean";
+    case MaterialModel::StvkHencky:
+      return "stvk_hencky";
+    case MaterialModel::Snow:
+      return "snow";
+    case MaterialModel::DruckerPrager:
+      return "drucker_prager";
+    case MaterialModel::VonMises:
+      return "von_mises";
+    case MaterialModel::Fluid:
+      return "fluid";
   }
   return "?";
 }

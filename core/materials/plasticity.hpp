@@ -24,7 +24,8 @@ Eigen::Matrix<T, 3, 1> log_sigma(const Svd3<T>& d, T min_sigma) {
 }
 template <class T>
 Eigen::Matrix<T, 3, 3> from_log_sigma(const Svd3<T>& d, const Eigen::Matrix<T, 3, 1>& e) {
-  return d.U * Eigen::Matrix<T, 3, 1>(std::exp(e[0]), std::exp(e[1]), std::exp(e[2])).asDiagonal() * d.V.transpose();
+  return d.U * Eigen::Matrix<T, 3, 1>(std::exp(e[0]), std::exp(e[1]), std::exp(e[2])).asDiagonal() *
+         d.V.transpose();
 }
 }  // namespace detail
 
@@ -41,7 +42,9 @@ struct SnowT {
   T mu0, lambda0, theta_c, theta_s, xi;
   T max_hardening = T(1e4);
 
-  T hardening_factor(T JP) const { return std::min(std::exp(std::min(xi * (T(1) - JP), T(30))), max_hardening); }
+  T hardening_factor(T JP) const {
+    return std::min(std::exp(std::min(xi * (T(1) - JP), T(30))), max_hardening);
+  }
   FixedCorotatedT<T> elastic(T JP) const {
     const T h = hardening_factor(JP);
     return {mu0 * h, lambda0 * h};
@@ -88,7 +91,8 @@ struct DruckerPragerT {
     return std::sqrt(T(2) / T(3)) * T(2) * s / (T(3) - s);
   }
   static T apex_trace(T mu, T lambda, T phi_radians, T cohesion) {
-    return cohesion > 0 ? T(3) * cohesion / std::tan(phi_radians) / (T(3) * lambda + T(2) * mu) : T(0);
+    return cohesion > 0 ? T(3) * cohesion / std::tan(phi_radians) / (T(3) * lambda + T(2) * mu)
+                        : T(0);
   }
   StvkHenckyT<T> elastic() const { return {mu, lambda}; }
   // Yield function in strain space: <= 0 inside the cone (for tr eps < tr_c).

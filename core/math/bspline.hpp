@@ -101,7 +101,8 @@ struct Stencil {
   }
   Real weight(int i, int j, int k) const { return w[0][i] * w[1][j] * w[2][k]; }
   Vec3 gradient(int i, int j, int k) const {
-    return Vec3(dw[0][i] * w[1][j] * w[2][k], w[0][i] * dw[1][j] * w[2][k], w[0][i] * w[1][j] * dw[2][k]);
+    return Vec3(dw[0][i] * w[1][j] * w[2][k], w[0][i] * dw[1][j] * w[2][k],
+                w[0][i] * w[1][j] * dw[2][k]);
   }
   // x_i - x_p for stencil node (i, j, k), in world units.
   Vec3 offset(int i, int j, int k, Real dx) const {

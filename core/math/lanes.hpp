@@ -89,15 +89,35 @@ inline V<T> sqrt_impl(const V<T>& x) {
 }
 }  // namespace detail
 
-inline bool any(bool m) { return m; }
-inline bool any(const Mask<float>& m) { return detail::any_impl(m); }
-inline bool any(const Mask<double>& m) { return detail::any_impl(m); }
-inline bool andnot(bool a, bool b) { return a && !b; }
-inline Mask<float> andnot(const Mask<float>& a, const Mask<float>& b) { return a & ~b; }
-inline Mask<double> andnot(const Mask<double>& a, const Mask<double>& b) { return a & ~b; }
-inline float sqrt(float x) { return std::sqrt(x); }
-inline double sqrt(double x) { return std::sqrt(x); }
-inline V<float> sqrt(const V<float>& x) { return detail::sqrt_impl<float>(x); }
-inline V<double> sqrt(const V<double>& x) { return detail::sqrt_impl<double>(x); }
+inline bool any(bool m) {
+  return m;
+}
+inline bool any(const Mask<float>& m) {
+  return detail::any_impl(m);
+}
+inline bool any(const Mask<double>& m) {
+  return detail::any_impl(m);
+}
+inline bool andnot(bool a, bool b) {
+  return a && !b;
+}
+inline Mask<float> andnot(const Mask<float>& a, const Mask<float>& b) {
+  return a & ~b;
+}
+inline Mask<double> andnot(const Mask<double>& a, const Mask<double>& b) {
+  return a & ~b;
+}
+inline float sqrt(float x) {
+  return std::sqrt(x);
+}
+inline double sqrt(double x) {
+  return std::sqrt(x);
+}
+inline V<float> sqrt(const V<float>& x) {
+  return detail::sqrt_impl<float>(x);
+}
+inline V<double> sqrt(const V<double>& x) {
+  return detail::sqrt_impl<double>(x);
+}
 
 }  // namespace amalgam::lanes

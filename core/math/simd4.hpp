@@ -32,11 +32,21 @@ struct V4 {
     return *this;
   }
 };
-inline V4 operator+(const V4& a, const V4& b) { return V4(a.lo + b.lo, a.hi + b.hi); }
-inline V4 operator-(const V4& a, const V4& b) { return V4(a.lo - b.lo, a.hi - b.hi); }
-inline V4 operator*(const V4& a, const V4& b) { return V4(a.lo * b.lo, a.hi * b.hi); }
-inline V4 operator*(const V4& a, Real s) { return V4(a.lo * s, a.hi * s); }
-inline V4 operator*(Real s, const V4& a) { return V4(s * a.lo, s * a.hi); }
+inline V4 operator+(const V4& a, const V4& b) {
+  return V4(a.lo + b.lo, a.hi + b.hi);
+}
+inline V4 operator-(const V4& a, const V4& b) {
+  return V4(a.lo - b.lo, a.hi - b.hi);
+}
+inline V4 operator*(const V4& a, const V4& b) {
+  return V4(a.lo * b.lo, a.hi * b.hi);
+}
+inline V4 operator*(const V4& a, Real s) {
+  return V4(a.lo * s, a.hi * s);
+}
+inline V4 operator*(Real s, const V4& a) {
+  return V4(s * a.lo, s * a.hi);
+}
 #else
 typedef Real V4 __attribute__((vector_size(4 * sizeof(Real))));
 #endif
@@ -46,10 +56,16 @@ inline V4 load4(const Real* p) {
   std::memcpy(static_cast<void*>(&v), p, sizeof v);
   return v;
 }
-inline void store4(Real* p, const V4& v) { std::memcpy(p, static_cast<const void*>(&v), sizeof v); }
+inline void store4(Real* p, const V4& v) {
+  std::memcpy(p, static_cast<const void*>(&v), sizeof v);
+}
 // (lead, c0, c1, c2): a node row with a scalar first lane and a 3-vector after it.
-inline V4 row4(Real lead, const Vec3& c) { return V4{lead, c[0], c[1], c[2]}; }
+inline V4 row4(Real lead, const Vec3& c) {
+  return V4{lead, c[0], c[1], c[2]};
+}
 // Column a of a 3x3 matrix behind a zero lane: (0, M(0,a), M(1,a), M(2,a)).
-inline V4 col4(const Mat3& M, int a) { return V4{0, M(0, a), M(1, a), M(2, a)}; }
+inline V4 col4(const Mat3& M, int a) {
+  return V4{0, M(0, a), M(1, a), M(2, a)};
+}
 
 }  // namespace amalgam::simd

@@ -59,7 +59,8 @@ inline void jacobi_rotate(Eigen::Matrix<T, 3, 3>& S, Eigen::Matrix<T, 3, 3>& V, 
 // Givens rotation acting on rows (i, j) of B, zeroing B(j, col); accumulates Q so that the
 // original B equals Q * B_now.
 template <class T>
-inline void givens_zero(Eigen::Matrix<T, 3, 3>& B, Eigen::Matrix<T, 3, 3>& Q, int i, int j, int col) {
+inline void givens_zero(Eigen::Matrix<T, 3, 3>& B, Eigen::Matrix<T, 3, 3>& Q, int i, int j,
+                        int col) {
   const T a = B(i, col), b = B(j, col);
   const T r = std::sqrt(a * a + b * b);
   if (r == T(0)) return;
@@ -77,8 +78,8 @@ inline void givens_zero(Eigen::Matrix<T, 3, 3>& B, Eigen::Matrix<T, 3, 3>& Q, in
 }
 
 template <class T>
-inline void swap_columns_keep_rotation(Eigen::Matrix<T, 3, 3>& V, Eigen::Matrix<T, 1, 3>& lambda, int a,
-                                       int b) {
+inline void swap_columns_keep_rotation(Eigen::Matrix<T, 3, 3>& V, Eigen::Matrix<T, 1, 3>& lambda,
+                                       int a, int b) {
   std::swap(lambda(a), lambda(b));
   for (int k = 0; k < 3; ++k) {
     const T t = V(k, a);
@@ -96,7 +97,8 @@ inline Svd3<T> svd3(const Eigen::Matrix<T, 3, 3>& F) {
   M S = F.transpose() * F;
   M V = M::Identity();
   const T scale = S.diagonal().sum();
-  const T tol = std::numeric_limits<T>::epsilon() * std::numeric_limits<T>::epsilon() * scale * scale;
+  const T tol =
+      std::numeric_limits<T>::epsilon() * std::numeric_limits<T>::epsilon() * scale * scale;
   for (int sweep = 0; sweep < 12; ++sweep) {
     const T off = S(0, 1) * S(0, 1) + S(0, 2) * S(0, 2) + S(1, 2) * S(1, 2);
     if (!(off > tol)) break;  // also stops on NaN
@@ -221,7 +223,8 @@ inline Eigen::Matrix<T, 3, 3> polar_rotation_fast(const Eigen::Matrix<T, 3, 3>& 
 // entries (lanes::load_mat3 of F), R receives the rotations the same way; lane l is bitwise
 // polar_rotation_fast(F[l]).
 template <class T>
-inline void polar_rotation_fast_lanes(const lanes::V<T>* f, const Eigen::Matrix<T, 3, 3>* F, int n, lanes::V<T>* R) {
+inline void polar_rotation_fast_lanes(const lanes::V<T>* f, const Eigen::Matrix<T, 3, 3>* F, int n,
+                                      lanes::V<T>* R) {
   assert(n >= 1 && n <= lanes::kN<T>);
   const lanes::Mask<T> converged = detail::polar_newton<T, lanes::V<T>, lanes::Mask<T>>(f, R);
   for (int l = 0; l < n; ++l) {
@@ -232,7 +235,8 @@ inline void polar_rotation_fast_lanes(const lanes::V<T>* f, const Eigen::Matrix<
   }
 }
 template <class T>
-inline void polar_rotation_fast_lanes(const Eigen::Matrix<T, 3, 3>* F, Eigen::Matrix<T, 3, 3>* R, int n) {
+inline void polar_rotation_fast_lanes(const Eigen::Matrix<T, 3, 3>* F, Eigen::Matrix<T, 3, 3>* R,
+                                      int n) {
   lanes::V<T> f[9], r[9];
   lanes::load_mat3(F, n, f);
   polar_rotation_fast_lanes(f, F, n, r);

@@ -24,6 +24,8 @@ using Mat3d = Eigen::Matrix<double, 3, 3>;
 static_assert(sizeof(Vec3) == 3 * sizeof(Real), "Vec3 must be tightly packed for SoA views");
 static_assert(sizeof(Mat3) == 9 * sizeof(Real), "Mat3 must be tightly packed for SoA views");
 
-constexpr const char* real_name() { return sizeof(Real) == 4 ? "float" : "double"; }
+constexpr const char* real_name() {
+  return sizeof(Real) == 4 ? "float" : "double";
+}
 
 }  // namespace amalgam

@@ -11,7 +11,8 @@ int ParticleSet::Attr::words() const {
 }
 
 ParticleSet::Id ParticleSet::add(const std::string& name, AttrType type, int width) {
-  if (find(name) >= 0) throw std::invalid_argument("particle attribute '" + name + "' already exists");
+  if (find(name) >= 0)
+    throw std::invalid_argument("particle attribute '" + name + "' already exists");
   if (width < 1) throw std::invalid_argument("particle attribute '" + name + "' needs width >= 1");
   Attr a{name, type, width, {}, {}};
   a.front.assign(n_ * size_t(a.words()), 0u);
@@ -47,7 +48,8 @@ void ParticleSet::save(Snapshot& s) const {
 }
 
 void ParticleSet::restore(const Snapshot& s) {
-  if (s.words.size() != attrs_.size()) throw std::invalid_argument("particle snapshot has a different layout");
+  if (s.words.size() != attrs_.size())
+    throw std::invalid_argument("particle snapshot has a different layout");
   resize(s.n);
   for (size_t a = 0; a < attrs_.size(); ++a) attrs_[a].front = s.words[a];
 }
@@ -62,8 +64,8 @@ namespace {
 // dst[i] = src[perm[i]] for records of W 32-bit words; W known at compile time so the copy is
 // a few vector moves instead of a run-time-length loop.
 template <int W>
-void gather_records(const exec::Space& space, std::size_t n, const std::uint32_t* perm, const std::uint32_t* src,
-                    std::uint32_t* dst) {
+void gather_records(const exec::Space& space, std::size_t n, const std::uint32_t* perm,
+                    const std::uint32_t* src, std::uint32_t* dst) {
   exec::parallel_for(space, "particles.permute", exec::Index(n), [=](exec::Index i) {
     const std::uint32_t* s = src + size_t(perm[i]) * W;
     std::uint32_t* d = dst + size_t(i) * W;
@@ -78,12 +80,24 @@ void ParticleSet::permute(const exec::Space& space, const std::uint32_t* perm) {
     const std::uint32_t* src = a.front.data();
     std::uint32_t* dst = a.back.data();
     switch (w) {  // the widths of scalars, Vec3 and Mat3 in float and double
-      case 1: gather_records<1>(space, n_, perm, src, dst); break;
-      case 2: gather_records<2>(space, n_, perm, src, dst); break;
-      case 3: gather_records<3>(space, n_, perm, src, dst); break;
-      case 6: gather_records<6>(space, n_, perm, src, dst); break;
-      case 9: gather_records<9>(space, n_, perm, src, dst); break;
-      case 18: gather_records<18>(space, n_, perm, src, dst); break;
+      case 1:
+        gather_records<1>(space, n_, perm, src, dst);
+        break;
+      case 2:
+        gather_records<2>(space, n_, perm, src, dst);
+        break;
+      case 3:
+        gather_records<3>(space, n_, perm, src, dst);
+        break;
+      case 6:
+        gather_records<6>(space, n_, perm, src, dst);
+        break;
+      case 9:
+        gather_records<9>(space, n_, perm, src, dst);
+        break;
+      case 18:
+        gather_records<18>(space, n_, perm, src, dst);
+        break;
       default:
         exec::parallel_for(space, "particles.permute", exec::Index(n_), [=](exec::Index i) {
           const std::uint32_t* s = src + size_t(perm[i]) * size_t(w);
