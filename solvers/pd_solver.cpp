@@ -340,9 +340,9 @@ void PdSolver::compact_bonds(const exec::Space& space) {
   const std::uint64_t removable =
       stored - intact_ - kept_broken_;  // broken since the last compaction
   if (!(double(removable) > double(settings_.compact_fraction) * double(stored))) return;
-  if (armed_ && !armed_->layout_saved) {  // a retry of this frame needs the layout back
-    armed_->layout = bonds_;
-    armed_->layout_saved = true;
+  if (armed_.p && !armed_.p->layout_saved) {  // a retry of this frame needs the layout back
+    armed_.p->layout = bonds_;
+    armed_.p->layout_saved = true;
   }
   pd_compact_bonds(space, bonds_, settings_.contact ? contact_distance() : Real(0));
   kept_broken_ = bonds_.size() - intact_;
@@ -384,7 +384,7 @@ void PdSolver::save(Snapshot& s) {
   s.intact_count = intact_, s.meshes_intact = meshes_intact_, s.kept_broken = kept_broken_;
   s.compactions = compactions_, s.bond_updates = bond_updates_;
   s.time = time_, s.steps = steps_;
-  armed_ = &s;
+  armed_.p = &s;
 }
 
 void PdSolver::restore(Snapshot& s) {

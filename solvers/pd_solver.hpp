@@ -209,8 +209,17 @@ class PdSolver {
   std::uint64_t kept_broken_ =
       0;  // broken bonds the last compaction kept (short ones, for contact)
   std::uint64_t compactions_ = 0, bond_updates_ = 0;
-  Snapshot* armed_ =
-      nullptr;  // the snapshot of the frame start, given the layout a compaction replaces
+  // The snapshot of the frame start, given the layout a compaction replaces. Not carried by a
+  // copy or a move: a copied solver must not write into the original's snapshot (save() arms).
+  struct ArmedSnapshot {
+    Snapshot* p = nullptr;
+    ArmedSnapshot() = default;
+    ArmedSnapshot(const ArmedSnapshot&) {}
+    ArmedSnapshot& operator=(const ArmedSnapshot&) {
+      p = nullptr;
+      return *this;
+    }
+  } armed_;
   Real contact_distance() const;
   Real crit_dt_ = 0;  // critical Verlet step of the reference configuration (critical_dt)
   double time_ = 0;

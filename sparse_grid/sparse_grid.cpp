@@ -8,9 +8,28 @@
 
 namespace amalgam {
 
+namespace {
+// OpenVDB's Tree::clear() (also its destructor) frees the nodes in a parallel loop on TBB's
+// default arena, outside the run's thread limit (docs/architecture.md, "Determinism"). The table has a
+// few thousand leaves: free them here one by one, so clear() finds only an empty root.
+void clear_serially(openvdb::Int32Tree& tree) {
+  std::vector<openvdb::Int32Tree::LeafNodeType*> leaves;
+  tree.stealNodes(leaves);
+  for (auto* l : leaves) delete l;
+  std::vector<openvdb::Int32Tree::RootNodeType::ChildNodeType*> upper;
+  tree.stealNodes(upper);
+  for (auto* n : upper) delete n;
+  tree.clear();
+}
+}  // namespace
+
 struct SparseGrid::Tree {
   openvdb::Int32Tree tree{-1};
   openvdb::tree::ValueAccessor<openvdb::Int32Tree> acc{tree};
+  ~Tree() {
+    acc.clear();
+    clear_serially(tree);
+  }
 };
 
 SparseGrid::SparseGrid() : tree_(std::make_unique<Tree>()) {
@@ -65,7 +84,7 @@ std::int32_t SparseGrid::find_leaf(const Vec3i& node) const {
 
 void SparseGrid::clear_topology() {
   tree_->acc.clear();
-  tree_->tree.clear();
+  clear_serially(tree_->tree);
   leaf_coord_.clear();
   leaf_idle_.clear();
   free_.clear();

@@ -10,6 +10,7 @@
 #include "sparse_grid/binning.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 #include "test_util.hpp"
+#include "thread_recorder.hpp"
 
 using namespace amalgam;
 
@@ -178,4 +179,30 @@ TEST(SparseGrid, LeavesOfAMovingBodyAreRetiredAndTheirSlotsReused) {
   // With it, it plateaus: the second half of the run adds no slot.
   EXPECT_EQ(slots[199], slots.back());
   EXPECT_LT(slots.back(), std::size_t(4 * grid.active_leaves().size()));
+}
+
+// The grid's OpenVDB tree is freed on the calling thread: OpenVDB's Tree::clear() (and the tree's
+// destructor) would free its nodes in a parallel loop on TBB's default arena, where a worker
+// joins outside the run's thread limit. Destroying grids of ~4 000 leaves takes no TBB worker.
+TEST(SparseGrid, FreeingTheTreeTakesNoLibraryThread) {
+  ParticleSet ps;
+  const auto xid = ps.add("x", AttrType::Real, 3);
+  const int n = 16;  // one particle per leaf, n^3 leaves (each touching 8 leaves: (n+1)^3)
+  ps.resize(size_t(n * n * n));
+  for (int i = 0; i < n; ++i)
+    for (int j = 0; j < n; ++j)
+      for (int k = 0; k < n; ++k)
+        ps.vec3(xid)[size_t((i * n + j) * n + k)] =
+            Vec3(Real(i + 0.5), Real(j + 0.5), Real(k + 0.5)) / Real(16);
+  ParticleBinning binning;
+  BinTable bins;
+  const exec::Space s;
+  test::WorkerRecorder rec;
+  for (int rep = 0; rep < 10; ++rep) {
+    SparseGrid grid;
+    binning.sort_and_bin(s, ps, xid, Real(1.0 / 128), 2, bins);
+    grid.update_topology(s, bins);
+    ASSERT_GE(grid.leaf_count(), size_t(n * n * n));
+  }
+  EXPECT_EQ(rec.workers(), 0u);
 }

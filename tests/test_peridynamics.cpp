@@ -1013,6 +1013,22 @@ TEST(PdCompaction, SnapshotRestoresAcrossCompactions) {
   expect_same_state(twin, a, "restored again");
 }
 
+// A copy of a solver does not carry the original's armed snapshot: the copy's compactions leave
+// the original's frame-start snapshot alone (before, the copy wrote its own bond layout into it,
+// and a retry of the original would have restored the copy's bonds).
+TEST(PdCompaction, CopyDoesNotWriteIntoTheOriginalsSnapshot) {
+  const exec::Space space(test::parallel_backend(), 2);
+  PdSolver a = pulled_bar(space, Real(0.005));
+  const Real dt = a.stable_dt(space);
+  for (int k = 0; k < 10; ++k) a.step(space, dt);
+  PdSolver::Snapshot snap;
+  a.save(snap);
+  PdSolver copy = a;
+  for (int k = 0; k < 50; ++k) copy.step(space, dt);
+  ASSERT_GT(copy.diagnostics(space).compactions, a.diagnostics(space).compactions);
+  EXPECT_FALSE(snap.layout_saved);
+}
+
 // A checkpoint of a compacted run stores its bond rows; a fresh solver (full bond list) restricts
 // its bonds to them and continues bitwise like the uninterrupted run (and like one that never
 // compacted). A checkpoint whose rows are not a subset of the scene's bonds is an InputError.
