@@ -20,6 +20,7 @@
 #include "core/math/types.hpp"
 #include "solvers/bench_suite.hpp"
 #include "io/plot.hpp"
+#include "io/writers.hpp"
 
 namespace amalgam::cli {
 
@@ -141,13 +142,7 @@ std::map<std::string, Previous> read_previous(const std::string& path) {
 }
 
 void write_file(const std::filesystem::path& p, const std::string& text) {
-  const auto tmp = p.string() + ".tmp";
-  {
-    std::ofstream out(tmp);
-    out << text;
-    if (!out) throw InputError(p.string() + ": cannot write");
-  }
-  std::filesystem::rename(tmp, p);
+  write_file_atomic(p.string(), text);
 }
 
 struct ReportOptions {

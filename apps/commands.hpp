@@ -31,6 +31,13 @@ Options parse_options(const std::vector<std::string>& args,
 // `amalgam bench --report DIR ...` (apps/bench_report.cpp). Throws std::invalid_argument on a
 // bad option, InputError on an unreadable --compare file.
 int bench_report(const Options& o);
+// A message for the terminal: control characters from input files or names (escape sequences,
+// NUL, newlines) shown as \xNN instead of being sent raw.
+std::string printable(const std::string& s);
+// What the process is doing, for the top-level error handler of main(): "reading scene file X",
+// "setting up X", "frame 12 of X".
+void set_phase(const std::string& phase);
+const std::string& current_phase();
 int parse_int(const std::string& key, const std::string& value, int lo, int hi);
 double parse_double(const std::string& key, const std::string& value, double lo, double hi);
 

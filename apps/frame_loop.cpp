@@ -13,6 +13,7 @@
 #include "apps/commands.hpp"
 #include "core/errors.hpp"
 #include "io/checkpoint.hpp"
+#include "io/files.hpp"
 #include "io/preview.hpp"
 #include "io/vdb_points.hpp"
 #include "io/writers.hpp"
@@ -120,9 +121,7 @@ class SubstepLog {
   void discard() { rows_.clear(); }
   void flush() {
     if (rows_.empty()) return;
-    std::ofstream app(path_, std::ios::app);
-    app << rows_;
-    if (!app) throw InputError(path_ + ": cannot append to the per-substep log");
+    append_to_file(path_, rows_);
     rows_.clear();
   }
 
@@ -152,17 +151,24 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
                const exec::Profiler& profiler) {
   const std::string checkpoint_path = rs.out_dir + "/checkpoint.amck";
   const bool tty = isatty(fileno(stdout));
+  g_signal = 0;
+  std::signal(SIGINT, on_signal);
+  std::signal(SIGTERM, on_signal);
   FrameWriter frames(sim, scene, rs, space);
-  if (rs.first_frame == 1) frames.write(0);
+  // Frame 0 is the initial state; a resumed run never rewrites a frame its checkpoint has passed
+  // (resuming inside frame 1 used to write frame 0 again from the mid-frame state).
+  if (!rs.resumed) frames.write(0);
 
   const std::string csv_path = rs.out_dir + "/diagnostics.csv";
   std::vector<std::string> csv_rows;
   if (rs.first_frame > 1) csv_rows = earlier_rows(csv_path, rs.first_frame);
   SubstepLog steps_log(sim, scene, rs);
-  g_signal = 0;
-  std::signal(SIGINT, on_signal);
-  std::signal(SIGTERM, on_signal);
 
+  // Fault injection for the interrupt tests (tests/interrupt_points_test.sh): act as if SIGINT
+  // arrived during the N-th substep this process takes (retried substeps count too).
+  const char* inject = std::getenv("AMALGAM_TEST_SIGINT_AT_SUBSTEP");
+  const long long sigint_at = inject ? std::atoll(inject) : 0;
+  long long advanced = 0;
   const Real cfl0 = sim.cfl();
   const std::vector<std::string> profile_names = sim.profile_columns();
   const auto t_start = std::chrono::steady_clock::now();
@@ -174,30 +180,41 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     const double t_frame_end = double(f) / scene.fps;
     long long substeps = 0;
     Real dt = 0;
+    set_phase("simulating frame " + std::to_string(f) + " of " + scene.file);
     sim.begin_frame();
-    if (rs.max_retries > 0) sim.save_frame_start();
-    for (int attempt = 0;; ++attempt) {
+    sim.save_frame_start();  // for retries, and for a checkpoint on SIGINT/SIGTERM
+    // A run resumed inside a retried frame continues that frame at its retry's CFL number.
+    const int first_attempt = f == rs.first_frame ? rs.resume_retries : 0;
+    if (first_attempt > 0) sim.set_cfl(cfl0 * Real(std::pow(0.5, first_attempt)));
+    for (int attempt = first_attempt;; ++attempt) {
       try {
         // Tolerance covers the rounding of dt to Real; it is far below any physical substep.
         while (sim.time() < t_frame_end - 1e-7 / scene.fps) {
+          if (g_signal) {
+            // Interrupted: the checkpoint holds the state at the start of this frame and the
+            // retries it has had, so the resumed run computes the frame again exactly as the
+            // uninterrupted run did (a retry after the interrupt included); frames before it are
+            // written and are never written again.
+            const int sig = g_signal;
+            sim.restore_frame_start();
+            steps_log.discard();
+            write_checkpoint(checkpoint_path, sim, f, scene.fingerprint, attempt);
+            if (tty && !rs.quiet) std::cout << "\n";
+            std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
+                      << " received: checkpoint written to " << checkpoint_path << " (frame "
+                      << f - 1 << " complete; frame " << f
+                      << " starts again from t = " << sim.time() << " s); continue with --resume "
+                      << checkpoint_path << "\n";
+            return 128 + sig;
+          }
           // Split what is left of the frame evenly into stable substeps (no sliver at the end).
           const double remaining = t_frame_end - sim.time();
           const double n_left = std::ceil(remaining / double(sim.stable_dt(space)));
           dt = Real(remaining / std::max(1.0, n_left));
           sim.advance(space, dt);
+          if (++advanced == sigint_at) g_signal = SIGINT;
           ++substeps;
           steps_log.add(f, dt);
-          if (g_signal) {  // interrupted: save the exact state mid-frame and stop
-            const int sig = g_signal;
-            write_checkpoint(checkpoint_path, sim, f, scene.fingerprint);
-            steps_log.flush();
-            if (tty && !rs.quiet) std::cout << "\n";
-            std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
-                      << " received: checkpoint written to " << checkpoint_path
-                      << " (t = " << sim.time() << " s, frame " << f
-                      << " in progress); continue with --resume " << checkpoint_path << "\n";
-            return 128 + sig;
-          }
         }
         // The guard runs on a substep's starting state, so a blow-up in the frame's last substep
         // would otherwise surface in the next frame, whose retries cannot undo it: check the end

@@ -18,12 +18,15 @@ namespace amalgam::cli {
 struct RunSettings {
   std::string out_dir;
   int first_frame = 1;       // 1, or the checkpoint's next frame on resume
+  bool resumed = false;      // from a checkpoint: frames before first_frame are written already
+  int resume_retries = 0;    // retries frame first_frame had had when the checkpoint was taken
   int checkpoint_every = 0;  // frames; 0 = only at the end and on a signal
   int max_retries = 3;
   bool quiet = false, preview = false;
 };
 
 // Runs frames first_frame..scene.frames of `sim`; returns the exit code (0, or 128 + signal).
+// Installs the SIGINT/SIGTERM handler that checkpoints mid-frame (after set-up's, apps/run.cpp).
 // Throws SimulationError when a frame fails after every retry, InputError when output fails.
 int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space,
                const exec::Profiler& profiler);

@@ -1,6 +1,8 @@
 // amalgam: command-line entry point (run, validate, bench, plot, info).
 #include <Eigen/Core>
+#include <exception>
 #include <iostream>
+#include <new>
 #include <string>
 #include <tbb/version.h>
 #include <vector>
@@ -26,7 +28,9 @@ int info_command(const std::vector<std::string>&) {
 
 }  // namespace amalgam::cli
 
-int main(int argc, char** argv) {
+namespace {
+
+int dispatch(int argc, char** argv) {
   using namespace amalgam::cli;
   const char* usage =
       "usage: amalgam <command> [options]\n"
@@ -51,6 +55,27 @@ int main(int argc, char** argv) {
     std::cout << usage;
     return kOk;
   }
-  std::cerr << "amalgam: unknown command '" << cmd << "'\n" << usage;
+  std::cerr << "amalgam: unknown command '" << printable(cmd) << "'\n" << usage;
   return kUsage;
+}
+
+}  // namespace
+
+// The one top-level handler: every command maps the errors it expects to its exit code (README,
+// "Exit codes"); anything else that escapes (out of memory, a library's own exception) ends here
+// as exit 3 with what the process was doing, never as an abort.
+int main(int argc, char** argv) {
+  using namespace amalgam::cli;
+  try {
+    return dispatch(argc, argv);
+  } catch (const std::bad_alloc&) {
+    std::cerr << "amalgam: error: out of memory while " << printable(current_phase())
+              << " (the input asks for more than this machine has)\n";
+  } catch (const std::exception& e) {
+    std::cerr << "amalgam: error: while " << printable(current_phase()) << ": "
+              << printable(e.what()) << "\n";
+  } catch (...) {
+    std::cerr << "amalgam: error: while " << printable(current_phase()) << ": unknown exception\n";
+  }
+  return kBadInput;
 }

@@ -1,3 +1,4 @@
+#include <cstdio>
 #include <sstream>
 #include <stdexcept>
 
@@ -38,6 +39,8 @@ Options parse_options(const std::vector<std::string>& args,
     bool is_value = false, is_flag = false;
     for (const auto& k : value_keys) is_value |= (k == key);
     for (const auto& k : flag_keys) is_flag |= (k == key);
+    if ((is_flag || is_value) && (o.get(key) || o.flag(key)))
+      throw std::invalid_argument("option " + key + " given twice");
     if (is_flag && !has_value) {
       o.flags.push_back(key);
     } else if (is_value) {
@@ -81,6 +84,32 @@ int parse_int(const std::string& key, const std::string& value, int lo, int hi) 
     throw std::invalid_argument(key + " expects an integer in [" + std::to_string(lo) + ", " +
                                 std::to_string(hi) + "], got '" + value + "'");
   return int(v);
+}
+
+std::string printable(const std::string& s) {
+  std::string out;
+  out.reserve(s.size());
+  for (const char ch : s) {
+    const unsigned char c = static_cast<unsigned char>(ch);
+    if (c < 0x20 || c == 0x7f) {
+      char esc[8];
+      std::snprintf(esc, sizeof esc, "\\x%02x", c);
+      out += esc;
+    } else {
+      out += ch;
+    }
+  }
+  return out;
+}
+
+std::string g_phase = "starting";
+
+void set_phase(const std::string& phase) {
+  g_phase = phase;
+}
+
+const std::string& current_phase() {
+  return g_phase;
 }
 
 }  // namespace amalgam::cli

@@ -6,6 +6,7 @@
 
 #include "apps/commands.hpp"
 #include "core/errors.hpp"
+#include "io/files.hpp"
 #include "io/plot.hpp"
 
 namespace amalgam::cli {
@@ -28,25 +29,25 @@ int plot_command(const std::vector<std::string>& args) {
     }
     if (o.positional.size() != 1) throw std::invalid_argument("expected exactly one run directory");
   } catch (const std::invalid_argument& e) {
-    std::cerr << "amalgam plot: " << e.what() << "\n" << kPlotHelp;
+    std::cerr << "amalgam plot: " << printable(e.what()) << "\n" << kPlotHelp;
     return kUsage;
   }
   try {
     const std::string dir = o.positional[0];
     const std::string csv = dir + "/diagnostics.csv";
-    std::ifstream in(csv, std::ios::binary);
-    if (!in)
-      throw InputError(
-          csv + ": cannot open diagnostics file (run the scene with output.diagnostics_csv)");
-    std::ostringstream ss;
-    ss << in.rdbuf();
-    const auto cols = read_csv_columns(ss.str(), csv);
+    std::string text;
+    try {
+      text = read_input_file(csv, "diagnostics file", std::uint64_t(1) << 30);
+    } catch (const InputError& e) {
+      throw InputError(std::string(e.what()) + " (run the scene with output.diagnostics_csv)");
+    }
+    const auto cols = read_csv_columns(text, csv);
     const std::string out = o.get("--out") ? *o.get("--out") : dir + "/diagnostics.png";
     write_png(out, plot_diagnostics(cols, "AMALGAM DIAGNOSTICS: " + dir));
     if (!o.flag("--quiet")) std::cout << "amalgam: wrote " << out << "\n";
     return kOk;
   } catch (const InputError& e) {
-    std::cerr << "amalgam: error: " << e.what() << "\n";
+    std::cerr << "amalgam: error: " << printable(e.what()) << "\n";
     return kBadInput;
   }
 }

@@ -64,6 +64,14 @@ extern "C" void on_signal(int sig) {
   g_signal = sig;
 }
 
+// During set-up (reading, sampling, voxelising, baking) nothing has been written and there is no
+// state worth keeping: a signal ends the process at once, with a message (async-signal-safe).
+extern "C" void on_signal_during_setup(int sig) {
+  const char msg[] = "\namalgam: interrupted during set-up: no frame or checkpoint was written\n";
+  (void)!::write(2, msg, sizeof msg - 1);
+  ::_exit(128 + sig);
+}
+
 std::string format_seconds(double s) {
   char buf[64];
   if (s < 0 || !std::isfinite(s)) return "?";
@@ -101,14 +109,17 @@ int run_command(const std::vector<std::string>& args) {
     }
     if (o.positional.size() != 1) throw std::invalid_argument("expected exactly one scene file");
   } catch (const std::invalid_argument& e) {
-    std::cerr << "amalgam run: " << e.what() << "\n" << kRunHelp;
+    std::cerr << "amalgam run: " << printable(e.what()) << "\n" << kRunHelp;
     return kUsage;
   }
   exec::Profiler profiler;
+  std::signal(SIGINT, on_signal_during_setup);
+  std::signal(SIGTERM, on_signal_during_setup);
   try {
     const exec::Space space = make_space(o, &profiler);
+    set_phase("reading scene file " + o.positional[0]);
     Scene scene = load_scene(o.positional[0]);
-    if (const auto* f = o.get("--frames")) scene.frames = parse_int("--frames", *f, 1, 1000000);
+    if (const auto* f = o.get("--frames")) scene.frames = parse_int("--frames", *f, 1, kMaxFrames);
     RunSettings rs;
     rs.out_dir = o.get("--out") ? *o.get("--out") : scene.output.directory;
     rs.quiet = o.flag("--quiet");
@@ -116,15 +127,29 @@ int run_command(const std::vector<std::string>& args) {
     rs.checkpoint_every = scene.output.checkpoint_every;
     if (const auto* c = o.get("--checkpoint-every"))
       rs.checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
-    rs.max_retries = o.get("--retries") ? parse_int("--retries", *o.get("--retries"), 0, 10) : 3;
+    rs.max_retries =
+        o.get("--retries") ? parse_int("--retries", *o.get("--retries"), 0, kMaxRetries) : 3;
     std::error_code ec;
     std::filesystem::create_directories(rs.out_dir, ec);
     if (ec) throw InputError(rs.out_dir + ": cannot create output directory: " + ec.message());
 
     const auto t_setup = std::chrono::steady_clock::now();
+    set_phase("setting up scene " + scene.file);
     const std::unique_ptr<Simulation> sim = make_simulation(scene, space);
+    // Fault injection for tests/interrupt_points_test.sh: a SIGINT at the end of set-up.
+    if (std::getenv("AMALGAM_TEST_SIGINT_IN_SETUP")) std::raise(SIGINT);
     if (const auto* r = o.get("--resume")) {
-      rs.first_frame = read_checkpoint(*r, *sim, scene.fingerprint).next_frame;
+      set_phase("reading checkpoint " + *r);
+      const CheckpointState st = read_checkpoint(*r, *sim, scene.fingerprint);
+      rs.first_frame = st.next_frame;
+      rs.resumed = true;
+      rs.resume_retries = std::min(st.retries, rs.max_retries);
+      if (rs.first_frame > scene.frames) {
+        std::cout << "amalgam: nothing to run: the checkpoint " << printable(*r)
+                  << " is past the last frame (" << scene.frames
+                  << "); raise --frames to extend the run\n";
+        return kOk;
+      }
       if (!rs.quiet)
         std::cout << "amalgam: resumed from " << *r << " at t = " << sim->time() << " s, substep "
                   << sim->step_count() << ", frame " << rs.first_frame << "\n";
@@ -137,16 +162,17 @@ int run_command(const std::vector<std::string>& args) {
                 << space.describe() << ", precision " << real_name() << " (set-up "
                 << format_seconds(setup) << ")\n"
                 << "amalgam: writing to " << rs.out_dir << "/\n";
+    set_phase("running scene " + scene.file);
     return run_frames(*sim, scene, rs, space, profiler);
   } catch (const InputError& e) {
-    std::cerr << "amalgam: error: " << e.what() << "\n";
+    std::cerr << "amalgam: error: " << printable(e.what()) << "\n";
     return kBadInput;
   } catch (const std::invalid_argument& e) {
-    std::cerr << "amalgam run: " << e.what() << "\n";
+    std::cerr << "amalgam run: " << printable(e.what()) << "\n";
     return kUsage;
   } catch (const SimulationError& e) {
     std::cerr
-        << "amalgam: simulation failed: " << e.what() << "\n"
+        << "amalgam: simulation failed: " << printable(e.what()) << "\n"
         << "amalgam: the last good checkpoint (if any was written) is in the output directory\n";
     return kSimulationFailed;
   }
@@ -171,7 +197,7 @@ int validate_command(const std::vector<std::string>& args) {
               << " colliders, " << scene.frames << " frames\n";
     return kOk;
   } catch (const InputError& e) {
-    std::cerr << "amalgam: error: " << e.what() << "\n";
+    std::cerr << "amalgam: error: " << printable(e.what()) << "\n";
     return kBadInput;
   }
 }

@@ -1,5 +1,6 @@
 #include "io/checkpoint.hpp"
 
+#include <cmath>
 #include <cstring>
 #include <fstream>
 #include <functional>
@@ -7,6 +8,8 @@
 #include <vector>
 
 #include "core/errors.hpp"
+#include "io/files.hpp"
+#include "io/scene.hpp"
 #include "io/writers.hpp"
 
 namespace amalgam {
@@ -14,7 +17,7 @@ namespace amalgam {
 namespace {
 constexpr char kMagic[] = "AMALGAM-CKPT\n";
 constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
-constexpr std::uint32_t kVersion = 2;
+constexpr std::uint32_t kVersion = 3;
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -53,7 +56,7 @@ class Reader {
 using Section = StateSection;
 
 void write_state(const std::string& path, const ParticleSet& ps, double time, std::uint64_t steps,
-                 int next_frame, std::uint64_t scene_fingerprint,
+                 int next_frame, int retries, std::uint64_t scene_fingerprint,
                  const std::vector<Section>& sections) {
   std::string b;
   std::size_t total = 128;
@@ -68,6 +71,7 @@ void write_state(const std::string& path, const ParticleSet& ps, double time, st
   put(b, time);
   put(b, steps);
   put(b, std::int32_t(next_frame));
+  put(b, std::int32_t(retries));
   put(b, std::uint64_t(ps.size()));
   put(b, std::uint32_t(ps.attribute_count()));
   for (int a = 0; a < ps.attribute_count(); ++a) {
@@ -94,11 +98,10 @@ void write_state(const std::string& path, const ParticleSet& ps, double time, st
 // Reads into ps (same attribute layout) and the sections (same names and sizes, in order).
 CheckpointState read_state(const std::string& path, ParticleSet& ps,
                            std::uint64_t scene_fingerprint, const std::vector<Section>& sections) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw InputError(path + ": cannot open checkpoint");
-  std::ostringstream ss;
-  ss << in.rdbuf();
-  const std::string d = ss.str();
+  // Never more than the memory there is (a hostile size would end in bad_alloc).
+  const std::uint64_t avail = available_memory_bytes();
+  const std::string d =
+      read_input_file(path, "checkpoint", avail > 0 ? avail : std::uint64_t(1) << 40);
   if (d.size() < kMagicLen || std::memcmp(d.data(), kMagic, kMagicLen) != 0)
     throw InputError(path + ": not an Amalgam checkpoint (bad magic)");
   if (d.size() < kMagicLen + 8) throw InputError(path + ": checkpoint is truncated (no checksum)");
@@ -109,9 +112,9 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
   Reader r(d, path);
   r.take(kMagicLen, "magic");
   const auto version = r.get<std::uint32_t>("version");
-  if (version != 1 && version != kVersion)
+  if (version < 1 || version > kVersion)
     throw InputError(path + ": checkpoint format version " + std::to_string(version) +
-                     ", this build reads 1 and " + std::to_string(kVersion));
+                     ", this build reads 1 to " + std::to_string(kVersion));
   const auto real_size = r.get<std::uint32_t>("precision");
   if (real_size != sizeof(Real))
     throw InputError(path + ": checkpoint was written by a " +
@@ -125,15 +128,29 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
   st.time = r.get<double>("time");
   st.steps = r.get<std::uint64_t>("step count");
   st.next_frame = r.get<std::int32_t>("frame");
+  st.retries = version >= 3 ? r.get<std::int32_t>("retries") : 0;
+  if (st.retries < 0 || st.retries > kMaxRetries)
+    throw InputError(path + ": checkpoint field 'retries' is " + std::to_string(st.retries) +
+                     ", outside [0, " + std::to_string(kMaxRetries) + "]");
+  // The checksum only says the file is what was written: the header is still checked against
+  // the scene before anything is sized by it.
+  if (!std::isfinite(st.time) || st.time < 0 || st.time > 1e12)
+    throw InputError(path + ": checkpoint field 'time' is " + std::to_string(st.time) +
+                     ", outside [0, 1e12] s");
+  if (st.next_frame < 1 || st.next_frame > kMaxFrames + 1)
+    throw InputError(path + ": checkpoint field 'frame' is " + std::to_string(st.next_frame) +
+                     ", outside [1, " + std::to_string(kMaxFrames + 1) + "]");
+  if ((st.steps == 0) != (st.time == 0))
+    throw InputError(path + ": checkpoint fields 'step count' (" + std::to_string(st.steps) +
+                     ") and 'time' (" + std::to_string(st.time) + ") disagree");
   const auto n = r.get<std::uint64_t>("particle count");
   const auto nattr = r.get<std::uint32_t>("attribute count");
   if (nattr != std::uint32_t(ps.attribute_count()))
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
                      " particle attributes, expected " + std::to_string(ps.attribute_count()));
-  if (!sections.empty() && n != ps.size())
-    throw InputError(path + ": checkpoint has " + std::to_string(n) + " particles, this scene " +
-                     std::to_string(ps.size()));
-  ps.resize(size_t(n));
+  if (n != ps.size())
+    throw InputError(path + ": checkpoint field 'particle count' is " + std::to_string(n) +
+                     ", this scene has " + std::to_string(ps.size()) + " particles");
   for (std::uint32_t i = 0; i < nattr; ++i) {
     const auto len = r.get<std::uint32_t>("attribute name length");
     if (len > 256) throw InputError(path + ": checkpoint attribute name too long (corrupt file)");
@@ -182,9 +199,9 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
 }  // namespace
 
 void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
-                      std::uint64_t scene_fingerprint) {
-  write_state(path, sim.particles(), sim.time(), sim.step_count(), next_frame, scene_fingerprint,
-              sim.checkpoint_sections());
+                      std::uint64_t scene_fingerprint, int retries) {
+  write_state(path, sim.particles(), sim.time(), sim.step_count(), next_frame, retries,
+              scene_fingerprint, sim.checkpoint_sections());
 }
 
 CheckpointState read_checkpoint(const std::string& path, Simulation& sim,

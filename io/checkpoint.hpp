@@ -5,13 +5,16 @@
 // grid from the particles every substep and no node value depends on the leaf table's history, so
 // it adds only the particle-domain corners; peridynamics adds its bond layout (the rows left after
 // compaction: offsets and neighbours) and per-bond state, the per-bond constants being rebuilt
-// from the reference positions, deterministically, and restricted to the stored rows. Format (little-endian), version 2:
+// from the reference positions, deterministically, and restricted to the stored rows. Format (little-endian), version 3:
 //   "AMALGAM-CKPT\n" (13 bytes) | u32 version | u32 sizeof(Real) | u64 scene fingerprint
-//   | f64 time | u64 steps | i32 next_frame | u64 particles | u32 attributes
+//   | f64 time | u64 steps | i32 next_frame | i32 retries (version 3) | u64 particles
+//   | u32 attributes
 //   | per attribute: u32 name length, name, u32 type, u32 width, u32 words/particle, words
-//   | u32 sections | per section: u32 name length, name, u64 bytes, bytes   (version 2 only)
+//   | u32 sections | per section: u32 name length, name, u64 bytes, bytes   (version 2 and 3)
 //   | u64 FNV-1a checksum of every byte before it
-// Version 1 files (no sections) are still read.
+// Version 1 files (no sections) and version 2 (no retries: 0) are still read. `retries` is how
+// many times the frame in progress was restarted with a halved CFL number before the interrupt
+// (0 at a frame's end), so a resumed run continues at that frame's CFL number.
 // Written to a temporary name and renamed. Reading checks magic, version, precision, scene,
 // attribute layout, sizes and checksum, each failure an InputError naming the file.
 #pragma once
@@ -28,11 +31,12 @@ struct CheckpointState {
   double time = 0;
   std::uint64_t steps = 0;
   int next_frame = 1;  // the frame the run continues with
+  int retries = 0;     // retries of frame next_frame so far (interrupted mid-frame)
 };
 
 // Writes the simulation's particles and state sections (Simulation::checkpoint_sections).
 void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
-                      std::uint64_t scene_fingerprint);
+                      std::uint64_t scene_fingerprint, int retries = 0);
 // Loads particles, sections and clock into `sim`, built from the same scene (peridynamics:
 // initialised); returns the state. A section or bond list that does not fit the scene is an
 // InputError naming the file.

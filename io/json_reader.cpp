@@ -1,6 +1,7 @@
 #include "io/json_reader.hpp"
 
 #include <cmath>
+#include <climits>
 #include <sstream>
 
 namespace amalgam::detail {
@@ -10,15 +11,110 @@ std::string type_name(const nlohmann::json& v) {
   return v.type_name();
 }
 std::string show(const nlohmann::json& v) {
-  std::string s = v.dump();
-  return s.size() > 60 ? s.substr(0, 57) + "..." : s;
+  return show_json(v);
+}
+
+// Appends a preview of v to out, stopping near `limit` characters and 4 levels down (dump() of a
+// deeply nested value would recurse once per level).
+void preview(const nlohmann::json& v, std::string& out, std::size_t limit, int depth) {
+  if (out.size() > limit) return;
+  if (!v.is_structured()) {
+    out += v.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
+    return;
+  }
+  const bool obj = v.is_object();
+  out += obj ? '{' : '[';
+  if (depth >= 4 && !v.empty()) {
+    out += "...";
+  } else {
+    bool first = true;
+    for (auto it = v.begin(); it != v.end() && out.size() <= limit; ++it) {
+      if (!first) out += ',';
+      first = false;
+      if (obj)
+        out += nlohmann::json(it.key()).dump(-1, ' ', false,
+                                             nlohmann::json::error_handler_t::replace) +
+               ':';
+      preview(*it, out, limit, depth + 1);
+    }
+  }
+  out += obj ? '}' : ']';
 }
 std::string fmt(double x) {
   std::ostringstream os;
   os << x;
   return os.str();
 }
+
+// The JSON path of the value being parsed, from the parser's events.
+class PathTracker {
+ public:
+  struct Level {
+    bool object;
+    std::set<std::string> keys;
+    std::string key;    // object: the key whose value is being parsed
+    std::size_t index;  // array: the element being parsed
+  };
+  std::vector<Level> levels;
+
+  std::string path(std::size_t upto) const {
+    std::string p;
+    for (std::size_t i = 0; i < upto && i < levels.size(); ++i) {
+      if (p.size() > 40) return p + "/...";
+      p += "/" + (levels[i].object ? levels[i].key : std::to_string(levels[i].index));
+    }
+    return p.empty() ? "/" : p;
+  }
+  void element_done() {
+    if (!levels.empty() && !levels.back().object) ++levels.back().index;
+  }
+};
 }  // namespace
+
+std::string show_json(const nlohmann::json& v) {
+  std::string s;
+  preview(v, s, 60, 0);
+  if (s.size() > 60) s = s.substr(0, 57) + "...";
+  return s;
+}
+
+nlohmann::json parse_json_strict(const std::string& text, const std::string& file) {
+  PathTracker t;
+  using E = nlohmann::json::parse_event_t;
+  auto cb = [&](int, E event, nlohmann::json& parsed) -> bool {
+    switch (event) {
+      case E::object_start:
+      case E::array_start:
+        if (t.levels.size() >= std::size_t(kMaxJsonDepth))
+          throw InputError(file + ": " + t.path(t.levels.size()) + ": nested deeper than " +
+                           std::to_string(kMaxJsonDepth) + " levels");
+        t.levels.push_back({event == E::object_start, {}, "", 0});
+        break;
+      case E::key: {
+        auto& top = t.levels.back();
+        top.key = parsed.get<std::string>();
+        if (!top.keys.insert(top.key).second)
+          throw InputError(file + ": " + t.path(t.levels.size()) +
+                           ": key given twice in the same object");
+        break;
+      }
+      case E::object_end:
+      case E::array_end:
+        t.levels.pop_back();
+        t.element_done();
+        break;
+      case E::value:
+        t.element_done();
+        break;
+    }
+    return true;
+  };
+  try {
+    return nlohmann::json::parse(text, cb);
+  } catch (const nlohmann::json::exception& e) {  // parse_error, out_of_range (1e999), ...
+    throw InputError(file + ": not valid JSON: " + e.what());
+  }
+}
 
 JsonObject::JsonObject(const nlohmann::json& j, std::string file, std::string path)
     : j_(j), file_(std::move(file)), path_(std::move(path)) {
@@ -60,7 +156,8 @@ double JsonObject::required_number(const std::string& key, double lo, double hi,
 long long JsonObject::integer(const std::string& key, long long def, long long lo, long long hi) {
   if (!has(key)) return def;
   const auto& v = at(key);
-  if (!v.is_number_integer())
+  if (!v.is_number_integer() ||
+      (v.is_number_unsigned() && v.get<unsigned long long>() > (unsigned long long)LLONG_MAX))
     fail(key, "expected an integer in [" + std::to_string(lo) + ", " + std::to_string(hi) +
                   "], got " + show(v));
   const long long x = v.get<long long>();

@@ -12,6 +12,18 @@
 
 namespace amalgam::detail {
 
+// Deepest nesting of arrays and objects a scene may have (real scenes use under 10).
+constexpr int kMaxJsonDepth = 64;
+
+// Parses JSON text the way a scene needs it: InputError naming the file (and the JSON path where
+// it is known) for malformed text, a key given twice in one object, or nesting deeper than
+// kMaxJsonDepth (which also bounds every later recursion over the document).
+nlohmann::json parse_json_strict(const std::string& text, const std::string& file);
+
+// A value for a message: at most ~60 characters, at most a few levels deep, control characters
+// escaped.
+std::string show_json(const nlohmann::json& v);
+
 class JsonObject {
  public:
   JsonObject(const nlohmann::json& j, std::string file, std::string path);

@@ -10,6 +10,7 @@
 
 #include "core/errors.hpp"
 #include "core/hash.hpp"
+#include "io/files.hpp"
 #include "io/mesh.hpp"
 #include "io/scene_parts.hpp"
 #include "io/tetmesh.hpp"
@@ -277,12 +278,7 @@ ColliderSpec read_collider(JsonObject o, const std::string& scene_file) {
 using namespace scene_detail;
 
 Scene parse_scene(const std::string& text, const std::string& file) {
-  nlohmann::json root;
-  try {
-    root = nlohmann::json::parse(text);
-  } catch (const nlohmann::json::exception& e) {  // parse_error, out_of_range (1e999), ...
-    throw InputError(file + ": not valid JSON: " + e.what());
-  }
+  const nlohmann::json root = detail::parse_json_strict(text, file);
   Scene s;
   s.file = file;
   JsonObject top(root, file, "");
@@ -301,7 +297,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.mpm.max_dt = Real(sim.number("max_dt", 1e-3, 0, kHuge, true));
   s.mpm.gravity = sim.vec3("gravity", Vec3(0, Real(-9.81), 0));
   s.mpm.max_speed = Real(sim.number("max_speed", 1e4, 0, kHuge, true));
-  s.frames = int(sim.integer("frames", 48, 1, 1000000));
+  s.frames = int(sim.integer("frames", 48, 1, kMaxFrames));
   if (pd)
     read_pd_simulation(sim, s);
   else
@@ -383,11 +379,12 @@ Scene parse_scene(const std::string& text, const std::string& file) {
 }
 
 Scene load_scene(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw InputError(path + ": cannot open scene file");
-  std::ostringstream ss;
-  ss << in.rdbuf();
-  return parse_scene(ss.str(), path);
+  const std::string text = read_input_file(path, "scene file", kMaxSceneBytes);
+  const std::size_t nul = text.find('\0');
+  if (nul != std::string::npos)
+    throw InputError(path + ": byte " + std::to_string(nul) +
+                     " is a NUL byte: a scene file is JSON text (is this the right file?)");
+  return parse_scene(text, path);
 }
 
 Camera preview_camera(const Scene& scene) {

@@ -34,6 +34,15 @@ struct Scene : SceneSpec {
   std::uint64_t fingerprint = 0;
 };
 
+// Most frames a run may have (simulation.frames, --frames).
+constexpr int kMaxFrames = 1000000;
+
+// Most retries of a frame (--retries).
+constexpr int kMaxRetries = 10;
+
+// Largest scene file read (a scene is a few kB of JSON; meshes are separate files).
+constexpr std::uint64_t kMaxSceneBytes = 64ull << 20;
+
 // Reads and validates a scene file (meshes are loaded and checked too). Throws InputError.
 // Warnings (e.g. an open mesh allowed with allow_open) go to std::cerr.
 Scene load_scene(const std::string& path);

@@ -6,10 +6,16 @@
 #include <openvdb/points/PointDataGrid.h>
 #include <openvdb/tools/PointIndexGrid.h>
 
+#include <unistd.h>
+
+#include <cctype>
 #include <cstdio>
 #include <mutex>
+#include <vector>
 
 #include "core/errors.hpp"
+#include "core/hash.hpp"
+#include "io/files.hpp"
 #include "io/writers.hpp"
 
 namespace amalgam {
@@ -23,6 +29,78 @@ void add_attribute(openvdb::points::PointDataGrid& grid,
   appendAttribute<T>(grid.tree(), name);
   populateAttribute<PointDataTree, openvdb::tools::PointIndexTree, PointAttributeVector<T>>(
       grid.tree(), index.tree(), name, PointAttributeVector<T>(values));
+}
+
+// OpenVDB writes a random UUID into every file's header (io::Archive::writeHeader), so two
+// identical runs would write different bytes. It is replaced by one derived from the file's other
+// bytes: the same content gives the same file, different content a different UUID. The header is
+// magic (8 bytes), file version (4), library major and minor (4 + 4), the grid-offsets flag (1),
+// then the UUID as 36 ASCII characters (8-4-4-4-12 hex digits).
+constexpr std::size_t kUuidAt = 21, kUuidLen = 36;
+
+bool looks_like_uuid(const char* u) {
+  for (std::size_t i = 0; i < kUuidLen; ++i) {
+    const bool dash = i == 8 || i == 13 || i == 18 || i == 23;
+    const char c = u[i];
+    if (dash ? c != '-' : !std::isxdigit(static_cast<unsigned char>(c))) return false;
+  }
+  return true;
+}
+
+void derive_uuid(const TempFile& f, const std::string& path) {
+  std::vector<char> buf(std::size_t(1) << 20);
+  std::uint64_t h1 = 0xcbf29ce484222325ULL, h2 = 0x84222325cbf29ce4ULL;
+  off_t off = 0;
+  for (;;) {
+    const ssize_t r = ::pread(f.fd(), buf.data(), buf.size(), off);
+    if (r < 0) throw InputError(path + ": cannot read back the VDB file written");
+    if (r == 0) break;
+    std::size_t n = std::size_t(r);
+    char* p = buf.data();
+    if (off == 0) {  // the first chunk holds the header
+      if (n < kUuidAt + kUuidLen || !looks_like_uuid(p + kUuidAt))
+        throw InputError(path + ": unexpected VDB header (no UUID where OpenVDB 10 writes it)");
+      h1 = fnv1a64(p, kUuidAt, h1), h2 = fnv1a64(p, kUuidAt, h2);
+      p += kUuidAt + kUuidLen;
+      n -= kUuidAt + kUuidLen;
+    }
+    h1 = fnv1a64(p, n, h1), h2 = fnv1a64(p, n, h2);
+    off += r;
+  }
+  // Name-based UUID layout: version nibble 5, variant bits 10.
+  unsigned char b[16];
+  for (int i = 0; i < 8; ++i) b[i] = (h1 >> (8 * i)) & 0xff, b[8 + i] = (h2 >> (8 * i)) & 0xff;
+  b[6] = (b[6] & 0x0f) | 0x50;
+  b[8] = (b[8] & 0x3f) | 0x80;
+  char uuid[kUuidLen + 1];
+  std::snprintf(uuid, sizeof uuid,
+                "%02x%02x%02x%02x-%02x%02x-%02x%02x-%02x%02x-%02x%02x%02x%02x%02x%02x", b[0], b[1],
+                b[2], b[3], b[4], b[5], b[6], b[7], b[8], b[9], b[10], b[11], b[12], b[13], b[14],
+                b[15]);
+  if (::pwrite(f.fd(), uuid, kUuidLen, kUuidAt) != ssize_t(kUuidLen))
+    throw InputError(path + ": cannot write the VDB file's UUID");
+}
+
+// Writes grids into a new temporary file beside `path` under the space's thread limit (`build`
+// makes them; they are destroyed there too), gives it its derived UUID and renames it into place.
+template <class Build>
+void write_grids(const std::string& path, const exec::Space& space, const char* what,
+                 const Build& build) {
+  TempFile tmp(path);
+  std::string error;
+  exec::with_thread_limit(space, [&] {
+    try {
+      const openvdb::GridCPtrVec grids = build();
+      openvdb::io::File file(tmp.open_name());
+      file.write(grids);
+      file.close();
+    } catch (const std::exception& e) {  // openvdb::Exception, std::bad_alloc, I/O errors
+      error = std::string(e.what()).empty() ? "unknown error" : e.what();
+    }
+  });
+  if (!error.empty()) throw InputError(path + ": cannot write " + what + ": " + error);
+  derive_uuid(tmp, path);
+  tmp.commit();
 }
 }  // namespace
 
@@ -38,13 +116,10 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
     P[i] = openvdb::Vec3R(double(p.x[i][0]), double(p.x[i][1]), double(p.x[i][2]));
     v[i] = openvdb::Vec3s(float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2]));
   }
-  const openvdb::math::Transform::Ptr xform =
-      openvdb::math::Transform::createLinearTransform(voxel_size);
   const openvdb::points::PointAttributeVector<openvdb::Vec3R> positions(P);
-  const std::string tmp = path + ".tmp";
-  bool written = false;
-  std::string error;
-  exec::with_thread_limit(space, [&] {  // the grids' construction and destruction
+  write_grids(path, space, "VDB points", [&] {
+    const openvdb::math::Transform::Ptr xform =
+        openvdb::math::Transform::createLinearTransform(voxel_size);
     const auto index =
         openvdb::tools::createPointIndexGrid<openvdb::tools::PointIndexGrid>(positions, *xform);
     const auto grid = openvdb::points::createPointDataGrid<openvdb::points::NullCodec,
@@ -56,29 +131,15 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
     add_attribute(*grid, *index, "id", id);
     for (const auto& s : p.extra) add_attribute(*grid, *index, s.first, s.second);
     grid->setName("points");
-    try {
-      openvdb::io::File file(tmp);
-      file.write(openvdb::GridCPtrVec{grid});
-      file.close();
-      written = true;
-    } catch (const std::exception& e) {
-      error = e.what();
-    }
+    return openvdb::GridCPtrVec{grid};
   });
-  if (!written) {
-    std::remove(tmp.c_str());
-    throw InputError(path + ": cannot write VDB points: " + error);
-  }
-  commit_temporary(tmp, path);
 }
 
 void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx,
                            const exec::Space& space) {
   static std::once_flag init;
   std::call_once(init, [] { openvdb::initialize(); });
-  const std::string tmp = path + ".tmp";
-  std::string error;
-  exec::with_thread_limit(space, [&] {  // the grids' construction, writing and destruction
+  write_grids(path, space, "VDB grid fields", [&] {
     const openvdb::math::Transform::Ptr xform = openvdb::math::Transform::createLinearTransform(dx);
     auto mass = openvdb::FloatGrid::create(0.0f);
     auto vel = openvdb::Vec3SGrid::create(openvdb::Vec3s(0.0f));
@@ -103,19 +164,8 @@ void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, doub
             va.setValue(c, openvdb::Vec3s(float(node[1]), float(node[2]), float(node[3])));
           }
     }
-    try {
-      openvdb::io::File file(tmp);
-      file.write(openvdb::GridCPtrVec{mass, vel});
-      file.close();
-    } catch (const std::exception& e) {
-      error = std::string(e.what()).empty() ? "unknown error" : e.what();
-    }
+    return openvdb::GridCPtrVec{mass, vel};
   });
-  if (!error.empty()) {
-    std::remove(tmp.c_str());
-    throw InputError(path + ": cannot write VDB grid fields: " + error);
-  }
-  commit_temporary(tmp, path);
 }
 
 }  // namespace amalgam

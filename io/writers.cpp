@@ -9,31 +9,14 @@
 #include <sstream>
 
 #include "core/errors.hpp"
+#include "io/files.hpp"
 
 namespace amalgam {
 
 void write_file_atomic(const std::string& path, const std::string& content) {
-  const std::string tmp = path + ".tmp";
-  {
-    std::ofstream out(tmp, std::ios::binary | std::ios::trunc);
-    if (!out) throw InputError(path + ": cannot open for writing");
-    out.write(content.data(), std::streamsize(content.size()));
-    out.flush();
-    if (!out) {
-      std::remove(tmp.c_str());
-      throw InputError(path + ": write failed (disk full?)");
-    }
-  }
-  commit_temporary(tmp, path);
-}
-
-void commit_temporary(const std::string& tmp, const std::string& path) {
-  std::error_code ec;
-  std::filesystem::rename(tmp, path, ec);
-  if (ec) {
-    std::remove(tmp.c_str());
-    throw InputError(path + ": cannot rename temporary file: " + ec.message());
-  }
+  TempFile tmp(path);
+  tmp.write(content.data(), content.size());
+  tmp.commit();
 }
 
 void write_ply_points(const std::string& path, const PointFields& p) {

@@ -27,10 +27,9 @@ void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertice
                        const std::vector<std::array<std::uint32_t, 3>>& triangles,
                        const std::vector<std::uint8_t>& crack);
 
-// Writes `content` to `path` atomically (temporary file, then rename). Throws InputError.
+// Writes `content` to `path` atomically (a new temporary file, then rename: io/files.hpp).
+// Throws InputError.
 void write_file_atomic(const std::string& path, const std::string& content);
-// Renames a finished temporary file onto `path` (removing it on failure). Throws InputError.
-void commit_temporary(const std::string& tmp, const std::string& path);
 
 // Resident set size of this process in MB (Linux /proc/self/statm; 0 if unavailable).
 double resident_mb();

@@ -5,7 +5,8 @@
 # on Serial with 1 thread and on TBB with 2 threads, and writes one line per written frame file:
 #   scene  backend  file  sha256
 # Compare two binaries with `diff <(cut -f1-4 a.tsv) <(cut -f1-4 b.tsv)`. VDB files are hashed
-# without their header UUID (OpenVDB writes a random one per file; docs/architecture.md), every
+# without their header UUID (derived from the file's bytes now, random before: comparable with old
+# binaries; docs/architecture.md), every
 # other file byte for byte. Meshes come from scripts/get_meshes.sh.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

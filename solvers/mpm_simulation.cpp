@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <sstream>
 
+#include "core/errors.hpp"
 #include "solvers/mpm_aul.hpp"
 #include "solvers/mpm_enriched.hpp"
 #include "solvers/mpm_implicit.hpp"
@@ -192,6 +193,27 @@ std::vector<StateSection> MpmSimulation::checkpoint_sections() {
   if (!e) return {};
   return {{"domains.corner_x", reinterpret_cast<char*>(e->domains().corner_positions()),
            e->domains().corner_count() * sizeof(Vec3)}};
+}
+
+// What a checkpoint gave the particles is checked before a kernel indexes with it (a material
+// index out of range would read past the material table).
+void MpmSimulation::restored(double time, std::uint64_t steps) {
+  const ParticleSet& ps = s_.particles();
+  check_finite_attributes(ps);
+  check_index_attribute(ps, "material", 0, std::int64_t(s_.materials().size()) - 1);
+  check_permutation_attribute(ps, "id");
+  if (const MpmAul* a = s_.aul())
+    check_index_attribute(ps, "object", 0, a->maps().object_count() - 1);
+  if (const MpmEnriched* e = s_.enriched()) {
+    check_index_attribute(ps, "domain_corners", -1, std::int64_t(e->domains().corner_count()) - 1);
+    check_index_attribute(ps, "domain_state", kDomainDisabled, kEnriched);
+    const Vec3* c = e->domains().corner_positions();
+    for (std::size_t k = 0; k < e->domains().corner_count(); ++k)
+      if (!c[k].allFinite())
+        throw InputError("section domains.corner_x: corner " + std::to_string(k) +
+                         " is not finite");
+  }
+  s_.restore_clock(time, steps);
 }
 
 }  // namespace amalgam

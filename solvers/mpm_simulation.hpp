@@ -59,7 +59,7 @@ class MpmSimulation final : public Simulation {
   const ParticleSet& particles() const override { return s_.particles(); }
   ParticleSet& particles() override { return s_.particles(); }
   std::vector<StateSection> checkpoint_sections() override;
-  void restored(double time, std::uint64_t steps) override { s_.restore_clock(time, steps); }
+  void restored(double time, std::uint64_t steps) override;
 
  private:
   MpmSolver s_;

@@ -142,6 +142,11 @@ std::vector<StateSection> PdSimulation::restore_sections() {
 }
 
 void PdSimulation::restored(double time, std::uint64_t steps) {
+  const ParticleSet& ps = s_.particles();
+  check_finite_attributes(ps);
+  check_index_attribute(ps, "material", 0, std::int64_t(s_.materials().size()) - 1);
+  check_permutation_attribute(ps, "id");
+  check_index_attribute(ps, "fixed", 0, 1);
   if (plastic_.size() != neighbor_.size() || intact_.size() != neighbor_.size())
     throw InputError("checkpoint's bond sections disagree in length (" +
                      std::to_string(neighbor_.size()) + " neighbours, " +

@@ -4,9 +4,13 @@
 
 #include <cstdio>
 #include <filesystem>
+#include <cmath>
+#include <cstring>
 #include <fstream>
+#include <limits>
 
 #include "core/errors.hpp"
+#include "core/hash.hpp"
 #include "io/checkpoint.hpp"
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
@@ -109,4 +113,98 @@ TEST(Checkpoint, FingerprintIgnoresOutputAndFramesButNotPhysics) {
   std::string stiffer = kScene;
   stiffer.replace(stiffer.find("1e4"), 3, "2e4");
   EXPECT_NE(parse_scene(stiffer, "s.json").fingerprint, a.fingerprint);
+}
+
+namespace {
+// A checkpoint with its checksum recomputed after an edit: what a hostile or buggy writer makes,
+// which the checksum cannot catch.
+std::string resealed(std::string d) {
+  const std::uint64_t sum = fnv1a64(d.data(), d.size() - 8);
+  std::memcpy(d.data() + d.size() - 8, &sum, 8);
+  return d;
+}
+// Header offsets: magic (13), version (4), precision (4), fingerprint (8), then these.
+constexpr std::size_t kTimeAt = 29, kStepsAt = 37, kFrameAt = 45, kRetriesAt = 49, kCountAt = 53;
+template <class T>
+std::string with_field(std::string d, std::size_t at, T v) {
+  std::memcpy(d.data() + at, &v, sizeof v);
+  return resealed(d);
+}
+// Offset of the first particle's value of attribute `name`.
+std::size_t attribute_data_at(const std::string& d, const std::string& name) {
+  std::size_t at = kCountAt + 8;
+  std::uint64_t n;
+  std::memcpy(&n, d.data() + kCountAt, 8);
+  std::uint32_t nattr;
+  std::memcpy(&nattr, d.data() + at, 4);
+  at += 4;
+  for (std::uint32_t a = 0; a < nattr; ++a) {
+    std::uint32_t len, words;
+    std::memcpy(&len, d.data() + at, 4);
+    const std::string nm(d.data() + at + 4, len);
+    at += 4 + len + 8;
+    std::memcpy(&words, d.data() + at, 4);
+    at += 4;
+    if (nm == name) return at;
+    at += std::size_t(n) * 4 * words;
+  }
+  return std::string::npos;
+}
+}  // namespace
+
+// Header fields and particle values are checked against the scene even when the checksum matches
+// (each of these aborted, crashed, or was accepted before): the error names the field.
+TEST(Checkpoint, FieldsAreCheckedAgainstTheSceneDespiteAValidChecksum) {
+  const Scene scene = parse_scene(kScene, "s.json");
+  MpmSimulation a(build_solver(scene));
+  const exec::Space space;
+  for (int i = 0; i < 3; ++i) a.advance(space, a.stable_dt(space));
+  const std::string path = tmp_path("fields.amck"), bad = tmp_path("fields_bad.amck");
+  write_checkpoint(path, a, 2, scene.fingerprint);
+  const std::string good = slurp(path);
+  auto error_of = [&](const std::string& d) {
+    spit(bad, d);
+    return error_reading(bad, scene.fingerprint);
+  };
+  ASSERT_EQ(error_of(good), "");
+  EXPECT_NE(error_of(with_field(good, kCountAt, std::uint64_t(1) << 40))
+                .find("checkpoint field 'particle count' is 1099511627776, this scene has"),
+            std::string::npos);
+  EXPECT_NE(error_of(with_field(good, kCountAt, std::uint64_t(a.particle_count() - 1)))
+                .find("'particle count'"),
+            std::string::npos);
+  EXPECT_NE(error_of(with_field(good, kFrameAt, std::int32_t(-5))).find("field 'frame' is -5"),
+            std::string::npos);
+  EXPECT_NE(error_of(with_field(good, kRetriesAt, std::int32_t(11))).find("field 'retries' is 11"),
+            std::string::npos);
+  EXPECT_NE(error_of(with_field(good, kTimeAt, std::nan(""))).find("field 'time' is"),
+            std::string::npos);
+  EXPECT_NE(error_of(with_field(good, kStepsAt, std::uint64_t(0))).find("disagree"),
+            std::string::npos);
+  const std::size_t mat = attribute_data_at(good, "material");
+  ASSERT_NE(mat, std::string::npos);
+  EXPECT_NE(error_of(with_field(good, mat + 4 * 5, std::int32_t(1000000)))
+                .find("attribute 'material' of particle 5 is 1000000, outside [0, 0]"),
+            std::string::npos);
+  const std::size_t id = attribute_data_at(good, "id");
+  std::int32_t id0;
+  std::memcpy(&id0, good.data() + id, 4);
+  EXPECT_NE(error_of(with_field(good, id + 4, id0)).find("attribute 'id' of particle 1 repeats"),
+            std::string::npos);
+  const std::size_t x = attribute_data_at(good, "x");
+  EXPECT_NE(error_of(with_field(good, x + sizeof(Real), std::numeric_limits<Real>::infinity()))
+                .find("attribute 'x' of particle 0 is not finite"),
+            std::string::npos);
+  std::remove(path.c_str());
+  std::remove(bad.c_str());
+}
+
+// `--resume` of a device, a FIFO or a directory is refused before anything is read (reading
+// /dev/zero whole ended in std::bad_alloc).
+TEST(Checkpoint, OnlyRegularFilesAreRead) {
+  EXPECT_NE(error_reading("/dev/zero", 0).find("/dev/zero: checkpoint is not a regular file"),
+            std::string::npos);
+  EXPECT_NE(error_reading(std::filesystem::temp_directory_path().string(), 0)
+                .find("checkpoint is a directory"),
+            std::string::npos);
 }

@@ -1,7 +1,11 @@
 #include "core/particles/particle_set.hpp"
 
+#include <cmath>
 #include <cstring>
 #include <stdexcept>
+#include <vector>
+
+#include "core/errors.hpp"
 
 namespace amalgam {
 
@@ -137,6 +141,45 @@ MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
   m.plastic = ps.find("plastic");
   m.temperature = ps.find("temperature");
   return m;
+}
+
+void check_finite_attributes(const ParticleSet& ps) {
+  for (ParticleSet::Id a = 0; a < ps.attribute_count(); ++a) {
+    if (ps.type(a) != AttrType::Real) continue;
+    const Real* v = ps.real(a);
+    const std::size_t w = std::size_t(ps.width(a));
+    for (std::size_t k = 0; k < ps.size() * w; ++k)
+      if (!std::isfinite(v[k]))
+        throw InputError("attribute '" + ps.name(a) + "' of particle " + std::to_string(k / w) +
+                         " is not finite");
+  }
+}
+
+void check_index_attribute(const ParticleSet& ps, const std::string& name, std::int64_t lo,
+                           std::int64_t hi) {
+  const ParticleSet::Id a = ps.find(name);
+  if (a < 0) return;
+  const std::int32_t* v = ps.int32(a);
+  const std::size_t w = std::size_t(ps.width(a));
+  for (std::size_t k = 0; k < ps.size() * w; ++k)
+    if (v[k] < lo || v[k] > hi)
+      throw InputError("attribute '" + name + "' of particle " + std::to_string(k / w) + " is " +
+                       std::to_string(v[k]) + ", outside [" + std::to_string(lo) + ", " +
+                       std::to_string(hi) + "]");
+}
+
+void check_permutation_attribute(const ParticleSet& ps, const std::string& name) {
+  const ParticleSet::Id a = ps.find(name);
+  if (a < 0) return;
+  check_index_attribute(ps, name, 0, std::int64_t(ps.size()) - 1);
+  std::vector<bool> seen(ps.size(), false);
+  const std::int32_t* v = ps.int32(a);
+  for (std::size_t i = 0; i < ps.size(); ++i) {
+    if (seen[std::size_t(v[i])])
+      throw InputError("attribute '" + name + "' of particle " + std::to_string(i) + " repeats " +
+                       std::to_string(v[i]));
+    seen[std::size_t(v[i])] = true;
+  }
 }
 
 }  // namespace amalgam

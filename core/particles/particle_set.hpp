@@ -86,4 +86,13 @@ struct MpmAttributes {
   static MpmAttributes find_in(const ParticleSet& ps);
 };
 
+// Checks of particle state read from outside (a checkpoint): throw InputError naming the
+// attribute, the particle and the range. Every Real attribute must be finite; an int32 attribute
+// `name`, when the set has it, must lie in [lo, hi] in every component.
+void check_finite_attributes(const ParticleSet& ps);
+void check_index_attribute(const ParticleSet& ps, const std::string& name, std::int64_t lo,
+                           std::int64_t hi);
+// `name` (when present) holds each of 0 .. size()-1 exactly once (particle ids).
+void check_permutation_attribute(const ParticleSet& ps, const std::string& name);
+
 }  // namespace amalgam
