@@ -18,6 +18,8 @@
 #include "core/exec/exec.hpp"
 #include "io/checkpoint.hpp"
 #include "io/scene.hpp"
+#include "io/files.hpp"
+#include "solvers/estimate.hpp"
 #include "solvers/factory.hpp"
 
 namespace amalgam::cli {
@@ -28,13 +30,16 @@ const char* kRunHelp =
     "usage: amalgam run SCENE.json [--backend serial|openmp|tbb|threads|kokkos] [--threads N] [--out "
     "DIR]\n"
     "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--retries N]\n"
-    "                  [--preview] [--quiet]\n"
+    "                  [--preview] [--quiet] [--force]\n"
     "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
     "position, velocity, J, material and id per particle,\n"
     "DIR/diagnostics.csv (energies, momentum, max speed, substeps per frame) and\n"
     "DIR/checkpoint.amck (every N frames, at the last frame, and on SIGINT/SIGTERM).\n"
     "--retries N (default 3): when the stability guard trips, the frame is restarted from its\n"
     "beginning with the CFL number halved, up to N times, before the run stops with exit 1.\n"
+    "Before set-up, the run's particles, memory and substeps are estimated from the scene; a\n"
+    "scene needing more memory than is available, over 1e6 substeps per frame or over 1e9 in\n"
+    "all is refused (exit 3) unless --force.\n"
     "--preview also renders DIR/preview_NNNN.png per frame (point splats; camera from the\n"
     "scene's \"preview\" block or fitted to the objects).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
@@ -86,6 +91,15 @@ std::string format_seconds(double s) {
 
 namespace {
 
+// The run's cost from the scene alone (solvers/estimate.hpp), errors naming the scene file.
+RunEstimate estimate_of(const Scene& scene) {
+  try {
+    return estimate_run(scene);
+  } catch (const InputError& e) {
+    throw InputError(scene.file + ": " + e.what());
+  }
+}
+
 exec::Space make_space(const Options& o, exec::Profiler* prof) {
   exec::Backend b = exec::Backend::OpenMP;
   if (const auto* s = o.get("--backend")) b = exec::parse_backend(*s);
@@ -102,7 +116,7 @@ int run_command(const std::vector<std::string>& args) {
     o = parse_options(args,
                       {"--backend", "--threads", "--out", "--frames", "--checkpoint-every",
                        "--resume", "--retries"},
-                      {"--quiet", "--help", "--preview"});
+                      {"--quiet", "--help", "--preview", "--force"});
     if (o.flag("--help")) {
       std::cout << kRunHelp;
       return kOk;
@@ -129,6 +143,14 @@ int run_command(const std::vector<std::string>& args) {
       rs.checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);
     rs.max_retries =
         o.get("--retries") ? parse_int("--retries", *o.get("--retries"), 0, kMaxRetries) : 3;
+    // What the run will cost, before anything is allocated: a scene past the machine's memory
+    // or the substep limits is refused unless --force.
+    set_phase("estimating scene " + scene.file);
+    const RunEstimate estimate = estimate_of(scene);
+    if (!rs.quiet) std::cout << "amalgam: expected: " << describe(estimate) << "\n";
+    const std::string over = over_limits(estimate, double(available_memory_bytes()));
+    if (!over.empty() && !o.flag("--force"))
+      throw InputError(scene.file + ": " + over + " (--force runs it anyway)");
     std::error_code ec;
     std::filesystem::create_directories(rs.out_dir, ec);
     if (ec) throw InputError(rs.out_dir + ": cannot create output directory: " + ec.message());
@@ -185,16 +207,13 @@ int validate_command(const std::vector<std::string>& args) {
   }
   try {
     const Scene scene = load_scene(args[0]);
-    size_t n = 0;
-    const exec::Space space(exec::Backend::TBB, exec::hardware_threads());
-    for (const auto& obj : scene.objects) {
-      Real vol = 0;
-      n += sample_object(obj, scene.mpm.dx, vol, space).size();
-    }
-    (void)build_colliders(scene, space);  // mesh colliders' distance fields
-    std::cout << args[0] << ": ok: " << scene.objects.size() << " objects, " << n << " particles, "
+    const RunEstimate e = estimate_of(scene);
+    const std::string over = over_limits(e, double(available_memory_bytes()));
+    if (!over.empty())
+      throw InputError(scene.file + ": " + over + " (`amalgam run --force` runs it anyway)");
+    std::cout << printable(args[0]) << ": ok: " << scene.objects.size() << " objects, "
               << scene.materials.size() << " materials, " << scene.colliders.size()
-              << " colliders, " << scene.frames << " frames\n";
+              << " colliders, " << scene.frames << " frames; expected: " << describe(e) << "\n";
     return kOk;
   } catch (const InputError& e) {
     std::cerr << "amalgam: error: " << printable(e.what()) << "\n";

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <climits>
+#include <limits>
 #include <sstream>
 
 namespace amalgam::detail {
@@ -69,6 +70,18 @@ class PathTracker {
     if (!levels.empty() && !levels.back().object) ++levels.back().index;
   }
 };
+// A number the scene gives becomes a Real: in the float build it must be a normal float (or 0),
+// else it silently turns into 0, a denormal or infinity at run time.
+bool representable(double x) {
+  if (sizeof(Real) == sizeof(double) || x == 0) return true;
+  const double a = std::abs(x);
+  return a >= double(std::numeric_limits<float>::min()) &&
+         a <= double(std::numeric_limits<float>::max());
+}
+std::string float_range() {
+  return "a normal float, magnitude in [" + fmt(double(std::numeric_limits<float>::min())) + ", " +
+         fmt(double(std::numeric_limits<float>::max())) + "] (this build's precision)";
+}
 }  // namespace
 
 std::string show_json(const nlohmann::json& v) {
@@ -140,6 +153,7 @@ double JsonObject::check_number(const std::string& key, const nlohmann::json& v,
   const double x = v.get<double>();
   if (!std::isfinite(x)) fail(key, "expected a finite number, got " + show(v));
   if (x < lo || x > hi || (lo_open && x == lo)) fail(key, "expected " + range + ", got " + fmt(x));
+  if (!representable(x)) fail(key, fmt(x) + " is not " + float_range());
   return x;
 }
 
@@ -207,6 +221,7 @@ Vec3 JsonObject::required_vec3(const std::string& key) {
     const double x = v[size_t(a)].get<double>();
     if (!std::isfinite(x))
       fail(key + "/" + std::to_string(a), "expected a finite number, got " + show(v[size_t(a)]));
+    if (!representable(x)) fail(key + "/" + std::to_string(a), fmt(x) + " is not " + float_range());
     r[a] = Real(x);
   }
   return r;

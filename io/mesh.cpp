@@ -1,12 +1,20 @@
-// Mesh file readers: OBJ, OFF and PLY (ASCII or binary little-endian).
+// Mesh file readers: OBJ, OFF, PLY (ASCII or binary little-endian) and STL (ASCII or binary).
+// Files are untrusted: every count a header claims is checked against the bytes the file has
+// before anything is sized by it, and every index against the range it must lie in.
 #include "io/mesh.hpp"
 
 #include <algorithm>
+#include <array>
+#include <cerrno>
 #include <cstring>
 #include <fstream>
+#include <limits>
 #include <sstream>
+#include <unordered_map>
 
 #include "core/errors.hpp"
+#include "core/hash.hpp"
+#include "io/files.hpp"
 
 namespace amalgam {
 
@@ -48,9 +56,14 @@ TriangleMesh read_obj(const std::string& path, std::istream& in) {
       std::vector<std::int32_t> poly;
       std::string tok;
       while (ss >> tok) {
-        const long idx = std::strtol(tok.c_str(), nullptr, 10);  // "i", "i/t", "i//n", "i/t/n"
+        errno = 0;
+        const long long idx = std::strtoll(tok.c_str(), nullptr, 10);  // "i", "i/t", "i//n", ...
         if (idx == 0) throw InputError(where + ": bad face index '" + tok + "'");
-        poly.push_back(std::int32_t(idx > 0 ? idx - 1 : long(m.vertices.size()) + idx));
+        const long long i0 = idx > 0 ? idx - 1 : (long long)m.vertices.size() + idx;
+        if (errno == ERANGE || i0 < 0 || i0 >= (long long)m.vertices.size())
+          throw InputError(where + ": face index '" + tok + "' out of range (" +
+                           std::to_string(m.vertices.size()) + " vertices so far)");
+        poly.push_back(std::int32_t(i0));
       }
       add_polygon(m, poly, where);
     }
@@ -58,7 +71,7 @@ TriangleMesh read_obj(const std::string& path, std::istream& in) {
   return m;
 }
 
-TriangleMesh read_off(const std::string& path, std::istream& in) {
+TriangleMesh read_off(const std::string& path, std::istream& in, std::uint64_t bytes) {
   auto next_line = [&](std::string& line, int& ln) {
     while (std::getline(in, line)) {
       ++ln;
@@ -81,6 +94,12 @@ TriangleMesh read_off(const std::string& path, std::istream& in) {
       throw InputError(path + ":" + std::to_string(ln) + ": expected 'vertices faces edges'");
   }
   if (nv < 3 || nf < 1) throw InputError(path + ": needs at least 3 vertices and 1 face");
+  // A vertex line takes at least 6 bytes ("0 0 0\n"), a face line 8 ("3 0 1 2\n").
+  if (std::uint64_t(nv) > bytes / 6 || std::uint64_t(nf) > bytes / 8 ||
+      std::uint64_t(nv) * 6 + std::uint64_t(nf) * 8 > bytes)
+    throw InputError(path + ": the header claims " + std::to_string(nv) + " vertices and " +
+                     std::to_string(nf) + " faces, more than a file of " + std::to_string(bytes) +
+                     " bytes can hold");
   TriangleMesh m;
   m.vertices.reserve(size_t(nv));
   for (long i = 0; i < nv; ++i) {
@@ -98,7 +117,10 @@ TriangleMesh read_off(const std::string& path, std::istream& in) {
     std::istringstream ss(line);
     long k = 0;
     ss >> k;
-    std::vector<std::int32_t> poly(size_t(std::max(0L, k)));
+    if (k < 3 || std::size_t(k) > line.size() / 2)
+      throw InputError(path + ":" + std::to_string(ln) + ": a face of " + std::to_string(k) +
+                       " vertices on a line of " + std::to_string(line.size()) + " bytes");
+    std::vector<std::int32_t> poly(static_cast<std::size_t>(k));
     for (auto& i : poly)
       if (!(ss >> i))
         throw InputError(path + ":" + std::to_string(ln) +
@@ -109,7 +131,7 @@ TriangleMesh read_off(const std::string& path, std::istream& in) {
 }
 
 // PLY: ASCII or binary little-endian; vertex x/y/z of any scalar type, faces as a list property.
-TriangleMesh read_ply(const std::string& path, std::istream& in) {
+TriangleMesh read_ply(const std::string& path, std::istream& in, std::uint64_t bytes) {
   struct Prop {
     std::string name, type, count_type;  // count_type non-empty for lists
   };
@@ -147,6 +169,8 @@ TriangleMesh read_ply(const std::string& path, std::istream& in) {
   if (!ascii && format != "binary_little_endian")
     throw InputError(path + ": PLY format '" + format +
                      "' not supported (ascii or binary_little_endian)");
+  const std::streamoff header_end = in.tellg();
+  const std::uint64_t body = header_end < 0 ? 0 : bytes - std::uint64_t(header_end);
   auto size_of = [&](const std::string& t) -> int {
     if (t == "char" || t == "uchar" || t == "int8" || t == "uint8") return 1;
     if (t == "short" || t == "ushort" || t == "int16" || t == "uint16") return 2;
@@ -196,15 +220,39 @@ TriangleMesh read_ply(const std::string& path, std::istream& in) {
     std::memcpy(&v, b, 8);
     return v;
   };
+  // What each element's count claims, against the bytes after the header: a binary record takes
+  // its fixed properties plus each list's count, an ASCII value at least 2 bytes ("0 ").
+  double claimed = 0;
+  for (const auto& e : elems) {
+    if (e.count < 0) throw InputError(path + ": element '" + e.name + "' has a negative count");
+    double record = 0;
+    for (const auto& pr : e.props)
+      record += ascii ? 2 : double(size_of(pr.count_type.empty() ? pr.type : pr.count_type));
+    claimed += double(e.count) * std::max(record, 1.0);
+  }
+  if (claimed > double(body))
+    throw InputError(path + ": the header's element counts need at least " +
+                     std::to_string((long long)claimed) + " bytes, the file has " +
+                     std::to_string(body) + " after its header");
   TriangleMesh m;
   for (const auto& e : elems) {
     for (long i = 0; i < e.count; ++i) {
       Vec3d p = Vec3d::Zero();
       for (const auto& pr : e.props) {
         if (!pr.count_type.empty()) {
-          const long k = long(read_value(pr.count_type));
+          const double kd = read_value(pr.count_type);
+          if (!(kd >= 0) || kd * (ascii ? 2 : size_of(pr.type)) > double(body))
+            throw InputError(path + ": " + e.name + " " + std::to_string(i) + ": a list of " +
+                             std::to_string(kd) + " values, more than the file holds");
+          const long k = long(kd);
           std::vector<std::int32_t> poly;
-          for (long j = 0; j < k; ++j) poly.push_back(std::int32_t(read_value(pr.type)));
+          for (long j = 0; j < k; ++j) {
+            const double idx = read_value(pr.type);
+            if (!(idx >= 0 && idx < 2147483647.0))
+              throw InputError(path + ": " + e.name + " " + std::to_string(i) + ": index " +
+                               std::to_string(idx) + " out of range");
+            poly.push_back(std::int32_t(idx));
+          }
           if (e.name == "face" && (pr.name == "vertex_indices" || pr.name == "vertex_index"))
             add_polygon(m, poly, path + ": face " + std::to_string(i));
         } else {
@@ -225,21 +273,104 @@ TriangleMesh read_ply(const std::string& path, std::istream& in) {
   return m;
 }
 
+// STL: binary (80-byte header, u32 count, 50 bytes per triangle: normal, 3 vertices, attribute)
+// or ASCII ("solid ... facet ... vertex x y z ... endsolid"). STL repeats each vertex per
+// triangle: equal coordinates are welded into one vertex, so the mesh's edges are shared and a
+// closed STL is watertight.
+class Welder {
+ public:
+  explicit Welder(TriangleMesh& m) : m_(m) {}
+  std::int32_t add(float x, float y, float z) {
+    std::array<std::uint32_t, 3> key;
+    const float v[3] = {x == 0 ? 0.0f : x, y == 0 ? 0.0f : y, z == 0 ? 0.0f : z};  // -0 = 0
+    std::memcpy(key.data(), v, sizeof v);
+    const auto [it, fresh] = index_.emplace(key, std::int32_t(m_.vertices.size()));
+    if (fresh) m_.vertices.emplace_back(v[0], v[1], v[2]);
+    return it->second;
+  }
+
+ private:
+  struct Hash {
+    std::size_t operator()(const std::array<std::uint32_t, 3>& k) const {
+      return std::size_t(fnv1a64(k.data(), sizeof k));
+    }
+  };
+  TriangleMesh& m_;
+  std::unordered_map<std::array<std::uint32_t, 3>, std::int32_t, Hash> index_;
+};
+
+TriangleMesh read_stl(const std::string& path, std::istream& in, std::uint64_t bytes) {
+  TriangleMesh m;
+  Welder weld(m);
+  char head[84] = {};
+  in.read(head, 84);
+  const bool has_count = in.gcount() == 84;
+  std::uint32_t count = 0;
+  if (has_count) std::memcpy(&count, head + 80, 4);
+  // Binary when the size is exactly what the count says (a binary header may begin "solid").
+  if (has_count && bytes == 84 + 50 * std::uint64_t(count)) {
+    m.triangles.reserve(count);
+    char rec[50];
+    for (std::uint32_t t = 0; t < count; ++t) {
+      if (!in.read(rec, 50))
+        throw InputError(path + ": truncated after " + std::to_string(t) + " triangles");
+      float f[12];
+      std::memcpy(f, rec, sizeof f);
+      std::array<std::int32_t, 3> tri;
+      for (int c = 0; c < 3; ++c)
+        tri[size_t(c)] = weld.add(f[3 + 3 * c], f[4 + 3 * c], f[5 + 3 * c]);
+      m.triangles.push_back(tri);
+    }
+    return m;
+  }
+  if (std::strncmp(head, "solid", 5) != 0)
+    throw InputError(path + ": neither a binary STL (" + std::to_string(bytes) +
+                     " bytes, not 84 + 50 x " + std::to_string(count) +
+                     ") nor an ASCII one (no 'solid' at the start)");
+  in.clear();
+  in.seekg(0);
+  std::string line;
+  int ln = 0;
+  std::vector<std::int32_t> poly;
+  while (std::getline(in, line)) {
+    ++ln;
+    std::istringstream ss(line);
+    std::string w;
+    ss >> w;
+    if (w == "vertex") {
+      double x, y, z;
+      if (!(ss >> x >> y >> z))
+        throw InputError(path + ":" + std::to_string(ln) + ": expected 'vertex x y z'");
+      poly.push_back(weld.add(float(x), float(y), float(z)));
+    } else if (w == "endloop") {
+      add_polygon(m, poly, path + ":" + std::to_string(ln));
+      poly.clear();
+    }
+  }
+  return m;
+}
+
 }  // namespace
 
 TriangleMesh load_mesh(const std::string& path) {
+  const std::string ext = lower_ext(path);
+  if (ext != "obj" && ext != "off" && ext != "ply" && ext != "stl")
+    throw InputError(path + ": unknown mesh format '." + ext +
+                     "' (expected .obj, .off, .ply or .stl)");
+  const std::uint64_t bytes = input_file_size(path, "mesh file");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open mesh file");
-  const std::string ext = lower_ext(path);
   TriangleMesh m;
   if (ext == "obj")
     m = read_obj(path, in);
   else if (ext == "off")
-    m = read_off(path, in);
+    m = read_off(path, in, bytes);
   else if (ext == "ply")
-    m = read_ply(path, in);
+    m = read_ply(path, in, bytes);
   else
-    throw InputError(path + ": unknown mesh format '." + ext + "' (expected .obj, .off or .ply)");
+    m = read_stl(path, in, bytes);
+  if (m.vertices.size() > std::size_t(std::numeric_limits<std::int32_t>::max()))
+    throw InputError(path + ": more vertices than 32-bit indices address");
   if (m.triangles.empty()) throw InputError(path + ": mesh has no faces");
   for (const auto& v : m.vertices)
     if (!v.allFinite()) throw InputError(path + ": mesh has a non-finite vertex coordinate");

@@ -1,10 +1,14 @@
 #include "io/tetmesh.hpp"
 
+#include <algorithm>
+#include <array>
 #include <cmath>
 #include <fstream>
+#include <map>
 #include <sstream>
 
 #include "core/errors.hpp"
+#include "io/files.hpp"
 
 namespace amalgam {
 
@@ -15,6 +19,7 @@ struct Lines {
   std::vector<std::pair<int, std::string>> rows;
 };
 Lines read_lines(const std::string& path) {
+  (void)input_file_size(path, "TetGen file");  // a regular file (not a directory or device)
   std::ifstream in(path);
   if (!in) throw InputError(path + ": cannot open TetGen file");
   Lines l;
@@ -90,6 +95,9 @@ TetMesh load_tetgen(const std::string& path) {
          "file ends after " + std::to_string(el.rows.size() - 1) + " of " + std::to_string(nt) +
              " tetrahedra");
   m.tets.resize(std::size_t(nt));
+  // A tetrahedron given twice would put two particles in one place and two copies of its faces
+  // in the crack mesh: refused with both lines named.
+  std::map<std::array<std::int32_t, 4>, int> seen;
   for (long long k = 0; k < nt; ++k) {
     const auto& [line, text] = el.rows[std::size_t(k + 1)];
     std::istringstream r(text);
@@ -110,6 +118,13 @@ TetMesh load_tetgen(const std::string& path) {
                      .dot((m.nodes[std::size_t(t[2])] - a).cross(m.nodes[std::size_t(t[3])] - a))) /
         6;
     if (!(vol > 0)) fail(ele_path, line, "tetrahedron " + std::to_string(idx) + " has zero volume");
+    std::array<std::int32_t, 4> key = t;
+    std::sort(key.begin(), key.end());
+    const auto [it, fresh] = seen.emplace(key, line);
+    if (!fresh)
+      fail(ele_path, line,
+           "tetrahedron " + std::to_string(idx) + " repeats the one on line " +
+               std::to_string(it->second) + " (same four nodes)");
   }
   return m;
 }

@@ -9,6 +9,7 @@
 
 #include "core/errors.hpp"
 #include "io/mesh.hpp"
+#include "io/tetmesh.hpp"
 #include "thread_recorder.hpp"
 
 using namespace amalgam;
@@ -94,11 +95,15 @@ TEST(Mesh, BadFilesAreClearErrors) {
     return std::string();
   };
   EXPECT_NE(err("/nonexistent/a.obj").find("cannot open mesh file"), std::string::npos);
-  EXPECT_NE(err(write("x.stl", "solid")).find("unknown mesh format '.stl'"), std::string::npos);
+  EXPECT_NE(err(write("x.xyz", "solid")).find("unknown mesh format '.xyz'"), std::string::npos);
+  EXPECT_NE(err(write("x.stl", "solid")).find("mesh has no faces"), std::string::npos);
   EXPECT_NE(err(write("bad.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 9\n"))
                 .find("vertex index 9 out of range"),
             std::string::npos);
-  EXPECT_NE(err(write("short.off", "OFF\n4 1 0\n0 0 0\n")).find("truncated"), std::string::npos);
+  EXPECT_NE(err(write("short.off", "OFF\n4 1 0\n0 0 0\n")).find("can hold"), std::string::npos);
+  EXPECT_NE(err(write("short2.off", "OFF\n4 1 0\n0 0 0\n1 0 0\n0 1 0\n                  \n"))
+                .find("truncated"),
+            std::string::npos);
   EXPECT_NE(err(write("bad.obj", "v 0 0\n")).find("bad.obj:1: expected 'v x y z'"),
             std::string::npos);
 }
@@ -153,4 +158,91 @@ TEST(Mesh, VoxelisationUsesTheSpacesThreadCount) {
   }
   EXPECT_GT(pts[0].size(), 1000000u);
   EXPECT_EQ(pts[0], pts[1]);
+}
+
+// Hostile mesh files from issue 26: header counts are checked against the file's bytes before
+// anything is allocated (an OFF claiming 2e9 vertices in 25 bytes ended in std::bad_alloc; a face
+// claiming 2e9 indices took 7.8 GB), and indices against their range (an OBJ index of 2^32 + 1
+// wrapped to 1).
+TEST(Mesh, HeaderClaimsAreCheckedAgainstTheFileSize) {
+  auto err = [](const std::string& p) {
+    try {
+      load_mesh(p);
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  EXPECT_NE(err(write("claim.off", "OFF\n2000000000 1 0\n0 0 0\n")).find("can hold"),
+            std::string::npos);
+  EXPECT_NE(err(write("face.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n2000000000 0 1 2\n"))
+                .find("a face of 2000000000 vertices"),
+            std::string::npos);
+  EXPECT_NE(err(write("wrap.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 4294967297 2 3\n"))
+                .find("face index '4294967297' out of range"),
+            std::string::npos);
+  EXPECT_NE(err(write("claim.ply",
+                      "ply\nformat binary_little_endian 1.0\nelement vertex 2000000000\n"
+                      "property float x\nproperty float y\nproperty float z\n"
+                      "end_header\n"))
+                .find("element counts need at least 24000000000 bytes"),
+            std::string::npos);
+  EXPECT_NE(err(write("list.ply",
+                      "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                      "property float y\nproperty float z\nelement face 1\n"
+                      "property list uchar int vertex_indices\nend_header\n"
+                      "0 0 0\n1 0 0\n0 1 0\n250 0 1 2\n"))
+                .find("a list of 250"),
+            std::string::npos);
+  // Directories and devices are not mesh files.
+  EXPECT_NE(err("/dev/zero.off").find("cannot open mesh file"), std::string::npos);
+  const std::string dir = ::testing::TempDir() + "adir.off";
+  std::filesystem::create_directories(dir);
+  EXPECT_NE(err(dir).find("is a directory"), std::string::npos);
+}
+
+// STL, ASCII and binary: the per-triangle vertices are welded, so a closed surface is watertight
+// and the same in both encodings.
+TEST(Mesh, StlAsciiAndBinaryReadTheSameWatertightMesh) {
+  const float p[4][3] = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}, {0, 0, 1}};
+  const int f[4][3] = {{0, 2, 1}, {0, 1, 3}, {0, 3, 2}, {1, 2, 3}};
+  std::string ascii = "solid tet\n", bin(80, ' ');
+  const std::uint32_t n = 4;
+  bin.append(reinterpret_cast<const char*>(&n), 4);
+  for (const auto& t : f) {
+    ascii += " facet normal 0 0 0\n  outer loop\n";
+    float rec[12] = {};
+    for (int c = 0; c < 3; ++c) {
+      ascii += "   vertex " + std::to_string(p[t[c]][0]) + " " + std::to_string(p[t[c]][1]) + " " +
+               std::to_string(p[t[c]][2]) + "\n";
+      for (int a = 0; a < 3; ++a) rec[3 + 3 * c + a] = p[t[c]][a];
+    }
+    ascii += "  endloop\n endfacet\n";
+    bin.append(reinterpret_cast<const char*>(rec), sizeof rec);
+    bin.append(2, '\0');
+  }
+  ascii += "endsolid tet\n";
+  const TriangleMesh a = load_mesh(write("tet_ascii.stl", ascii));
+  const TriangleMesh b = load_mesh(write("tet_binary.stl", bin));
+  EXPECT_EQ(a.vertices.size(), 4u);
+  EXPECT_EQ(a.triangles.size(), 4u);
+  EXPECT_TRUE(check_mesh(a).watertight());
+  EXPECT_EQ(a.vertices, b.vertices);
+  EXPECT_EQ(a.triangles, b.triangles);
+  EXPECT_NEAR(enclosed_volume(b), 1.0 / 6.0, 1e-12);
+}
+
+// A tetrahedron given twice (in any node order) is refused with both lines named: before, it
+// passed `validate` and `run` failed later with a message naming no file.
+TEST(Mesh, DuplicatedTetrahedronIsRefused) {
+  const std::string dir = std::string(AMALGAM_SOURCE_DIR) + "/tests/data/malformed/";
+  try {
+    load_tetgen(dir + "dup_tets.node");
+    FAIL() << "accepted a duplicated tetrahedron";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find(dir + "dup_tets.ele:4: tetrahedron 2 repeats the one on "
+                                               "line 3 (same four nodes)"),
+              std::string::npos)
+        << e.what();
+  }
 }

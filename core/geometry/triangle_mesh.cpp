@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <mutex>
+#include <sstream>
 #include <unordered_map>
 
 #include "core/errors.hpp"
@@ -42,6 +43,27 @@ double enclosed_volume(const TriangleMesh& m) {
   return v / 6.0;
 }
 
+void mesh_bounds(const TriangleMesh& m, Vec3d& lo, Vec3d& hi) {
+  lo = Vec3d::Constant(1e300), hi = Vec3d::Constant(-1e300);
+  for (const auto& v : m.vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+}
+
+double sdf_samples(const Vec3d& lo, const Vec3d& hi, double h, double margin) {
+  double n = 1;
+  for (int a = 0; a < 3; ++a) n *= std::ceil((hi[a] - lo[a] + 2 * margin) / h) + 2;
+  return n;
+}
+
+void check_grid_range(const Vec3d& lo, const Vec3d& hi, double h, const std::string& what) {
+  const double far = std::max(lo.cwiseAbs().maxCoeff(), hi.cwiseAbs().maxCoeff());
+  if (!(far / h < kMaxGridIndex)) {
+    std::ostringstream os;
+    os << what << " reaches " << far << " m from the origin: more than 2^30 cells of " << h
+       << " m (the grid's index range)";
+    throw InputError(os.str());
+  }
+}
+
 namespace {
 // The mesh in OpenVDB's types (float points, index triangles), OpenVDB initialised.
 struct VdbMesh {
@@ -63,6 +85,11 @@ namespace {
 // construction and also its destruction, which OpenVDB parallelises too.
 std::vector<Vec3> sample_mesh_limited(const TriangleMesh& m, double h, double jitter,
                                       std::uint64_t seed) {
+  {
+    Vec3d lo, hi;
+    mesh_bounds(m, lo, hi);
+    check_grid_range(lo, hi, h, "mesh");
+  }
   const VdbMesh vm(m);
   const auto& pts = vm.pts;
   const auto& tris = vm.tris;
@@ -97,10 +124,13 @@ std::shared_ptr<const SdfGrid> bake_sdf_limited(const TriangleMesh& m, double h,
   auto sdf = std::make_shared<SdfGrid>();
   sdf->h = h;
   sdf->origin = lo - Vec3d::Constant(margin);
+  const double samples = sdf_samples(lo, hi, h, margin);
+  if (!(samples <= kMaxSdfSamples))  // also NaN; checked in doubles before any int conversion
+    throw InputError("mesh collider: the baked distance field would have " +
+                     std::to_string(samples) + " samples, more than the limit of " +
+                     std::to_string(kMaxSdfSamples) + "; coarsen dx");
+  check_grid_range(lo, hi, h, "mesh collider");
   for (int a = 0; a < 3; ++a) sdf->n[a] = int(std::ceil((hi[a] - lo[a] + 2 * margin) / h)) + 2;
-  if (double(sdf->n[0]) * sdf->n[1] * sdf->n[2] > 2e8)
-    throw InputError(
-        "mesh collider: the baked distance field would exceed 2e8 samples; coarsen dx");
   const auto grid = openvdb::tools::meshToSignedDistanceField<openvdb::FloatGrid>(
       *xform, pts, tris, quads, band_out, band_in);
   sdf->outside = float(margin);

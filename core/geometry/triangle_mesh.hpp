@@ -41,4 +41,14 @@ std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, st
 std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin,
                                         const exec::Space& space);
 
+// Bounding box of the vertices.
+void mesh_bounds(const TriangleMesh& m, Vec3d& lo, Vec3d& hi);
+// Samples of a mesh collider's baked distance field over [lo, hi] widened by margin (bake_sdf),
+// and their limit (4 bytes each, dense until colliders become sparse level sets).
+constexpr double kMaxSdfSamples = 2e8;
+double sdf_samples(const Vec3d& lo, const Vec3d& hi, double h, double margin);
+// Grid and level-set indices are 32-bit: |x| / h must stay below 2^30 (InputError naming `what`).
+constexpr double kMaxGridIndex = 1073741824.0;
+void check_grid_range(const Vec3d& lo, const Vec3d& hi, double h, const std::string& what);
+
 }  // namespace amalgam
