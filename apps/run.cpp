@@ -157,7 +157,12 @@ int run_command(const std::vector<std::string>& args) {
 
     const auto t_setup = std::chrono::steady_clock::now();
     set_phase("setting up scene " + scene.file);
-    const std::unique_ptr<Simulation> sim = make_simulation(scene, space);
+    std::unique_ptr<Simulation> sim;
+    try {
+      sim = make_simulation(scene, space);
+    } catch (const InputError& e) {  // set-up's findings name a JSON path: add the file
+      throw InputError(e.what()[0] == '/' ? scene.file + ": " + e.what() : e.what());
+    }
     // Fault injection for tests/interrupt_points_test.sh: a SIGINT at the end of set-up.
     if (std::getenv("AMALGAM_TEST_SIGINT_IN_SETUP")) std::raise(SIGINT);
     if (const auto* r = o.get("--resume")) {

@@ -8,6 +8,7 @@
 #include <cerrno>
 #include <cstring>
 #include <fstream>
+#include <iomanip>
 #include <limits>
 #include <sstream>
 #include <unordered_map>
@@ -153,7 +154,8 @@ TriangleMesh read_ply(const std::string& path, std::istream& in, std::uint64_t b
       ss >> format;
     else if (w == "element") {
       Element e;
-      ss >> e.name >> e.count;
+      if (!(ss >> e.name >> e.count))
+        throw InputError(path + ": expected 'element <name> <count>', got '" + line + "'");
       elems.push_back(e);
     } else if (w == "property") {
       if (elems.empty()) throw InputError(path + ": property before any element");
@@ -230,10 +232,12 @@ TriangleMesh read_ply(const std::string& path, std::istream& in, std::uint64_t b
       record += ascii ? 2 : double(size_of(pr.count_type.empty() ? pr.type : pr.count_type));
     claimed += double(e.count) * std::max(record, 1.0);
   }
-  if (claimed > double(body))
-    throw InputError(path + ": the header's element counts need at least " +
-                     std::to_string((long long)claimed) + " bytes, the file has " +
-                     std::to_string(body) + " after its header");
+  if (claimed > double(body)) {
+    std::ostringstream os;
+    os << path << ": the header's element counts need at least " << std::setprecision(15) << claimed
+       << " bytes, the file has " << body << " after its header";
+    throw InputError(os.str());
+  }
   TriangleMesh m;
   for (const auto& e : elems) {
     for (long i = 0; i < e.count; ++i) {
@@ -352,6 +356,30 @@ TriangleMesh read_stl(const std::string& path, std::istream& in, std::uint64_t b
 
 }  // namespace
 
+namespace {
+TriangleMesh read_mesh(std::istream& in, std::uint64_t bytes, const std::string& path) {
+  const std::string ext = lower_ext(path);
+  TriangleMesh m;
+  if (ext == "obj")
+    m = read_obj(path, in);
+  else if (ext == "off")
+    m = read_off(path, in, bytes);
+  else if (ext == "ply")
+    m = read_ply(path, in, bytes);
+  else if (ext == "stl")
+    m = read_stl(path, in, bytes);
+  else
+    throw InputError(path + ": unknown mesh format '." + ext +
+                     "' (expected .obj, .off, .ply or .stl)");
+  if (m.vertices.size() > std::size_t(std::numeric_limits<std::int32_t>::max()))
+    throw InputError(path + ": more vertices than 32-bit indices address");
+  if (m.triangles.empty()) throw InputError(path + ": mesh has no faces");
+  for (const auto& v : m.vertices)
+    if (!v.allFinite()) throw InputError(path + ": mesh has a non-finite vertex coordinate");
+  return m;
+}
+}  // namespace
+
 TriangleMesh load_mesh(const std::string& path) {
   const std::string ext = lower_ext(path);
   if (ext != "obj" && ext != "off" && ext != "ply" && ext != "stl")
@@ -360,21 +388,12 @@ TriangleMesh load_mesh(const std::string& path) {
   const std::uint64_t bytes = input_file_size(path, "mesh file");
   std::ifstream in(path, std::ios::binary);
   if (!in) throw InputError(path + ": cannot open mesh file");
-  TriangleMesh m;
-  if (ext == "obj")
-    m = read_obj(path, in);
-  else if (ext == "off")
-    m = read_off(path, in, bytes);
-  else if (ext == "ply")
-    m = read_ply(path, in, bytes);
-  else
-    m = read_stl(path, in, bytes);
-  if (m.vertices.size() > std::size_t(std::numeric_limits<std::int32_t>::max()))
-    throw InputError(path + ": more vertices than 32-bit indices address");
-  if (m.triangles.empty()) throw InputError(path + ": mesh has no faces");
-  for (const auto& v : m.vertices)
-    if (!v.allFinite()) throw InputError(path + ": mesh has a non-finite vertex coordinate");
-  return m;
+  return read_mesh(in, bytes, path);
+}
+
+TriangleMesh parse_mesh(const std::string& bytes, const std::string& name) {
+  std::istringstream in(bytes);
+  return read_mesh(in, bytes.size(), name);
 }
 
 }  // namespace amalgam

@@ -1,5 +1,5 @@
-// Triangle mesh files for solids and colliders: OBJ, OFF and PLY (ASCII or binary little-endian)
-// readers. Errors are InputErrors naming the file and line. The geometry (checks, sampling,
+// Triangle mesh files for solids and colliders: OBJ, OFF, PLY (ASCII or binary little-endian) and
+// STL (ASCII or binary) readers. Errors are InputErrors naming the file and line. The geometry (checks, sampling,
 // distance fields) is in core/geometry/triangle_mesh.hpp.
 #pragma once
 
@@ -9,7 +9,9 @@
 
 namespace amalgam {
 
-// Reads .obj, .off or .ply by extension.
+// Reads .obj, .off, .ply or .stl by extension (a regular file).
 TriangleMesh load_mesh(const std::string& path);
+// The same from the file's bytes (`name` gives the extension and the name in messages).
+TriangleMesh parse_mesh(const std::string& bytes, const std::string& name);
 
 }  // namespace amalgam

@@ -25,11 +25,24 @@ std::vector<Collider> build_colliders(const SceneSpec& scene, const exec::Space&
   return out;
 }
 
+namespace {
+// An object that samples no particle would silently be missing from the run.
+void check_sampled(const std::vector<Vec3>& x, std::size_t k, Real dx) {
+  if (x.empty())
+    throw InputError("/objects/" + std::to_string(k) +
+                     ": samples no particles at dx = " + std::to_string(double(dx)) +
+                     " (smaller than its lattice spacing?): enlarge it, lower dx or raise "
+                     "particles_per_cell");
+}
+}  // namespace
+
 MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
   MpmSolver solver(scene.mpm, scene.materials, build_colliders(scene, space), scene.heat_sources);
-  for (const auto& obj : scene.objects) {
+  for (std::size_t k = 0; k < scene.objects.size(); ++k) {
+    const ObjectSpec& obj = scene.objects[k];
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol, space);
+    check_sampled(x, k, scene.mpm.dx);
     const std::size_t first = solver.particles().size();
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol,
                          obj.temperature, obj.configuration);
@@ -46,7 +59,8 @@ MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
 
 PdSolver build_pd_solver(const SceneSpec& scene, const exec::Space& space) {
   PdSolver solver(scene.pd, scene.pd_materials, build_colliders(scene, space));
-  for (const auto& obj : scene.objects) {
+  for (std::size_t k = 0; k < scene.objects.size(); ++k) {
+    const ObjectSpec& obj = scene.objects[k];
     if (obj.shape == ObjectShape::TetMesh) {
       std::vector<Vec3> x;
       std::vector<Real> vol;
@@ -58,6 +72,7 @@ PdSolver build_pd_solver(const SceneSpec& scene, const exec::Space& space) {
     }
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol, space);
+    check_sampled(x, k, scene.mpm.dx);
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);
   }
   for (const auto& b : scene.pd_boundaries) {
