@@ -51,7 +51,7 @@ for t in "${targets[@]}"; do
   dict=()
   [ "$t" = fuzz_scene ] && dict=(-dict="$root/tests/fuzz/json.dict")
   echo "fuzz.sh: $t for ${secs}s on $(ls "$corpus" | wc -l) seeds"
-  "$build/tests/$t" "$corpus" "${dict[@]}" -max_total_time="$secs" -max_len=1048576 -timeout=10 \
+  "$build/tests/$t" "$corpus" "${dict[@]}" -max_total_time="$secs" -max_len=1048576 -len_control=0 -timeout=10 \
       -rss_limit_mb=1024 -malloc_limit_mb=1024 -artifact_prefix="$build/findings/$t-" -print_final_stats=1 \
       2> "$build/$t.log" || { echo "fuzz.sh: $t FAILED:"; tail -40 "$build/$t.log"; exit 1; }
   grep -E "^stat::number_of_executed_units|^stat::peak_rss_mb|cov:" "$build/$t.log" | tail -3 | sed "s/^/fuzz.sh: $t: /"

@@ -26,6 +26,15 @@ std::string write(const std::string& name, const std::string& text) {
   std::ofstream(p, std::ios::binary) << text;
   return p;
 }
+// The message of the InputError load_mesh throws for p ("" when it reads).
+std::string err(const std::string& p) {
+  try {
+    load_mesh(p);
+  } catch (const InputError& e) {
+    return e.what();
+  }
+  return "";
+}
 std::string mesh_dir() {
   const char* d = std::getenv("AMALGAM_MESH_DIR");
   return d ? d : "";
@@ -86,14 +95,6 @@ TEST(Mesh, CubeInEveryFormat) {
 }
 
 TEST(Mesh, BadFilesAreClearErrors) {
-  auto err = [](const std::string& p) {
-    try {
-      load_mesh(p);
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string();
-  };
   EXPECT_NE(err("/nonexistent/a.obj").find("cannot open mesh file"), std::string::npos);
   EXPECT_NE(err(write("x.xyz", "solid")).find("unknown mesh format '.xyz'"), std::string::npos);
   EXPECT_NE(err(write("x.stl", "solid")).find("mesh has no faces"), std::string::npos);
@@ -165,14 +166,6 @@ TEST(Mesh, VoxelisationUsesTheSpacesThreadCount) {
 // claiming 2e9 indices took 7.8 GB), and indices against their range (an OBJ index of 2^32 + 1
 // wrapped to 1).
 TEST(Mesh, HeaderClaimsAreCheckedAgainstTheFileSize) {
-  auto err = [](const std::string& p) {
-    try {
-      load_mesh(p);
-    } catch (const InputError& e) {
-      return std::string(e.what());
-    }
-    return std::string();
-  };
   EXPECT_NE(err(write("claim.off", "OFF\n2000000000 1 0\n0 0 0\n")).find("can hold"),
             std::string::npos);
   EXPECT_NE(err(write("face.off", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n2000000000 0 1 2\n"))
