@@ -164,7 +164,8 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
       throw InputError(path + ": checkpoint attribute '" + name +
                        "' does not match this solver's layout");
     const std::size_t bytes = size_t(n) * 4 * words;
-    std::memcpy(ps.words(a), r.take(bytes, "attribute data"), bytes);
+    const char* src = r.take(bytes, "attribute data");
+    if (bytes > 0) std::memcpy(ps.words(a), src, bytes);
   }
   const std::uint32_t nsec = version >= 2 ? r.get<std::uint32_t>("section count") : 0;
   if (nsec != sections.size())
@@ -189,7 +190,7 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
         throw InputError(path + ": " + e.what());
       }
     }
-    std::memcpy(dst, src, std::size_t(bytes));
+    if (bytes > 0) std::memcpy(dst, src, std::size_t(bytes));  // an empty section's dst is null
   }
   if (r.pos() != d.size() - 8)
     throw InputError(path + ": checkpoint has trailing bytes (corrupt file)");

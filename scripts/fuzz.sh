@@ -4,7 +4,8 @@
 #   scripts/fuzz.sh [SECONDS] [fuzz_scene|fuzz_mesh|fuzz_checkpoint ...]
 # Limits per input, as docs/fuzzing.md states them: 1 MB long, 10 s, 1 GB of memory; any crash,
 # sanitizer report, timeout or memory overrun fails the run (exit non-zero) and leaves the input
-# in build-fuzz/findings/. Corpora grow in build-fuzz/corpus/TARGET (kept between runs).
+# in build-fuzz/findings/. Corpora grow in build-fuzz/corpus/TARGET (kept between runs). The inputs
+# of past findings (tests/fuzz/regressions/TARGET) are replayed first.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 secs="${1:-60}"
@@ -47,6 +48,14 @@ seed() {  # seed TARGET: the corpus directory, seeded once
   echo "$dir"
 }
 for t in "${targets[@]}"; do
+  # Every input a campaign found (tests/fuzz/regressions/TARGET) must pass first.
+  reg="$root/tests/fuzz/regressions/$t"
+  if [ -d "$reg" ] && [ -n "$(ls -A "$reg")" ]; then
+    "$build/tests/$t" -timeout=10 -rss_limit_mb=1024 -malloc_limit_mb=1024 "$reg"/* \
+        > "$build/$t.regressions.log" 2>&1 \
+      || { echo "fuzz.sh: $t: a regression input fails again:"; tail -30 "$build/$t.regressions.log"; exit 1; }
+    echo "fuzz.sh: $t: $(ls "$reg" | wc -l) regression input(s) pass"
+  fi
   corpus="$(seed "$t")"
   dict=()
   [ "$t" = fuzz_scene ] && dict=(-dict="$root/tests/fuzz/json.dict")
