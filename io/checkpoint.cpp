@@ -17,7 +17,7 @@ namespace amalgam {
 namespace {
 constexpr char kMagic[] = "AMALGAM-CKPT\n";
 constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
-constexpr std::uint32_t kVersion = 3;
+constexpr std::uint32_t kVersion = 4;  // 4: MPM positions' low parts (x_lo)
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -145,9 +145,17 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
                      ") and 'time' (" + std::to_string(st.time) + ") disagree");
   const auto n = r.get<std::uint64_t>("particle count");
   const auto nattr = r.get<std::uint32_t>("attribute count");
-  if (nattr != std::uint32_t(ps.attribute_count()))
+  // Before version 4 MPM particles had no low parts of x and F (core/math/types.hpp:
+  // add_compensated): an older checkpoint resumes with them zero.
+  std::vector<int> missing;
+  if (version < 4)
+    for (const char* lo : {"x_lo", "F_lo"})
+      if (ps.find(lo) >= 0) missing.push_back(ps.find(lo));
+  const std::uint32_t nmissing = std::uint32_t(missing.size());
+  if (nattr + nmissing != std::uint32_t(ps.attribute_count()))
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
-                     " particle attributes, expected " + std::to_string(ps.attribute_count()));
+                     " particle attributes, expected " +
+                     std::to_string(ps.attribute_count() - int(nmissing)));
   if (n != ps.size())
     throw InputError(path + ": checkpoint field 'particle count' is " + std::to_string(n) +
                      ", this scene has " + std::to_string(ps.size()) + " particles");
@@ -167,6 +175,9 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
     const char* src = r.take(bytes, "attribute data");
     if (bytes > 0) std::memcpy(ps.words(a), src, bytes);
   }
+  for (const int a : missing)
+    if (ps.size() > 0)
+      std::memset(ps.words(a), 0, ps.size() * 4 * std::size_t(ps.words_per_particle(a)));
   const std::uint32_t nsec = version >= 2 ? r.get<std::uint32_t>("section count") : 0;
   if (nsec != sections.size())
     throw InputError(path + ": checkpoint has " + std::to_string(nsec) +

@@ -79,7 +79,17 @@ void read_pd_simulation(JsonObject& sim, Scene& s) {
                           : PdDeviatoric::Lps;
     s.pd.surface_correction = p.boolean("surface_correction", true);
     s.pd.partial_volume = p.boolean("partial_volume", true);
-    s.pd.fracture = p.boolean("fracture", true);
+    // "fracture": true / false, or {"enabled": true, "criterion": "paper" | "classical"}
+    if (p.has_object("fracture")) {
+      JsonObject f = p.object("fracture");
+      s.pd.fracture = f.boolean("enabled", true);
+      s.pd.criterion = f.choice("criterion", "paper", {"paper", "classical"}) == "paper"
+                           ? PdCriterion::Paper
+                           : PdCriterion::Classical;
+      f.finish();
+    } else {
+      s.pd.fracture = p.boolean("fracture", true);
+    }
     s.pd.contact = p.boolean("contact", true);
     const double contact = p.number("contact_distance", 0.9, 0, 3, true);
     s.pd.damping = Real(p.number("damping", 0, 0, 1e12));

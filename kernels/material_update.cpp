@@ -17,8 +17,10 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
       p.temperature[i] = temperature;
     }
     Real plastic = p.plastic ? p.plastic[i] : Real(0);
-    if (prm.materials[p.material[i]].project(p.F[i], plastic, temperature) && p.plastic)
-      p.plastic[i] = plastic;
+    if (prm.materials[p.material[i]].project(p.F[i], plastic, temperature)) {
+      if (p.plastic) p.plastic[i] = plastic;
+      if (p.F_lo) p.F_lo[i].setZero();  // the projected F is new: no low part carries over
+    }
   });
 }
 
@@ -33,7 +35,10 @@ void collide_particles(const exec::Space& space, const MpmParticleView& p,
         continue;
       }
       const Vec3 nrm = colliders[c].outward_normal(p.x[i], time);
-      p.x[i] -= phi * nrm;
+      if (p.x_lo)
+        add_compensated(p.x[i], p.x_lo[i], Vec3(-phi * nrm));
+      else
+        p.x[i] -= phi * nrm;
       colliders[c].project(p.x[i], time, p.v[i]);
     }
   });

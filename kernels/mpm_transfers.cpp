@@ -212,9 +212,10 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
 // (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F. flatten: as p2g_particle.
 template <int Order, Transfer T, int CH, bool L>
 __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin,
-                                                  const Vec3& xs, Vec3& x, Vec3& v, Mat3& C,
-                                                  Mat3& F, Mat3* Fs, const Mat3* F0s, Real dx,
-                                                  Real inv_dx, Real dt, Real alpha) {
+                                                  const Vec3& xs, Vec3& x, Vec3* x_lo, Vec3& v,
+                                                  Mat3& C, Mat3& F, Mat3* F_lo, Mat3* Fs,
+                                                  const Mat3* F0s, Real dx, Real inv_dx, Real dt,
+                                                  Real alpha) {
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
@@ -294,15 +295,33 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
     *Fs += dt * grad_v;  // A-ULMPM eq. 30: F^{s(n+1)} = F^{sn} + dt grad_s v
     F = *Fs * *F0s;      // eq. 32: F^{0(n+1)} = F^{s(n+1)} F^{0s}
   } else {
-    // F <- (I + dt grad v) F: column j is sum_a (e_a + dt g_a) F(a, j), on 4-lane columns.
-    const V4 M[3] = {V4{0, 1, 0, 0} + dt * Gcol[0], V4{0, 0, 1, 0} + dt * Gcol[1],
-                     V4{0, 0, 0, 1} + dt * Gcol[2]};
+    // F <- F + dt (grad v) F: the increment's column j is dt sum_a g_a F(a, j), on 4-lane
+    // columns. It is added to F itself (compensated when F has a low part): forming
+    // I + dt grad v first would round 1 + dt g to float's uneven spacing around 1 (6e-8 below,
+    // 1.2e-7 above), a bias towards compression in every small increment (issue 27).
+    Mat3 dF;
     for (int j = 0; j < 3; ++j) {
-      const V4 f = M[0] * F(0, j) + M[1] * F(1, j) + M[2] * F(2, j);
-      F(0, j) = f[1], F(1, j) = f[2], F(2, j) = f[3];
+      const V4 f = dt * (Gcol[0] * F(0, j) + Gcol[1] * F(1, j) + Gcol[2] * F(2, j));
+      dF(0, j) = f[1], dF(1, j) = f[2], dF(2, j) = f[3];
+    }
+    if (F_lo) {  // add_compensated on lanes: entries 0-3 and 4-7, then 8
+      Real *h = F.data(), *lo = F_lo->data();
+      const Real* d = dF.data();
+      for (int e = 0; e < 8; e += 4) {
+        const V4 hv = simd::load4(h + e), b = simd::load4(lo + e) + simd::load4(d + e);
+        const V4 sv = hv + b, bb = sv - hv;
+        simd::store4(lo + e, (hv - (sv - bb)) + (b - bb));
+        simd::store4(h + e, sv);
+      }
+      add_compensated(h[8], lo[8], d[8]);
+    } else {
+      F += dF;
     }
   }
-  x += dt * v_pic;  // eq. 28
+  if (x_lo)  // eq. 28: x += dt v
+    add_compensated(x, *x_lo, Vec3(dt * v_pic));
+  else
+    x += dt * v_pic;
 }
 
 template <int Order, Transfer T, bool L>
@@ -311,6 +330,7 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
   constexpr int CH = (T == Transfer::PicFlip) ? 8 : 4;  // (m, v_new) (+ (-, dv)): the grid's rows
   using Blk = Block<Order, CH>;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
+  auto lo = [](auto* a, std::uint32_t q) { return a ? a + q : nullptr; };
   exec::parallel_for(
       space, "mpm.g2p", exec::Index(g.nbins),
       [&](exec::Index bi) {
@@ -324,11 +344,13 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
         const Vec3i origin = g.bin_leaf[b] * kLeafDim;
         for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
           if constexpr (L)
-            g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], p.v[q], p.C[q],
-                                             p.F[q], p.F_s + q, p.F_0s + q, dx, inv_dx, dt, alpha);
+            g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                             p.C[q], p.F[q], nullptr, p.F_s + q, p.F_0s + q, dx,
+                                             inv_dx, dt, alpha);
           else
-            g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], p.v[q], p.C[q], p.F[q],
-                                              nullptr, nullptr, dx, inv_dx, dt, alpha);
+            g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                              p.C[q], p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
+                                              inv_dx, dt, alpha);
         }
       },
       1);
@@ -476,7 +498,8 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
               const Real* qn = g.q + leaf * kLeafNodes * 4 + o;
               if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
             }
-            for (int c = 0; c < prm.ncolliders; ++c) prm.colliders[c].project(xi, t_end, v);
+            for (int c = 0; c < prm.ncolliders; ++c)
+              prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
           }
           n[1] = v[0];
           n[2] = v[1];
@@ -511,7 +534,8 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
             const Real* qn = g.q + (leaf * kLeafNodes + std::size_t(leaf_offset(i, j, k))) * 4;
             if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
           }
-          for (int c = 0; c < prm.ncolliders; ++c) prm.colliders[c].project(xi, t_end, v);
+          for (int c = 0; c < prm.ncolliders; ++c)
+            prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
           for (int c = 0; c < 3; ++c) {
             n[1 + c] = v[c];
             if (lb) lb[leaf_offset(i, j, k) * 4 + 1 + c] += v[c] - v0[c];

@@ -33,7 +33,7 @@ const char* transfer_name(Transfer t);
 
 // What the transfer kernels read and write of the particles (SoA pointers).
 struct MpmParticleView {
-  Vec3* x;
+  Vec3* x;  // positions x + x_lo (below); kernels read x
   Vec3* v;
   Mat3* C;
   Mat3* F;
@@ -41,6 +41,10 @@ struct MpmParticleView {
   const Real* volume0;
   const std::int32_t* material;
   std::size_t n;
+  // The low parts of x and F (core/math/types.hpp: add_compensated); null: plain Real state
+  // (kernel tests). A-ULMPM's F is F_s F_0s and has no low part.
+  Vec3* x_lo = nullptr;
+  Mat3* F_lo = nullptr;
   Real* plastic = nullptr;      // per-particle plastic scalar, if any material has one
   Real* temperature = nullptr;  // per-particle temperature (K), if any material melts
   // Adaptively updated Lagrangian mode (A-ULMPM Sec. 5), on when X_ref is set: weights and

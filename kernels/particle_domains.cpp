@@ -361,16 +361,22 @@ void domain_grid_to_corners(const exec::Space& space, const DomainPointView& pts
                   const std::size_t i = std::size_t(-pts.corner[q] - 1);
                   p.v[i] = (1 - alpha) * v + alpha * (p.v[i] + dv);
                   p.C[i] = grad_v;  // the velocity gradient its viscous stress needs
-                  p.F[i] = (Mat3::Identity() + dt * grad_v) * p.F[i];
-                  Vec3 x = p.x[i] + dt * v;
+                  const Mat3 dF = dt * grad_v * p.F[i];  // F += dt grad v F, as g2p
+                  if (p.F_lo)
+                    add_compensated(p.F[i], p.F_lo[i], dF);
+                  else
+                    p.F[i] += dF;
+                  Vec3 x = p.x[i], lo = p.x_lo ? p.x_lo[i] : Vec3::Zero();
+                  add_compensated(x, lo, Vec3(dt * v));
                   for (int k = 0; k < prm.ncolliders; ++k) {  // as collide_particles
                     const Collider& col = prm.colliders[k];
                     const Real phi = col.phi(x, t_end);
                     if (phi >= 0 || col.boundary == BoundaryType::Sticky) continue;
-                    x -= phi * col.outward_normal(x, t_end);
+                    add_compensated(x, lo, Vec3(-phi * col.outward_normal(x, t_end)));
                     col.project(x, t_end, p.v[i]);
                   }
                   p.x[i] = x;
+                  if (p.x_lo) p.x_lo[i] = lo;
                 });
 }
 
@@ -457,7 +463,11 @@ void domain_corners_to_particles(const exec::Space& space, const DomainParticleV
     v_pic *= Real(0.125);
     dv *= Real(0.125);
     p.v[i] = (1 - alpha) * v_pic + alpha * (p.v[i] + dv);
-    p.F[i] += dt * gradv;  // eq. 7: F^{n+1} = F^n + dt sum_a v_a (grad_X omega_ap)^T
+    // eq. 7: F^{n+1} = F^n + dt sum_a v_a (grad_X omega_ap)^T
+    if (p.F_lo)
+      add_compensated(p.F[i], p.F_lo[i], Mat3(dt * gradv));
+    else
+      p.F[i] += dt * gradv;
   });
 }
 
@@ -480,6 +490,7 @@ void domain_advect(const exec::Space& space, const DomainParticleView& p, const 
     Vec3 x = Vec3::Zero();
     for (int s = 0; s < 8; ++s) x += c.x[std::size_t(p.corners[8 * i + s])];
     p.x[i] = Real(0.125) * x;
+    if (p.x_lo) p.x_lo[i].setZero();
   });
 }
 

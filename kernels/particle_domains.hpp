@@ -68,6 +68,10 @@ struct DomainParticleView {
   const Real* plastic = nullptr;
   const Real* temperature = nullptr;
   Mat3* C = nullptr;  // disabled particles: their velocity gradient (viscous stress)
+  // The low parts of x and F (core/math/types.hpp: add_compensated): disabled particles advance
+  // x + x_lo; a domain particle's position is its corners' mean (x_lo = 0).
+  Vec3* x_lo = nullptr;
+  Mat3* F_lo = nullptr;
 };
 
 struct DomainCornerView {

@@ -19,6 +19,10 @@ const char* pd_deviatoric_name(PdDeviatoric d) {
   return d == PdDeviatoric::Paper ? "paper" : "lps";
 }
 
+const char* pd_criterion_name(PdCriterion c) {
+  return c == PdCriterion::Paper ? "paper" : "classical";
+}
+
 namespace {
 
 // Cell binning for the neighbour search: sorted (cell key, particle) pairs, a cell's particles
@@ -745,7 +749,8 @@ struct BondSlice {
 };
 
 template <bool Paper, bool Fracture, bool Plastic>
-void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Real delta) {
+void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Real delta,
+                 bool classical) {
   for (int m = 0; m < n; ++m) {  // vectorised: no branches, no gathers
     const Real epi = Plastic ? S.epi[m] : Real(0), epj = Plastic ? S.epj[m] : Real(0);
     const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
@@ -767,8 +772,10 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
     const Real c =
         live * (Real(0.5) * (aij + aji) * S.vol[m] * (inv * L));  // eq. 1 with eq. 2, / l
     B.fx[m] = c * B.ex[m], B.fy[m] = c * B.ey[m], B.fz[m] = c * B.ez[m];
-    if (Fracture)  // eq. 18, from both ends (symmetric decision)
-      B.broken[m] = ok & (((e - epi) / delta > r.crit) | ((e - epj) / delta > B.crit_j[m]));
+    if (Fracture) {  // eq. 18 (or the classical bond stretch), from both ends: symmetric
+      const Real d = classical ? L : delta;
+      B.broken[m] = ok & (((e - epi) / d > r.crit) | ((e - epj) / d > B.crit_j[m]));
+    }
   }
 }
 
@@ -778,6 +785,7 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
                bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch) {
   const Real delta = prm.horizon;
   const bool paper = prm.deviatoric == PdDeviatoric::Paper;
+  const bool classical = prm.criterion == PdCriterion::Classical;
   const PdMaterial* mats = prm.materials;
   const bool consistent = prm.consistent;
   // Per particle: the far end's terms and positions, gathered once per bond below (and a row's
@@ -825,7 +833,7 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
                           bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
                           bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
                           bonds.intact.data() + kb};
-        force_block<Paper, Fracture, Plastic>(B, S, n, ri, delta);
+        force_block<Paper, Fracture, Plastic>(B, S, n, ri, delta, classical);
         const std::uint8_t* lane = bonds.lane.data() + kb;
         lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
             lane_sum(B.fz, lane, dense, n, az);

@@ -34,6 +34,16 @@ namespace amalgam {
 enum class PdDeviatoric : std::uint8_t { Paper, Lps };
 const char* pd_deviatoric_name(PdDeviatoric d);
 
+// Bond-breaking criterion.
+//  Paper:     eq. 18, (e - e^p) / delta > s_c (1 + alpha phi): the extension over the horizon, so
+//             at a given s_c a bond of length L breaks at the bond stretch s_c delta / L.
+//  Classical: (e - e^p) / L > s_c (1 + alpha phi): the bond stretch (|xi + eta| - |xi|) / |xi|
+//             (Silling and Askari 2005; LAMMPS peri, Peridigm). Between L = lc and delta = 3 lc the
+//             two differ by the factor delta / L of each bond, so no single s_c maps one onto the
+//             other (docs/validation.md).
+enum class PdCriterion : std::uint8_t { Paper, Classical };
+const char* pd_criterion_name(PdCriterion c);
+
 struct PdMaterial {
   Real bulk = Real(1e6);   // kappa (Pa)
   Real shear = Real(6e5);  // mu (Pa)
@@ -93,6 +103,7 @@ struct PdParams {
   Real horizon = Real(0.03);  // delta
   Real spacing = Real(0.01);  // lattice spacing lc (partial volumes, contact distance)
   PdDeviatoric deviatoric = PdDeviatoric::Paper;
+  PdCriterion criterion = PdCriterion::Paper;
   const PdMaterial* materials = nullptr;
   // Energy-consistent forces (with the surface correction): A_ij gains the derivative of the
   // deviatoric energy through theta (see pd_dilatation), so that the forces are the gradient of

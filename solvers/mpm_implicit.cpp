@@ -42,7 +42,7 @@ void MpmImplicit::add_collider_constraints(const exec::Space& space, const MpmSo
           if (mass[d] <= 0) continue;
           const Vec3 xi = node_position(g, d, (node0 + Vec3i(i, j, k)).cast<Real>() * dx);
           for (int c = 0; c < ncol; ++c)
-            if (cols[c].phi(xi, t_end) <= 0) flag[d] = 1;
+            if (cols[c].phi(xi, t_end) <= node_tolerance(xi, dx)) flag[d] = 1;
         }
   });
   const Real* vstar = system_.rhs();
@@ -56,7 +56,7 @@ void MpmImplicit::add_collider_constraints(const exec::Space& space, const MpmSo
       const Vec3 vs(vstar[d * 4], vstar[d * 4 + 1], vstar[d * 4 + 2]);
       for (int c = 0; c < ncol; ++c) {
         const Collider& col = cols[c];
-        if (col.phi(xi, t_end) > 0) continue;
+        if (col.phi(xi, t_end) > node_tolerance(xi, dx)) continue;
         const Vec3 vc = col.velocity_at(xi, t_end);
         if (col.boundary == BoundaryType::Sticky) {
           system_.fix(d, vc);

@@ -202,6 +202,8 @@ void MpmSimulation::restored(double time, std::uint64_t steps) {
   check_finite_attributes(ps);
   check_index_attribute(ps, "material", 0, std::int64_t(s_.materials().size()) - 1);
   check_permutation_attribute(ps, "id");
+  check_low_part(ps, "x", "x_lo");
+  check_low_part(ps, "F", "F_lo");
   if (const MpmAul* a = s_.aul())
     check_index_attribute(ps, "object", 0, a->maps().object_count() - 1);
   if (const MpmEnriched* e = s_.enriched()) {

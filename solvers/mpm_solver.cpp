@@ -125,6 +125,8 @@ MpmParticleView MpmSolver::particle_view() {
                     particles_.mat3(attr_.C),         particles_.mat3(attr_.F),
                     particles_.real(attr_.mass),      particles_.real(attr_.volume0),
                     particles_.int32(attr_.material), particles_.size()};
+  v.x_lo = particles_.vec3(attr_.x_lo);
+  v.F_lo = particles_.mat3(attr_.F_lo);
   if (attr_.plastic >= 0) v.plastic = particles_.real(attr_.plastic);
   if (attr_.temperature >= 0) v.temperature = particles_.real(attr_.temperature);
   if (aul_) aul_->fill_view(v, particles_);
@@ -343,7 +345,9 @@ std::vector<Vec3d> MpmSolver::positions_by_id() const {
   std::vector<Vec3d> out(particles_.size());
   const std::int32_t* id = particles_.int32(attr_.id);
   const Vec3* x = particles_.vec3(attr_.x);
-  for (std::size_t p = 0; p < particles_.size(); ++p) out[std::size_t(id[p])] = x[p].cast<double>();
+  const Vec3* lo = particles_.vec3(attr_.x_lo);
+  for (std::size_t p = 0; p < particles_.size(); ++p)
+    out[std::size_t(id[p])] = x[p].cast<double>() + lo[p].cast<double>();
   return out;
 }
 

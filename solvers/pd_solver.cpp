@@ -38,6 +38,7 @@ PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials
   params_.horizon = settings_.horizon;
   params_.spacing = settings_.spacing;
   params_.deviatoric = settings_.deviatoric;
+  params_.criterion = settings_.criterion;
   params_.consistent = settings_.surface_correction;
 }
 

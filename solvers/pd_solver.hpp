@@ -28,6 +28,8 @@ struct PdSettings {
   bool partial_volume = true;      // nu_ij for bonds cut by the horizon
   bool surface_correction = true;  // discrete theta normaliser and shear factor (see PdConstants)
   bool fracture = true;
+  PdCriterion criterion =
+      PdCriterion::Paper;     // how a bond's stretch is measured (eq. 18 or classical)
   bool contact = true;        // repulsion between unbonded particles closer than contact_distance
   Real contact_distance = 0;  // 0: 0.9 lc
   Real contact_skin = 0;      // Verlet-list skin; 0: 0.5 lc

@@ -386,6 +386,50 @@ TEST(PdFracture, NoBondBreaksBelowTheCriticalStretch) {
   }
 }
 
+// A single bond of length L = 2 lc (horizon delta = 3.015 lc) stretched to s = (l - L) / L just
+// below and just above a threshold: the classical criterion breaks it at s = s_c, the paper's
+// (eq. 18, extension over delta) at s = s_c delta / L, both in both directions.
+TEST(PdFracture, SingleBondBreaksAtEachCriterionsStretch) {
+  const exec::Space space;
+  const Real sc = Real(1e-3);
+  const double L = 2 * kLc;
+  const Vec3d dir = Vec3d(1, 2, 2) / 3;
+  for (PdCriterion crit : {PdCriterion::Classical, PdCriterion::Paper}) {
+    const double threshold = crit == PdCriterion::Classical ? sc : sc * kDelta / L;
+    for (double factor : {0.99, 1.01}) {
+      PdSettings st = settings(PdDeviatoric::Paper, false);
+      st.criterion = crit;
+      PdMaterial m = glass();
+      m.critical_stretch = sc;
+      PdSolver solver(st, {m});
+      const Vec3d a(0.1, 0.2, 0.3);
+      solver.add_particles({a.cast<Real>(), (a + L * dir).cast<Real>()}, Vec3::Zero(), Vec3::Zero(),
+                           Vec3::Zero(), 0, Real(kLc * kLc * kLc));
+      solver.initialize(space);
+      ASSERT_EQ(solver.bonds().size(), 2u);
+      // Stretch the bond symmetrically about its middle to s = factor * threshold, measured on
+      // the float positions the kernel sees.
+      ParticleSet& ps = solver.particles();
+      Vec3* x = ps.vec3(solver.attributes().x);
+      const Vec3* x0 = ps.vec3(solver.attributes().x0);
+      const double l0 = (x0[1] - x0[0]).cast<double>().norm();
+      const double s = factor * threshold;
+      const Vec3d mid = 0.5 * (x0[0] + x0[1]).cast<double>();
+      x[0] = (mid - 0.5 * l0 * (1 + s) * dir).cast<Real>();
+      x[1] = (mid + 0.5 * l0 * (1 + s) * dir).cast<Real>();
+      const double stretch = ((x[1] - x[0]).cast<double>().norm() - l0) / l0;
+      ASSERT_NEAR(stretch / threshold, factor, 2e-3);
+      solver.compute_dilatation(space);
+      std::vector<Vec3> f(2);
+      pd_forces(space, solver.view(), solver.bonds(), solver.params(), true, f.data(), nullptr);
+      const PdBonds& b = solver.bonds();
+      EXPECT_EQ(b.intact[0], b.intact[1]);
+      EXPECT_EQ(b.intact[0] == 0, factor > 1)
+          << pd_criterion_name(crit) << " at " << factor << " x its threshold";
+    }
+  }
+}
+
 // A pre-crack on the plane x = 0.05 over half the block (y < 0.05) breaks exactly the bonds
 // that cross it there, in both directions.
 TEST(PdFracture, PrecrackBreaksExactlyTheCrossingBonds) {

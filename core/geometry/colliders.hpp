@@ -199,9 +199,10 @@ struct Collider {
     return Vec3::UnitY();
   }
 
-  // Projects the velocity v of a point at x (time t) if it is inside the collider.
-  void project(const Vec3& x, Real t, Vec3& v) const {
-    if (phi(x, t) > 0) return;
+  // Projects the velocity v of a point at x (time t) if it is inside the collider, or within
+  // `tolerance` of its surface (grid nodes: node_tolerance).
+  void project(const Vec3& x, Real t, Vec3& v, Real tolerance = 0) const {
+    if (phi(x, t) > tolerance) return;
     const Vec3 vc = velocity_at(x, t);
     if (boundary == BoundaryType::Sticky) {
       v = vc;
@@ -221,5 +222,17 @@ struct Collider {
     v = vt + vc;
   }
 };
+
+// How far outside a collider a grid node still counts as touching it (phi <= tolerance). A node
+// exactly on a collider's surface (a wall on a node plane, the usual way a scene is laid out) has
+// phi = 0 in exact arithmetic, but the node position i dx and the wall's origin are each rounded,
+// so phi comes out as a few ulps of either sign and the node would be in or out by accident: the
+// wall held or the body fell a cell through it depending on the placement (issue 27). The
+// tolerance is 1e-3 dx, plus 8 ulps of the node's coordinates where those are larger (far from
+// the origin): every node within it is constrained, the same on every placement, and a node
+// 1e-3 dx outside a wall moves its boundary by at most that (docs/validation.md).
+inline Real node_tolerance(const Vec3& x, Real dx) {
+  return Real(1e-3) * dx + 8 * std::numeric_limits<Real>::epsilon() * x.cwiseAbs().maxCoeff();
+}
 
 }  // namespace amalgam

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <stdexcept>
 #include <vector>
 
@@ -116,9 +117,11 @@ void ParticleSet::permute(const exec::Space& space, const std::uint32_t* perm) {
 MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperature) {
   MpmAttributes m;
   m.x = ps.add("x", AttrType::Real, 3);
+  m.x_lo = ps.add("x_lo", AttrType::Real, 3);
   m.v = ps.add("v", AttrType::Real, 3);
   m.C = ps.add("C", AttrType::Real, 9);
   m.F = ps.add("F", AttrType::Real, 9);
+  m.F_lo = ps.add("F_lo", AttrType::Real, 9);
   m.mass = ps.add("mass", AttrType::Real, 1);
   m.volume0 = ps.add("volume0", AttrType::Real, 1);
   m.material = ps.add("material", AttrType::Int32, 1);
@@ -131,9 +134,11 @@ MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperat
 MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
   MpmAttributes m;
   m.x = ps.id("x");
+  m.x_lo = ps.id("x_lo");
   m.v = ps.id("v");
   m.C = ps.id("C");
   m.F = ps.id("F");
+  m.F_lo = ps.id("F_lo");
   m.mass = ps.id("mass");
   m.volume0 = ps.id("volume0");
   m.material = ps.id("material");
@@ -166,6 +171,20 @@ void check_index_attribute(const ParticleSet& ps, const std::string& name, std::
       throw InputError("attribute '" + name + "' of particle " + std::to_string(k / w) + " is " +
                        std::to_string(v[k]) + ", outside [" + std::to_string(lo) + ", " +
                        std::to_string(hi) + "]");
+}
+
+void check_low_part(const ParticleSet& ps, const std::string& hi, const std::string& lo) {
+  const ParticleSet::Id h = ps.find(hi), l = ps.find(lo);
+  if (h < 0 || l < 0) return;
+  const int w = ps.width(h);
+  const Real* a = ps.real(h);
+  const Real* b = ps.real(l);
+  for (std::size_t i = 0; i < ps.size() * std::size_t(w); ++i)
+    if (!(std::abs(b[i]) <= std::numeric_limits<Real>::epsilon() * std::abs(a[i]) ||
+          std::abs(b[i]) <= std::numeric_limits<Real>::min()))
+      throw InputError("attribute '" + lo + "' of particle " + std::to_string(i / std::size_t(w)) +
+                       " is " + std::to_string(b[i]) + ", more than one ulp of '" + hi + "' (" +
+                       std::to_string(a[i]) + ")");
 }
 
 void check_permutation_attribute(const ParticleSet& ps, const std::string& name) {

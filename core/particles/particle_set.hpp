@@ -80,7 +80,9 @@ class ParticleSet {
 // exist (id >= 0) when a material of the scene needs them (else -1), so elastic scenes do not
 // sort or store them.
 struct MpmAttributes {
-  ParticleSet::Id x, v, C, F, mass, volume0, material, id;  // id: stable particle number
+  // id: stable particle number; x_lo, F_lo: the low parts of x + x_lo and F + F_lo
+  // (core/math/types.hpp: add_compensated)
+  ParticleSet::Id x, x_lo, v, C, F, F_lo, mass, volume0, material, id;
   ParticleSet::Id plastic = -1, temperature = -1;
   static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false);
   static MpmAttributes find_in(const ParticleSet& ps);
@@ -92,6 +94,10 @@ struct MpmAttributes {
 void check_finite_attributes(const ParticleSet& ps);
 void check_index_attribute(const ParticleSet& ps, const std::string& name, std::int64_t lo,
                            std::int64_t hi);
+// Each component of the Real attribute `lo` lies within one ulp of the same component of `hi`
+// (a compensated pair, core/math/types.hpp: add_compensated): a larger low part would move the
+// state at its next increment.
+void check_low_part(const ParticleSet& ps, const std::string& hi, const std::string& lo);
 // `name` (when present) holds each of 0 .. size()-1 exactly once (particle ids).
 void check_permutation_attribute(const ParticleSet& ps, const std::string& name);
 
