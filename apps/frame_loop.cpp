@@ -7,6 +7,7 @@
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 
@@ -66,10 +67,7 @@ class FrameWriter {
                               splat_, scene_.preview.width, scene_.preview.height,
                               scene_.preview.color_by, floor_y_));
     }
-    if (out.ply) write_ply_points(numbered(rs_.out_dir, "frame_%04d", f, "ply"), p);
-    if (out.vdb_points)
-      write_vdb_points(numbered(rs_.out_dir, "frame_%04d", f, "vdb"), p, sim_.point_voxel_size(),
-                       space_);
+    write_points(numbered(rs_.out_dir, "frame_%04d", f, ""), p);
     if (out.grid_volumes && f > 0 && sim_.grid())  // the grid exists once a substep ran
       write_vdb_grid_fields(numbered(rs_.out_dir, "frame_%04d", f, "grid.vdb"), *sim_.grid(),
                             sim_.point_voxel_size(), space_);
@@ -82,6 +80,20 @@ class FrameWriter {
                           mesh_.triangles, mesh_.crack);
     }
   }
+  // The point files (PLY, VDB points, as the output asks) at `base` + extension; returns their
+  // paths.
+  std::vector<std::string> write_points(const std::string& base, const PointFields& p) const {
+    std::vector<std::string> paths;
+    if (scene_.output.ply) {
+      paths.push_back(base + "ply");
+      write_ply_points(paths.back(), p);
+    }
+    if (scene_.output.vdb_points) {
+      paths.push_back(base + "vdb");
+      write_vdb_points(paths.back(), p, sim_.point_voxel_size(), space_);
+    }
+    return paths;
+  }
 
  private:
   const Simulation& sim_;
@@ -93,6 +105,21 @@ class FrameWriter {
   SurfaceMesh mesh_;
 };
 
+// A per-substep CSV whose second column is a step number: its header and, on resume, the rows
+// of the file at `path` whose step is below `limit` (the rest belong to substeps taken again).
+std::string rows_before(const std::string& path, const std::string& header, std::uint64_t limit) {
+  std::string kept = header;
+  std::ifstream in(path);
+  std::string line;
+  std::getline(in, line);
+  while (std::getline(in, line)) {
+    const std::size_t comma = line.find(',');
+    if (comma != std::string::npos && std::strtoull(line.c_str() + comma + 1, nullptr, 10) < limit)
+      kept += line + "\n";
+  }
+  return kept;
+}
+
 // The optional per-substep log (Simulation::substep_log_name): rows appended frame by frame; on
 // resume the rows of substeps before the checkpoint are kept.
 class SubstepLog {
@@ -101,19 +128,9 @@ class SubstepLog {
     const std::string name = sim.substep_log_name();
     if (name.empty() || !scene.output.diagnostics_csv) return;
     path_ = rs.out_dir + "/" + name;
-    std::string kept = sim.substep_log_header();
-    if (sim.step_count() > 0) {
-      std::ifstream in(path_);
-      std::string line;
-      std::getline(in, line);
-      while (std::getline(in, line)) {
-        const std::size_t comma = line.find(',');
-        if (comma != std::string::npos &&
-            std::strtoull(line.c_str() + comma + 1, nullptr, 10) < sim.step_count())
-          kept += line + "\n";
-      }
-    }
-    write_file_atomic(path_, kept);
+    write_file_atomic(path_, sim.step_count() > 0
+                                 ? rows_before(path_, sim.substep_log_header(), sim.step_count())
+                                 : sim.substep_log_header());
   }
   void add(int frame, Real dt) {
     if (!path_.empty()) rows_ += sim_.substep_log_row(frame, dt);
@@ -128,6 +145,67 @@ class SubstepLog {
  private:
   const Simulation& sim_;
   std::string path_, rows_;
+};
+
+// Samples every N substeps (output.every_substeps), N counting the run's substeps: a
+// samples.csv row (frame, step = substeps taken, time, dt, the simulation's state columns) and
+// the point files samples/points_sNNNNNNNNNN.ply / .vdb. A frame's samples are kept with it: a
+// retried or interrupted frame's rows and files are removed with it, and a resumed run first
+// removes what lies past its checkpoint (left by a killed process), so it writes them again as
+// the uninterrupted run did.
+class SampleWriter {
+ public:
+  SampleWriter(const Simulation& sim, const Scene& scene, const RunSettings& rs,
+               const exec::Space& space, const FrameWriter& frames)
+      : sim_(sim), space_(space), frames_(frames), every_(scene.output.every_substeps) {
+    if (every_ <= 0) return;
+    dir_ = rs.out_dir + "/samples";
+    std::filesystem::create_directories(dir_);
+    const std::uint64_t done = sim.step_count();
+    for (const auto& e : std::filesystem::directory_iterator(dir_)) {
+      const std::string name = e.path().filename().string();
+      unsigned long long step = 0;
+      if (std::sscanf(name.c_str(), "points_s%llu.", &step) == 1 && step > done)
+        std::filesystem::remove(e.path());
+    }
+    std::string header = "frame,step,time_s,dt_s";
+    for (const Column& c : sim.sample(space)) header += "," + c.name;
+    header += "\n";
+    csv_ = rs.out_dir + "/samples.csv";
+    write_file_atomic(csv_, done > 0 ? rows_before(csv_, header, done + 1) : header);
+  }
+  void after_substep(int frame, Real dt) {
+    if (every_ <= 0 || sim_.step_count() % std::uint64_t(every_) != 0) return;
+    std::vector<Column> cols = {{"frame", double(frame), true},
+                                {"step", double(sim_.step_count()), true},
+                                {"time_s", sim_.time()},
+                                {"dt_s", double(dt)}};
+    const std::vector<Column> state = sim_.sample(space_);
+    cols.insert(cols.end(), state.begin(), state.end());
+    rows_ += csv_row(cols);
+    char base[64];
+    std::snprintf(base, sizeof base, "/points_s%010llu.", (unsigned long long)sim_.step_count());
+    for (std::string& f : frames_.write_points(dir_ + base, sim_.point_fields()))
+      written_.push_back(std::move(f));
+  }
+  void discard() {
+    rows_.clear();
+    for (const std::string& f : written_) std::filesystem::remove(f);
+    written_.clear();
+  }
+  void flush() {
+    if (!rows_.empty()) append_to_file(csv_, rows_);
+    rows_.clear();
+    written_.clear();
+  }
+
+ private:
+  const Simulation& sim_;
+  const exec::Space& space_;
+  const FrameWriter& frames_;
+  const long long every_;
+  std::string dir_, csv_, rows_;
+  std::vector<std::string> written_;
 };
 
 double seconds_since(std::chrono::steady_clock::time_point t0) {
@@ -163,6 +241,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   std::vector<std::string> csv_rows;
   if (rs.first_frame > 1) csv_rows = earlier_rows(csv_path, rs.first_frame);
   SubstepLog steps_log(sim, scene, rs);
+  SampleWriter samples(sim, scene, rs, space, frames);
 
   // Fault injection for the interrupt tests (tests/interrupt_points_test.sh): act as if SIGINT
   // arrived during the N-th substep this process takes (retried substeps count too).
@@ -198,6 +277,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
             const int sig = g_signal;
             sim.restore_frame_start();
             steps_log.discard();
+            samples.discard();
             write_checkpoint(checkpoint_path, sim, f, scene.fingerprint, attempt);
             if (tty && !rs.quiet) std::cout << "\n";
             std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
@@ -215,6 +295,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
           if (++advanced == sigint_at) g_signal = SIGINT;
           ++substeps;
           steps_log.add(f, dt);
+          samples.after_substep(f, dt);
         }
         // The guard runs on a substep's starting state, so a blow-up in the frame's last substep
         // would otherwise surface in the next frame, whose retries cannot undo it: check the end
@@ -231,12 +312,14 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
         sim.restore_frame_start();
         sim.set_cfl(cfl);
         steps_log.discard();
+        samples.discard();
         substeps = 0;
       }
     }
     sim.set_cfl(cfl0);
     total_substeps += substeps;
     steps_log.flush();
+    samples.flush();
     const FrameReport report = sim.end_frame(space, substeps);
     frames.write(f);
     const double wall = seconds_since(t_start);

@@ -340,6 +340,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.output.diagnostics_csv = out.boolean("diagnostics_csv", true);
   s.output.grid_volumes = out.boolean("grid_volumes", false);
   s.output.checkpoint_every = int(out.integer("checkpoint_every", 10, 0, 1000000));
+  s.output.every_substeps = out.integer("every_substeps", 0, 0, 1000000000);
   const std::string surf = out.choice("surface", "obj", {"obj", "ply", "both", "none"});
   s.output.surface_obj = surf == "obj" || surf == "both";
   s.output.surface_ply = surf == "ply" || surf == "both";

@@ -18,6 +18,9 @@ struct OutputSpec {
   bool diagnostics_csv = true;
   bool grid_volumes = false;  // frame_NNNN_grid.vdb: node mass and velocity
   int checkpoint_every = 10;  // frames; 0 = only on SIGINT/SIGTERM
+  // Samples every N substeps (0: none): samples.csv rows and, with ply / vdb_points, the points
+  // in samples/points_sNNNNNNNNNN.* (N counts the run's substeps, so a resumed run takes the same).
+  long long every_substeps = 0;
   // Peridynamic tet_mesh objects: the surface with crack faces per frame (frame_NNNN_surface.*).
   bool surface_obj = true, surface_ply = false;
 };

@@ -68,11 +68,18 @@ void MpmSimulation::begin_frame() {
   if (s_.enriched()) s_.enriched()->domains().reset_counters();
 }
 
-FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substeps) {
+std::vector<Column> MpmSimulation::sample(const exec::Space& space) const {
   const MpmDiagnostics d = s_.diagnostics(space);
+  return {{"kinetic_J", d.kinetic},      {"elastic_J", d.elastic},
+          {"momentum_x", d.momentum[0]}, {"momentum_y", d.momentum[1]},
+          {"momentum_z", d.momentum[2]}, {"max_speed_m_s", d.max_speed}};
+}
+
+FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substeps) {
   FrameReport r;
-  r.kinetic = d.kinetic;
-  r.max_speed = d.max_speed;
+  r.columns = sample(space);
+  r.kinetic = r.columns[0].value;
+  r.max_speed = r.columns[5].value;
   const ImplicitCounters ic = s_.implicit() ? s_.implicit()->counters() : ImplicitCounters();
   const DomainCounters dc = s_.enriched() ? s_.enriched()->domains().counters() : DomainCounters();
   const double enriched = dc.steps ? dc.enriched_fraction_sum / double(dc.steps) : 0.0;
@@ -82,23 +89,18 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
     enriched_max_ = std::max(enriched_max_, dc.max_enriched_fraction);
   }
   ++frames_;
-  r.columns = {{"kinetic_J", d.kinetic},
-               {"elastic_J", d.elastic},
-               {"momentum_x", d.momentum[0]},
-               {"momentum_y", d.momentum[1]},
-               {"momentum_z", d.momentum[2]},
-               {"max_speed_m_s", d.max_speed},
-               {"particles", double(s_.particles().size()), true},
-               {"leaves", double(s_.grid().leaf_count()), true},
-               {"active_leaves", double(s_.grid().active_leaves().size()), true},
-               {"cg_iterations", double(ic.iterations), true},
-               {"cg_max_iterations", double(ic.max_iterations), true},
-               {"cg_max_residual", ic.max_residual},
-               {"cg_unconverged", double(ic.unconverged), true},
-               {"enriched_fraction", enriched},
-               {"transitional_fraction", transitional},
-               {"max_enriched_fraction", dc.max_enriched_fraction},
-               {"enriched_corners", double(dc.last_enriched_corners), true}};
+  r.columns.insert(r.columns.end(),
+                   {{"particles", double(s_.particles().size()), true},
+                    {"leaves", double(s_.grid().leaf_count()), true},
+                    {"active_leaves", double(s_.grid().active_leaves().size()), true},
+                    {"cg_iterations", double(ic.iterations), true},
+                    {"cg_max_iterations", double(ic.max_iterations), true},
+                    {"cg_max_residual", ic.max_residual},
+                    {"cg_unconverged", double(ic.unconverged), true},
+                    {"enriched_fraction", enriched},
+                    {"transitional_fraction", transitional},
+                    {"max_enriched_fraction", dc.max_enriched_fraction},
+                    {"enriched_corners", double(dc.last_enriched_corners), true}});
   if (s_.settings().implicit) {
     char cg[64];
     std::snprintf(cg, sizeof cg, "CG %.1f it/step",

@@ -41,6 +41,7 @@ class MpmSimulation final : public Simulation {
 
   void begin_frame() override;
   FrameReport end_frame(const exec::Space& space, long long substeps) override;
+  std::vector<Column> sample(const exec::Space& space) const override;
   std::vector<std::string> profile_columns() const override;
   int profile_column(const std::string& label) const override;
   std::string substep_log_name() const override;

@@ -20,21 +20,27 @@ PdSimulation::PdSimulation(PdSolver solver, const exec::Space& space) : s_(std::
   description_ = os.str();
 }
 
+namespace {
+std::vector<Column> state_columns(const PdDiagnostics& d) {
+  return {{"kinetic_J", d.kinetic},         {"momentum_x", d.momentum[0]},
+          {"momentum_y", d.momentum[1]},    {"momentum_z", d.momentum[2]},
+          {"max_speed_m_s", d.max_speed},   {"max_damage", d.max_damage},
+          {"bonds", double(d.bonds), true}, {"intact_bonds", double(d.intact), true}};
+}
+}  // namespace
+
+std::vector<Column> PdSimulation::sample(const exec::Space& space) const {
+  return state_columns(s_.diagnostics(space));
+}
+
 FrameReport PdSimulation::end_frame(const exec::Space& space, long long) {
   const PdDiagnostics d = s_.diagnostics(space);
   FrameReport r;
   r.kinetic = d.kinetic;
   r.max_speed = d.max_speed;
-  r.columns = {{"kinetic_J", d.kinetic},
-               {"momentum_x", d.momentum[0]},
-               {"momentum_y", d.momentum[1]},
-               {"momentum_z", d.momentum[2]},
-               {"max_speed_m_s", d.max_speed},
-               {"max_damage", d.max_damage},
-               {"bonds", double(d.bonds), true},
-               {"intact_bonds", double(d.intact), true},
-               {"stored_bonds", double(d.stored), true},
-               {"particles", double(s_.particles().size()), true}};
+  r.columns = state_columns(d);
+  r.columns.insert(r.columns.end(), {{"stored_bonds", double(d.stored), true},
+                                     {"particles", double(s_.particles().size()), true}});
   char line[64];
   std::snprintf(line, sizeof line, "broken %.2f%%",
                 100.0 * double(d.bonds - d.intact) / double(std::max<std::uint64_t>(1, d.bonds)));

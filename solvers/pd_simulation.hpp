@@ -35,6 +35,7 @@ class PdSimulation final : public Simulation {
   void restore_frame_start() override { s_.restore(snapshot_); }
 
   FrameReport end_frame(const exec::Space& space, long long substeps) override;
+  std::vector<Column> sample(const exec::Space& space) const override;
   std::vector<std::string> profile_columns() const override;
   int profile_column(const std::string& label) const override;
   std::string run_summary(double wall) const override;

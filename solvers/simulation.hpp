@@ -82,6 +82,9 @@ class Simulation {
   // --- Per-frame bookkeeping and diagnostics.
   virtual void begin_frame() {}
   virtual FrameReport end_frame(const exec::Space& space, long long substeps) = 0;
+  // The physical state's columns (energies, momentum, speeds; the same names every call), for a
+  // diagnostics row and for the samples taken every N substeps (output.every_substeps).
+  virtual std::vector<Column> sample(const exec::Space& space) const = 0;
   // Profiler regions grouped into diagnostics columns ("p2g_s"): the column names, and the
   // column of a region label (-1: counted as other).
   virtual std::vector<std::string> profile_columns() const = 0;

@@ -25,7 +25,7 @@ run --out "$out/a" || fail "run with planted links exited $?"
 # 2. Byte-reproducible output: a second identical run writes the same bytes (diagnostics.csv
 # holds wall times and is left out).
 run --out "$out/b" || fail "second run exited $?"
-for f in $(cd "$out/b" && ls | grep -v '^diagnostics.csv$'); do
+for f in $(cd "$out/b" && find . -type f ! -name diagnostics.csv | sort); do
   cmp -s "$out/a/$f" "$out/b/$f" || fail "$f differs between two identical runs"
 done
 
