@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <climits>
+#include <cstdio>
 #include <limits>
 #include <sstream>
 
@@ -225,6 +226,45 @@ Vec3 JsonObject::required_vec3(const std::string& key) {
     r[a] = Real(x);
   }
   return r;
+}
+
+bool JsonObject::has_expressions(const std::string& key) const {
+  if (!has(key) || !j_.at(key).is_array()) return false;
+  for (const auto& e : j_.at(key))
+    if (e.is_string()) return true;
+  return false;
+}
+
+std::shared_ptr<const VectorField> JsonObject::vector_field(const std::string& key) {
+  if (!has(key)) return nullptr;
+  const auto& v = at(key);
+  if (!v.is_array() || v.size() != 3)
+    fail(key, "expected an array of 3 numbers or expressions, got " + show(v));
+  auto f = std::make_shared<VectorField>();
+  f->where = where(key);
+  for (int a = 0; a < 3; ++a) {
+    const auto& e = v[size_t(a)];
+    const std::string k = key + "/" + std::to_string(a);
+    std::string text;
+    if (e.is_number()) {
+      const double x = e.get<double>();
+      if (!std::isfinite(x)) fail(k, "expected a finite number, got " + show(e));
+      char buf[32];
+      std::snprintf(buf, sizeof buf, "%.17g", x);
+      text = buf;
+    } else if (e.is_string()) {
+      text = e.get<std::string>();
+    } else {
+      fail(k, "expected a number or an expression of x, y, z, got " + show(e));
+    }
+    try {
+      f->c[a] = Expression::parse(text);
+    } catch (const InputError& err) {
+      fail(k, std::string("expression ") + show(e) + ": " + err.what());
+    }
+    if (f->c[a].uses_time()) fail(k, "an initial value cannot depend on t");
+  }
+  return f;
 }
 
 JsonObject JsonObject::object(const std::string& key) {

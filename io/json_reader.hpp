@@ -2,12 +2,14 @@
 // with defaults and ranges, and finish() rejecting unknown keys. Internal to io/.
 #pragma once
 
+#include <memory>
 #include <nlohmann/json.hpp>
 #include <set>
 #include <string>
 #include <vector>
 
 #include "core/errors.hpp"
+#include "core/math/expression.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam::detail {
@@ -39,6 +41,11 @@ class JsonObject {
                      const std::vector<std::string>& allowed);
   Vec3 vec3(const std::string& key, const Vec3& def);
   Vec3 required_vec3(const std::string& key);
+  // An [x, y, z] array whose entries are numbers or expressions of x, y, z (strings,
+  // core/math/expression.hpp); null when absent. t is refused: these are initial values.
+  std::shared_ptr<const VectorField> vector_field(const std::string& key);
+  // Whether `key` is an array holding at least one string (an expression).
+  bool has_expressions(const std::string& key) const;
   JsonObject object(const std::string& key);
   std::vector<JsonObject> objects(const std::string& key);  // array of objects; empty if absent
   std::vector<std::string> keys() const;

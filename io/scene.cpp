@@ -154,7 +154,13 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
     o.fail("material", "unknown material \"" + mat + "\" (defined in /materials: " + known + ")");
   }
   s.material = it->second;
-  s.velocity = o.vec3("velocity", Vec3::Zero());
+  if (o.has_expressions("velocity"))
+    s.velocity_field = o.vector_field("velocity");
+  else
+    s.velocity = o.vec3("velocity", Vec3::Zero());
+  s.displacement_field = o.vector_field("displacement");
+  if (s.displacement_field && domains)
+    o.fail("displacement", "not with particle domains (their corners start on the lattice)");
   s.angular_velocity = o.vec3("angular_velocity", Vec3::Zero());
   // Peridynamics wants a regular lattice (its bond families and constants assume one).
   s.particles_per_cell = int(o.integer("particles_per_cell", peridynamics ? 1 : 8, 1, 64));
@@ -178,6 +184,8 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
     if (u != "adaptive" && (c.has("epsilon") || c.has("eta")))
       c.fail(c.has("epsilon") ? "epsilon" : "eta", "only used with \"update\": \"adaptive\"");
     c.finish();
+    if (s.displacement_field)
+      o.fail("displacement", "not with configuration maps (their reference starts undeformed)");
   }
   o.finish();
   return s;

@@ -26,6 +26,65 @@ std::vector<Collider> build_colliders(const SceneSpec& scene, const exec::Space&
 }
 
 namespace {
+// The value of `field` at x, or an InputError naming the field, the component and the position.
+Vec3d field_at(const VectorField& field, const Vec3d& x) {
+  const Vec3d v = field.at(x);
+  for (int a = 0; a < 3; ++a)
+    if (!std::isfinite(v[a]) || std::abs(v[a]) > 1e30)
+      throw InputError(field.where + "/" + std::to_string(a) + ": \"" + field.c[a].text() +
+                       "\" gives " + std::to_string(v[a]) + " at (" + std::to_string(x[0]) + ", " +
+                       std::to_string(x[1]) + ", " + std::to_string(x[2]) + ")");
+  return v;
+}
+// grad f at x (column j = d f / d x_j) by central differences of step h.
+Mat3 field_gradient(const VectorField& field, const Vec3d& x, double h) {
+  Mat3 g;
+  for (int j = 0; j < 3; ++j) {
+    const Vec3d e = h * Vec3d::Unit(j);
+    g.col(j) = ((field_at(field, x + e) - field_at(field, x - e)) / (2 * h)).cast<Real>();
+  }
+  return g;
+}
+
+// The object's velocity and displacement fields on its particles [first, end): v += f(X) (and C
+// += grad f, the affine velocity APIC and MLS carry), x = X + u(X) held as x + x_lo, F = I + grad u.
+void apply_fields(const ObjectSpec& obj, MpmSolver& solver, std::size_t first, double dx) {
+  ParticleSet& ps = solver.particles();
+  const MpmAttributes& a = solver.attributes();
+  Vec3* x = ps.vec3(a.x);
+  Vec3* lo = ps.vec3(a.x_lo);
+  Vec3* v = ps.vec3(a.v);
+  Mat3* C = ps.mat3(a.C);
+  Mat3* F = ps.mat3(a.F);
+  const double h = 1e-3 * dx;
+  for (std::size_t p = first; p < ps.size(); ++p) {
+    const Vec3d X = x[p].cast<double>() + lo[p].cast<double>();
+    if (obj.velocity_field) {
+      v[p] += field_at(*obj.velocity_field, X).cast<Real>();
+      C[p] += field_gradient(*obj.velocity_field, X, h);
+    }
+    if (obj.displacement_field) {
+      const Vec3d y = X + field_at(*obj.displacement_field, X);
+      x[p] = y.cast<Real>();
+      lo[p] = (y - x[p].cast<double>()).cast<Real>();
+      F[p] = Mat3::Identity() + field_gradient(*obj.displacement_field, X, h);
+    }
+  }
+}
+
+// Peridynamics: v += f(X); x = X + u(X) with the reference (x0, the bonds') left at X.
+void apply_fields(const ObjectSpec& obj, PdSolver& solver, std::size_t first) {
+  ParticleSet& ps = solver.particles();
+  Vec3* x = ps.vec3(solver.attributes().x);
+  const Vec3* x0 = ps.vec3(solver.attributes().x0);
+  Vec3* v = ps.vec3(solver.attributes().v);
+  for (std::size_t p = first; p < ps.size(); ++p) {
+    const Vec3d X = x0[p].cast<double>();
+    if (obj.velocity_field) v[p] += field_at(*obj.velocity_field, X).cast<Real>();
+    if (obj.displacement_field) x[p] = (X + field_at(*obj.displacement_field, X)).cast<Real>();
+  }
+}
+
 // An object that samples no particle would silently be missing from the run.
 void check_sampled(const std::vector<Vec3>& x, std::size_t k, Real dx) {
   if (x.empty())
@@ -46,6 +105,7 @@ MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
     const std::size_t first = solver.particles().size();
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol,
                          obj.temperature, obj.configuration);
+    apply_fields(obj, solver, first, double(scene.mpm.dx));
     if (scene.mpm.domains.enabled) {
       const Real h = Real(double(scene.mpm.dx) / std::cbrt(double(obj.particles_per_cell)));
       if (obj.mesh)  // the mesh is embedded in the domains and written deformed every frame (Sec. 4.1)
@@ -67,13 +127,16 @@ PdSolver build_pd_solver(const SceneSpec& scene, const exec::Space& space) {
       tet_barycentres(*obj.tets, x, vol);
       const auto first = std::uint32_t(solver.particles().size());
       solver.add_particles(x, vol, obj.velocity, obj.angular_velocity, obj.center, obj.material);
+      apply_fields(obj, solver, first);
       solver.add_crack_mesh(obj.tets->nodes, obj.tets->tets, first);  // crack surfaces (Sec. 5.2)
       continue;
     }
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol, space);
     check_sampled(x, k, scene.mpm.dx);
+    const std::size_t first = solver.particles().size();
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);
+    apply_fields(obj, solver, first);
   }
   for (const auto& b : scene.pd_boundaries) {
     if (b.load)

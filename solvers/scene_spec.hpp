@@ -11,6 +11,7 @@
 #include "core/geometry/colliders.hpp"
 #include "core/geometry/tet_mesh.hpp"
 #include "core/geometry/triangle_mesh.hpp"
+#include "core/math/expression.hpp"
 #include "core/materials/material.hpp"
 #include "solvers/mpm_solver.hpp"
 #include "solvers/pd_solver.hpp"
@@ -32,6 +33,11 @@ struct ObjectSpec {
   int material = 0;
   Vec3 velocity = Vec3::Zero();
   Vec3 angular_velocity = Vec3::Zero();
+  // Initial velocity and displacement as functions of the (sampled) position, when given as
+  // expressions: the velocity field replaces `velocity`; the displacement moves each particle
+  // from its sampled position X to X + u(X) with F = I + grad u (peridynamics: the bonds keep X as
+  // their reference, so the body starts strained).
+  std::shared_ptr<const VectorField> velocity_field, displacement_field;
   int particles_per_cell = 8;
   Real jitter = Real(0.5);  // fraction of the lattice spacing
   std::uint64_t seed = 1;

@@ -344,3 +344,63 @@ TEST(TetMesh, BadFilesNameFileAndLine) {
             std::string::npos)
       << error_of(mpm);
 }
+
+// Initial velocity and displacement as expressions of the position (issue 27): each particle
+// gets v = f(X), C = grad f, x = X + u(X) (with its low part) and F = I + grad u; peridynamics
+// keeps X as the reference. Bad expressions name the file, the path and the component.
+TEST(Scene, VelocityAndDisplacementExpressions) {
+  const std::string text =
+      replace(kGood, "\"material\": \"jelly\"}",
+              "\"material\": \"jelly\", \"velocity\": [\"0\", 2, \"1e-3*cos(pi*x/0.1)\"], "
+              "\"displacement\": [\"1e-4*y\", 0, 0]}");
+  MpmSolver s = build_solver(parse_scene(text, "s.json"));
+  const ParticleSet& ps = s.particles();
+  const MpmAttributes& a = s.attributes();
+  ASSERT_GT(ps.size(), 0u);
+  for (std::size_t p = 0; p < ps.size(); ++p) {
+    const Vec3d x = ps.vec3(a.x)[p].cast<double>() + ps.vec3(a.x_lo)[p].cast<double>();
+    const double X = x[0] - 1e-4 * x[1];  // u depends on y only, which is not displaced
+    EXPECT_NEAR(ps.vec3(a.v)[p][2], 1e-3 * std::cos(M_PI * X / 0.1), 1e-9);
+    EXPECT_EQ(ps.vec3(a.v)[p][1], Real(2));
+    EXPECT_NEAR(ps.mat3(a.C)[p](2, 0), -1e-3 * M_PI / 0.1 * std::sin(M_PI * X / 0.1), 1e-6);
+    EXPECT_NEAR(ps.mat3(a.F)[p](0, 1), 1e-4, 1e-7);
+    EXPECT_NEAR(ps.mat3(a.F)[p](0, 0), 1, 1e-7);
+  }
+  const std::string pd = R"({
+  "simulation": {"method": "peridynamics", "dx": 0.05, "frames": 2},
+  "materials": {"glass": {"model": "peridynamic", "density": 2200, "youngs_modulus": 1e9}},
+  "objects": [{"shape": "box", "min": [0,0,0], "max": [0.3,0.2,0.2], "material": "glass",
+               "velocity": ["x", 0, 0], "displacement": ["1e-3*x", 0, 0]}]
+})";
+  PdSolver q = build_pd_solver(parse_scene(pd, "pd.json"), exec::Space());
+  const Vec3* x = q.particles().vec3(q.attributes().x);
+  const Vec3* x0 = q.particles().vec3(q.attributes().x0);
+  const Vec3* v = q.particles().vec3(q.attributes().v);
+  for (std::size_t p = 0; p < q.particles().size(); ++p) {
+    EXPECT_FLOAT_EQ(x[p][0], x0[p][0] * Real(1.001));
+    EXPECT_FLOAT_EQ(v[p][0], x0[p][0]);
+  }
+  const auto bad = [&](const std::string& value) {
+    return error_of(replace(kGood, "\"material\": \"jelly\"}",
+                            "\"material\": \"jelly\", \"velocity\": " + value + "}"));
+  };
+  const std::string unknown = bad("[\"0\", \"sinx(1)\", 0]"), timed = bad("[\"0\", \"0\", \"t\"]"),
+                    nested = bad("[\"0\", [1], 0]"), short2 = bad("[\"0\", \"0\"]");
+  EXPECT_NE(unknown.find("s.json: /objects/0/velocity/1: expression"), std::string::npos)
+      << unknown;
+  EXPECT_NE(timed.find("/objects/0/velocity/2: an initial value cannot"), std::string::npos);
+  EXPECT_NE(nested.find("/objects/0/velocity/1: expected a number or"), std::string::npos);
+  EXPECT_NE(short2.find("/objects/0/velocity: expected an array of 3"), std::string::npos);
+  // A value that is not finite on some particle is refused at set-up, naming where.
+  try {
+    build_solver(
+        parse_scene(replace(kGood, "\"material\": \"jelly\"}",
+                            "\"material\": \"jelly\", \"velocity\": [\"log(x-0.5)\", 0, 0]}"),
+                    "s.json"));
+    FAIL();
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find("s.json: /objects/0/velocity/0: \"log(x-0.5)\" gives"),
+              std::string::npos)
+        << e.what();
+  }
+}
