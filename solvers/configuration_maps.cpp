@@ -100,12 +100,16 @@ void ConfigurationMaps::reset(const exec::Space& space, ParticleSet& ps,
   });
 }
 
-void ConfigurationMaps::account(const std::vector<std::uint8_t>& reset, double seconds) {
-  std::size_t total = 0;
+void ConfigurationMaps::account(const std::vector<std::uint8_t>& reset, double check,
+                                double seconds) {
+  std::size_t total = 0, all = 0;
   for (size_t k = 0; k < policy_.size(); ++k) {
     ++stats_[k].steps;
+    all += count_[k];
     if (reset.size() > k && reset[k]) total += count_[k];
   }
+  for (size_t k = 0; k < policy_.size(); ++k)
+    stats_[k].check_seconds += all ? check * double(count_[k]) / double(all) : 0.0;
   for (size_t k = 0; k < policy_.size(); ++k) {
     if (reset.size() <= k || !reset[k]) continue;
     ++stats_[k].updates;

@@ -43,6 +43,7 @@ struct ConfigurationStats {
   std::uint64_t updates = 0;  // configuration resets
   std::uint64_t steps = 0;    // substeps the object took part in
   double update_seconds = 0;  // its share (by particle count) of reset + re-binning time
+  double check_seconds = 0;   // its share of the criterion check (eq. 33), taken every substep
 };
 
 struct ConfigurationAttributes {
@@ -71,8 +72,9 @@ class ConfigurationMaps {
   void reset(const exec::Space& space, ParticleSet& ps, const ConfigurationAttributes& a,
              ParticleSet::Id x, ParticleSet::Id F, ParticleSet::Id C, Real dx,
              const std::vector<std::uint8_t>& reset);
-  // Books a substep and the time its resets and re-binning took (split by particle count).
-  void account(const std::vector<std::uint8_t>& reset, double seconds);
+  // Books one substep: `check` seconds deciding (every object's share by particle count) and
+  // `seconds` resetting and re-binning (the resetting objects' shares).
+  void account(const std::vector<std::uint8_t>& reset, double check, double seconds);
 
  private:
   std::vector<ConfigurationPolicy> policy_;

@@ -39,6 +39,7 @@ void MpmAul::update_configurations(const exec::Space& space, MpmSolver& mpm) {
   const auto t0 = std::chrono::steady_clock::now();
   ParticleSet& ps = mpm.particles_;
   const bool any = maps_.decide(space, ps, cattr_, reset_flags_);
+  const auto t1 = std::chrono::steady_clock::now();
   if (any)
     maps_.reset(space, ps, cattr_, mpm.attr_.x, mpm.attr_.F, mpm.attr_.C, mpm.settings_.dx,
                 reset_flags_);
@@ -51,8 +52,9 @@ void MpmAul::update_configurations(const exec::Space& space, MpmSolver& mpm) {
       contact_.map_leaves(space, mpm.grid_, mpm.bins_, ps.int32(cattr_.object));
     bins_valid_ = true;
   }
-  maps_.account(reset_flags_,
-                std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count());
+  using seconds = std::chrono::duration<double>;
+  maps_.account(reset_flags_, seconds(t1 - t0).count(),
+                seconds(std::chrono::steady_clock::now() - t1).count());
 }
 
 void MpmAul::couple_objects(const exec::Space& space, MpmSolver& mpm, Real dt) {

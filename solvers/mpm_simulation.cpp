@@ -162,8 +162,8 @@ std::string MpmSimulation::run_summary(double wall) const {
     const ConfigurationStats& st = maps.stats(k);
     os << "amalgam: object " << k << " (" << configuration_update_name(maps.policy(k).update)
        << "): " << st.updates << " configuration updates in " << st.steps << " substeps, "
-       << st.update_seconds << " s updating (" << 100.0 * st.update_seconds / wall
-       << " % of the run)\n";
+       << st.update_seconds << " s updating + " << st.check_seconds << " s checking the criterion ("
+       << 100.0 * (st.update_seconds + st.check_seconds) / wall << " % of the run)\n";
   }
   if (s_.enriched())
     os << "amalgam: particle domains: " << s_.enriched()->domains().corner_count()
