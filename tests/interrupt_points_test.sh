@@ -16,13 +16,21 @@ run --out "$out/ref" || { echo "reference run failed"; exit 1; }
 mapfile -t per_frame < <(awk -F, 'NR == 1 { for (i = 1; i <= NF; ++i) if ($i == "substeps") c = i; next } { print $c }' "$out/ref/diagnostics.csv")
 [ "${#per_frame[@]}" -eq "$frames" ] || { echo "reference diagnostics has ${#per_frame[@]} rows, expected $frames"; exit 1; }
 s1=${per_frame[0]} s2=${per_frame[1]}
+# Samples (output.every_substeps): one row per sampled substep, steps strictly increasing (a
+# retried frame's samples are removed with it).
+if [ -f "$out/ref/samples.csv" ]; then
+  awk -F, 'NR > 1 { if ($2 <= last) { print "samples.csv: step " $2 " after " last; bad = 1 } last = $2 } END { exit bad }' "$out/ref/samples.csv" \
+    || { echo "samples.csv of the reference run repeats or reorders substeps"; exit 1; }
+fi
 points=(1 $(( (s1 + 1) / 2 )) "$s1" $(( s1 + 1 )) $(( s1 + (s2 + 1) / 2 )) $(( s1 + s2 )))
 # A scene with a retried frame: also interrupt inside the retry (substeps of failed attempts count,
 # so "total + 3" lands after the failure, in the retried attempt).
 total=0
 for s in "${per_frame[@]}"; do total=$(( total + s )); done
 [ -n "${EXTRA_POINTS:-}" ] && points+=(${EXTRA_POINTS})
-files() { (cd "$1" && ls | grep -vE '^(diagnostics\.csv|checkpoint\.amck|implicit_steps\.csv)$' | sort); }
+# Frame and sample files; the logs (diagnostics, samples.csv, implicit steps) are cut back to the
+# checkpoint on resume, so only their final contents are compared (below).
+files() { (cd "$1" && find . -type f | sed 's|^\./||' | grep -vE '^(diagnostics\.csv|checkpoint\.amck|implicit_steps\.csv|samples\.csv)$' | sort); }
 checked=0
 for p in "${points[@]}"; do
   d="$out/at_$p"
@@ -42,6 +50,9 @@ for p in "${points[@]}"; do
   for f in $(files "$out/ref"); do
     cmp -s "$out/ref/$f" "$d/$f" || { echo "point $p: $f differs from the uninterrupted run"; exit 1; }
   done
+  if [ -f "$out/ref/samples.csv" ]; then
+    cmp -s "$out/ref/samples.csv" "$d/samples.csv" || { echo "point $p: samples.csv differs from the uninterrupted run"; exit 1; }
+  fi
   checked=$(( checked + 1 ))
 done
 # During set-up (injected once the simulation is built, AMALGAM_TEST_SIGINT_IN_SETUP): the
