@@ -89,8 +89,9 @@ ColumnResult settle_column(const Vec3d& floor) {
   }
   r.measured = sum / samples;
   r.spread = std::sqrt(std::max(0.0, sq / samples - r.measured * r.measured));
-  std::printf("column at (%g, %g, %g): compression %.4e m (sd %.1e), analytic %.4e m, %+.2f %%\n",
-              floor[0], floor[1], floor[2], r.measured, r.spread, r.analytic, 100 * r.error());
+  std::printf(
+      "column at (%.9g, %.9g, %.9g): compression %.4e m (sd %.1e), analytic %.4e m, %+.2f %%\n",
+      floor[0], floor[1], floor[2], r.measured, r.spread, r.analytic, 100 * r.error());
   return r;
 }
 
