@@ -195,6 +195,13 @@ TEST(Checkpoint, FieldsAreCheckedAgainstTheSceneDespiteAValidChecksum) {
   EXPECT_NE(error_of(with_field(good, x + sizeof(Real), std::numeric_limits<Real>::infinity()))
                 .find("attribute 'x' of particle 0 is not finite"),
             std::string::npos);
+  // A low part larger than its position's last bit (issue 27's compensated x) would move the
+  // particle at its next substep.
+  const std::size_t lo = attribute_data_at(good, "x_lo");
+  ASSERT_NE(lo, std::string::npos);
+  EXPECT_NE(error_of(with_field(good, lo + 4 * sizeof(Real), Real(1e-3)))
+                .find("attribute 'x_lo' of particle 1 is"),
+            std::string::npos);
   std::remove(path.c_str());
   std::remove(bad.c_str());
 }
