@@ -68,18 +68,25 @@ void MpmSimulation::begin_frame() {
   if (s_.enriched()) s_.enriched()->domains().reset_counters();
 }
 
-std::vector<Column> MpmSimulation::sample(const exec::Space& space) const {
-  const MpmDiagnostics d = s_.diagnostics(space);
+namespace {
+// The physical state's columns (diagnostics.csv and samples.csv share them).
+std::vector<Column> state_columns(const MpmDiagnostics& d) {
   return {{"kinetic_J", d.kinetic},      {"elastic_J", d.elastic},
           {"momentum_x", d.momentum[0]}, {"momentum_y", d.momentum[1]},
           {"momentum_z", d.momentum[2]}, {"max_speed_m_s", d.max_speed}};
 }
+}  // namespace
+
+std::vector<Column> MpmSimulation::sample(const exec::Space& space) const {
+  return state_columns(s_.diagnostics(space));
+}
 
 FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substeps) {
+  const MpmDiagnostics d = s_.diagnostics(space);
   FrameReport r;
-  r.columns = sample(space);
-  r.kinetic = r.columns[0].value;
-  r.max_speed = r.columns[5].value;
+  r.columns = state_columns(d);
+  r.kinetic = d.kinetic;
+  r.max_speed = d.max_speed;
   const ImplicitCounters ic = s_.implicit() ? s_.implicit()->counters() : ImplicitCounters();
   const DomainCounters dc = s_.enriched() ? s_.enriched()->domains().counters() : DomainCounters();
   const double enriched = dc.steps ? dc.enriched_fraction_sum / double(dc.steps) : 0.0;
