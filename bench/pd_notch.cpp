@@ -6,7 +6,8 @@
 // LAMMPS peri/lps peer of the same bar is bench/pd_notch.lmp.
 //
 //   amalgam_pd_notch [--nx 60 --ny 10 --nz 10 --notch 3 --endlayers 1 --vend 12] [--s00 1e-3]
-//                    [--crit classical|paper] [--form paper|lps] [--corr 1] [--contact 1]
+//                    [--crit classical|paper] [--model paper|lps] [--form paper|lps] [--corr 1]
+//                    [--contact 1] [--cd 0.9 (contact distance / lc; LAMMPS: 1.35)]
 //                    [--fracture 1] [--dtf 1 | --dt SECONDS] [--tend 2e-3] [--every 1e-4]
 //                    [--vprof ends|linear] [--shift 0] [--threads 2]
 #include <cmath>
@@ -24,7 +25,7 @@ int main(int argc, char** argv) {
   double lc = 0.01, dtf = 1.0, dt_abs = 0, tend = 2e-3, every = 1e-4, vend = 12, s00 = 1e-3,
          cd = 0.9;
   double shift = 0;  // lattice origin shift (0: centred, mirror exact)
-  std::string crit = "classical", form = "paper", mode = "notch", vprof = "ends";
+  std::string crit = "classical", form = "paper", mode = "notch", vprof = "ends", model = "paper";
   for (int i = 1; i + 1 < argc; i += 2) {
     std::string a = argv[i];
     const char* v = argv[i + 1];
@@ -68,6 +69,8 @@ int main(int argc, char** argv) {
       crit = v;
     else if (a == "--form")
       form = v;
+    else if (a == "--model")
+      model = v;
     else if (a == "--vprof")
       vprof = v;
     else {
@@ -79,8 +82,9 @@ int main(int argc, char** argv) {
   PdSettings s;
   s.spacing = Real(lc);
   s.horizon = Real(3.015 * lc);
-  s.deviatoric = form == "paper" ? PdDeviatoric::Paper : PdDeviatoric::Lps;
-  s.surface_correction = corr;
+  s.model = model == "lps" ? PdModel::Lps : PdModel::Paper;
+  s.deviatoric = form == "paper" && model != "lps" ? PdDeviatoric::Paper : PdDeviatoric::Lps;
+  s.surface_correction = corr && model != "lps";
   s.partial_volume = true;
   s.fracture = fracture;
   s.criterion = crit == "classical" ? PdCriterion::Classical : PdCriterion::Paper;
@@ -130,6 +134,9 @@ int main(int argc, char** argv) {
   const Vec3* px = solver.particles().vec3(solver.attributes().x);
   const Real* dmg = solver.particles().real(solver.attributes().damage);
   printf("# particles %zu bonds %zu dt %.4g\n", x.size(), solver.bonds().size(), double(dt0));
+  // dmgL, dmgR: damage sums of the two halves; with equal particle volumes the same quantity as
+  // LAMMPS's compute damage/atom (1 - intact share of the family's volumes vfrac_j), so the
+  // columns compare directly with bench/pd_notch.lmp's c_dl c_dr.
   printf("# t_ms broken KE_J vmax vmax_x0 vmax_y0 dmgL dmgR mirr_x_rel mirr_v_rel\n");
   const long nsteps = long(std::ceil(tend / dt0)),
              pe = std::max(1L, long(std::llround(every / dt0)));

@@ -74,10 +74,21 @@ void read_pd_simulation(JsonObject& sim, Scene& s) {
   {
     JsonObject p = sim.object("peridynamics");
     const double factor = p.number("horizon_factor", 3.015, 1, 8, true);
-    s.pd.deviatoric = p.choice("deviatoric", "paper", {"paper", "lps"}) == "paper"
+    // "model": "paper" (Chen et al. 2018, corrected) or "lps" (Silling et al. 2007, as LAMMPS
+    // peri/lps: its own normaliser per particle, LPS deviatoric extension, no fitted correction).
+    s.pd.model =
+        p.choice("model", "paper", {"paper", "lps"}) == "paper" ? PdModel::Paper : PdModel::Lps;
+    const bool lps = s.pd.model == PdModel::Lps;
+    if (lps && p.has("deviatoric") && p.string("deviatoric", "lps") != "lps")
+      p.fail("deviatoric", "the \"lps\" model uses the LPS deviatoric extension (omit the key)");
+    s.pd.deviatoric = p.choice("deviatoric", lps ? "lps" : "paper", {"paper", "lps"}) == "paper"
                           ? PdDeviatoric::Paper
                           : PdDeviatoric::Lps;
-    s.pd.surface_correction = p.boolean("surface_correction", true);
+    if (lps && p.has("surface_correction") && p.boolean("surface_correction", false))
+      p.fail("surface_correction",
+             "the \"lps\" model normalises each particle by its own family (m_i); the fitted "
+             "correction belongs to \"model\": \"paper\"");
+    s.pd.surface_correction = p.boolean("surface_correction", !lps);
     s.pd.partial_volume = p.boolean("partial_volume", true);
     // "fracture": true / false, or {"enabled": true, "criterion": "paper" | "classical"}
     if (p.has_object("fracture")) {

@@ -19,6 +19,10 @@ const char* pd_deviatoric_name(PdDeviatoric d) {
   return d == PdDeviatoric::Paper ? "paper" : "lps";
 }
 
+const char* pd_model_name(PdModel m) {
+  return m == PdModel::Paper ? "paper" : "lps";
+}
+
 const char* pd_criterion_name(PdCriterion c) {
   return c == PdCriterion::Paper ? "paper" : "classical";
 }
@@ -351,6 +355,23 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
     double m = m_cont, kappa = delta / 4;
     std::uint8_t fitted = 0;
+    const PdMaterial& mat = prm.materials[material[i]];
+    if (prm.model == PdModel::Lps) {  // Silling et al. 2007: m_i over the particle's own family
+      double ml = 0;
+      for (std::uint64_t k = k0; k < k1; ++k) {
+        const double L = double(bonds.length[k]);
+        ml += double(bonds.omega[k]) * L * L * double(bonds.volume[k]);
+        bonds.shear_omega[k] = bonds.omega[k];
+      }
+      // A particle without bonds feels no bond force (a = b = 0 rather than a division by 0).
+      out.m[i] = Real(ml > 0 ? ml : m_cont * delta);
+      out.a[i] = ml > 0 ? Real(1.5 * double(mat.bulk) / ml) : Real(0);
+      out.b[i] = ml > 0 ? Real(7.5 * double(mat.shear) / ml) : Real(0);
+      out.kappa[i] = 0;
+      out.bonds0[i] = std::int32_t(k1 - k0);
+      out.fitted[i] = 0;
+      return;
+    }
     if (surface_correction && k1 > k0) {
       const std::size_t nb = std::size_t(k1 - k0);
       std::vector<double> w(nb), L(nb), g, f;
@@ -427,7 +448,6 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     } else {
       for (std::uint64_t k = k0; k < k1; ++k) bonds.shear_omega[k] = bonds.omega[k];
     }
-    const PdMaterial& mat = prm.materials[material[i]];
     // With the consistent term (PdParams::consistent), the paper's e^d is not zero under a
     // dilation (e^d = eps (L - 3 kappa) bond by bond), so q adds a dilatational stiffness: under
     // theta = 3 eps, q = (b / m) theta sum_j shear_omega (L - 3 d) d V_j (d = kappa; 0 for LPS,
@@ -570,7 +590,7 @@ void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t k
 
 // e, Lambda (eqs. 3, 6) and the terms of theta (eq. 5) and of the consistent sums (see header):
 // w = shear_omega V d with d = kappa Lambda (paper) or L / 3 (LPS).
-template <bool Paper, bool Plastic>
+template <bool Paper, bool Plastic, bool Lps>
 void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
   for (int m = 0; m < n; ++m) {  // vectorised
     const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
@@ -582,7 +602,9 @@ void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
     const Real lambda =
         live * ((B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) / (l * L));
     B.e[m] = e, B.lambda[m] = lambda, B.ok[m] = live;
-    B.t[m] = S.omega[m] * e * lambda * S.vol[m];  // omega s Lambda |xi| V (eq. 5), s = e / |xi|
+    // omega s Lambda |xi| V (eq. 5), s = e / |xi|; PdModel::Lps: omega |xi| e V (Silling et al.
+    // 2007 eq. 4.3)
+    B.t[m] = S.omega[m] * e * (Lps ? L : lambda) * S.vol[m];
     const Real d = Paper ? kappa * lambda : L / Real(3);
     const Real w = live * (S.shear[m] * S.vol[m] * d);
     B.w1[m] = w * e, B.w2[m] = w * d;
@@ -623,6 +645,19 @@ void with_flag(bool flag, Fn&& fn) {
     fn(std::false_type{});
 }
 
+// fn(paper, lps) with the model's form as template arguments: the paper's deviatoric extension
+// (Paper), the dilatation along |xi| instead of Lambda (Lps: PdModel::Lps, whose deviatoric
+// extension is always LPS's). Three combinations, so three instantiations, not four.
+template <class Fn>
+void with_form(const PdParams& prm, Fn&& fn) {
+  if (prm.model == PdModel::Lps)
+    fn(std::false_type{}, std::true_type{});
+  else if (prm.deviatoric == PdDeviatoric::Paper)
+    fn(std::true_type{}, std::false_type{});
+  else
+    fn(std::false_type{}, std::false_type{});
+}
+
 // n records of type Rec in the caller's scratch (reused, not zeroed: every record is written
 // before it is read), or in `local` when there is none.
 template <class Rec>
@@ -646,8 +681,9 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
     ::new (static_cast<void*>(recs + i))
         PosRec{{p.x[i][0], p.x[i][1], p.x[i][2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
   });
-  auto kernel = [&](auto paper_c, auto plastic_c) {
+  auto kernel = [&](auto paper_c, auto plastic_c, auto lps_c) {
     constexpr bool Paper = decltype(paper_c)::value, Plastic = decltype(plastic_c)::value;
+    constexpr bool Lps = decltype(lps_c)::value;
     exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
@@ -664,7 +700,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       auto load = [&](std::uint64_t kb) {
         const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
         gather_dilatation(recs, bonds, kb, n, sub_y, sub_x0, B);
-        dilatation_block<Paper, Plastic>(B, slice(kb), n, kap);
+        dilatation_block<Paper, Plastic, Lps>(B, slice(kb), n, kap);
         return n;
       };
       const PdMaterial& mat = prm.materials[p.material[i]];
@@ -708,8 +744,8 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       if (consistent) p.q[i] = qscale * Q;  // with the returned plastic extensions
     });
   };
-  with_flag(prm.deviatoric == PdDeviatoric::Paper, [&](auto paper_c) {
-    with_flag(prm.plastic, [&](auto plastic_c) { kernel(paper_c, plastic_c); });
+  with_form(prm, [&](auto paper_c, auto lps_c) {
+    with_flag(prm.plastic, [&](auto plastic_c) { kernel(paper_c, plastic_c, lps_c); });
   });
 }
 
@@ -748,7 +784,7 @@ struct BondSlice {
   const std::uint8_t* live;
 };
 
-template <bool Paper, bool Fracture, bool Plastic>
+template <bool Paper, bool Fracture, bool Plastic, bool Lps>
 void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Real delta,
                  bool classical) {
   for (int m = 0; m < n; ++m) {  // vectorised: no branches, no gathers
@@ -761,10 +797,10 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
     const Real e = l - L;
     const Real lambda = (B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) * inv;
     const Real g = Paper ? lambda : L;
-    // eqs. 3, 7, 11 from each end of the bond
-    const Real aij =
-        Real(4) * (S.omega[m] * lambda * r.dil + S.shear[m] * r.b * (e - r.c * g - epi));
-    const Real aji = Real(4) * (S.omega_r[m] * lambda * B.dil_j[m] +
+    const Real gd = Lps ? L : lambda;  // the dilatational term's direction factor
+    // eqs. 3, 7, 11 from each end of the bond (PdModel::Lps: 2 t_ij of Silling et al. 2007 eq. 4.5)
+    const Real aij = Real(4) * (S.omega[m] * gd * r.dil + S.shear[m] * r.b * (e - r.c * g - epi));
+    const Real aji = Real(4) * (S.omega_r[m] * gd * B.dil_j[m] +
                                 S.shear_r[m] * B.b_j[m] * (e - B.c_j[m] * g - epj));
     // Dead bonds: times 0 (not a select, which would make the per-bond loads conditional and stop
     // the vectorisation); their operands are finite (l = 1 stands in when l2 = 0).
@@ -784,7 +820,7 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
 void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
                bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch) {
   const Real delta = prm.horizon;
-  const bool paper = prm.deviatoric == PdDeviatoric::Paper;
+  const bool paper = prm.model == PdModel::Paper && prm.deviatoric == PdDeviatoric::Paper;
   const bool classical = prm.criterion == PdCriterion::Classical;
   const PdMaterial* mats = prm.materials;
   const bool consistent = prm.consistent;
@@ -804,9 +840,9 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
                                                   {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]},
                                                   {c, crit, 0, 0}};
   });
-  auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c) {
+  auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c, auto lps_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
-    constexpr bool Plastic = decltype(plastic_c)::value;
+    constexpr bool Plastic = decltype(plastic_c)::value, Lps = decltype(lps_c)::value;
     exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
@@ -833,7 +869,7 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
                           bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
                           bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
                           bonds.intact.data() + kb};
-        force_block<Paper, Fracture, Plastic>(B, S, n, ri, delta, classical);
+        force_block<Paper, Fracture, Plastic, Lps>(B, S, n, ri, delta, classical);
         const std::uint8_t* lane = bonds.lane.data() + kb;
         lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
             lane_sum(B.fz, lane, dense, n, az);
@@ -853,9 +889,10 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
       if (stress) stress[i] = s;
     });
   };
-  with_flag(paper, [&](auto paper_c) {
+  with_form(prm, [&](auto paper_c, auto lps_c) {
     with_flag(fracture, [&](auto fracture_c) {
-      with_flag(prm.plastic, [&](auto plastic_c) { kernel(paper_c, fracture_c, plastic_c); });
+      with_flag(prm.plastic,
+                [&](auto plastic_c) { kernel(paper_c, fracture_c, plastic_c, lps_c); });
     });
   });
 }

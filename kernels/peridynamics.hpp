@@ -34,6 +34,19 @@ namespace amalgam {
 enum class PdDeviatoric : std::uint8_t { Paper, Lps };
 const char* pd_deviatoric_name(PdDeviatoric d);
 
+// Which constitutive model.
+//  Paper: the paper's ordinary state-based model (eqs. 2-9): theta_i = (3 / m) sum_j omega e Lambda
+//         V_j with the continuum m = 4 pi delta^4 / 3 (omega = delta / L), the dilatational term of
+//         A_ij along Lambda; with the surface correction by default (PdConstants).
+//  Lps:   the linear peridynamic solid (Silling, Epton, Weckner, Xu, Askari 2007, eqs. 4.3-4.5 and
+//         the form LAMMPS's pair peri/lps implements): m_i = sum_j omega L^2 V_j over the
+//         particle's own family at t = 0 (so theta is exact under a dilation at surfaces too),
+//         theta_i = (3 / m_i) sum_j omega L e V_j, t_ij = (3 kappa theta_i omega L + 15 mu omega
+//         e^d) / m_i with e^d = e - theta L / 3. No fitted correction. The model the LAMMPS
+//         comparisons of docs/validation.md run.
+enum class PdModel : std::uint8_t { Paper, Lps };
+const char* pd_model_name(PdModel m);
+
 // Bond-breaking criterion.
 //  Paper:     eq. 18, (e - e^p) / delta > s_c (1 + alpha phi): the extension over the horizon, so
 //             at a given s_c a bond of length L breaks at the bond stretch s_c delta / L.
@@ -102,7 +115,8 @@ struct PdBonds {
 struct PdParams {
   Real horizon = Real(0.03);  // delta
   Real spacing = Real(0.01);  // lattice spacing lc (partial volumes, contact distance)
-  PdDeviatoric deviatoric = PdDeviatoric::Paper;
+  PdModel model = PdModel::Paper;
+  PdDeviatoric deviatoric = PdDeviatoric::Paper;  // PdModel::Lps: always Lps
   PdCriterion criterion = PdCriterion::Paper;
   const PdMaterial* materials = nullptr;
   // Energy-consistent forces (with the surface correction): A_ij gains the derivative of the
@@ -124,6 +138,9 @@ struct PdParams {
 //   b_i = 15 mu / (2 pi delta^5) (eq. 9); bond ij's deviatoric stiffness is 4 b_i shear_omega_ij;
 //   kappa_i: the delta / 4 of e^d = e - kappa Lambda theta (eq. 8).
 // Without the correction omega is eq. 16's, shear_omega = omega, m and kappa the continuum values.
+// PdModel::Lps: omega is eq. 16's, shear_omega = omega, m_i = sum_j omega L^2 V_j (its own family),
+// a_i = 3 kappa / (2 m_i), b_i = 15 mu / (2 m_i) (A_ij = 2 t_ij of Silling et al. 2007), kappa_i
+// unused (e^d = e - theta L / 3).
 //
 // The surface/lattice correction (option, on by default) makes every particle's own stress
 // 1/2 sum_j A_ij (eta/l) (x) xi V_j exact for every homogeneous deformation, at interior and

@@ -13,7 +13,8 @@ PdSimulation::PdSimulation(PdSolver solver, const exec::Space& space) : s_(std::
   std::ostringstream os;
   os << "peridynamics, " << np << " particles, " << d.bonds << " directed bonds ("
      << double(d.bonds) / double(std::max<std::size_t>(1, np)) << " per particle), spacing "
-     << s_.settings().spacing << " m, horizon " << s_.settings().horizon << " m, deviatoric "
+     << s_.settings().spacing << " m, horizon " << s_.settings().horizon << " m, model "
+     << pd_model_name(s_.settings().model) << ", deviatoric "
      << pd_deviatoric_name(s_.settings().deviatoric) << ", fracture "
      << (s_.settings().fracture ? pd_criterion_name(s_.settings().criterion) : "off")
      << ", stable dt " << s_.stable_dt(space) << " s";

@@ -37,9 +37,15 @@ PdSolver::PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials
   attr_ = PdAttributes::add_to(particles_);
   params_.horizon = settings_.horizon;
   params_.spacing = settings_.spacing;
+  if (settings_.model == PdModel::Lps &&
+      (settings_.surface_correction || settings_.deviatoric != PdDeviatoric::Lps))
+    throw std::invalid_argument(
+        "PdSolver: the LPS model has its own normalisation (m_i) and deviatoric extension: "
+        "surface_correction off and deviatoric lps");
+  params_.model = settings_.model;
   params_.deviatoric = settings_.deviatoric;
   params_.criterion = settings_.criterion;
-  params_.consistent = settings_.surface_correction;
+  params_.consistent = settings_.surface_correction && settings_.model == PdModel::Paper;
 }
 
 void PdSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v, const Vec3& omega,

@@ -24,6 +24,8 @@ namespace amalgam {
 struct PdSettings {
   Real spacing = Real(0.01);    // lattice spacing lc of the particles (m)
   Real horizon = Real(0.0301);  // delta (m); 3.01 lc by default
+  // PdModel::Lps (LAMMPS peri/lps's model) needs deviatoric Lps and surface_correction off.
+  PdModel model = PdModel::Paper;
   PdDeviatoric deviatoric = PdDeviatoric::Paper;
   bool partial_volume = true;      // nu_ij for bonds cut by the horizon
   bool surface_correction = true;  // discrete theta normaliser and shear factor (see PdConstants)

@@ -389,6 +389,85 @@ TEST(PdFracture, NoBondBreaksBelowTheCriticalStretch) {
 // A single bond of length L = 2 lc (horizon delta = 3.015 lc) stretched to s = (l - L) / L just
 // below and just above a threshold: the classical criterion breaks it at s = s_c, the paper's
 // (eq. 18, extension over delta) at s = s_c delta / L, both in both directions.
+// PdModel::Lps is the linear peridynamic solid as LAMMPS's pair peri/lps computes it: the force
+// density of every particle of a randomly deformed block (surfaces, edges and corners included,
+// bonds cut by the horizon scaled as LAMMPS's vfrac_scale) against that formula written out
+// directly in double (influence 1 / r0, m_i = sum omega r0^2 V, theta_i = 3 / m_i sum omega r0 dr
+// V, rk = (3K - 5G) V (omega theta_i / m_i + omega theta_j / m_j) r0 + 15 G V (omega / m_i +
+// omega / m_j) dr, f_i += rk (x_j - x_i) / r). The paper's model gives other forces: checked.
+TEST(PdLps, ForcesAreTheLinearPeridynamicSolidsAsLammpsComputesThem) {
+  const exec::Space space;
+  const int n = 6;
+  PdSettings s = settings(PdDeviatoric::Lps, false);
+  s.model = PdModel::Lps;
+  PdSolver solver = make_block(n, s, glass(), space);
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1, 1);
+  std::vector<Vec3d> x0d, xd;
+  for (const Vec3& p : lattice(n)) {
+    x0d.push_back(p.cast<double>());
+    xd.push_back(p.cast<double>() + 2e-2 * kLc * Vec3d(u(rng), u(rng), u(rng)));
+  }
+  std::size_t k = 0;
+  deform(solver, space, [&](const Vec3&) { return xd[k++].cast<Real>(); });
+  const std::vector<Vec3> f = forces_now(solver, space);
+  // The reference, from the float positions the solver holds.
+  const Vec3* xs = solver.particles().vec3(solver.attributes().x);
+  const Vec3* x0s = solver.particles().vec3(solver.attributes().x0);
+  const std::size_t np = x0d.size();
+  for (std::size_t i = 0; i < np; ++i) xd[i] = xs[i].cast<double>(), x0d[i] = x0s[i].cast<double>();
+  const double V = kLc * kLc * kLc, K = 48e9, G = 28.8e9, half = kLc / 2;
+  auto scale = [&](double r0) { return r0 > kDelta - half ? (kDelta + half - r0) / kLc : 1.0; };
+  std::vector<double> m(np, 0), theta(np, 0);
+  for (std::size_t i = 0; i < np; ++i)
+    for (std::size_t j = 0; j < np; ++j) {
+      const double r0 = (x0d[j] - x0d[i]).norm();
+      if (j == i || r0 > double(Real(kDelta))) continue;
+      m[i] += (1 / r0) * r0 * r0 * V * scale(r0);
+      theta[i] += (1 / r0) * r0 * ((xd[j] - xd[i]).norm() - r0) * V * scale(r0);
+    }
+  for (std::size_t i = 0; i < np; ++i) theta[i] *= 3 / m[i];
+  double fmax = 0, err = 0;
+  for (std::size_t i = 0; i < np; ++i) {
+    Vec3d fi = Vec3d::Zero();
+    for (std::size_t j = 0; j < np; ++j) {
+      const double r0 = (x0d[j] - x0d[i]).norm();
+      if (j == i || r0 > double(Real(kDelta))) continue;
+      const double r = (xd[j] - xd[i]).norm(), dr = r - r0, om = 1 / r0, vs = V * scale(r0);
+      const double rk = (3 * K - 5 * G) * vs * (om * theta[i] / m[i] + om * theta[j] / m[j]) * r0 +
+                        15 * G * vs * (om / m[i] + om / m[j]) * dr;
+      fi += rk * (xd[j] - xd[i]) / r;
+    }
+    fmax = std::max(fmax, fi.norm());
+    err = std::max(err, (f[i].cast<double>() - fi).norm());
+  }
+  EXPECT_GT(fmax, 0);
+  EXPECT_LT(err, (sizeof(Real) == 4 ? 5e-5 : 1e-9) * fmax) << "fmax " << fmax << " err " << err;
+  // The paper's model (uncorrected, LPS deviatoric extension) is a different model.
+  PdSolver paper = make_block(n, settings(PdDeviatoric::Lps, false), glass(), space);
+  k = 0;
+  deform(paper, space, [&](const Vec3&) { return xd[k++].cast<Real>(); });
+  const std::vector<Vec3> fp = forces_now(paper, space);
+  double diff = 0;
+  for (std::size_t i = 0; i < np; ++i) diff = std::max(diff, (fp[i] - f[i]).cast<double>().norm());
+  EXPECT_GT(diff, 0.05 * fmax);
+}
+
+// LPS's normaliser m_i comes from each particle's own family, so a homogeneous dilation gives
+// theta = 3 eps at every particle, faces, edges and corners included, and no force in the
+// interior (the deviatoric extension e - theta L / 3 vanishes bond by bond).
+TEST(PdLps, DilatationIsExactAtEveryParticle) {
+  const exec::Space space;
+  PdSettings s = settings(PdDeviatoric::Lps, false);
+  s.model = PdModel::Lps;
+  PdSolver solver = make_block(7, s, glass(), space);
+  const double eps = 1e-3;
+  deform(solver, space, [&](const Vec3& p) { return Vec3(Real(1 + eps) * p); });
+  const Real* theta = solver.particles().real(solver.attributes().theta);
+  for (std::size_t i = 0; i < solver.particles().size(); ++i)
+    ASSERT_NEAR(double(theta[i]), 3 * eps, 3 * eps * (sizeof(Real) == 4 ? 2e-3 : 1e-9)) << i;
+}
+
 TEST(PdFracture, SingleBondBreaksAtEachCriterionsStretch) {
   const exec::Space space;
   const Real sc = Real(1e-3);
@@ -540,8 +619,11 @@ PdMaterial breakable() {
 }
 
 // A 24 x 6 x 6 bar with plasticity, fracture and contact, its ends pulled apart at 3 m/s.
-PdSolver pulled_bar(const exec::Space& space, Real compact_fraction) {
-  PdSettings s = settings(PdDeviatoric::Paper, true);
+PdSolver pulled_bar(const exec::Space& space, Real compact_fraction,
+                    PdModel model = PdModel::Paper) {
+  PdSettings s = model == PdModel::Lps ? settings(PdDeviatoric::Lps, false)
+                                       : settings(PdDeviatoric::Paper, true);
+  s.model = model;
   s.contact = true;
   s.compact_fraction = compact_fraction;
   PdSolver solver(s, {breakable()});
@@ -573,6 +655,24 @@ TEST(PdBackends, FractureRunIsBitwiseIdentical) {
     expect_same_state(ref, other, c.name());
     EXPECT_EQ(ref.bonds().intact, other.bonds().intact) << c.name();
     EXPECT_EQ(ref.bonds().plastic, other.bonds().plastic) << c.name();
+  }
+}
+
+// The same with the LPS model (its own normaliser per particle, the dilatation along |xi|).
+TEST(PdBackends, LpsFractureRunIsBitwiseIdentical) {
+  auto run = [](const exec::Space& space) {
+    PdSolver solver = pulled_bar(space, PdSettings().compact_fraction, PdModel::Lps);
+    const Real dt = solver.stable_dt(space);
+    for (int k = 0; k < 60; ++k) solver.step(space, dt);
+    return solver;
+  };
+  const PdSolver ref = run(exec::Space());
+  const PdDiagnostics d = ref.diagnostics(exec::Space());
+  EXPECT_LT(d.intact, d.bonds);
+  for (const test::Config& c : test::all_configs()) {
+    const PdSolver other = run(exec::Space(c.backend, c.threads));
+    expect_same_state(ref, other, c.name());
+    EXPECT_EQ(ref.bonds().intact, other.bonds().intact) << c.name();
   }
 }
 
