@@ -17,7 +17,8 @@ namespace amalgam {
 namespace {
 constexpr char kMagic[] = "AMALGAM-CKPT\n";
 constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
-constexpr std::uint32_t kVersion = 4;  // 4: MPM positions' low parts (x_lo)
+// 4: MPM positions' and F's low parts (x_lo, F_lo); 5: peridynamic positions' low parts (x_lo)
+constexpr std::uint32_t kVersion = 5;
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -145,10 +146,12 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
                      ") and 'time' (" + std::to_string(st.time) + ") disagree");
   const auto n = r.get<std::uint64_t>("particle count");
   const auto nattr = r.get<std::uint32_t>("attribute count");
-  // Before version 4 MPM particles had no low parts of x and F (core/math/types.hpp:
-  // add_compensated): an older checkpoint resumes with them zero.
+  // Before version 4 MPM particles had no low parts of x and F, before version 5 peridynamic
+  // particles none of x (core/math/types.hpp: add_compensated): an older checkpoint resumes with
+  // them zero. (Peridynamic particles have x0, MPM particles do not.)
   std::vector<int> missing;
-  if (version < 4)
+  const bool pd = ps.find("x0") >= 0;
+  if (version < 4 || (version < 5 && pd))
     for (const char* lo : {"x_lo", "F_lo"})
       if (ps.find(lo) >= 0) missing.push_back(ps.find(lo));
   const std::uint32_t nmissing = std::uint32_t(missing.size());

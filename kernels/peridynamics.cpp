@@ -560,16 +560,24 @@ inline Real lane_total(const Real* a) {
   return ((a[0] + a[1]) + (a[2] + a[3])) + ((a[4] + a[5]) + (a[6] + a[7]));
 }
 
+// The displacement u = (x - x0) + x_lo the bond passes read: eta = xi + (u_j - u_i) keeps the
+// increments that x alone rounds away far from the origin (x - x0 is exact while x is within a
+// factor 2 of x0, and xi = x0_j - x0_i is exact between neighbours).
+inline Vec3 displacement(const PdView& p, std::size_t i) {
+  const Vec3 u = p.x[i] - p.x0[i];
+  return p.x_lo ? Vec3(u + p.x_lo[i]) : u;
+}
+
 // What the dilatation pass gathers per neighbour.
 struct alignas(16) PosRec {
-  Real y[4];   // current position, 0
+  Real y[4];   // displacement u, 0
   Real x0[4];  // reference position, 0
 };
 
 // Gathered per block: the neighbour's current and reference position; the per-bond arrays are
 // read in place (DilSlice).
 struct DilBlock {
-  alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];     // eta = y_j - y_i
+  alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];     // u_j - u_i (eta - xi)
   alignas(64) Real xx[kDilBlock], xy[kDilBlock], xz[kDilBlock];     // xi = x0_j - x0_i
   alignas(64) Real pad[kDilBlock];                                  // the gathers' unused lane
   alignas(64) Real e[kDilBlock], lambda[kDilBlock], ok[kDilBlock];  // geometry (0 for dead bonds)
@@ -593,14 +601,14 @@ void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t k
 template <bool Paper, bool Plastic, bool Lps>
 void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
   for (int m = 0; m < n; ++m) {  // vectorised
-    const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
+    const Real ex = B.xx[m] + B.ex[m], ey = B.xy[m] + B.ey[m], ez = B.xz[m] + B.ez[m];  // eta
+    const Real l2 = ex * ex + ey * ey + ez * ez;
     const bool ok = (l2 > 0) & (S.live[m] != 0);  // coincident particles: no direction
     const Real l = std::sqrt(ok ? l2 : Real(1));
     const Real L = S.L[m];
     const Real live = ok ? Real(1) : Real(0);  // times 0, not a select (see force_block)
     const Real e = live * (l - L);
-    const Real lambda =
-        live * ((B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) / (l * L));
+    const Real lambda = live * ((ex * B.xx[m] + ey * B.xy[m] + ez * B.xz[m]) / (l * L));
     B.e[m] = e, B.lambda[m] = lambda, B.ok[m] = live;
     // omega s Lambda |xi| V (eq. 5), s = e / |xi|; PdModel::Lps: omega |xi| e V (Silling et al.
     // 2007 eq. 4.3)
@@ -678,8 +686,9 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
   std::vector<Real> local;
   PosRec* const recs = scratch_records<PosRec>(scratch, local, p.n);
   exec::parallel_for(space, "pd.dilatation_rows", exec::Index(p.n), [&](exec::Index i) {
+    const Vec3 u = displacement(p, std::size_t(i));
     ::new (static_cast<void*>(recs + i))
-        PosRec{{p.x[i][0], p.x[i][1], p.x[i][2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
+        PosRec{{u[0], u[1], u[2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
   });
   auto kernel = [&](auto paper_c, auto plastic_c, auto lps_c) {
     constexpr bool Paper = decltype(paper_c)::value, Plastic = decltype(plastic_c)::value;
@@ -687,7 +696,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
     exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-      const Real sub_y[4] = {p.x[i][0], p.x[i][1], p.x[i][2], 0};
+      const Real sub_y[4] = {recs[i].y[0], recs[i].y[1], recs[i].y[2], 0};
       const Real sub_x0[4] = {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0};
       const Real kap = p.kappa[i];
       const bool one_block = k1 - k0 <= std::uint64_t(kDilBlock);
@@ -756,7 +765,7 @@ namespace {
 // Gathered per block: only what is indexed by the neighbour j (the per-bond arrays are read in
 // place, contiguous from the block's first bond).
 struct ForceBlock {
-  alignas(64) Real ex[kBlock], ey[kBlock], ez[kBlock];  // eta = y_j - y_i
+  alignas(64) Real ex[kBlock], ey[kBlock], ez[kBlock];  // u_j - u_i (eta - xi)
   alignas(64) Real xx[kBlock], xy[kBlock], xz[kBlock];  // xi = x0_j - x0_i
   alignas(64) Real dil_j[kBlock], b_j[kBlock], c_j[kBlock], crit_j[kBlock];
   alignas(64) Real pad0[kBlock], pad1[kBlock];  // the gathers' unused lanes
@@ -773,7 +782,7 @@ struct ForceRow {
 
 // What the force pass gathers per neighbour, in three 16-byte quads (gather_quads).
 struct alignas(16) ForceRec {
-  Real y[4];   // current position, a theta - q
+  Real y[4];   // displacement u (see displacement()), a theta - q
   Real x0[4];  // reference position, b
   Real cc[4];  // c, critical stretch, 0, 0
 };
@@ -789,13 +798,14 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
                  bool classical) {
   for (int m = 0; m < n; ++m) {  // vectorised: no branches, no gathers
     const Real epi = Plastic ? S.epi[m] : Real(0), epj = Plastic ? S.epj[m] : Real(0);
-    const Real l2 = B.ex[m] * B.ex[m] + B.ey[m] * B.ey[m] + B.ez[m] * B.ez[m];
+    const Real ex = B.xx[m] + B.ex[m], ey = B.xy[m] + B.ey[m], ez = B.xz[m] + B.ez[m];  // eta
+    const Real l2 = ex * ex + ey * ey + ez * ez;
     const bool ok = (l2 > 0) & (S.live[m] != 0);  // coincident particles: no direction, no force
     const Real l = std::sqrt(ok ? l2 : Real(1));
     const Real L = S.L[m];
     const Real inv = Real(1) / (l * L);  // r = 1 / (l L): 1 / l = r L, Lambda = (eta . xi) r
     const Real e = l - L;
-    const Real lambda = (B.ex[m] * B.xx[m] + B.ey[m] * B.xy[m] + B.ez[m] * B.xz[m]) * inv;
+    const Real lambda = (ex * B.xx[m] + ey * B.xy[m] + ez * B.xz[m]) * inv;
     const Real g = Paper ? lambda : L;
     const Real gd = Lps ? L : lambda;  // the dilatational term's direction factor
     // eqs. 3, 7, 11 from each end of the bond (PdModel::Lps: 2 t_ij of Silling et al. 2007 eq. 4.5)
@@ -807,7 +817,7 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
     const Real live = ok ? Real(1) : Real(0);
     const Real c =
         live * (Real(0.5) * (aij + aji) * S.vol[m] * (inv * L));  // eq. 1 with eq. 2, / l
-    B.fx[m] = c * B.ex[m], B.fy[m] = c * B.ey[m], B.fz[m] = c * B.ez[m];
+    B.fx[m] = c * ex, B.fy[m] = c * ey, B.fz[m] = c * ez;
     if (Fracture) {  // eq. 18 (or the classical bond stretch), from both ends: symmetric
       const Real d = classical ? L : delta;
       B.broken[m] = ok & (((e - epi) / d > r.crit) | ((e - epj) / d > B.crit_j[m]));
@@ -836,9 +846,9 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
         p.a[i] * ti - (consistent ? p.q[i] : Real(0));  // a theta (- q: consistent term)
     const Real c = paper ? p.kappa[i] * ti : ti / Real(3);
     const Real crit = mi.critical_stretch * (Real(1) + mi.alpha * p.damage[i]);
-    ::new (static_cast<void*>(recs + i)) ForceRec{{p.x[i][0], p.x[i][1], p.x[i][2], dil},
-                                                  {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]},
-                                                  {c, crit, 0, 0}};
+    const Vec3 u = displacement(p, i);
+    ::new (static_cast<void*>(recs + i)) ForceRec{
+        {u[0], u[1], u[2], dil}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], p.b[i]}, {c, crit, 0, 0}};
   });
   auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c, auto lps_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
@@ -846,7 +856,7 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
     exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-      const Real sub_y[4] = {p.x[i][0], p.x[i][1], p.x[i][2], 0};
+      const Real sub_y[4] = {recs[i].y[0], recs[i].y[1], recs[i].y[2], 0};
       const Real sub_x0[4] = {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}, sub_0[4] = {0, 0, 0, 0};
       const ForceRec& own = recs[i];
       const ForceRow ri{own.y[3], own.x0[3], own.cc[0], own.cc[1]};

@@ -177,6 +177,8 @@ struct PdView {
   std::size_t n = 0;
   const Vec3* x0 = nullptr;  // reference positions
   const Vec3* x = nullptr;   // current positions
+  const Vec3* x_lo =
+      nullptr;  // their low parts (null: 0); eta = xi + (u_j - u_i), u = x - x0 + x_lo
   const Real* volume = nullptr;
   const std::int32_t* material = nullptr;
   Real* theta = nullptr;

@@ -76,12 +76,17 @@ void apply_fields(const ObjectSpec& obj, MpmSolver& solver, std::size_t first, d
 void apply_fields(const ObjectSpec& obj, PdSolver& solver, std::size_t first) {
   ParticleSet& ps = solver.particles();
   Vec3* x = ps.vec3(solver.attributes().x);
+  Vec3* xlo = ps.vec3(solver.attributes().x_lo);
   const Vec3* x0 = ps.vec3(solver.attributes().x0);
   Vec3* v = ps.vec3(solver.attributes().v);
   for (std::size_t p = first; p < ps.size(); ++p) {
     const Vec3d X = x0[p].cast<double>();
     if (obj.velocity_field) v[p] += field_at(*obj.velocity_field, X).cast<Real>();
-    if (obj.displacement_field) x[p] = (X + field_at(*obj.displacement_field, X)).cast<Real>();
+    if (obj.displacement_field) {
+      const Vec3d xd = X + field_at(*obj.displacement_field, X);
+      x[p] = xd.cast<Real>();
+      xlo[p] = (xd - x[p].cast<double>()).cast<Real>();  // the rounding, kept (as for MPM)
+    }
   }
 }
 

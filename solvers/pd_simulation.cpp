@@ -154,6 +154,7 @@ void PdSimulation::restored(double time, std::uint64_t steps) {
   check_finite_attributes(ps);
   check_index_attribute(ps, "material", 0, std::int64_t(s_.materials().size()) - 1);
   check_permutation_attribute(ps, "id");
+  check_low_part(ps, "x", "x_lo");
   check_index_attribute(ps, "fixed", 0, 1);
   if (plastic_.size() != neighbor_.size() || intact_.size() != neighbor_.size())
     throw InputError("checkpoint's bond sections disagree in length (" +

@@ -14,6 +14,7 @@ namespace amalgam {
 PdAttributes PdAttributes::add_to(ParticleSet& ps) {
   PdAttributes a;
   a.x = ps.add("x", AttrType::Real, 3);
+  a.x_lo = ps.add("x_lo", AttrType::Real, 3);
   a.x0 = ps.add("x0", AttrType::Real, 3);
   a.v = ps.add("v", AttrType::Real, 3);
   a.acc = ps.add("acc", AttrType::Real, 3);
@@ -61,6 +62,7 @@ void PdSolver::add_particles(const std::vector<Vec3>& x, const std::vector<Real>
   const std::size_t n0 = particles_.size();
   particles_.resize(n0 + x.size());
   Vec3* px = particles_.vec3(attr_.x);
+  Vec3* plo = particles_.vec3(attr_.x_lo);
   Vec3* px0 = particles_.vec3(attr_.x0);
   Vec3* pv = particles_.vec3(attr_.v);
   Real* vol = particles_.real(attr_.volume);
@@ -69,6 +71,7 @@ void PdSolver::add_particles(const std::vector<Vec3>& x, const std::vector<Real>
   for (std::size_t k = 0; k < x.size(); ++k) {
     const std::size_t i = n0 + k;
     px[i] = px0[i] = x[k];
+    plo[i] = Vec3::Zero();
     pv[i] = v + omega.cross(x[k] - centre);
     vol[i] = volume[k];
     mat[i] = material;
@@ -128,6 +131,7 @@ PdView PdSolver::view() {
   p.n = particles_.size();
   p.x0 = particles_.vec3(attr_.x0);
   p.x = particles_.vec3(attr_.x);
+  p.x_lo = particles_.vec3(attr_.x_lo);
   p.volume = particles_.real(attr_.volume);
   p.material = particles_.int32(attr_.material);
   p.theta = particles_.real(attr_.theta);
@@ -278,6 +282,7 @@ Real PdSolver::stable_dt(const exec::Space& space) const {
 
 void PdSolver::kick_drift(const exec::Space& space, Real dt) {
   Vec3* x = particles_.vec3(attr_.x);
+  Vec3* xlo = particles_.vec3(attr_.x_lo);
   Vec3* v = particles_.vec3(attr_.v);
   const Vec3* a = particles_.vec3(attr_.acc);
   const std::int32_t* fixed = particles_.int32(attr_.fixed);
@@ -286,7 +291,7 @@ void PdSolver::kick_drift(const exec::Space& space, Real dt) {
   const Real damp = Real(std::exp(-double(settings_.damping) * double(h)));
   exec::parallel_for(space, "pd.kick_drift", exec::Index(particles_.size()), [=](exec::Index i) {
     v[i] = fixed[i] ? fv[i] : Vec3(damp * (v[i] + h * a[i]));
-    x[i] += dt * v[i];
+    add_compensated(x[i], xlo[i], Vec3(dt * v[i]));
   });
 }
 
@@ -297,6 +302,7 @@ void PdSolver::apply_colliders(const exec::Space& space, Real t) {
   const Collider* cols = posed.data();
   const int nc = int(posed.size());
   Vec3* x = particles_.vec3(attr_.x);
+  Vec3* xlo = particles_.vec3(attr_.x_lo);
   Vec3* v = particles_.vec3(attr_.v);
   const std::int32_t* fixed = particles_.int32(attr_.fixed);
   exec::parallel_for(space, "pd.colliders", exec::Index(particles_.size()), [=](exec::Index i) {
@@ -306,6 +312,7 @@ void PdSolver::apply_colliders(const exec::Space& space, Real t) {
       if (phi >= 0) continue;
       cols[c].project(x[i], t, v[i]);  // velocity: sticky / slip / separating + friction
       x[i] -= phi * cols[c].outward_normal(x[i], t);  // position back onto the surface
+      xlo[i] = Vec3::Zero();                          // the projected position is exact as is
     }
   });
 }

@@ -51,7 +51,10 @@ struct PdSettings {
 
 // Particle attributes of a peridynamic body.
 struct PdAttributes {
-  ParticleSet::Id x, x0, v, acc, volume, material, id, theta, damage;
+  // x + x_lo is the position, a compensated pair (core/math/types.hpp: add_compensated), so that a
+  // body far from the origin keeps the increments dt v below one ulp of x; the bond passes read
+  // the displacement (x - x0) + x_lo, whose differences are exact where x's would round.
+  ParticleSet::Id x, x_lo, x0, v, acc, volume, material, id, theta, damage;
   ParticleSet::Id fixed;    // int32: 1 = velocity prescribed (fixed_velocity), 0 = free
   ParticleSet::Id fixed_v;  // prescribed velocity
   ParticleSet::Id f_ext;    // external force density (N/m^3), e.g. a traction on an end layer
