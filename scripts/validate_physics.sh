@@ -161,6 +161,15 @@ if len(diffs) >= 10:
         f"{100 * mean:+.2f} % (sd {100 * sd:.2f} %, largest {100 * worst:+.2f} %, {len(diffs)} samples over 0.1–2 ms)",
         "3 %", abs(mean) <= 0.03 and abs(worst) <= 0.03,
         "bench/pd_notch.lmp, amalgam_pd_notch --model lps --cd 1.35")
+m = re.search(r"pulled block: mirror difference ([\d.e+-]+) lc at the origin, ([\d.e+-]+) lc at 10 m; "
+              r"kinetic energy ([\d.e+-]+) J and ([\d.e+-]+) J", read("fidelity"))
+if m:
+    here, away, k0, k1 = (float(m.group(k)) for k in range(1, 5))
+    row("peridynamic block pulled symmetrically, at the origin and 10 m out (float)",
+        "mirror symmetry; the same response anywhere",
+        f"mirror difference {here:.1e} / {away:.1e} lc (largest over 1 ms); kinetic energy ratio {k1 / k0:.5f}",
+        "10⁻⁴ lc; 10⁻³", max(here, away) < 1e-4 and abs(k1 / k0 - 1) < 1e-3,
+        "test_fidelity --gtest_filter='*Pulled*'")
 m = re.search(r"largest damage difference ([\d.]+) %", read("fidelity"))
 if m:
     row("peridynamic notched bar 40 × 8 × 8 (CI test)", "LAMMPS peri/lps series, 40 samples to 2 ms",
