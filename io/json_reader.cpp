@@ -235,7 +235,7 @@ bool JsonObject::has_expressions(const std::string& key) const {
   return false;
 }
 
-std::shared_ptr<const VectorField> JsonObject::vector_field(const std::string& key) {
+std::shared_ptr<const VectorField> JsonObject::vector_field(const std::string& key, bool time) {
   if (!has(key)) return nullptr;
   const auto& v = at(key);
   if (!v.is_array() || v.size() != 3)
@@ -255,14 +255,15 @@ std::shared_ptr<const VectorField> JsonObject::vector_field(const std::string& k
     } else if (e.is_string()) {
       text = e.get<std::string>();
     } else {
-      fail(k, "expected a number or an expression of x, y, z, got " + show(e));
+      fail(k, std::string("expected a number or an expression of x, y, z") + (time ? ", t" : "") +
+                  ", got " + show(e));
     }
     try {
       f->c[a] = Expression::parse(text);
     } catch (const InputError& err) {
       fail(k, std::string("expression ") + show(e) + ": " + err.what());
     }
-    if (f->c[a].uses_time()) fail(k, "an initial value cannot depend on t");
+    if (!time && f->c[a].uses_time()) fail(k, "an initial value cannot depend on t");
   }
   return f;
 }

@@ -42,8 +42,9 @@ class JsonObject {
   Vec3 vec3(const std::string& key, const Vec3& def);
   Vec3 required_vec3(const std::string& key);
   // An [x, y, z] array whose entries are numbers or expressions of x, y, z (strings,
-  // core/math/expression.hpp); null when absent. t is refused: these are initial values.
-  std::shared_ptr<const VectorField> vector_field(const std::string& key);
+  // core/math/expression.hpp); null when absent. With `time` they may use t too (a boundary
+  // condition); without it t is an error (initial values).
+  std::shared_ptr<const VectorField> vector_field(const std::string& key, bool time = false);
   // Whether `key` is an array holding at least one string (an expression).
   bool has_expressions(const std::string& key) const;
   JsonObject object(const std::string& key);

@@ -188,8 +188,29 @@ void read_mpm_materials(JsonObject& mats, Scene& s) {
 }
 
 void read_mpm_sources(JsonObject& top, Scene& s) {
-  if (top.has("boundary_conditions"))
-    top.fail("boundary_conditions", "only for \"method\": \"peridynamics\" (MPM uses colliders)");
+  // Prescribed-velocity regions: grid nodes in [min, max] take v(x, t), a sticky box collider
+  // that does not move and whose velocity is the field (Collider::drive).
+  for (auto& b : top.objects("boundary_conditions")) {
+    ColliderSpec c;
+    const Vec3 lo = b.required_vec3("min"), hi = b.required_vec3("max");
+    for (int a = 0; a < 3; ++a)
+      if (!(hi[a] > lo[a]))
+        b.fail("max", "every component must be above the matching one of \"min\"");
+    if (b.has("force_density"))
+      b.fail("force_density", "only for \"method\": \"peridynamics\" (MPM: use gravity)");
+    c.shape = ColliderShape::Box;
+    c.boundary = BoundaryType::Sticky;
+    c.origin = Real(0.5) * (lo + hi);
+    c.half_extent = Real(0.5) * (hi - lo);
+    c.drive = b.has("velocity") ? b.vector_field("velocity", true)
+                                : std::make_shared<const VectorField>();
+    c.where = b.where("velocity");
+    read_until(b, c);
+    b.finish();
+    if (s.mpm.domains.enabled)
+      b.fail("velocity", "not with particle domains (/simulation/domains): use a sticky collider");
+    s.colliders.push_back(c);
+  }
   if (top.has("precracks")) top.fail("precracks", "only for \"method\": \"peridynamics\"");
   for (auto& h : top.objects("heat_sources")) s.heat_sources.push_back(read_heat_source(h));
   if (!s.heat_sources.empty()) {

@@ -171,7 +171,10 @@ void read_pd_conditions(JsonObject& top, Scene& s) {
     if (b.has("velocity") && b.has("force_density"))
       b.fail("force_density",
              "give either velocity (prescribed motion) or force_density (a load), not both");
-    bc.velocity = b.vec3("velocity", Vec3::Zero());
+    if (b.has_expressions("velocity"))
+      bc.velocity_field = b.vector_field("velocity", true);
+    else
+      bc.velocity = b.vec3("velocity", Vec3::Zero());
     bc.load = b.has("force_density");
     bc.force_density = b.vec3("force_density", Vec3::Zero());
     b.finish();

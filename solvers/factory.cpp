@@ -9,22 +9,6 @@
 
 namespace amalgam {
 
-std::vector<Collider> build_colliders(const SceneSpec& scene, const exec::Space& space) {
-  std::vector<Collider> out;
-  for (const ColliderSpec& spec : scene.colliders) {
-    Collider c = spec;
-    if (spec.mesh) {  // the rest pose's distance field, exact to 4 dx beyond the surface
-      try {
-        c.sdf = bake_sdf(*spec.mesh, double(scene.mpm.dx), 4.0 * double(scene.mpm.dx), space);
-      } catch (const InputError& e) {
-        throw InputError(spec.where + ": " + e.what());
-      }
-    }
-    out.push_back(std::move(c));
-  }
-  return out;
-}
-
 namespace {
 // The value of `field` at x, or an InputError naming the field, the component and the position.
 Vec3d field_at(const VectorField& field, const Vec3d& x) {
@@ -36,6 +20,30 @@ Vec3d field_at(const VectorField& field, const Vec3d& x) {
                        std::to_string(x[1]) + ", " + std::to_string(x[2]) + ")");
   return v;
 }
+}  // namespace
+
+std::vector<Collider> build_colliders(const SceneSpec& scene, const exec::Space& space) {
+  std::vector<Collider> out;
+  for (const ColliderSpec& spec : scene.colliders) {
+    Collider c = spec;
+    if (spec.mesh) {  // the rest pose's distance field, exact to 4 dx beyond the surface
+      try {
+        c.sdf = bake_sdf(*spec.mesh, double(scene.mpm.dx), 4.0 * double(scene.mpm.dx), space);
+      } catch (const InputError& e) {
+        throw InputError(spec.where + ": " + e.what());
+      }
+    }
+    if (spec.drive)  // a prescribed-velocity region: its field is finite at its corners at t = 0
+      for (int k = 0; k < 8; ++k) {
+        const Vec3 corner(k & 1 ? 1 : -1, k & 2 ? 1 : -1, k & 4 ? 1 : -1);
+        field_at(*spec.drive, (spec.origin + spec.half_extent.cwiseProduct(corner)).cast<double>());
+      }
+    out.push_back(std::move(c));
+  }
+  return out;
+}
+
+namespace {
 // grad f at x (column j = d f / d x_j) by central differences of step h.
 Mat3 field_gradient(const VectorField& field, const Vec3d& x, double h) {
   Mat3 g;
@@ -144,10 +152,17 @@ PdSolver build_pd_solver(const SceneSpec& scene, const exec::Space& space) {
     apply_fields(obj, solver, first);
   }
   for (const auto& b : scene.pd_boundaries) {
-    if (b.load)
+    if (b.load) {
       solver.apply_force_density(b.min, b.max, b.force_density);
-    else
+    } else if (b.velocity_field) {
+      try {
+        solver.prescribe_velocity(b.min, b.max, b.velocity_field);
+      } catch (const SimulationError& e) {  // its value at t = 0: an error of the scene
+        throw InputError(e.what());
+      }
+    } else {
       solver.prescribe_velocity(b.min, b.max, b.velocity);
+    }
   }
   for (const auto& c : scene.pd_precracks) solver.add_precrack(c.point, c.normal, c.min, c.max);
   return solver;

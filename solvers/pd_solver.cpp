@@ -92,6 +92,55 @@ void PdSolver::prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& ve
     }
 }
 
+void PdSolver::prescribe_velocity(const Vec3& lo, const Vec3& hi,
+                                  std::shared_ptr<const VectorField> velocity) {
+  const Vec3* x0 = particles_.vec3(attr_.x0);
+  std::int32_t* fixed = particles_.int32(attr_.fixed);
+  Drive d{std::move(velocity), {}};
+  for (std::size_t i = 0; i < particles_.size(); ++i)
+    if ((x0[i].array() >= lo.array()).all() && (x0[i].array() <= hi.array()).all()) {
+      fixed[i] = 1;
+      d.particles.push_back(std::uint32_t(i));
+    }
+  drives_.push_back(std::move(d));
+  drive_velocities(exec::Space(exec::Backend::Serial, 1), time_);
+  Vec3* v = particles_.vec3(attr_.v);
+  const Vec3* fv = particles_.vec3(attr_.fixed_v);
+  for (std::uint32_t i : drives_.back().particles) v[i] = fv[i];
+  if (!drives_.back().v->uses_time()) drives_.pop_back();  // set once, for the whole run
+}
+
+// fixed_v = v(X, t) on every driven particle; a value that is not finite (or beyond 1e30) stops
+// the run naming the condition, the component, the time and the particle's reference position.
+void PdSolver::drive_velocities(const exec::Space& space, double t) {
+  const Vec3* x0 = particles_.vec3(attr_.x0);
+  Vec3* fv = particles_.vec3(attr_.fixed_v);
+  for (const Drive& d : drives_) {
+    const VectorField* f = d.v.get();
+    const std::uint32_t* idx = d.particles.data();
+    const long long bad = exec::parallel_reduce(
+        space, "pd.drive", exec::Index(d.particles.size()), (long long)-1,
+        [=](exec::Index k, long long& first) {
+          const std::uint32_t i = idx[k];
+          const Vec3d v = f->at(x0[i].cast<double>(), t);
+          if (!(v.cwiseAbs().maxCoeff() <= 1e30)) {  // also NaN
+            if (first < 0) first = (long long)k;
+            return;
+          }
+          fv[i] = v.cast<Real>();
+        },
+        [](long long a, long long b) { return a >= 0 ? a : b; });
+    if (bad < 0) continue;
+    const Vec3d X = x0[idx[bad]].cast<double>(), v = f->at(X, t);
+    int a = 0;
+    while (a < 2 && v[a] == v[a] && std::abs(v[a]) <= 1e30) ++a;
+    std::ostringstream os;
+    os << f->where << "/" << a << ": \"" << f->c[a].text() << "\" gives " << v[a] << " at t = " << t
+       << " s and (" << X[0] << ", " << X[1] << ", " << X[2] << ")";
+    throw SimulationError(os.str());
+  }
+}
+
 void PdSolver::apply_force_density(const Vec3& lo, const Vec3& hi, const Vec3& force_density) {
   const Vec3* x0 = particles_.vec3(attr_.x0);
   Vec3* fe = particles_.vec3(attr_.f_ext);
@@ -436,6 +485,7 @@ void PdSolver::step(const exec::Space& space, Real dt) {
   if (!initialized_) throw std::logic_error("PdSolver: step() before initialize()");
   if (!(dt > 0) || !std::isfinite(dt))
     throw SimulationError("peridynamics: invalid time step " + std::to_string(dt));
+  drive_velocities(space, time_ + 0.5 * double(dt));  // the drift's midpoint
   kick_drift(space, dt);
   move_meshes(dt);  // with the half-step velocities that moved the particles
   apply_colliders(space, Real(time_ + double(dt)));
@@ -446,6 +496,7 @@ void PdSolver::step(const exec::Space& space, Real dt) {
   update_damage(space);
   split_meshes();
   compact_bonds(space);
+  drive_velocities(space, time_ + double(dt));
   kick(space, dt);
   time_ += double(dt);
   ++steps_;

@@ -10,12 +10,14 @@
 
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "core/exec/exec.hpp"
 #include "core/particles/particle_set.hpp"
 #include "core/geometry/colliders.hpp"
+#include "core/math/expression.hpp"
 #include "kernels/peridynamics.hpp"
 #include "solvers/pd_crack_mesh.hpp"
 
@@ -85,6 +87,11 @@ class PdSolver {
   // Prescribes the velocity of the particles inside the box [lo, hi] (at their reference
   // position): zero velocity fixes them.
   void prescribe_velocity(const Vec3& lo, const Vec3& hi, const Vec3& velocity);
+  // The same with the velocity a function of the reference position X and the time t
+  // (`where` names it in errors): each step moves the particles with v(X, t + dt/2), the
+  // midpoint of the drift, and ends with v(X, t + dt).
+  void prescribe_velocity(const Vec3& lo, const Vec3& hi,
+                          std::shared_ptr<const VectorField> velocity);
   // Adds an external force density (N/m^3) on the particles inside [lo, hi] (reference
   // positions), for the whole run: a traction T on an end layer of thickness h is T / h.
   void apply_force_density(const Vec3& lo, const Vec3& hi, const Vec3& force_density);
@@ -184,6 +191,7 @@ class PdSolver {
                      const std::vector<std::uint32_t>& neighbor, const std::vector<Real>& plastic,
                      const std::vector<std::uint8_t>& intact);
 
+
  private:
   PdSettings settings_;
   std::vector<PdMaterial> materials_;
@@ -209,6 +217,13 @@ class PdSolver {
     Vec3 point, n, lo, hi;
   };
   std::vector<Precrack> precracks_;
+  // Prescribed velocities that change with time: the field and the particles it drives.
+  struct Drive {
+    std::shared_ptr<const VectorField> v;
+    std::vector<std::uint32_t> particles;
+  };
+  std::vector<Drive> drives_;
+  void drive_velocities(const exec::Space& space, double t);
   std::vector<PdCrackMesh> meshes_;
   std::uint64_t intact_ = 0,
                 meshes_intact_ = 0;  // intact directed bonds: now, and when the meshes last split

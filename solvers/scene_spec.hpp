@@ -53,6 +53,9 @@ enum class Method { Mpm, Peridynamics };
 // (zero: fixed).
 struct PdBoundarySpec {
   Vec3 min, max, velocity;
+  // The velocity as expressions of the reference position and time (replaces `velocity`), when
+  // given as strings: e.g. a one-period cosine pulse ["0.5*(1-cos(2*pi*min(t,1e-5)/1e-5))", "0", "0"].
+  std::shared_ptr<const VectorField> velocity_field;
   bool load = false;  // true: force_density is applied, the velocity is free
   Vec3 force_density = Vec3::Zero();
 };

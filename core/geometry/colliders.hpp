@@ -13,6 +13,7 @@
 #include <memory>
 #include <vector>
 
+#include "core/math/expression.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam {
@@ -87,6 +88,9 @@ struct Collider {
   Vec3 omega = Vec3::Zero();
   // The collider acts up to this time and not after it (a grip that lets go); infinity: always.
   Real until = std::numeric_limits<Real>::infinity();
+  // A prescribed-velocity region (an MPM scene's `boundary_conditions`): a fixed sticky box whose
+  // velocity at x, t is this field, so grid nodes (and particles) inside move with v(x, t).
+  std::shared_ptr<const VectorField> drive;
 
   // Mesh pose at time t: rotation R, translation T and its rates (piecewise linear in T,
   // slerp in R between keyframes; constant before the first and after the last).
@@ -133,6 +137,7 @@ struct Collider {
   }
   // Velocity of the collider's material point at x, time t.
   Vec3 velocity_at(const Vec3& x, Real t) const {
+    if (drive) return drive->at(x.cast<double>(), double(t)).cast<Real>();
     if (shape != ColliderShape::Mesh) return velocity;
     Mat3 R;
     Vec3 T, v, w;

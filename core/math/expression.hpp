@@ -62,14 +62,19 @@ class Expression {
 };
 
 // A vector given per particle as three expressions of its position x, y, z (core/math/
-// expression.hpp), e.g. an initial velocity ["0", "0", "1e-3*cos(pi*x/0.01)"]; `where` is the
-// scene path for messages ("scene.json: /objects/0/velocity").
+// expression.hpp), e.g. an initial velocity ["0", "0", "1e-3*cos(pi*x/0.01)"], and for a
+// boundary condition of the time t too; `where` is the scene path for messages
+// ("scene.json: /objects/0/velocity").
 struct VectorField {
   Expression c[3];
   std::string where;
-  Vec3d at(const Vec3d& x) const {
-    return Vec3d(c[0].eval(x[0], x[1], x[2], 0), c[1].eval(x[0], x[1], x[2], 0),
-                 c[2].eval(x[0], x[1], x[2], 0));
+  Vec3d at(const Vec3d& x, double t = 0) const {
+    return Vec3d(c[0].eval(x[0], x[1], x[2], t), c[1].eval(x[0], x[1], x[2], t),
+                 c[2].eval(x[0], x[1], x[2], t));
+  }
+  bool uses_time() const { return c[0].uses_time() || c[1].uses_time() || c[2].uses_time(); }
+  bool is_constant() const {
+    return c[0].is_constant() && c[1].is_constant() && c[2].is_constant();
   }
 };
 
