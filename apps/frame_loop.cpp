@@ -12,6 +12,7 @@
 #include <iostream>
 
 #include "apps/commands.hpp"
+#include "core/dist/comm.hpp"
 #include "core/errors.hpp"
 #include "io/checkpoint.hpp"
 #include "io/files.hpp"
@@ -43,6 +44,12 @@ const char* preview_attribute(ColorBy c) {
   }
 }
 
+// Files are written by MPI rank 0 only: on a distributed run every rank holds the whole particle
+// state (solvers/pd_distributed.cpp), and the other ranks take part in the collectives alone.
+bool writes_files() {
+  return dist::Comm::world().root();
+}
+
 // The frame files of the simulation's current state.
 class FrameWriter {
  public:
@@ -57,6 +64,7 @@ class FrameWriter {
         floor_y_(preview_floor(scene)) {}
 
   void write(int f) {
+    if (!writes_files()) return;
     const OutputSpec& out = scene_.output;
     const PointFields p = sim_.point_fields();
     if (rs_.preview) {
@@ -84,6 +92,7 @@ class FrameWriter {
   // paths.
   std::vector<std::string> write_points(const std::string& base, const PointFields& p) const {
     std::vector<std::string> paths;
+    if (!writes_files()) return paths;
     if (scene_.output.ply) {
       paths.push_back(base + "ply");
       write_ply_points(paths.back(), p);
@@ -126,7 +135,7 @@ class SubstepLog {
  public:
   SubstepLog(const Simulation& sim, const Scene& scene, const RunSettings& rs) : sim_(sim) {
     const std::string name = sim.substep_log_name();
-    if (name.empty() || !scene.output.diagnostics_csv) return;
+    if (name.empty() || !scene.output.diagnostics_csv || !writes_files()) return;
     path_ = rs.out_dir + "/" + name;
     write_file_atomic(path_, sim.step_count() > 0
                                  ? rows_before(path_, sim.substep_log_header(), sim.step_count())
@@ -159,6 +168,11 @@ class SampleWriter {
                const exec::Space& space, const FrameWriter& frames)
       : sim_(sim), space_(space), frames_(frames), every_(scene.output.every_substeps) {
     if (every_ <= 0) return;
+    std::string header = "frame,step,time_s,dt_s";
+    for (const Column& c : sim.sample(space))
+      header += "," + c.name;  // collective when distributed
+    header += "\n";
+    if (!writes_files()) return;
     dir_ = rs.out_dir + "/samples";
     std::filesystem::create_directories(dir_);
     const std::uint64_t done = sim.step_count();
@@ -168,9 +182,6 @@ class SampleWriter {
       if (std::sscanf(name.c_str(), "points_s%llu.", &step) == 1 && step > done)
         std::filesystem::remove(e.path());
     }
-    std::string header = "frame,step,time_s,dt_s";
-    for (const Column& c : sim.sample(space)) header += "," + c.name;
-    header += "\n";
     csv_ = rs.out_dir + "/samples.csv";
     write_file_atomic(csv_, done > 0 ? rows_before(csv_, header, done + 1) : header);
   }
@@ -194,7 +205,7 @@ class SampleWriter {
     written_.clear();
   }
   void flush() {
-    if (!rows_.empty()) append_to_file(csv_, rows_);
+    if (!rows_.empty() && writes_files()) append_to_file(csv_, rows_);
     rows_.clear();
     written_.clear();
   }
@@ -232,6 +243,8 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   g_signal = 0;
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
+  const dist::Comm& comm = dist::Comm::world();
+  sim.begin_run(space);  // a distributed run splits its work here
   FrameWriter frames(sim, scene, rs, space);
   // Frame 0 is the initial state; a resumed run never rewrites a frame its checkpoint has passed
   // (resuming inside frame 1 used to write frame 0 again from the mid-frame state).
@@ -269,22 +282,27 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
       try {
         // Tolerance covers the rounding of dt to Real; it is far below any physical substep.
         while (sim.time() < t_frame_end - 1e-7 / scene.fps) {
-          if (g_signal) {
+          // On several ranks the signal counts once any rank has it, so all stop at this substep.
+          const int signalled = comm.size() > 1 ? int(comm.max(std::int64_t(g_signal))) : g_signal;
+          if (signalled) {
             // Interrupted: the checkpoint holds the state at the start of this frame and the
             // retries it has had, so the resumed run computes the frame again exactly as the
             // uninterrupted run did (a retry after the interrupt included); frames before it are
             // written and are never written again.
-            const int sig = g_signal;
+            const int sig = signalled;
             sim.restore_frame_start();
             steps_log.discard();
             samples.discard();
-            write_checkpoint(checkpoint_path, sim, f, scene.fingerprint, attempt);
+            sim.prepare_checkpoint();
+            if (writes_files())
+              write_checkpoint(checkpoint_path, sim, f, scene.fingerprint, attempt);
             if (tty && !rs.quiet) std::cout << "\n";
-            std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
-                      << " received: checkpoint written to " << checkpoint_path << " (frame "
-                      << f - 1 << " complete; frame " << f
-                      << " starts again from t = " << sim.time() << " s); continue with --resume "
-                      << checkpoint_path << "\n";
+            if (comm.root())
+              std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
+                        << " received: checkpoint written to " << checkpoint_path << " (frame "
+                        << f - 1 << " complete; frame " << f
+                        << " starts again from t = " << sim.time() << " s); continue with --resume "
+                        << checkpoint_path << "\n";
             return 128 + sig;
           }
           // Split what is left of the frame evenly into stable substeps (no sliver at the end).
@@ -306,9 +324,10 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
         if (attempt >= rs.max_retries) throw;
         const Real cfl = cfl0 * Real(std::pow(0.5, attempt + 1));
         if (tty && !rs.quiet) std::cout << "\n";
-        std::cerr << "amalgam: warning: frame " << f << ": " << e.what()
-                  << "\namalgam: retrying frame " << f << " from its start with cfl = " << cfl
-                  << " (retry " << attempt + 1 << " of " << rs.max_retries << ")\n";
+        if (comm.root())
+          std::cerr << "amalgam: warning: frame " << f << ": " << e.what()
+                    << "\namalgam: retrying frame " << f << " from its start with cfl = " << cfl
+                    << " (retry " << attempt + 1 << " of " << rs.max_retries << ")\n";
         sim.restore_frame_start();
         sim.set_cfl(cfl);
         steps_log.discard();
@@ -324,8 +343,9 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     frames.write(f);
     const double wall = seconds_since(t_start);
     for (const std::string& w : report.warnings)
-      std::cerr << (tty && !rs.quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": " << w
-                << "\n";
+      if (comm.root())
+        std::cerr << (tty && !rs.quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": " << w
+                  << "\n";
 
     // diagnostics.csv: frame, clock, the simulation's columns, wall time split by kernel group.
     std::vector<Column> cols = {{"frame", double(f), true},
@@ -345,13 +365,15 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     profile_before = profile_now;
     wall_before = wall;
     csv_rows.push_back(csv_row(cols));
-    if (scene.output.diagnostics_csv) {
+    if (scene.output.diagnostics_csv && writes_files()) {
       std::string csv = csv_header(cols);
       for (const auto& r : csv_rows) csv += r;
       write_file_atomic(csv_path, csv);
     }
-    if ((rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames)
-      write_checkpoint(checkpoint_path, sim, f + 1, scene.fingerprint);
+    if ((rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames) {
+      sim.prepare_checkpoint();
+      if (writes_files()) write_checkpoint(checkpoint_path, sim, f + 1, scene.fingerprint);
+    }
     if (!rs.quiet) {
       const int done = f - rs.first_frame + 1;
       const double eta = wall / done * (scene.frames - f);
@@ -371,6 +393,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     }
   }
   const double wall = seconds_since(t_start);
+  const std::string summary = sim.run_summary(wall);  // collective when distributed
   if (!rs.quiet) {
     if (tty) std::cout << "\n";
     std::cout << "amalgam: done: " << scene.frames - rs.first_frame + 1 << " frames, "
@@ -378,7 +401,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
               << " s), " << (sim.work_done() - work0) / wall * 1e-6 << "M " << sim.work_unit()
               << "/s\n"
               << "amalgam: per-kernel time:\n"
-              << profiler.report(wall) << sim.run_summary(wall);
+              << profiler.report(wall) << summary;
   }
   return kOk;
 }

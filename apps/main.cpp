@@ -1,6 +1,7 @@
 // amalgam: command-line entry point (run, validate, bench, plot, info).
 #include <Eigen/Core>
 #include <exception>
+#include <memory>
 #include <iostream>
 #include <new>
 #include <string>
@@ -8,6 +9,7 @@
 #include <vector>
 
 #include "apps/commands.hpp"
+#include "core/dist/comm.hpp"
 #include "core/exec/exec.hpp"
 #include "core/math/types.hpp"
 
@@ -23,6 +25,12 @@ int info_command(const std::vector<std::string>&) {
             << EIGEN_MINOR_VERSION << ", oneTBB " << TBB_VERSION_MAJOR << "." << TBB_VERSION_MINOR
             << ", OpenVDB " << AMALGAM_OPENVDB_VERSION << "\n";
   if (exec::backend_compiled(exec::Backend::Kokkos)) std::cout << exec::kokkos_version() << "\n";
+  std::cout << "MPI: "
+            << (dist::mpi_built()
+                    ? "built in (MPI + Zoltan), " + std::to_string(dist::Comm::world().size()) +
+                          " rank(s) in this run"
+                    : std::string("not built (single process)"))
+            << "\n";
   return kOk;
 }
 
@@ -66,8 +74,11 @@ int dispatch(int argc, char** argv) {
 // as exit 3 with what the process was doing, never as an abort.
 int main(int argc, char** argv) {
   using namespace amalgam::cli;
+  std::unique_ptr<amalgam::dist::Session> mpi;
+  int rc = kBadInput;
   try {
-    return dispatch(argc, argv);
+    mpi = std::make_unique<amalgam::dist::Session>(&argc, &argv);  // MPI_Init under mpirun
+    rc = dispatch(argc, argv);
   } catch (const std::bad_alloc&) {
     std::cerr << "amalgam: error: out of memory while " << printable(current_phase())
               << " (the input asks for more than this machine has)\n";
@@ -77,5 +88,14 @@ int main(int argc, char** argv) {
   } catch (...) {
     std::cerr << "amalgam: error: while " << printable(current_phase()) << ": unknown exception\n";
   }
-  return kBadInput;
+  // On several MPI ranks a rank that stops with an error ends the whole job with its exit code:
+  // the others may be waiting in a collective for it, and must not hang.
+  const amalgam::dist::Comm& comm = amalgam::dist::Comm::world();
+  if (rc != kOk && comm.size() > 1) {
+    std::cerr << "amalgam: MPI rank " << comm.rank() << " of " << comm.size()
+              << " stopped with exit code " << rc << "; ending every rank\n";
+    std::cerr.flush();
+    comm.abort(rc);
+  }
+  return rc;
 }

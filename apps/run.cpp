@@ -14,6 +14,7 @@
 
 #include "apps/commands.hpp"
 #include "apps/frame_loop.hpp"
+#include "core/dist/comm.hpp"
 #include "core/errors.hpp"
 #include "core/exec/exec.hpp"
 #include "io/checkpoint.hpp"
@@ -136,7 +137,13 @@ int run_command(const std::vector<std::string>& args) {
     if (const auto* f = o.get("--frames")) scene.frames = parse_int("--frames", *f, 1, kMaxFrames);
     RunSettings rs;
     rs.out_dir = o.get("--out") ? *o.get("--out") : scene.output.directory;
-    rs.quiet = o.flag("--quiet");
+    rs.quiet = o.flag("--quiet") || !dist::Comm::world().root();  // rank 0 speaks for a job
+    // Distributed runs (issue 28): peridynamics splits its bonds across the ranks
+    // (solvers/pd_distributed.cpp); MPM does not run distributed yet.
+    if (dist::Comm::world().size() > 1 && scene.method == Method::Mpm)
+      throw InputError(scene.file +
+                       ": MPM does not run on several MPI ranks yet (issue 28; "
+                       "peridynamics does): run one rank, with --threads for the cores");
     rs.preview = o.flag("--preview");
     rs.checkpoint_every = scene.output.checkpoint_every;
     if (const auto* c = o.get("--checkpoint-every"))

@@ -1048,6 +1048,53 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
 
 }  // namespace
 
+void pd_keep_rows(const exec::Space& space, PdBonds& bonds,
+                  const std::vector<std::uint8_t>& keep_row) {
+  const std::size_t n = bonds.particles();
+  std::vector<std::uint64_t> off(n + 1, 0);
+  for (std::size_t i = 0; i < n; ++i)
+    off[i + 1] = off[i] + (keep_row[i] ? bonds.offsets[i + 1] - bonds.offsets[i] : 0);
+  const std::uint64_t total = off[n];
+  PdBonds out;
+  out.offsets = off;
+  out.neighbor.resize(total);
+  out.reverse.resize(total);
+  out.length.resize(total);
+  out.omega.resize(total);
+  out.shear_omega.resize(total);
+  out.volume.resize(total);
+  out.plastic.resize(total);
+  out.intact.resize(total);
+  out.lane.resize(total);
+  out.omega_r.resize(total);
+  out.shear_omega_r.resize(total);
+  out.plastic_r.resize(total);
+  out.dense.assign(n, 0);
+  exec::parallel_for(space, "pd.keep_rows", exec::Index(n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
+    out.dense[i] = keep_row[i] ? bonds.dense[i] : 1;  // an empty row is trivially whole
+    if (!keep_row[i]) return;
+    std::uint64_t o = off[i];
+    for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k, ++o) {
+      const std::uint32_t j = bonds.neighbor[k];
+      out.neighbor[o] = j;
+      // The reverse bond keeps its position within row j.
+      out.reverse[o] = keep_row[j] ? off[j] + (bonds.reverse[k] - bonds.offsets[j]) : kNoReverse;
+      out.length[o] = bonds.length[k];
+      out.omega[o] = bonds.omega[k];
+      out.shear_omega[o] = bonds.shear_omega[k];
+      out.volume[o] = bonds.volume[k];
+      out.plastic[o] = bonds.plastic[k];
+      out.intact[o] = bonds.intact[k];
+      out.lane[o] = bonds.lane[k];
+      out.omega_r[o] = bonds.omega_r[k];
+      out.shear_omega_r[o] = bonds.shear_omega_r[k];
+      out.plastic_r[o] = bonds.plastic_r[k];
+    }
+  });
+  bonds = std::move(out);
+}
+
 std::uint64_t pd_compact_bonds(const exec::Space& space, PdBonds& bonds, Real contact_distance) {
   std::vector<std::uint8_t> keep(bonds.size());
   exec::parallel_for(space, "pd.compact_mark", exec::Index(bonds.size()), [&](exec::Index k) {

@@ -274,6 +274,14 @@ std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds
 // docs/benchmarks.md).
 std::uint64_t pd_compact_bonds(const exec::Space& space, PdBonds& bonds, Real contact_distance = 0);
 
+// Keeps the rows i with keep_row[i] != 0 whole and empties the others (a rank of a distributed
+// run keeps the rows of the particles it owns): every per-bond array is copied, the mirrored
+// arrays (omega_r, shear_omega_r, plastic_r) included, so a kept row's sums are bitwise those of
+// the full list. reverse[k] points into the new layout where row j is kept, else kNoReverse.
+constexpr std::uint64_t kNoReverse = ~std::uint64_t(0);
+void pd_keep_rows(const exec::Space& space, PdBonds& bonds,
+                  const std::vector<std::uint8_t>& keep_row);
+
 // Restricts `bonds` (the full list built from the reference configuration) to the rows given by
 // offsets/neighbor (a compacted layout read from a checkpoint): each given row must be a sorted
 // subsequence of the full row; returns false (bonds unchanged) if not.

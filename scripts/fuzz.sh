@@ -17,7 +17,7 @@ build="${AMALGAM_FUZZ_DIR:-$root/build-fuzz}"
 if [ ! -f "$build/CMakeCache.txt" ]; then
   cmake -S "$root" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
         -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_C_COMPILER=clang "-DCMAKE_CXX_FLAGS_RELWITHDEBINFO=-O1 -g1" \
-        -DAMALGAM_FUZZ=ON -DAMALGAM_SANITIZE=address,undefined -DAMALGAM_BUILD_BENCH=OFF \
+        -DAMALGAM_FUZZ=ON -DAMALGAM_SANITIZE=address,undefined -DAMALGAM_BUILD_BENCH=OFF -DAMALGAM_MPI=OFF \
         -DAMALGAM_BUILD_TESTS=ON > /dev/null
 fi
 cmake --build "$build" --parallel "$(nproc)" --target "${targets[@]}"

@@ -12,6 +12,7 @@ PKGS=(
   clang-format             # format.check (scripts/check_format.sh): Debian 12 ships clang-format 14
   clang libclang-rt-14-dev # libFuzzer targets (scripts/fuzz.sh; a smoke run in CI)
   libtrilinos-kokkos-dev   # the optional Kokkos exec backend (Kokkos 3.4.1, Serial space)
+  libopenmpi-dev openmpi-bin libtrilinos-zoltan-dev  # distributed runs: MPI ranks, Zoltan partitioning
 )
 
 SUDO=""

@@ -122,15 +122,22 @@ std::function<char*(std::uint64_t)> resize_into(std::vector<T>& v, const char* n
 
 // The bond layout (rows may have been compacted) and the per-bond state, then the embedded
 // meshes; the per-bond constants are rebuilt from the reference positions on restore.
+void PdSimulation::prepare_checkpoint() {
+  if (s_.distributed()) s_.gather_bonds(offsets_, neighbor_, plastic_, intact_);
+}
+
 std::vector<StateSection> PdSimulation::checkpoint_sections() {
   PdBonds& m = s_.bonds();
+  const bool gathered = s_.distributed();  // rank 0 writes the rows prepare_checkpoint gathered
+  std::vector<std::uint64_t>& off = gathered ? offsets_ : m.offsets;
+  std::vector<std::uint32_t>& nb = gathered ? neighbor_ : m.neighbor;
+  std::vector<Real>& pl = gathered ? plastic_ : m.plastic;
+  std::vector<std::uint8_t>& in = gathered ? intact_ : m.intact;
   std::vector<StateSection> out = {
-      {"bonds.offsets", reinterpret_cast<char*>(m.offsets.data()),
-       m.offsets.size() * sizeof(std::uint64_t)},
-      {"bonds.neighbor", reinterpret_cast<char*>(m.neighbor.data()),
-       m.neighbor.size() * sizeof(std::uint32_t)},
-      {"bonds.plastic", reinterpret_cast<char*>(m.plastic.data()), m.plastic.size() * sizeof(Real)},
-      {"bonds.intact", reinterpret_cast<char*>(m.intact.data()), m.intact.size()}};
+      {"bonds.offsets", reinterpret_cast<char*>(off.data()), off.size() * sizeof(std::uint64_t)},
+      {"bonds.neighbor", reinterpret_cast<char*>(nb.data()), nb.size() * sizeof(std::uint32_t)},
+      {"bonds.plastic", reinterpret_cast<char*>(pl.data()), pl.size() * sizeof(Real)},
+      {"bonds.intact", reinterpret_cast<char*>(in.data()), in.size()}};
   add_mesh_sections(s_, out);
   return out;
 }

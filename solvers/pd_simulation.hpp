@@ -31,6 +31,8 @@ class PdSimulation final : public Simulation {
   Real cfl() const override { return s_.settings().cfl; }
   void set_cfl(Real cfl) override { s_.set_cfl(cfl); }
 
+  void begin_run(const exec::Space& space) override { s_.distribute(space); }
+  void prepare_checkpoint() override;
   void save_frame_start() override { s_.save(snapshot_); }
   void restore_frame_start() override { s_.restore(snapshot_); }
 
@@ -55,7 +57,8 @@ class PdSimulation final : public Simulation {
   PdSolver s_;
   PdSolver::Snapshot snapshot_;
   std::string description_;
-  // What restore_sections reads into, applied by restored().
+  // What restore_sections reads into, applied by restored(); on a distributed run also what
+  // prepare_checkpoint gathers for checkpoint_sections.
   std::vector<std::uint64_t> offsets_;
   std::vector<std::uint32_t> neighbor_;
   std::vector<Real> plastic_;

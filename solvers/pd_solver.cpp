@@ -489,15 +489,22 @@ void PdSolver::step(const exec::Space& space, Real dt) {
   kick_drift(space, dt);
   move_meshes(dt);  // with the half-step velocities that moved the particles
   apply_colliders(space, Real(time_ + double(dt)));
+  share(particles_.vec3(attr_.x));  // distributed: the owners' positions everywhere
+  share(particles_.vec3(attr_.x_lo));
   compute_dilatation(space);
+  share(particles_.real(attr_.theta));
+  share(q_.data());
   compute_forces(space);
   contact_forces(space);
   bond_updates_ += bonds_.size();
   update_damage(space);
+  share(particles_.real(attr_.damage));
   split_meshes();
   compact_bonds(space);
   drive_velocities(space, time_ + double(dt));
   kick(space, dt);
+  share(particles_.vec3(attr_.v));
+  share(particles_.vec3(attr_.acc));
   time_ += double(dt);
   ++steps_;
 }
@@ -541,11 +548,11 @@ PdDiagnostics PdSolver::diagnostics(const exec::Space& space) const {
   d.max_speed = r.vmax;
   d.max_damage = r.dmax;
   d.bonds = bonds_initial_;
-  d.stored = bonds_.size();
+  d.stored = global_sum(bonds_.size());
   d.compactions = compactions_;
   std::uint64_t intact = 0;
   for (std::uint8_t b : bonds_.intact) intact += b;
-  d.intact = intact;
+  d.intact = global_sum(intact);
   return d;
 }
 

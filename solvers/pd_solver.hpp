@@ -191,6 +191,21 @@ class PdSolver {
                      const std::vector<std::uint32_t>& neighbor, const std::vector<Real>& plastic,
                      const std::vector<std::uint8_t>& intact);
 
+  // Distributed runs (issue 28; solvers/pd_distributed.cpp). Collective: every rank calls it
+  // with the same solver (set up alike on every rank). Zoltan's RCB splits the particles by
+  // reference position, weighted by bonds; each rank keeps the bond rows of the particles it owns
+  // and computes only those rows; after each pass the owners' per-particle results (positions,
+  // dilatation, damage, velocities) are copied to the other ranks bit for bit, so every rank holds
+  // the whole particle state exactly as a single process has it: frames, diagnostics and the
+  // time step are the same on every rank count. One rank: nothing changes. Refused (InputError)
+  // with embedded tet meshes or plastic materials, which are not distributed yet.
+  void distribute(const exec::Space& space);
+  bool distributed() const { return ranks_ != nullptr; }
+  // Collective: the bond rows of all ranks in the global layout, on rank 0 (others: empty).
+  void gather_bonds(std::vector<std::uint64_t>& offsets, std::vector<std::uint32_t>& neighbor,
+                    std::vector<Real>& plastic, std::vector<std::uint8_t>& intact) const;
+  // Rank-local counts made global (integer sums: exact).
+  std::uint64_t global_sum(std::uint64_t v) const;
 
  private:
   PdSettings settings_;
@@ -224,6 +239,15 @@ class PdSolver {
   };
   std::vector<Drive> drives_;
   void drive_velocities(const exec::Space& space, double t);
+  // Distributed: which particles this rank owns and the plan copying owners' values to the rest.
+  struct Ranks;
+  std::shared_ptr<const Ranks> ranks_;
+  // Owners' values of a per-particle array to every other rank (no-op on one process).
+  void share_bytes(void* data, std::size_t bytes) const;
+  template <class T>
+  void share(T* data) const {
+    if (ranks_) share_bytes(data, sizeof(T));
+  }
   std::vector<PdCrackMesh> meshes_;
   std::uint64_t intact_ = 0,
                 meshes_intact_ = 0;  // intact directed bonds: now, and when the meshes last split

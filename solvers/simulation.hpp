@@ -81,6 +81,12 @@ class Simulation {
 
   // --- Per-frame bookkeeping and diagnostics.
   virtual void begin_frame() {}
+  // Once, before the first frame is written (after a resume): a distributed run splits its
+  // work across the MPI ranks here (collective; solvers/pd_distributed.cpp).
+  virtual void begin_run(const exec::Space& space) {}
+  // Collective, before checkpoint_sections on a distributed run: the sections' data gathered to
+  // rank 0, which writes the file.
+  virtual void prepare_checkpoint() {}
   virtual FrameReport end_frame(const exec::Space& space, long long substeps) = 0;
   // The physical state's columns (energies, momentum, speeds; the same names every call), for a
   // diagnostics row and for the samples taken every N substeps (output.every_substeps).

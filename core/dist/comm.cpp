@@ -1,0 +1,322 @@
+#include "core/dist/comm.hpp"
+
+#include <algorithm>
+#include <cstdlib>
+#include <stdexcept>
+
+#ifdef AMALGAM_HAVE_MPI
+#include <mpi.h>
+#include <trilinos/zoltan.h>
+#endif
+
+namespace amalgam::dist {
+
+#ifdef AMALGAM_HAVE_MPI
+bool mpi_built() {
+  return true;
+}
+
+namespace {
+bool g_initialized_here = false;
+void check(int rc, const char* what) {
+  if (rc != MPI_SUCCESS) throw std::runtime_error(std::string("MPI: ") + what + " failed");
+}
+// Counts and displacements of a variable-size exchange, as MPI's int counts (a message over 2 GB
+// is refused rather than truncated).
+std::vector<int> to_int_counts(const std::vector<std::size_t>& n) {
+  std::vector<int> c(n.size());
+  for (std::size_t i = 0; i < n.size(); ++i) {
+    if (n[i] > std::size_t(2147483647)) throw std::runtime_error("MPI: a message over 2 GB");
+    c[i] = int(n[i]);
+  }
+  return c;
+}
+std::vector<int> displacements(const std::vector<int>& c) {
+  std::vector<int> d(c.size(), 0);
+  long long s = 0;
+  for (std::size_t i = 0; i < c.size(); ++i) {
+    d[i] = int(s);
+    s += c[i];
+    if (s > 2147483647LL) throw std::runtime_error("MPI: an exchange over 2 GB");
+  }
+  return d;
+}
+// Whether a launcher (mpirun, mpiexec, srun) started this process: only then is MPI initialised,
+// so a plain `amalgam run` never pays for (or depends on) MPI's start-up, and OpenMPI's singleton
+// start, which would fork a daemon, never happens.
+bool launched_by_mpi() {
+  for (const char* v : {"OMPI_COMM_WORLD_SIZE", "PMIX_RANK", "PMI_SIZE", "PMI_RANK"})
+    if (std::getenv(v)) return true;
+  return false;
+}
+}  // namespace
+
+Session::Session(int* argc, char*** argv) {
+  if (!launched_by_mpi()) return;
+  int done = 0;
+  MPI_Initialized(&done);
+  if (!done) {
+    int provided = 0;
+    check(MPI_Init_thread(argc, argv, MPI_THREAD_FUNNELED, &provided), "MPI_Init_thread");
+    g_initialized_here = true;
+    float version = 0;
+    Zoltan_Initialize(argc ? *argc : 0, argv ? *argv : nullptr, &version);
+  }
+  Comm::world().attach();
+}
+Session::~Session() {
+  int finalized = 0;
+  MPI_Finalized(&finalized);
+  if (g_initialized_here && !finalized) MPI_Finalize();
+}
+
+Comm::Comm() {
+  attach();
+}
+void Comm::attach() {
+  int init = 0;
+  MPI_Initialized(&init);
+  if (!init) return;  // used before (or without) a Session: one rank
+  MPI_Comm_rank(MPI_COMM_WORLD, &rank_);
+  MPI_Comm_size(MPI_COMM_WORLD, &size_);
+}
+
+double Comm::max(double v) const {
+  if (size_ == 1) return v;
+  double r = v;
+  check(MPI_Allreduce(&v, &r, 1, MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD), "MPI_Allreduce");
+  return r;
+}
+double Comm::min(double v) const {
+  if (size_ == 1) return v;
+  double r = v;
+  check(MPI_Allreduce(&v, &r, 1, MPI_DOUBLE, MPI_MIN, MPI_COMM_WORLD), "MPI_Allreduce");
+  return r;
+}
+std::uint64_t Comm::sum(std::uint64_t v) const {
+  if (size_ == 1) return v;
+  std::uint64_t r = v;
+  check(MPI_Allreduce(&v, &r, 1, MPI_UINT64_T, MPI_SUM, MPI_COMM_WORLD), "MPI_Allreduce");
+  return r;
+}
+std::int64_t Comm::max(std::int64_t v) const {
+  if (size_ == 1) return v;
+  std::int64_t r = v;
+  check(MPI_Allreduce(&v, &r, 1, MPI_INT64_T, MPI_MAX, MPI_COMM_WORLD), "MPI_Allreduce");
+  return r;
+}
+
+std::vector<char> Comm::allgather(const std::vector<char>& mine,
+                                  std::vector<std::size_t>* sizes) const {
+  if (size_ == 1) {
+    if (sizes) *sizes = {mine.size()};
+    return mine;
+  }
+  const std::vector<int> one = to_int_counts({mine.size()});
+  std::vector<int> counts(static_cast<std::size_t>(size_), 0);
+  check(MPI_Allgather(&one[0], 1, MPI_INT, counts.data(), 1, MPI_INT, MPI_COMM_WORLD),
+        "MPI_Allgather");
+  const std::vector<int> displ = displacements(counts);
+  std::vector<char> all(std::size_t(displ.back()) + std::size_t(counts.back()));
+  check(MPI_Allgatherv(mine.data(), one[0], MPI_BYTE, all.data(), counts.data(), displ.data(),
+                       MPI_BYTE, MPI_COMM_WORLD),
+        "MPI_Allgatherv");
+  if (sizes) sizes->assign(counts.begin(), counts.end());
+  return all;
+}
+
+std::vector<char> Comm::gather(const std::vector<char>& mine,
+                               std::vector<std::size_t>* sizes) const {
+  if (size_ == 1) {
+    if (sizes) *sizes = {mine.size()};
+    return mine;
+  }
+  const std::vector<int> one = to_int_counts({mine.size()});
+  std::vector<int> counts(static_cast<std::size_t>(size_), 0);
+  check(MPI_Gather(&one[0], 1, MPI_INT, counts.data(), 1, MPI_INT, 0, MPI_COMM_WORLD),
+        "MPI_Gather");
+  std::vector<char> all;
+  std::vector<int> displ(static_cast<std::size_t>(size_), 0);
+  if (rank_ == 0) {
+    displ = displacements(counts);
+    all.resize(std::size_t(displ.back()) + std::size_t(counts.back()));
+  }
+  check(MPI_Gatherv(mine.data(), one[0], MPI_BYTE, all.data(), counts.data(), displ.data(),
+                    MPI_BYTE, 0, MPI_COMM_WORLD),
+        "MPI_Gatherv");
+  if (sizes) sizes->assign(counts.begin(), counts.end());
+  return all;
+}
+
+std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char>>& send) const {
+  if (size_ == 1) return send;
+  std::vector<std::size_t> n(static_cast<std::size_t>(size_));
+  for (int r = 0; r < size_; ++r) n[std::size_t(r)] = send[std::size_t(r)].size();
+  const std::vector<int> scount = to_int_counts(n), sdispl = displacements(scount);
+  std::vector<int> rcount(static_cast<std::size_t>(size_), 0);
+  check(MPI_Alltoall(scount.data(), 1, MPI_INT, rcount.data(), 1, MPI_INT, MPI_COMM_WORLD),
+        "MPI_Alltoall");
+  const std::vector<int> rdispl = displacements(rcount);
+  std::vector<char> sbuf(std::size_t(sdispl.back()) + std::size_t(scount.back()));
+  for (int r = 0; r < size_; ++r)
+    std::copy(send[std::size_t(r)].begin(), send[std::size_t(r)].end(),
+              sbuf.begin() + sdispl[std::size_t(r)]);
+  std::vector<char> rbuf(std::size_t(rdispl.back()) + std::size_t(rcount.back()));
+  check(MPI_Alltoallv(sbuf.data(), scount.data(), sdispl.data(), MPI_BYTE, rbuf.data(),
+                      rcount.data(), rdispl.data(), MPI_BYTE, MPI_COMM_WORLD),
+        "MPI_Alltoallv");
+  std::vector<std::vector<char>> recv(static_cast<std::size_t>(size_));
+  for (int r = 0; r < size_; ++r)
+    recv[std::size_t(r)].assign(rbuf.begin() + rdispl[std::size_t(r)],
+                                rbuf.begin() + rdispl[std::size_t(r)] + rcount[std::size_t(r)]);
+  return recv;
+}
+
+void Comm::broadcast(std::vector<char>& bytes) const {
+  if (size_ == 1) return;
+  std::uint64_t n = bytes.size();
+  check(MPI_Bcast(&n, 1, MPI_UINT64_T, 0, MPI_COMM_WORLD), "MPI_Bcast");
+  if (n > 2147483647ULL) throw std::runtime_error("MPI: a broadcast over 2 GB");
+  bytes.resize(std::size_t(n));
+  check(MPI_Bcast(bytes.data(), int(n), MPI_BYTE, 0, MPI_COMM_WORLD), "MPI_Bcast");
+}
+
+void Comm::barrier() const {
+  if (size_ > 1) check(MPI_Barrier(MPI_COMM_WORLD), "MPI_Barrier");
+}
+
+void Comm::abort(int code) const {
+  if (size_ > 1) MPI_Abort(MPI_COMM_WORLD, code);
+  std::exit(code);
+}
+
+namespace {
+struct RcbInput {
+  const std::vector<std::uint64_t>* ids;
+  const std::vector<double>* xyz;
+  const std::vector<float>* weight;
+};
+int num_obj(void* data, int* ierr) {
+  *ierr = ZOLTAN_OK;
+  return int(static_cast<RcbInput*>(data)->ids->size());
+}
+void obj_list(void* data, int, int, ZOLTAN_ID_PTR gids, ZOLTAN_ID_PTR lids, int wdim, float* w,
+              int* ierr) {
+  const RcbInput& in = *static_cast<RcbInput*>(data);
+  for (std::size_t i = 0; i < in.ids->size(); ++i) {
+    gids[i] = ZOLTAN_ID_TYPE((*in.ids)[i]);
+    lids[i] = ZOLTAN_ID_TYPE(i);
+    if (wdim > 0) w[i] = (*in.weight)[i];
+  }
+  *ierr = ZOLTAN_OK;
+}
+int num_geom(void*, int* ierr) {
+  *ierr = ZOLTAN_OK;
+  return 3;
+}
+void geom_multi(void* data, int, int, int n, ZOLTAN_ID_PTR, ZOLTAN_ID_PTR lids, int dim,
+                double* geom, int* ierr) {
+  const RcbInput& in = *static_cast<RcbInput*>(data);
+  for (int k = 0; k < n; ++k)
+    for (int a = 0; a < dim; ++a) geom[k * dim + a] = (*in.xyz)[std::size_t(lids[k]) * 3 + a];
+  *ierr = ZOLTAN_OK;
+}
+}  // namespace
+
+std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids,
+                               const std::vector<double>& xyz, const std::vector<float>& weight,
+                               double imbalance_tolerance) {
+  const Comm& comm = Comm::world();
+  std::vector<int> owner(ids.size(), comm.rank());
+  if (comm.size() == 1) return owner;
+  if (sizeof(ZOLTAN_ID_TYPE) < sizeof(std::uint32_t))
+    throw std::runtime_error("Zoltan: its id type is too small");
+  for (std::uint64_t id : ids)
+    if (id > std::uint64_t(ZOLTAN_ID_TYPE(-1)))
+      throw std::runtime_error("Zoltan: a global id beyond its id type (build with 64-bit ids)");
+  RcbInput in{&ids, &xyz, &weight};
+  Zoltan_Struct* zz = Zoltan_Create(MPI_COMM_WORLD);
+  if (!zz) throw std::runtime_error("Zoltan_Create failed");
+  Zoltan_Set_Param(zz, "DEBUG_LEVEL", "0");  // first: setting the method prints at level 1
+  Zoltan_Set_Param(zz, "LB_METHOD", "RCB");
+  Zoltan_Set_Param(zz, "NUM_GID_ENTRIES", "1");
+  Zoltan_Set_Param(zz, "NUM_LID_ENTRIES", "1");
+  Zoltan_Set_Param(zz, "OBJ_WEIGHT_DIM", weight.empty() ? "0" : "1");
+  Zoltan_Set_Param(zz, "RETURN_LISTS", "EXPORT");
+  Zoltan_Set_Param(zz, "KEEP_CUTS", "0");
+  Zoltan_Set_Param(zz, "RCB_REUSE", "0");
+  Zoltan_Set_Param(zz, "AVERAGE_CUTS",
+                   "1");  // cuts midway between points: away from lattice planes
+  const std::string tol = std::to_string(imbalance_tolerance);
+  Zoltan_Set_Param(zz, "IMBALANCE_TOL", tol.c_str());
+  Zoltan_Set_Num_Obj_Fn(zz, num_obj, &in);
+  Zoltan_Set_Obj_List_Fn(zz, obj_list, &in);
+  Zoltan_Set_Num_Geom_Fn(zz, num_geom, &in);
+  Zoltan_Set_Geom_Multi_Fn(zz, geom_multi, &in);
+  int changes = 0, ngid = 0, nlid = 0, nimp = 0, nexp = 0;
+  ZOLTAN_ID_PTR imp_g = nullptr, imp_l = nullptr, exp_g = nullptr, exp_l = nullptr;
+  int *imp_p = nullptr, *imp_to = nullptr, *exp_p = nullptr, *exp_to = nullptr;
+  const int rc = Zoltan_LB_Partition(zz, &changes, &ngid, &nlid, &nimp, &imp_g, &imp_l, &imp_p,
+                                     &imp_to, &nexp, &exp_g, &exp_l, &exp_p, &exp_to);
+  if (rc == ZOLTAN_OK || rc == ZOLTAN_WARN)
+    for (int k = 0; k < nexp; ++k) owner[std::size_t(exp_l[k])] = exp_p[k];
+  Zoltan_LB_Free_Part(&imp_g, &imp_l, &imp_p, &imp_to);
+  Zoltan_LB_Free_Part(&exp_g, &exp_l, &exp_p, &exp_to);
+  Zoltan_Destroy(&zz);
+  if (rc != ZOLTAN_OK && rc != ZOLTAN_WARN)
+    throw std::runtime_error("Zoltan_LB_Partition (RCB) failed with code " + std::to_string(rc));
+  return owner;
+}
+
+#else  // no MPI: one rank
+
+bool mpi_built() {
+  return false;
+}
+Session::Session(int*, char***) {}
+Session::~Session() = default;
+Comm::Comm() = default;
+void Comm::attach() {}
+double Comm::max(double v) const {
+  return v;
+}
+double Comm::min(double v) const {
+  return v;
+}
+std::uint64_t Comm::sum(std::uint64_t v) const {
+  return v;
+}
+std::int64_t Comm::max(std::int64_t v) const {
+  return v;
+}
+std::vector<char> Comm::allgather(const std::vector<char>& mine,
+                                  std::vector<std::size_t>* sizes) const {
+  if (sizes) *sizes = {mine.size()};
+  return mine;
+}
+std::vector<char> Comm::gather(const std::vector<char>& mine,
+                               std::vector<std::size_t>* sizes) const {
+  if (sizes) *sizes = {mine.size()};
+  return mine;
+}
+std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char>>& send) const {
+  return send;
+}
+void Comm::broadcast(std::vector<char>&) const {}
+void Comm::barrier() const {}
+void Comm::abort(int code) const {
+  std::exit(code);
+}
+std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids, const std::vector<double>&,
+                               const std::vector<float>&, double) {
+  return std::vector<int>(ids.size(), 0);
+}
+
+#endif
+
+Comm& Comm::world() {
+  static Comm c;
+  return c;
+}
+
+}  // namespace amalgam::dist

@@ -1,0 +1,83 @@
+// The distributed layer (issue 28): MPI ranks across machines, the exec backends' threads inside
+// each rank. `Comm` is the only place that calls MPI; built without MPI (AMALGAM_MPI=OFF or MPI
+// not found) it is one rank and every collective is the identity, so callers need no #ifdef.
+//
+// Determinism: collectives used on floating-point state are exact (max, min, integer sums) or
+// move bytes (gather, all-to-all); no rank-count-dependent floating-point reduction is offered,
+// because results must be bitwise the same on every rank count (docs/architecture.md).
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace amalgam::dist {
+
+bool mpi_built();  // whether this build has MPI (and Zoltan)
+
+// Initialises MPI for the process's lifetime (MPI_THREAD_FUNNELED: only the calling thread makes
+// MPI calls; the exec backends' threads never do) and finalises it when destroyed. Without MPI
+// (or when not launched by mpirun) a single rank.
+class Session {
+ public:
+  Session(int* argc, char*** argv);
+  ~Session();
+  Session(const Session&) = delete;
+  Session& operator=(const Session&) = delete;
+};
+
+class Comm {
+ public:
+  static Comm& world();
+  int rank() const { return rank_; }
+  int size() const { return size_; }
+  bool root() const { return rank_ == 0; }
+
+  double max(double v) const;
+  double min(double v) const;
+  std::uint64_t sum(std::uint64_t v) const;
+  std::int64_t max(std::int64_t v) const;
+  // Every rank's bytes, concatenated in rank order, on every rank (sizes[r]: rank r's count).
+  std::vector<char> allgather(const std::vector<char>& mine, std::vector<std::size_t>* sizes) const;
+  // Root only receives (others get an empty vector): every rank's bytes in rank order.
+  std::vector<char> gather(const std::vector<char>& mine, std::vector<std::size_t>* sizes) const;
+  // send[r]: the bytes for rank r (size() entries); returns recv[r]: the bytes from rank r.
+  std::vector<std::vector<char>> alltoall(const std::vector<std::vector<char>>& send) const;
+  // Root's bytes on every rank.
+  void broadcast(std::vector<char>& bytes) const;
+  void barrier() const;
+  // Ends every rank of the job with this exit code (a fault on one rank must not leave the
+  // others waiting in a collective). Single rank: std::exit.
+  [[noreturn]] void abort(int code) const;
+
+ private:
+  friend class Session;
+  Comm();
+  void attach();  // reads the rank and size once MPI is initialised
+  int rank_ = 0, size_ = 1;
+};
+
+// Typed helpers over the byte collectives.
+template <class T>
+std::vector<char> as_bytes(const std::vector<T>& v) {
+  const char* p = reinterpret_cast<const char*>(v.data());
+  return std::vector<char>(p, p + v.size() * sizeof(T));
+}
+template <class T>
+std::vector<T> from_bytes(const std::vector<char>& b) {
+  std::vector<T> v(b.size() / sizeof(T));
+  if (!v.empty())
+    std::copy(b.data(), b.data() + v.size() * sizeof(T), reinterpret_cast<char*>(v.data()));
+  return v;
+}
+
+// Recursive coordinate bisection of points by Zoltan (RCB, weighted): each rank passes its own
+// points with their global ids; returns, for each of them, the rank that owns it. The partition
+// depends on the input and the rank count only (Zoltan's RCB is deterministic), never on timing.
+// Without MPI: every point on rank 0.
+std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids,
+                               const std::vector<double>& xyz, const std::vector<float>& weight,
+                               double imbalance_tolerance = 1.05);
+
+}  // namespace amalgam::dist
