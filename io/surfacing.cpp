@@ -306,6 +306,7 @@ SurfacingStats surface_vdb_points_file(const std::string& input, const std::stri
                                        const exec::Space& space) {
   init_openvdb();
   Particles q;
+  double points_voxel = 0;
   std::string error;
   exec::with_thread_limit(space, [&] {
     try {
@@ -314,6 +315,7 @@ SurfacingStats surface_vdb_points_file(const std::string& input, const std::stri
       const auto grid = openvdb::gridPtrCast<PointDataGrid>(file.readGrid("points"));
       file.close();
       if (!grid) throw std::runtime_error("the grid \"points\" is not a point data grid");
+      points_voxel = grid->voxelSize()[0];
       using openvdb::points::AttributeHandle;
       for (auto leaf = grid->tree().cbeginLeaf(); leaf; ++leaf) {
         const auto& set = leaf->attributeSet();
@@ -340,7 +342,9 @@ SurfacingStats surface_vdb_points_file(const std::string& input, const std::stri
     }
   });
   if (!error.empty()) throw InputError(input + ": cannot read VDB points: " + error);
-  return surface_and_write(base, q, spacing, s, space);
+  SurfacingSpec resolved = s;  // unset sizes from the points' voxel (the run's dx for MPM)
+  if (!(resolved.voxel_size > 0)) resolved.voxel_size = 0.5 * points_voxel;
+  return surface_and_write(base, q, spacing > 0 ? spacing : 0.5 * points_voxel, resolved, space);
 }
 
 }  // namespace amalgam

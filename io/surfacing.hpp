@@ -70,7 +70,9 @@ SurfacingStats write_surfacing(const std::string& base, const PointFields& p, do
                                const SurfacingSpec& s, const exec::Space& space);
 
 // The same from a VDB points file written by a run (frame_NNNN.vdb: the grid "points" with P, v
-// and material). Throws InputError naming the file when it cannot be read or lacks them.
+// and material). A spacing or s.voxel_size <= 0 is taken as half the points' voxel size (the
+// run's dx for MPM: right for 8 particles per cell). Throws InputError naming the file when it
+// cannot be read or lacks P and v.
 SurfacingStats surface_vdb_points_file(const std::string& input, const std::string& base,
                                        double spacing, const SurfacingSpec& s,
                                        const exec::Space& space);
