@@ -17,6 +17,7 @@
 #include "io/checkpoint.hpp"
 #include "io/files.hpp"
 #include "io/preview.hpp"
+#include "io/surfacing.hpp"
 #include "io/vdb_points.hpp"
 #include "io/writers.hpp"
 
@@ -61,7 +62,8 @@ class FrameWriter {
         space_(space),
         camera_(preview_camera(scene)),
         splat_(preview_radius(scene)),
-        floor_y_(preview_floor(scene)) {}
+        floor_y_(preview_floor(scene)),
+        spacing_(particle_spacing(scene)) {}
 
   void write(int f) {
     if (!writes_files()) return;
@@ -76,6 +78,11 @@ class FrameWriter {
                               scene_.preview.color_by, floor_y_));
     }
     write_points(numbered(rs_.out_dir, "frame_%04d", f, ""), p);
+    if (out.surfacing.enabled) {  // surfacing_NNNN.vdb (+ .obj / .ply): io/surfacing.hpp
+      std::string base = numbered(rs_.out_dir, "surfacing_%04d", f, "");
+      base.pop_back();  // the "." before the (empty) extension
+      write_surfacing(base, p, spacing_, out.surfacing, space_);
+    }
     if (out.grid_volumes && f > 0 && sim_.grid())  // the grid exists once a substep ran
       write_vdb_grid_fields(numbered(rs_.out_dir, "frame_%04d", f, "grid.vdb"), *sim_.grid(),
                             sim_.point_voxel_size(), space_);
@@ -110,7 +117,7 @@ class FrameWriter {
   const RunSettings& rs_;
   const exec::Space& space_;
   const Camera camera_;
-  const double splat_, floor_y_;
+  const double splat_, floor_y_, spacing_;
   SurfaceMesh mesh_;
 };
 

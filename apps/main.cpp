@@ -1,4 +1,4 @@
-// amalgam: command-line entry point (run, validate, bench, plot, info).
+// amalgam: command-line entry point (run, validate, bench, plot, surface, info).
 #include <Eigen/Core>
 #include <exception>
 #include <memory>
@@ -47,6 +47,8 @@ int dispatch(int argc, char** argv) {
       "  validate SCENE   check a scene file without running it\n"
       "  bench            standard benchmark across backends and thread counts (bench --help)\n"
       "  plot RUN_DIR     draw a run's diagnostics.csv to diagnostics.png (plot --help)\n"
+      "  surface RUN_DIR  surface a run's frames into level set, density and mesh files "
+      "(surface --help)\n"
       "  info             version, backends, precision, dependency versions\n";
   if (argc < 2) {
     std::cerr << usage;
@@ -59,6 +61,7 @@ int dispatch(int argc, char** argv) {
   if (cmd == "bench") return bench_command(args);
   if (cmd == "info") return info_command(args);
   if (cmd == "plot") return plot_command(args);
+  if (cmd == "surface") return surface_command(args);
   if (cmd == "--help" || cmd == "-h" || cmd == "help") {
     std::cout << usage;
     return kOk;

@@ -39,6 +39,8 @@ class JsonObject {
   std::string string(const std::string& key, const std::string& def);
   std::string choice(const std::string& key, const std::string& def,
                      const std::vector<std::string>& allowed);
+  // An array of strings (`def` when absent); an entry that is not a string fails at key/index.
+  std::vector<std::string> strings(const std::string& key, const std::vector<std::string>& def);
   Vec3 vec3(const std::string& key, const Vec3& def);
   Vec3 required_vec3(const std::string& key);
   // An [x, y, z] array whose entries are numbers or expressions of x, y, z (strings,

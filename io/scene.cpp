@@ -285,6 +285,51 @@ ColliderSpec read_collider(JsonObject o, const std::string& scene_file) {
 
 using namespace scene_detail;
 
+namespace {
+
+// output.surfacing (io/surfacing.hpp, docs/scenes.md).
+void read_surfacing(JsonObject& j, Scene& s, const std::map<std::string, int>& mat_index) {
+  SurfacingSpec& r = s.output.surfacing;
+  r.enabled = j.boolean("enabled", true);
+  parse_surfacing_method(j.choice("method", "smooth", {"smooth", "spheres"}), r.method);
+  r.voxel_size = j.number("voxel_size", 0.5 * double(s.mpm.dx), 0, kHuge, true);
+  r.radius_scale = j.number("radius_scale", 0, 0, 100, true);  // 0: the method's default
+  r.filters = default_surface_filters(r.method);
+  const std::vector<std::string> filters = j.strings("filters", {});
+  if (j.has("filters")) r.filters.clear();
+  for (std::size_t i = 0; i < filters.size(); ++i) {
+    SurfaceFilter f;
+    if (!parse_surface_filter(filters[i], f))
+      j.fail("filters/" + std::to_string(i),
+             "unknown filter \"" + filters[i] + "\" (expected one of: dilate, smooth, erode)");
+    r.filters.push_back(f);
+  }
+  const std::vector<std::string> grids = j.strings("grids", {"surface", "density", "v"});
+  r.grid_surface = r.grid_density = r.grid_velocity = false;
+  for (std::size_t i = 0; i < grids.size(); ++i) {
+    bool* g = grids[i] == "surface"   ? &r.grid_surface
+              : grids[i] == "density" ? &r.grid_density
+              : grids[i] == "v"       ? &r.grid_velocity
+                                      : nullptr;
+    if (!g)
+      j.fail("grids/" + std::to_string(i),
+             "unknown grid \"" + grids[i] + "\" (expected one of: surface, density, v)");
+    *g = true;
+  }
+  parse_surface_mesh(j.choice("mesh", "none", {"none", "obj", "ply"}), r.mesh);
+  r.adaptivity = j.number("adaptivity", 0, 0, 1);
+  const std::vector<std::string> groups = j.strings("groups", {});
+  for (std::size_t i = 0; i < groups.size(); ++i) {
+    const auto it = mat_index.find(groups[i]);
+    if (it == mat_index.end())
+      j.fail("groups/" + std::to_string(i),
+             "unknown material \"" + groups[i] + "\" (groups name materials of /materials)");
+    r.materials.push_back(std::int32_t(it->second));
+  }
+}
+
+}  // namespace
+
 Scene parse_scene(const std::string& text, const std::string& file) {
   const nlohmann::json root = detail::parse_json_strict(text, file);
   Scene s;
@@ -352,6 +397,11 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   const std::string surf = out.choice("surface", "obj", {"obj", "ply", "both", "none"});
   s.output.surface_obj = surf == "obj" || surf == "both";
   s.output.surface_ply = surf == "ply" || surf == "both";
+  if (out.has("surfacing")) {
+    JsonObject sj = out.object("surfacing");
+    read_surfacing(sj, s, mat_index);
+    sj.finish();
+  }
   out.finish();
 
   if (top.has("preview")) {
@@ -420,6 +470,14 @@ double preview_floor(const Scene& scene) {
     if (c.shape == ColliderShape::HalfSpace && c.normal[1] > 0.9 && !(double(c.origin[1]) <= y))
       y = double(c.origin[1]);
   return y;
+}
+
+double particle_spacing(const Scene& scene) {
+  if (scene.method == Method::Peridynamics) return double(scene.pd.spacing);
+  int ppc = 0;
+  for (const auto& o : scene.objects)
+    ppc = ppc == 0 ? o.particles_per_cell : std::min(ppc, o.particles_per_cell);
+  return double(scene.mpm.dx) / std::cbrt(double(std::max(ppc, 1)));
 }
 
 double preview_radius(const Scene& scene) {

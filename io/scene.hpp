@@ -7,6 +7,7 @@
 #include <string>
 
 #include "io/preview.hpp"
+#include "io/surfacing.hpp"
 #include "solvers/scene_spec.hpp"
 
 namespace amalgam {
@@ -23,6 +24,9 @@ struct OutputSpec {
   long long every_substeps = 0;
   // Peridynamic tet_mesh objects: the surface with crack faces per frame (frame_NNNN_surface.*).
   bool surface_obj = true, surface_ply = false;
+  // Particle surfaces (output.surfacing; off by default): surfacing_NNNN.vdb and, with a mesh,
+  // surfacing_NNNN.obj / .ply (io/surfacing.hpp). voxel_size is resolved (dx / 2 when not given).
+  SurfacingSpec surfacing;
 };
 
 // A parsed scene: the physics (SceneSpec, what the factory builds a Simulation from), plus what
@@ -57,6 +61,10 @@ Scene parse_scene(const std::string& text, const std::string& file);
 Camera preview_camera(const Scene& scene);
 // Splat radius for previews: 0.6 particle spacings of the densest object.
 double preview_radius(const Scene& scene);
+// The particle lattice spacing surfacing sizes its spheres by: the peridynamic spacing, or for MPM
+// dx / cbrt(particles_per_cell) of the object with the fewest particles per cell (the widest
+// spacing, so that no object's spheres leave gaps).
+double particle_spacing(const Scene& scene);
 // Height of the highest upward-facing half-space collider (the floor), or NaN.
 double preview_floor(const Scene& scene);
 

@@ -1,4 +1,5 @@
-// Sees OpenVDB's points headers (slow to compile): keep it the only io file that does.
+// Sees OpenVDB's points headers (slow to compile): with io/surfacing.cpp, the only io files that
+// do.
 #include "io/vdb_points.hpp"
 
 #include <openvdb/openvdb.h>
@@ -16,6 +17,7 @@
 #include "core/errors.hpp"
 #include "core/hash.hpp"
 #include "io/files.hpp"
+#include "io/vdb_file.hpp"
 #include "io/writers.hpp"
 
 namespace amalgam {
@@ -81,11 +83,10 @@ void derive_uuid(const TempFile& f, const std::string& path) {
     throw InputError(path + ": cannot write the VDB file's UUID");
 }
 
-// Writes grids into a new temporary file beside `path` under the space's thread limit (`build`
-// makes them; they are destroyed there too), gives it its derived UUID and renames it into place.
-template <class Build>
-void write_grids(const std::string& path, const exec::Space& space, const char* what,
-                 const Build& build) {
+}  // namespace
+
+void write_vdb_file(const std::string& path, const exec::Space& space, const char* what,
+                    const std::function<openvdb::GridCPtrVec()>& build) {
   TempFile tmp(path);
   std::string error;
   exec::with_thread_limit(space, [&] {
@@ -102,7 +103,6 @@ void write_grids(const std::string& path, const exec::Space& space, const char* 
   derive_uuid(tmp, path);
   tmp.commit();
 }
-}  // namespace
 
 void write_vdb_points(const std::string& path, const PointFields& p, double voxel_size,
                       const exec::Space& space) {
@@ -117,7 +117,7 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
     v[i] = openvdb::Vec3s(float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2]));
   }
   const openvdb::points::PointAttributeVector<openvdb::Vec3R> positions(P);
-  write_grids(path, space, "VDB points", [&] {
+  write_vdb_file(path, space, "VDB points", [&] {
     const openvdb::math::Transform::Ptr xform =
         openvdb::math::Transform::createLinearTransform(voxel_size);
     const auto index =
@@ -139,7 +139,7 @@ void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, doub
                            const exec::Space& space) {
   static std::once_flag init;
   std::call_once(init, [] { openvdb::initialize(); });
-  write_grids(path, space, "VDB grid fields", [&] {
+  write_vdb_file(path, space, "VDB grid fields", [&] {
     const openvdb::math::Transform::Ptr xform = openvdb::math::Transform::createLinearTransform(dx);
     auto mass = openvdb::FloatGrid::create(0.0f);
     auto vel = openvdb::Vec3SGrid::create(openvdb::Vec3s(0.0f));

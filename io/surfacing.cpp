@@ -1,0 +1,350 @@
+// Sees OpenVDB's points headers (slow to compile); see io/surfacing.hpp.
+#include "io/surfacing.hpp"
+
+#include <openvdb/openvdb.h>
+#include <openvdb/points/PointConversion.h>
+#include <openvdb/points/PointDataGrid.h>
+#include <openvdb/points/PointRasterizeSDF.h>
+#include <openvdb/tools/Interpolation.h>
+#include <openvdb/tools/LevelSetFilter.h>
+#include <openvdb/tools/LevelSetRebuild.h>
+#include <openvdb/tools/LevelSetUtil.h>
+#include <openvdb/tools/PointIndexGrid.h>
+#include <openvdb/tools/VolumeToMesh.h>
+
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <mutex>
+#include <sstream>
+
+#include "core/errors.hpp"
+#include "io/vdb_file.hpp"
+#include "io/writers.hpp"
+
+namespace amalgam {
+
+bool parse_surfacing_method(const std::string& name, SurfacingMethod& out) {
+  if (name == "smooth") return out = SurfacingMethod::Smooth, true;
+  if (name == "spheres") return out = SurfacingMethod::Spheres, true;
+  return false;
+}
+
+bool parse_surface_filter(const std::string& name, SurfaceFilter& out) {
+  if (name == "dilate") return out = SurfaceFilter::Dilate, true;
+  if (name == "smooth") return out = SurfaceFilter::Smooth, true;
+  if (name == "erode") return out = SurfaceFilter::Erode, true;
+  return false;
+}
+
+bool parse_surface_mesh(const std::string& name, SurfaceMeshFormat& out) {
+  if (name == "none") return out = SurfaceMeshFormat::None, true;
+  if (name == "obj") return out = SurfaceMeshFormat::Obj, true;
+  if (name == "ply") return out = SurfaceMeshFormat::Ply, true;
+  return false;
+}
+
+std::vector<SurfaceFilter> default_surface_filters(SurfacingMethod m) {
+  if (m == SurfacingMethod::Spheres) return {SurfaceFilter::Dilate, SurfaceFilter::Erode};
+  return {};
+}
+
+double surfacing_radius(const SurfacingSpec& s, double spacing) {
+  // The sphere of the particle's lattice volume V = h^3: r = cbrt(3 V / (4 pi)).
+  const double scale = s.radius_scale > 0                     ? s.radius_scale
+                       : s.method == SurfacingMethod::Spheres ? 0.8
+                                                              : 0.9;
+  return scale * std::cbrt(3.0 / (4.0 * M_PI)) * spacing;
+}
+
+namespace {
+
+using openvdb::FloatGrid;
+using openvdb::Vec3s;
+using openvdb::Vec3SGrid;
+using openvdb::points::PointDataGrid;
+
+constexpr double kHalfBand = 3.0;  // narrow band half width in voxels (LEVEL_SET_HALF_WIDTH)
+
+// The particles to surface, flattened: world positions and velocities.
+struct Particles {
+  std::vector<openvdb::Vec3R> P;
+  std::vector<Vec3s> v;
+};
+
+bool selected(const SurfacingSpec& s, std::int32_t material) {
+  if (s.materials.empty()) return true;
+  for (const std::int32_t m : s.materials)
+    if (m == material) return true;
+  return false;
+}
+
+Particles select(const PointFields& p, const SurfacingSpec& s) {
+  Particles out;
+  for (std::size_t i = 0; i < p.n; ++i) {
+    if (!selected(s, p.material ? p.material[i] : 0)) continue;
+    out.P.emplace_back(double(p.x[i][0]), double(p.x[i][1]), double(p.x[i][2]));
+    out.v.emplace_back(float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2]));
+  }
+  return out;
+}
+
+// A PointDataGrid with P and v (points::createPointDataGrid, as io/vdb_points.cpp writes frames).
+PointDataGrid::Ptr point_grid(const Particles& q, const openvdb::math::Transform& xform) {
+  using namespace openvdb::points;
+  const PointAttributeVector<openvdb::Vec3R> positions(q.P);
+  const auto index =
+      openvdb::tools::createPointIndexGrid<openvdb::tools::PointIndexGrid>(positions, xform);
+  auto grid = createPointDataGrid<NullCodec, PointDataGrid>(*index, positions, xform);
+  appendAttribute<Vec3s>(grid->tree(), "v");
+  populateAttribute<PointDataTree, openvdb::tools::PointIndexTree, PointAttributeVector<Vec3s>>(
+      grid->tree(), index->tree(), "v", PointAttributeVector<Vec3s>(q.v));
+  return grid;
+}
+
+struct Grids {
+  FloatGrid::Ptr surface;
+  Vec3SGrid::Ptr v;
+};
+
+// The level set and the closest particle's velocity on its active voxels
+// (points::rasterizeSpheres / points::rasterizeSmoothSpheres with the closest-point transfer of v).
+Grids rasterize(const PointDataGrid& points, double radius, const SurfacingSpec& s,
+                const openvdb::math::Transform::Ptr& xform) {
+  using Types = openvdb::TypeList<Vec3s>;
+  const std::vector<std::string> attributes = {"v"};
+  openvdb::GridPtrVec g;
+  if (s.method == SurfacingMethod::Spheres)
+    g = openvdb::points::rasterizeSpheres<PointDataGrid, Types>(points, radius, attributes,
+                                                                kHalfBand, xform);
+  else  // Zhu & Bridson: the kernel reaches twice the particle radius
+    g = openvdb::points::rasterizeSmoothSpheres<PointDataGrid, Types>(points, radius, 2.0 * radius,
+                                                                      attributes, kHalfBand, xform);
+  Grids out;
+  if (g.size() == 2) {
+    out.surface = openvdb::gridPtrCast<FloatGrid>(g[0]);
+    out.v = openvdb::gridPtrCast<Vec3SGrid>(g[1]);
+  }
+  // The averaged-position field is no distance field (|grad| != 1, a one-sided band): rebuilt into
+  // a symmetric narrow-band SDF (tools::levelSetRebuild), as PointRasterizeSDF.h recommends, so
+  // that the filters, the fog ramp and the mesh see a true level set.
+  if (out.surface && s.method == SurfacingMethod::Smooth && out.surface->activeVoxelCount() > 0) {
+    const FloatGrid::Ptr rebuilt =
+        openvdb::tools::levelSetRebuild(*out.surface, 0.0f, float(kHalfBand), float(kHalfBand));
+    rebuilt->setGridClass(openvdb::GRID_LEVEL_SET);
+    out.surface = rebuilt;
+  }
+  if (!out.surface) {  // no points: an empty level set (and velocity) of the same transform
+    out.surface = FloatGrid::create(float(kHalfBand * xform->voxelSize()[0]));
+    out.surface->setTransform(xform);
+    out.surface->setGridClass(openvdb::GRID_LEVEL_SET);
+  }
+  if (!out.v) {
+    out.v = Vec3SGrid::create(Vec3s(0.0f));
+    out.v->setTransform(xform->copy());
+  }
+  return out;
+}
+
+// tools::LevelSetFilter passes in the order given: dilate and erode move the surface by one
+// voxel (offset -dx, +dx), smooth is one Gaussian pass of width 1.
+void filter(FloatGrid& surface, const std::vector<SurfaceFilter>& filters) {
+  if (filters.empty() || surface.activeVoxelCount() == 0) return;
+  openvdb::tools::LevelSetFilter<FloatGrid> f(surface);
+  const float dx = float(surface.voxelSize()[0]);
+  for (const SurfaceFilter k : filters) {
+    if (k == SurfaceFilter::Dilate) f.offset(-dx);
+    if (k == SurfaceFilter::Erode) f.offset(dx);
+    if (k == SurfaceFilter::Smooth) f.gaussian(1);
+  }
+}
+
+struct Mesh {
+  std::vector<Vec3s> points, normals, velocity;
+  std::vector<openvdb::Vec3I> triangles;
+};
+
+// tools::volumeToMesh, quads split into two triangles, wound counter-clockwise seen from outside
+// (OpenVDB's polygons face the other way); area-weighted vertex normals from the triangles, and
+// the velocity grid sampled trilinearly (tools::BoxSampler) at the vertices.
+Mesh mesh_of(const FloatGrid& surface, const Vec3SGrid& v, double adaptivity) {
+  Mesh m;
+  std::vector<openvdb::Vec4I> quads;
+  openvdb::tools::volumeToMesh(surface, m.points, m.triangles, quads, 0.0, adaptivity);
+  m.triangles.reserve(m.triangles.size() + 2 * quads.size());
+  for (const auto& q : quads) {
+    m.triangles.emplace_back(q[0], q[1], q[2]);
+    m.triangles.emplace_back(q[0], q[2], q[3]);
+  }
+  for (auto& t : m.triangles) std::swap(t[1], t[2]);
+  m.normals.assign(m.points.size(), Vec3s(0.0f));
+  for (const auto& t : m.triangles) {
+    const Vec3s n = (m.points[t[1]] - m.points[t[0]]).cross(m.points[t[2]] - m.points[t[0]]);
+    for (int k = 0; k < 3; ++k) m.normals[t[k]] += n;
+  }
+  for (auto& n : m.normals) {
+    const float len = n.length();
+    n = len > 0 ? n / len : Vec3s(0.0f);
+  }
+  m.velocity.resize(m.points.size());
+  openvdb::tools::GridSampler<Vec3SGrid, openvdb::tools::BoxSampler> sampler(v);
+  for (std::size_t i = 0; i < m.points.size(); ++i)
+    m.velocity[i] = sampler.wsSample(openvdb::Vec3d(m.points[i]));
+  return m;
+}
+
+void write_mesh_obj(const std::string& path, const Mesh& m) {
+  std::string out = "# written by Amalgam: particle surface (io/surfacing.cpp)\n";
+  out.reserve(out.size() + m.points.size() * 80 + m.triangles.size() * 40);
+  char line[160];
+  for (const auto& p : m.points) {
+    std::snprintf(line, sizeof line, "v %.7g %.7g %.7g\n", double(p[0]), double(p[1]),
+                  double(p[2]));
+    out += line;
+  }
+  for (const auto& n : m.normals) {
+    std::snprintf(line, sizeof line, "vn %.5g %.5g %.5g\n", double(n[0]), double(n[1]),
+                  double(n[2]));
+    out += line;
+  }
+  for (const auto& t : m.triangles) {
+    std::snprintf(line, sizeof line, "f %u//%u %u//%u %u//%u\n", t[0] + 1, t[0] + 1, t[1] + 1,
+                  t[1] + 1, t[2] + 1, t[2] + 1);
+    out += line;
+  }
+  write_file_atomic(path, out);
+}
+
+template <class T>
+void put(std::string& buf, const T& value) {
+  char b[sizeof(T)];
+  std::memcpy(b, &value, sizeof(T));
+  buf.append(b, sizeof(T));  // the project's targets are little-endian, as the PLY header says
+}
+
+void write_mesh_ply(const std::string& path, const Mesh& m) {
+  std::ostringstream h;
+  h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam: particle surface\n"
+    << "element vertex " << m.points.size() << "\n"
+    << "property float x\nproperty float y\nproperty float z\n"
+    << "property float nx\nproperty float ny\nproperty float nz\n"
+    << "property float vx\nproperty float vy\nproperty float vz\n"
+    << "element face " << m.triangles.size() << "\n"
+    << "property list uchar uint vertex_indices\nend_header\n";
+  std::string buf = h.str();
+  buf.reserve(buf.size() + m.points.size() * 36 + m.triangles.size() * 13);
+  for (std::size_t i = 0; i < m.points.size(); ++i)
+    for (const Vec3s* a : {&m.points[i], &m.normals[i], &m.velocity[i]})
+      for (int k = 0; k < 3; ++k) put(buf, float((*a)[k]));
+  for (const auto& t : m.triangles) {
+    put(buf, std::uint8_t(3));
+    for (int k = 0; k < 3; ++k) put(buf, std::uint32_t(t[k]));
+  }
+  write_file_atomic(path, buf);
+}
+
+// Surfaces `q` and writes the files; runs every OpenVDB tool under the space's thread limit.
+SurfacingStats surface_and_write(const std::string& base, const Particles& q, double spacing,
+                                 const SurfacingSpec& s, const exec::Space& space) {
+  if (!(s.voxel_size > 0) || !std::isfinite(s.voxel_size))
+    throw InputError(base + ".vdb: surfacing voxel_size must be a positive number");
+  SurfacingStats st;
+  st.particles = q.P.size();
+  const double radius = surfacing_radius(s, spacing);
+  Mesh mesh;
+  write_vdb_file(base + ".vdb", space, "surface VDB", [&] {
+    const auto xform = openvdb::math::Transform::createLinearTransform(s.voxel_size);
+    Grids g;
+    {
+      const PointDataGrid::Ptr points = point_grid(q, *xform);
+      g = rasterize(*points, radius, s, xform);
+    }
+    filter(*g.surface, s.filters);
+    st.active_voxels = std::size_t(g.surface->activeVoxelCount());
+    if (s.mesh != SurfaceMeshFormat::None) mesh = mesh_of(*g.surface, *g.v, s.adaptivity);
+    g.surface->setName("surface");
+    g.v->setName("v");
+    g.v->setVectorType(openvdb::VEC_CONTRAVARIANT_RELATIVE);
+    openvdb::GridCPtrVec grids;
+    if (s.grid_surface) grids.push_back(g.surface);
+    if (s.grid_density) {
+      // tools::sdfToFogVolume: 0 outside, a ramp across the inner half band, 1 inside.
+      const FloatGrid::Ptr density = g.surface->deepCopy();
+      openvdb::tools::sdfToFogVolume(*density);
+      density->setName("density");
+      density->setGridClass(openvdb::GRID_FOG_VOLUME);
+      grids.push_back(density);
+    }
+    if (s.grid_velocity) grids.push_back(g.v);
+    return grids;
+  });
+  st.files.push_back(base + ".vdb");
+  if (s.mesh == SurfaceMeshFormat::Obj) write_mesh_obj(base + ".obj", mesh);
+  if (s.mesh == SurfaceMeshFormat::Ply) write_mesh_ply(base + ".ply", mesh);
+  if (s.mesh != SurfaceMeshFormat::None)
+    st.files.push_back(base + (s.mesh == SurfaceMeshFormat::Obj ? ".obj" : ".ply"));
+  st.vertices = mesh.points.size();
+  st.triangles = mesh.triangles.size();
+  return st;
+}
+
+void init_openvdb() {
+  static std::once_flag init;
+  std::call_once(init, [] { openvdb::initialize(); });
+}
+
+}  // namespace
+
+SurfacingStats write_surfacing(const std::string& base, const PointFields& p, double spacing,
+                               const SurfacingSpec& s, const exec::Space& space) {
+  init_openvdb();
+  return surface_and_write(base, select(p, s), spacing, s, space);
+}
+
+SurfacingStats surface_vdb_points_file(const std::string& input, const std::string& base,
+                                       double spacing, const SurfacingSpec& s,
+                                       const exec::Space& space) {
+  init_openvdb();
+  Particles q;
+  double points_voxel = 0;
+  std::string error;
+  exec::with_thread_limit(space, [&] {
+    try {
+      openvdb::io::File file(input);
+      file.open(false);  // no delayed loading: the file may be replaced while we read
+      const auto grid = openvdb::gridPtrCast<PointDataGrid>(file.readGrid("points"));
+      file.close();
+      if (!grid) throw std::runtime_error("the grid \"points\" is not a point data grid");
+      points_voxel = grid->voxelSize()[0];
+      using openvdb::points::AttributeHandle;
+      for (auto leaf = grid->tree().cbeginLeaf(); leaf; ++leaf) {
+        const auto& set = leaf->attributeSet();
+        for (const char* name : {"P", "v"})
+          if (set.find(name) == openvdb::points::AttributeSet::INVALID_POS)
+            throw std::runtime_error(std::string("the points have no attribute ") + name);
+        const bool has_material =
+            set.find("material") != openvdb::points::AttributeSet::INVALID_POS;
+        AttributeHandle<Vec3s> P(leaf->constAttributeArray("P"));
+        AttributeHandle<Vec3s> v(leaf->constAttributeArray("v"));
+        std::unique_ptr<AttributeHandle<openvdb::Int32>> mat;
+        if (has_material)
+          mat = std::make_unique<AttributeHandle<openvdb::Int32>>(
+              leaf->constAttributeArray("material"));
+        for (auto it = leaf->beginIndexOn(); it; ++it) {
+          if (!selected(s, mat ? mat->get(*it) : 0)) continue;
+          const openvdb::Vec3d ijk = it.getCoord().asVec3d() + openvdb::Vec3d(P.get(*it));
+          q.P.push_back(grid->transform().indexToWorld(ijk));
+          q.v.push_back(v.get(*it));
+        }
+      }
+    } catch (const std::exception& e) {
+      error = std::string(e.what()).empty() ? "unknown error" : e.what();
+    }
+  });
+  if (!error.empty()) throw InputError(input + ": cannot read VDB points: " + error);
+  SurfacingSpec resolved = s;  // unset sizes from the points' voxel (the run's dx for MPM)
+  if (!(resolved.voxel_size > 0)) resolved.voxel_size = 0.5 * points_voxel;
+  return surface_and_write(base, q, spacing > 0 ? spacing : 0.5 * points_voxel, resolved, space);
+}
+
+}  // namespace amalgam
