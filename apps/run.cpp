@@ -2,6 +2,7 @@
 #include <unistd.h>
 
 #include <array>
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <csignal>
@@ -163,6 +164,9 @@ int run_command(const std::vector<std::string>& args) {
     } catch (const InputError& e) {  // set-up's findings name a JSON path: add the file
       throw InputError(e.what()[0] == '/' ? scene.file + ": " + e.what() : e.what());
     }
+    // Rest positions (output.attributes "rest") are the set-up's, also when resuming.
+    const auto& attrs = scene.output.attributes;
+    if (std::find(attrs.begin(), attrs.end(), "rest") != attrs.end()) sim->keep_rest_positions();
     // Fault injection for tests/interrupt_points_test.sh: a SIGINT at the end of set-up.
     if (std::getenv("AMALGAM_TEST_SIGINT_IN_SETUP")) std::raise(SIGINT);
     if (const auto* r = o.get("--resume")) {

@@ -206,6 +206,21 @@ std::string JsonObject::choice(const std::string& key, const std::string& def,
   fail(key, "unknown value \"" + s + "\" (expected one of: " + list + ")");
 }
 
+std::vector<std::string> JsonObject::strings(const std::string& key,
+                                             const std::vector<std::string>& def) {
+  if (!has(key)) return def;
+  const auto& v = at(key);
+  if (!v.is_array()) fail(key, "expected an array of strings, got " + type_name(v) + " " + show(v));
+  std::vector<std::string> out;
+  for (size_t i = 0; i < v.size(); ++i) {
+    if (!v[i].is_string())
+      fail(key + "/" + std::to_string(i),
+           "expected a string, got " + type_name(v[i]) + " " + show(v[i]));
+    out.push_back(v[i].get<std::string>());
+  }
+  return out;
+}
+
 Vec3 JsonObject::vec3(const std::string& key, const Vec3& def) {
   if (!has(key)) return def;
   return required_vec3(key);

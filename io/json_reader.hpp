@@ -32,6 +32,7 @@ class JsonObject {
 
   bool has(const std::string& key) const { return j_.contains(key); }
   bool has_object(const std::string& key) const { return has(key) && j_.at(key).is_object(); }
+  bool has_string(const std::string& key) const { return has(key) && j_.at(key).is_string(); }
   double number(const std::string& key, double def, double lo, double hi, bool lo_open = false);
   double required_number(const std::string& key, double lo, double hi, bool lo_open = false);
   long long integer(const std::string& key, long long def, long long lo, long long hi);
@@ -39,6 +40,8 @@ class JsonObject {
   std::string string(const std::string& key, const std::string& def);
   std::string choice(const std::string& key, const std::string& def,
                      const std::vector<std::string>& allowed);
+  // An array of strings (`def` when absent); an entry that is not a string fails at key/index.
+  std::vector<std::string> strings(const std::string& key, const std::vector<std::string>& def);
   Vec3 vec3(const std::string& key, const Vec3& def);
   Vec3 required_vec3(const std::string& key);
   // An [x, y, z] array whose entries are numbers or expressions of x, y, z (strings,
