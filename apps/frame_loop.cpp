@@ -37,7 +37,7 @@ const char* preview_attribute(ColorBy c) {
     case ColorBy::Temperature:
       return "temperature";
     case ColorBy::Plastic:
-      return "plastic";
+      return "Jp";
     case ColorBy::Damage:
       return "damage";
     default:
@@ -54,8 +54,7 @@ bool writes_files() {
 // The frame files of the simulation's current state.
 class FrameWriter {
  public:
-  FrameWriter(const Simulation& sim, const Scene& scene, const RunSettings& rs,
-              const exec::Space& space)
+  FrameWriter(Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space)
       : sim_(sim),
         scene_(scene),
         rs_(rs),
@@ -66,12 +65,17 @@ class FrameWriter {
         spacing_(particle_spacing(scene)) {}
 
   void write(int f) {
+    const PointFields p = point_fields();  // collective when distributed (von Mises stress)
     if (!writes_files()) return;
     const OutputSpec& out = scene_.output;
-    const PointFields p = sim_.point_fields();
     if (rs_.preview) {
       const char* attr = preview_attribute(scene_.preview.color_by);
       const std::vector<float>* scalar = attr ? p.find(attr) : nullptr;
+      PointFields extra;  // the preview's attribute when the frames do not carry it
+      if (attr && !scalar && has_attribute(attr)) {
+        extra = sim_.point_fields({attr}, space_);
+        scalar = extra.find(attr);
+      }
       write_png(numbered(rs_.out_dir, "preview_%04d", f, "png"),
                 render_points(p.n, p.x, p.v, p.material, scalar ? scalar->data() : nullptr, camera_,
                               splat_, scene_.preview.width, scene_.preview.height,
@@ -106,13 +110,23 @@ class FrameWriter {
     }
     if (scene_.output.vdb_points) {
       paths.push_back(base + "vdb");
-      write_vdb_points(paths.back(), p, sim_.point_voxel_size(), space_);
+      write_vdb_points(paths.back(), p, sim_.point_voxel_size(), scene_.output.vdb_precision,
+                       space_);
     }
     return paths;
   }
+  // The point fields with the scene's output.attributes.
+  PointFields point_fields() const {
+    PointFields p = sim_.point_fields(scene_.output.attributes, space_);
+    p.material_names = scene_.material_names;
+    return p;
+  }
 
  private:
-  const Simulation& sim_;
+  // Whether the method has attribute `name` (the scene reader's check).
+  bool has_attribute(const char* name) const { return attribute_available(scene_, name); }
+
+  Simulation& sim_;
   const Scene& scene_;
   const RunSettings& rs_;
   const exec::Space& space_;
@@ -203,7 +217,7 @@ class SampleWriter {
     rows_ += csv_row(cols);
     char base[64];
     std::snprintf(base, sizeof base, "/points_s%010llu.", (unsigned long long)sim_.step_count());
-    for (std::string& f : frames_.write_points(dir_ + base, sim_.point_fields()))
+    for (std::string& f : frames_.write_points(dir_ + base, frames_.point_fields()))
       written_.push_back(std::move(f));
   }
   void discard() {

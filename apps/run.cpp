@@ -2,6 +2,7 @@
 #include <unistd.h>
 
 #include <array>
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <csignal>
@@ -33,7 +34,8 @@ const char* kRunHelp =
     "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--retries N]\n"
     "                  [--preview] [--quiet] [--force]\n"
     "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
-    "position, velocity, J, material and id per particle,\n"
+    "position, velocity, id and the scene's output.attributes per particle (VDB points compact\n"
+    "unless output.vdb_points is \"full\"),\n"
     "DIR/diagnostics.csv (energies, momentum, max speed, substeps per frame) and\n"
     "DIR/checkpoint.amck (every N frames, at the last frame, and on SIGINT/SIGTERM).\n"
     "--retries N (default 3): when the stability guard trips, the frame is restarted from its\n"
@@ -170,6 +172,9 @@ int run_command(const std::vector<std::string>& args) {
     } catch (const InputError& e) {  // set-up's findings name a JSON path: add the file
       throw InputError(e.what()[0] == '/' ? scene.file + ": " + e.what() : e.what());
     }
+    // Rest positions (output.attributes "rest") are the set-up's, also when resuming.
+    const auto& attrs = scene.output.attributes;
+    if (std::find(attrs.begin(), attrs.end(), "rest") != attrs.end()) sim->keep_rest_positions();
     // Fault injection for tests/interrupt_points_test.sh: a SIGINT at the end of set-up.
     if (std::getenv("AMALGAM_TEST_SIGINT_IN_SETUP")) std::raise(SIGINT);
     if (const auto* r = o.get("--resume")) {

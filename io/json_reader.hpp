@@ -32,6 +32,7 @@ class JsonObject {
 
   bool has(const std::string& key) const { return j_.contains(key); }
   bool has_object(const std::string& key) const { return has(key) && j_.at(key).is_object(); }
+  bool has_string(const std::string& key) const { return has(key) && j_.at(key).is_string(); }
   double number(const std::string& key, double def, double lo, double hi, bool lo_open = false);
   double required_number(const std::string& key, double lo, double hi, bool lo_open = false);
   long long integer(const std::string& key, long long def, long long lo, long long hi);

@@ -1,5 +1,6 @@
 #include "io/scene.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -328,7 +329,78 @@ void read_surfacing(JsonObject& j, Scene& s, const std::map<std::string, int>& m
   }
 }
 
+// output.vdb_points: true / false (true: the default precision), or "full" / "compact".
+void read_vdb_points(JsonObject& out, OutputSpec& o) {
+  if (!out.has_string("vdb_points")) {
+    o.vdb_points = out.boolean("vdb_points", true);
+    return;
+  }
+  o.vdb_points = true;
+  o.vdb_precision = out.choice("vdb_points", "compact", {"full", "compact"}) == "full"
+                        ? VdbPrecision::Full
+                        : VdbPrecision::Compact;
+}
+
+bool any_material(const SceneSpec& s, bool (*has)(const MaterialParams&)) {
+  return std::any_of(s.materials.begin(), s.materials.end(), has);
+}
+
+// Why the scene's method cannot give attribute `name` ("" if it can).
+std::string attribute_missing(const SceneSpec& s, const std::string& name) {
+  const bool pd = s.method == Method::Peridynamics;
+  if (name == "vonmises" || name == "rest" || name == "material") return "";
+  if (pd) return name == "damage" || name == "theta" ? "" : "MPM only";
+  if (name == "F" || name == "J") return "";
+  if (name == "damage" || name == "theta") return "peridynamics only";
+  if (name == "Jp" &&
+      !any_material(s, [](const MaterialParams& m) { return m.has_plastic_state(); }))
+    return "no material of the scene has a plastic state (snow, drucker_prager, von_mises)";
+  if (name == "temperature" && !any_material(s, [](const MaterialParams& m) { return m.melting; }))
+    return "no material of the scene melts";
+  if (name == "enrichment" && !s.mpm.domains.enabled) return "the scene has no particle domains";
+  return "";
+}
+
+// output.attributes: names of point_attribute_names() the method has, each once.
+void read_attributes(JsonObject& out, Scene& s) {
+  if (!out.has("attributes")) {
+    s.output.attributes = default_attributes(s);
+    return;
+  }
+  const std::vector<std::string>& known = point_attribute_names();
+  s.output.attributes = out.strings("attributes", {});
+  for (std::size_t i = 0; i < s.output.attributes.size(); ++i) {
+    const std::string& a = s.output.attributes[i];
+    const std::string key = "attributes/" + std::to_string(i);
+    if (std::find(known.begin(), known.end(), a) == known.end()) {
+      std::string list;
+      for (const auto& k : known) list += (list.empty() ? "" : ", ") + k;
+      out.fail(key, "unknown attribute \"" + a + "\" (expected one of: " + list +
+                        "; P, v and id are always written)");
+    }
+    const std::string why = attribute_missing(s, a);
+    if (!why.empty()) out.fail(key, "attribute \"" + a + "\" is not available: " + why);
+    if (std::find(s.output.attributes.begin(), s.output.attributes.begin() + long(i), a) !=
+        s.output.attributes.begin() + long(i))
+      out.fail(key, "attribute \"" + a + "\" is listed twice");
+  }
+}
+
 }  // namespace
+
+bool attribute_available(const SceneSpec& scene, const std::string& name) {
+  const std::vector<std::string>& known = point_attribute_names();
+  return std::find(known.begin(), known.end(), name) != known.end() &&
+         attribute_missing(scene, name).empty();
+}
+
+std::vector<std::string> default_attributes(const SceneSpec& scene) {
+  if (scene.method == Method::Peridynamics) return {"damage", "material", "theta"};
+  std::vector<std::string> out = {"J", "material"};
+  for (const char* a : {"Jp", "temperature", "enrichment"})
+    if (attribute_missing(scene, a).empty()) out.push_back(a);
+  return out;
+}
 
 Scene parse_scene(const std::string& text, const std::string& file) {
   const nlohmann::json root = detail::parse_json_strict(text, file);
@@ -389,7 +461,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   JsonObject out = top.object("output");
   s.output.directory = out.string("directory", "out");
   s.output.ply = out.boolean("ply", true);
-  s.output.vdb_points = out.boolean("vdb_points", true);
+  read_vdb_points(out, s.output);
   s.output.diagnostics_csv = out.boolean("diagnostics_csv", true);
   s.output.grid_volumes = out.boolean("grid_volumes", false);
   s.output.checkpoint_every = int(out.integer("checkpoint_every", 10, 0, 1000000));
@@ -402,6 +474,7 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     read_surfacing(sj, s, mat_index);
     sj.finish();
   }
+  read_attributes(out, s);
   out.finish();
 
   if (top.has("preview")) {

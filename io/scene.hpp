@@ -5,9 +5,11 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "io/preview.hpp"
 #include "io/surfacing.hpp"
+#include "io/vdb_points.hpp"
 #include "solvers/scene_spec.hpp"
 
 namespace amalgam {
@@ -16,6 +18,10 @@ struct OutputSpec {
   std::string directory = "out";
   bool ply = true;
   bool vdb_points = true;
+  VdbPrecision vdb_precision = VdbPrecision::Compact;  // output.vdb_points: "full" or "compact"
+  // Attributes written beyond P, v and id (output.attributes, point_attribute_names()), checked
+  // against the method; the method's default list when the scene gives none (default_attributes).
+  std::vector<std::string> attributes;
   bool diagnostics_csv = true;
   bool grid_volumes = false;  // frame_NNNN_grid.vdb: node mass and velocity
   int checkpoint_every = 10;  // frames; 0 = only on SIGINT/SIGTERM
@@ -49,6 +55,13 @@ constexpr int kMaxRetries = 10;
 
 // Largest scene file read (a scene is a few kB of JSON; meshes are separate files).
 constexpr std::uint64_t kMaxSceneBytes = 64ull << 20;
+
+// The attributes frames carry when output.attributes is absent (what they carried before it
+// existed): MPM J and material, plus Jp, temperature and enrichment where the scene has them;
+// peridynamics damage, material and theta.
+std::vector<std::string> default_attributes(const SceneSpec& scene);
+// Whether `name` is an output attribute the scene's method has (point_attribute_names()).
+bool attribute_available(const SceneSpec& scene, const std::string& name);
 
 // Reads and validates a scene file (meshes are loaded and checked too). Throws InputError.
 // Warnings (e.g. an open mesh allowed with allow_open) go to std::cerr.

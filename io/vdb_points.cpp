@@ -3,6 +3,7 @@
 #include "io/vdb_points.hpp"
 
 #include <openvdb/openvdb.h>
+#include <openvdb/points/PointAttribute.h>
 #include <openvdb/points/PointConversion.h>
 #include <openvdb/points/PointDataGrid.h>
 #include <openvdb/tools/PointIndexGrid.h>
@@ -12,6 +13,7 @@
 #include <cctype>
 #include <cstdio>
 #include <mutex>
+#include <nlohmann/json.hpp>
 #include <vector>
 
 #include "core/errors.hpp"
@@ -23,14 +25,54 @@
 namespace amalgam {
 
 namespace {
-template <class T>
+// Appends attribute `name` with codec C and fills it from `values` (by point index).
+template <class T, class C = openvdb::points::NullCodec>
 void add_attribute(openvdb::points::PointDataGrid& grid,
                    const openvdb::tools::PointIndexGrid& index, const std::string& name,
                    const std::vector<T>& values) {
   using namespace openvdb::points;
-  appendAttribute<T>(grid.tree(), name);
+  appendAttribute<T, C>(grid.tree(), name);
   populateAttribute<PointDataTree, openvdb::tools::PointIndexTree, PointAttributeVector<T>>(
       grid.tree(), index.tree(), name, PointAttributeVector<T>(values));
+}
+
+// A float attribute: half (TruncateCodec) in compact files when its range allows.
+void add_floats(openvdb::points::PointDataGrid& grid, const openvdb::tools::PointIndexGrid& index,
+                const PointAttribute& a, bool half) {
+  if (half)
+    add_attribute<float, openvdb::points::TruncateCodec>(grid, index, a.name, a.f);
+  else
+    add_attribute<float>(grid, index, a.name, a.f);
+}
+
+// A requested attribute (PointFields::attributes) with its OpenVDB type: float, Vec3s, Mat3s
+// (TypedAttributeArray<Mat3s>, registered by openvdb::initialize) or int32.
+void add_requested(openvdb::points::PointDataGrid& grid,
+                   const openvdb::tools::PointIndexGrid& index, const PointAttribute& a,
+                   VdbPrecision precision) {
+  using T = PointAttribute::Type;
+  const std::size_t n = a.type == T::Int ? a.i.size() : a.f.size() / std::size_t(a.width());
+  switch (a.type) {
+    case T::Float:  // von Mises stress in Pa overflows half (65504): kept float
+      add_floats(grid, index, a, precision == VdbPrecision::Compact && a.name != "vonmises");
+      return;
+    case T::Vec3: {
+      std::vector<openvdb::Vec3s> v(n);
+      for (std::size_t i = 0; i < n; ++i)
+        v[i] = openvdb::Vec3s(a.f[3 * i], a.f[3 * i + 1], a.f[3 * i + 2]);
+      add_attribute(grid, index, a.name, v);
+      return;
+    }
+    case T::Mat3: {
+      std::vector<openvdb::math::Mat3s> m(n);
+      for (std::size_t i = 0; i < n; ++i) m[i] = openvdb::math::Mat3s(&a.f[9 * i]);  // row-major
+      add_attribute(grid, index, a.name, m);
+      return;
+    }
+    case T::Int:
+      add_attribute(grid, index, a.name, a.i);
+      return;
+  }
 }
 
 // OpenVDB writes a random UUID into every file's header (io::Archive::writeHeader), so two
@@ -86,13 +128,14 @@ void derive_uuid(const TempFile& f, const std::string& path) {
 }  // namespace
 
 void write_vdb_file(const std::string& path, const exec::Space& space, const char* what,
-                    const std::function<openvdb::GridCPtrVec()>& build) {
+                    const std::function<openvdb::GridCPtrVec()>& build, long compression) {
   TempFile tmp(path);
   std::string error;
   exec::with_thread_limit(space, [&] {
     try {
       const openvdb::GridCPtrVec grids = build();
       openvdb::io::File file(tmp.open_name());
+      if (compression >= 0) file.setCompression(std::uint32_t(compression));
       file.write(grids);
       file.close();
     } catch (const std::exception& e) {  // openvdb::Exception, std::bad_alloc, I/O errors
@@ -104,35 +147,56 @@ void write_vdb_file(const std::string& path, const exec::Space& space, const cha
   tmp.commit();
 }
 
+const char* vdb_precision_name(VdbPrecision p) {
+  return p == VdbPrecision::Full ? "full" : "compact";
+}
+
 void write_vdb_points(const std::string& path, const PointFields& p, double voxel_size,
-                      const exec::Space& space) {
+                      VdbPrecision precision, const exec::Space& space) {
+  using namespace openvdb::points;
   static std::once_flag init;
   std::call_once(init, [] { openvdb::initialize(); });
+  const bool compact = precision == VdbPrecision::Compact;
   const size_t n = p.n;
   std::vector<openvdb::Vec3R> P(n);
   std::vector<openvdb::Vec3s> v(n);
-  std::vector<openvdb::Int32> material(p.material, p.material + n), id(p.id, p.id + n);
+  std::vector<openvdb::Int32> id(p.id, p.id + n);
   for (size_t i = 0; i < n; ++i) {
     P[i] = openvdb::Vec3R(double(p.x[i][0]), double(p.x[i][1]), double(p.x[i][2]));
     v[i] = openvdb::Vec3s(float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2]));
   }
-  const openvdb::points::PointAttributeVector<openvdb::Vec3R> positions(P);
-  write_vdb_file(path, space, "VDB points", [&] {
+  const PointAttributeVector<openvdb::Vec3R> positions(P);
+  const auto build = [&] {
     const openvdb::math::Transform::Ptr xform =
         openvdb::math::Transform::createLinearTransform(voxel_size);
     const auto index =
         openvdb::tools::createPointIndexGrid<openvdb::tools::PointIndexGrid>(positions, *xform);
-    const auto grid = openvdb::points::createPointDataGrid<openvdb::points::NullCodec,
-                                                           openvdb::points::PointDataGrid>(
-        *index, positions, *xform);
-    add_attribute(*grid, *index, "v", v);
-    for (const auto& s : p.primary) add_attribute(*grid, *index, s.first, s.second);
-    add_attribute(*grid, *index, "material", material);
+    // P: offsets within the voxel, float (NullCodec) or 16-bit fixed point (FixedPointCodec).
+    const PointDataGrid::Ptr grid =
+        compact ? createPointDataGrid<FixedPointCodec<false, PositionRange>, PointDataGrid>(
+                      *index, positions, *xform)
+                : createPointDataGrid<NullCodec, PointDataGrid>(*index, positions, *xform);
+    if (compact)
+      add_attribute<openvdb::Vec3s, TruncateCodec>(*grid, *index, "v", v);
+    else
+      add_attribute(*grid, *index, "v", v);
     add_attribute(*grid, *index, "id", id);
-    for (const auto& s : p.extra) add_attribute(*grid, *index, s.first, s.second);
+    for (const PointAttribute& a : p.attributes) {
+      add_requested(*grid, *index, a, precision);
+      if (a.name == "material")  // the names by index, as a JSON array (ASCII, escaped)
+        grid->insertMeta(
+            "material_names",
+            openvdb::StringMetadata(nlohmann::json(p.material_names).dump(-1, ' ', true)));
+    }
+    if (compact) compactAttributes(grid->tree());  // AttributeArray::compact on every array
     grid->setName("points");
     return openvdb::GridCPtrVec{grid};
-  });
+  };
+  // Compact: Blosc for the attribute arrays (TypedAttributeArray::writeBuffers) and the voxel
+  // offsets, with the active-mask compression OpenVDB uses by default.
+  write_vdb_file(
+      path, space, "VDB points", build,
+      compact ? long(openvdb::io::COMPRESS_BLOSC | openvdb::io::COMPRESS_ACTIVE_MASK) : -1L);
 }
 
 void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx,

@@ -6,6 +6,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 #include <sstream>
 
 #include "core/errors.hpp"
@@ -19,33 +20,57 @@ void write_file_atomic(const std::string& path, const std::string& content) {
   tmp.commit();
 }
 
+namespace {
+// The PLY property names of an attribute: its name, name_x/_y/_z (Vec3), or F00 .. F22 (Mat3:
+// row, column).
+std::vector<std::string> ply_properties(const PointAttribute& a) {
+  using T = PointAttribute::Type;
+  if (a.type == T::Vec3) return {a.name + "_x", a.name + "_y", a.name + "_z"};
+  if (a.type != T::Mat3) return {a.name};
+  std::vector<std::string> out;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) out.push_back(a.name + char('0' + r) + char('0' + c));
+  return out;
+}
+}  // namespace
+
 void write_ply_points(const std::string& path, const PointFields& p) {
   const size_t n = p.n;
   std::ostringstream h;
   h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam\n"
     << "element vertex " << n << "\n"
     << "property float x\nproperty float y\nproperty float z\n"
-    << "property float vx\nproperty float vy\nproperty float vz\n";
-  for (const auto& s : p.primary) h << "property float " << s.first << "\n";
-  h << "property int material\nproperty int id\n";
-  for (const auto& s : p.extra) h << "property float " << s.first << "\n";
+    << "property float vx\nproperty float vy\nproperty float vz\nproperty int id\n";
+  size_t record = 7 * 4;
+  for (const PointAttribute& a : p.attributes) {
+    const char* type = a.type == PointAttribute::Type::Int ? "int" : "float";
+    for (const std::string& name : ply_properties(a))
+      h << "property " << type << " " << name << "\n";
+    record += 4 * size_t(a.width());
+    if (a.name == "material")  // the names by index, as a JSON array (ASCII, escaped)
+      h << "comment material_names " << nlohmann::json(p.material_names).dump(-1, ' ', true)
+        << "\n";
+  }
   h << "end_header\n";
   std::string buf = h.str();
   const size_t header = buf.size();
-  const size_t kRecord = 6 * 4 + 4 * p.primary.size() + 8 + 4 * p.extra.size();
-  buf.resize(header + n * kRecord);
+  buf.resize(header + n * record);
   char* dst = buf.data() + header;
   for (size_t i = 0; i < n; ++i) {
     const float rec[6] = {float(p.x[i][0]), float(p.x[i][1]), float(p.x[i][2]),
                           float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2])};
     std::memcpy(dst, rec, sizeof rec);
-    size_t off = sizeof rec;
-    for (const auto& s : p.primary) std::memcpy(dst + off, &s.second[i], 4), off += 4;
-    std::memcpy(dst + off, &p.material[i], 4);
-    std::memcpy(dst + off + 4, &p.id[i], 4);
-    off += 8;
-    for (const auto& s : p.extra) std::memcpy(dst + off, &s.second[i], 4), off += 4;
-    dst += kRecord;
+    std::memcpy(dst + sizeof rec, &p.id[i], 4);
+    size_t off = sizeof rec + 4;
+    for (const PointAttribute& a : p.attributes) {
+      const size_t w = size_t(a.width());
+      if (a.type == PointAttribute::Type::Int)
+        std::memcpy(dst + off, &a.i[i], 4);
+      else
+        std::memcpy(dst + off, &a.f[w * i], 4 * w);
+      off += 4 * w;
+    }
+    dst += record;
   }
   write_file_atomic(path, buf);
 }

@@ -12,9 +12,10 @@
 
 namespace amalgam {
 
-// Binary little-endian PLY point cloud with x y z, vx vy vz, the primary attributes, material, id
-// and the extra attributes (MPM: x y z vx vy vz J material id [plastic] [temperature]), readable
-// by Houdini, Blender and ParaView.
+// Binary little-endian PLY point cloud with x y z, vx vy vz, id, then the attributes of `p` in
+// order (float or int properties; Vec3 as name_x name_y name_z, Mat3 as nameRC, e.g. F00 .. F22),
+// and, with `material`, a header comment "material_names" (a JSON array); readable by Houdini,
+// Blender and ParaView.
 void write_ply_points(const std::string& path, const PointFields& p);
 
 // A triangle surface (peridynamic crack meshes): OBJ with the groups "surface" and "crack" (the

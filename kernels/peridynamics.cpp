@@ -993,6 +993,18 @@ std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds
 
 namespace {
 
+// Bond k of `from` into slot o of `to` (the per-bond arrays that are not rebuilt afterwards).
+inline void copy_bond(const PdBonds& from, std::uint64_t k, PdBonds& to, std::uint64_t o) {
+  to.neighbor[o] = from.neighbor[k];
+  to.length[o] = from.length[k];
+  to.omega[o] = from.omega[k];
+  to.shear_omega[o] = from.shear_omega[k];
+  to.volume[o] = from.volume[k];
+  to.plastic[o] = from.plastic[k];
+  to.intact[o] = from.intact[k];
+  to.lane[o] = from.lane[k];
+}
+
 // Keeps the bonds with keep[k] != 0 (rows keep their order, every per-bond array is copied,
 // reverse indices rebuilt). Returns the number removed.
 std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdBonds& bonds,
@@ -1028,15 +1040,7 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
     std::uint64_t o = off[i];
     for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) {
       if (!keep[k]) continue;
-      out.neighbor[o] = bonds.neighbor[k];
-      out.length[o] = bonds.length[k];
-      out.omega[o] = bonds.omega[k];
-      out.shear_omega[o] = bonds.shear_omega[k];
-      out.volume[o] = bonds.volume[k];
-      out.plastic[o] = bonds.plastic[k];
-      out.intact[o] = bonds.intact[k];
-      out.lane[o] = bonds.lane[k];
-      ++o;
+      copy_bond(bonds, k, out, o++);
     }
     out.dense[i] = bonds.dense[i] && o - off[i] == bonds.offsets[i + 1] - bonds.offsets[i];
   });
@@ -1077,16 +1081,9 @@ void pd_keep_rows(const exec::Space& space, PdBonds& bonds,
     std::uint64_t o = off[i];
     for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k, ++o) {
       const std::uint32_t j = bonds.neighbor[k];
-      out.neighbor[o] = j;
+      copy_bond(bonds, k, out, o);
       // The reverse bond keeps its position within row j.
       out.reverse[o] = keep_row[j] ? off[j] + (bonds.reverse[k] - bonds.offsets[j]) : kNoReverse;
-      out.length[o] = bonds.length[k];
-      out.omega[o] = bonds.omega[k];
-      out.shear_omega[o] = bonds.shear_omega[k];
-      out.volume[o] = bonds.volume[k];
-      out.plastic[o] = bonds.plastic[k];
-      out.intact[o] = bonds.intact[k];
-      out.lane[o] = bonds.lane[k];
       out.omega_r[o] = bonds.omega_r[k];
       out.shear_omega_r[o] = bonds.shear_omega_r[k];
       out.plastic_r[o] = bonds.plastic_r[k];

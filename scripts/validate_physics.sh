@@ -89,7 +89,8 @@ PY
       scene="$root/scenes/aul_dam_break.json"; [ "$v" = eulerian ] && scene="$logs/aul_eulerian.json"
       echo "validate_physics: A-ULMPM pair $pair, $v" >&2
       start=$(date +%s.%N)
-      "$build/bin/amalgam" run "$scene" --frames 12 --threads 2 --out "$logs/aul_$v" --quiet --force \
+      # Not --quiet: the run summary, which books the update and check times, is what is parsed.
+      "$build/bin/amalgam" run "$scene" --frames 12 --threads 2 --out "$logs/aul_$v" --force \
         > "$logs/aul_${v}_$pair.log" 2>&1 || true
       awk -v a="$start" -v b="$(date +%s.%N)" 'BEGIN { printf "wall %.3f\n", b - a }' >> "$logs/aul_${v}_$pair.log"
     done

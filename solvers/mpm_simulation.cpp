@@ -1,8 +1,10 @@
 #include "solvers/mpm_simulation.hpp"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <sstream>
+#include <stdexcept>
 
 #include "core/errors.hpp"
 #include "solvers/mpm_aul.hpp"
@@ -11,35 +13,111 @@
 
 namespace amalgam {
 
-PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a) {
+namespace {
+// Von Mises equivalent of a Cauchy stress: sqrt(3/2 s:s), s its deviator.
+double von_mises(const Mat3d& sigma) {
+  const Mat3d s = sigma - (sigma.trace() / 3.0) * Mat3d::Identity();
+  return std::sqrt(1.5 * s.cwiseProduct(s).sum());
+}
+
+// Per particle: the von Mises stress of the elastic (and pressure) Cauchy stress tau / J of its
+// material at its F, plastic state and temperature (MaterialParams::kirchhoff with a zero velocity
+// gradient: the viscous stress is left out).
+std::vector<float> mpm_von_mises(const ParticleSet& ps, const MpmAttributes& a,
+                                 const std::vector<MaterialParams>& materials,
+                                 const exec::Space& space) {
+  const std::size_t n = ps.size();
+  std::vector<float> out(n);
+  const Mat3* F = ps.mat3(a.F);
+  const std::int32_t* mat = ps.int32(a.material);
+  const Real* plastic = a.plastic >= 0 ? ps.real(a.plastic) : nullptr;
+  const Real* temp = a.temperature >= 0 ? ps.real(a.temperature) : nullptr;
+  const MaterialParams* m = materials.data();
+  float* o = out.data();
+  exec::parallel_for(space, "output.vonmises", exec::Index(n), [=](exec::Index i) {
+    const Mat3 tau = m[mat[i]].kirchhoff(F[i], Mat3::Zero(), plastic ? plastic[i] : Real(0),
+                                         temp ? temp[i] : Real(0));
+    o[i] = float(von_mises(tau.cast<double>() / double(F[i].determinant())));
+  });
+  return out;
+}
+
+std::vector<float> real_values(const ParticleSet& ps, ParticleSet::Id attr, const char* name) {
+  if (attr < 0) throw std::logic_error(std::string("MPM particles have no ") + name);
+  const Real* r = ps.real(attr);
+  return std::vector<float>(r, r + ps.size());
+}
+
+// The attribute `name` of MPM particles (mpm_point_fields).
+PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, const MpmAttributes& a,
+                             const std::vector<MaterialParams>& materials, const exec::Space& space,
+                             const std::vector<Vec3>* rest_by_id) {
+  using T = PointAttribute::Type;
+  const std::size_t n = ps.size();
+  PointAttribute out{name, T::Float, {}, {}};
+  const Mat3* F = ps.mat3(a.F);
+  if (name == "F") {
+    out.type = T::Mat3;
+    out.f.resize(9 * n);
+    for (std::size_t i = 0; i < n; ++i)
+      for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c) out.f[9 * i + std::size_t(3 * r + c)] = float(F[i](r, c));
+  } else if (name == "J") {
+    out.f.resize(n);
+    for (std::size_t i = 0; i < n; ++i) out.f[i] = float(F[i].determinant());
+  } else if (name == "Jp") {
+    out.f = real_values(ps, a.plastic, "plastic state");
+  } else if (name == "temperature") {
+    out.f = real_values(ps, a.temperature, "temperature");
+  } else if (name == "vonmises") {
+    out.f = mpm_von_mises(ps, a, materials, space);
+  } else if (name == "rest") {
+    if (!rest_by_id) throw std::logic_error("MPM rest positions were not kept");
+    out.type = T::Vec3;
+    out.f.resize(3 * n);
+    const std::int32_t* id = ps.int32(a.id);
+    for (std::size_t i = 0; i < n; ++i)
+      for (int c = 0; c < 3; ++c)
+        out.f[3 * i + std::size_t(c)] = float((*rest_by_id)[std::size_t(id[i])][c]);
+  } else if (name == "material") {
+    out.type = T::Int;
+    out.i.assign(ps.int32(a.material), ps.int32(a.material) + n);
+  } else if (name == "enrichment") {
+    // Enriched MPM: the particle's enrichment state (-1 domain disabled, 0 unenriched,
+    // 1 transitional, 2 enriched; enriched MPM Fig. 3), for colour-mapping as in Figs. 6 and 10.
+    const ParticleSet::Id ds = ps.find("domain_state");
+    if (ds < 0) throw std::logic_error("MPM particles have no particle domains");
+    const std::int32_t* st = ps.int32(ds);
+    out.f.resize(n);
+    for (std::size_t i = 0; i < n; ++i) out.f[i] = float(st[i]);
+  } else {
+    throw std::logic_error("MPM particles have no attribute " + name);
+  }
+  return out;
+}
+}  // namespace
+
+PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a,
+                             const std::vector<MaterialParams>& materials,
+                             const std::vector<std::string>& names, const exec::Space& space,
+                             const std::vector<Vec3>* rest_by_id) {
   PointFields p;
   p.n = ps.size();
   p.x = ps.vec3(a.x);
   p.v = ps.vec3(a.v);
   p.material = ps.int32(a.material);
   p.id = ps.int32(a.id);
-  std::vector<float> J(p.n);
-  const Mat3* F = ps.mat3(a.F);
-  for (std::size_t i = 0; i < p.n; ++i) J[i] = float(F[i].determinant());
-  p.primary.emplace_back("J", std::move(J));
-  // Method-specific state, when the scene's materials carry it.
-  for (const auto& [attr, name] :
-       {std::pair<ParticleSet::Id, const char*>{a.plastic, "plastic"},
-        std::pair<ParticleSet::Id, const char*>{a.temperature, "temperature"}}) {
-    if (attr < 0) continue;
-    const Real* r = ps.real(attr);
-    p.extra.emplace_back(name, std::vector<float>(r, r + p.n));
-  }
-  // Enriched MPM: the particle's enrichment state (-1 domain disabled, 0 unenriched,
-  // 1 transitional, 2 enriched; enriched MPM Fig. 3), for colour-mapping as in Figs. 6 and 10.
-  const ParticleSet::Id ds = ps.find("domain_state");
-  if (ds >= 0) {
-    const std::int32_t* st = ps.int32(ds);
-    std::vector<float> e(p.n);
-    for (std::size_t i = 0; i < p.n; ++i) e[i] = float(st[i]);
-    p.extra.emplace_back("enrichment", std::move(e));
-  }
+  for (const std::string& name : names)
+    p.attributes.push_back(mpm_attribute(name, ps, a, materials, space, rest_by_id));
   return p;
+}
+
+void MpmSimulation::keep_rest_positions() {
+  const ParticleSet& ps = s_.particles();
+  const Vec3* x = ps.vec3(s_.attributes().x);
+  const std::int32_t* id = ps.int32(s_.attributes().id);
+  rest_.assign(ps.size(), Vec3::Zero());
+  for (std::size_t i = 0; i < ps.size(); ++i) rest_[std::size_t(id[i])] = x[i];
 }
 
 MpmSimulation::MpmSimulation(MpmSolver solver) : s_(std::move(solver)) {}

@@ -12,9 +12,15 @@
 
 namespace amalgam {
 
-// MPM particles for the frame writers: primary J (= det F); extra plastic and temperature when
-// the scene has them, and enrichment (the domain state) with particle domains.
-PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a);
+// MPM particles for the frame writers with the attributes `names` (point_attribute_names()): F,
+// J = det F, Jp (the plastic scalar), vonmises (of the elastic Cauchy stress), rest (from
+// `rest_by_id`, indexed by particle id), material, temperature, enrichment (the domain state). A
+// name the particles lack (no plastic state, no temperature) throws std::logic_error: the scene
+// reader refuses it first. Stresses are computed on `space`.
+PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a,
+                             const std::vector<MaterialParams>& materials,
+                             const std::vector<std::string>& names, const exec::Space& space,
+                             const std::vector<Vec3>* rest_by_id = nullptr);
 
 class MpmSimulation final : public Simulation {
  public:
@@ -49,9 +55,12 @@ class MpmSimulation final : public Simulation {
   std::string substep_log_row(int frame, Real dt) const override;
   std::string run_summary(double wall) const override;
 
-  PointFields point_fields() const override {
-    return mpm_point_fields(s_.particles(), s_.attributes());
+  PointFields point_fields(const std::vector<std::string>& names,
+                           const exec::Space& space) override {
+    return mpm_point_fields(s_.particles(), s_.attributes(), s_.materials(), names, space,
+                            rest_.empty() ? nullptr : &rest_);
   }
+  void keep_rest_positions() override;
   double point_voxel_size() const override { return double(s_.settings().dx); }
   bool surface(SurfaceMesh& out) const override;
   const char* surface_pattern() const override { return "frame_%04d_surface"; }
@@ -65,6 +74,7 @@ class MpmSimulation final : public Simulation {
  private:
   MpmSolver s_;
   MpmSolver::Snapshot snapshot_;
+  std::vector<Vec3> rest_;  // rest positions by particle id (keep_rest_positions), or empty
   double frame_time_ = 0;
   std::uint64_t frame_steps_ = 0;
   // Particle domains: enriched particle fraction, summed over the frames of this run and its

@@ -1,7 +1,9 @@
 #include "solvers/pd_simulation.hpp"
 
+#include <cmath>
 #include <cstdio>
 #include <sstream>
+#include <stdexcept>
 
 #include "core/errors.hpp"
 
@@ -67,7 +69,18 @@ std::string PdSimulation::run_summary(double) const {
   return os.str();
 }
 
-PointFields PdSimulation::point_fields() const {
+namespace {
+// Von Mises equivalent of a stress: sqrt(3/2 s:s), s its deviator.
+float von_mises(const Mat3& sigma) {
+  const Mat3d d = sigma.cast<double>();
+  const Mat3d s = d - (d.trace() / 3.0) * Mat3d::Identity();
+  return float(std::sqrt(1.5 * s.cwiseProduct(s).sum()));
+}
+}  // namespace
+
+PointFields PdSimulation::point_fields(const std::vector<std::string>& names,
+                                       const exec::Space& space) {
+  using T = PointAttribute::Type;
   const ParticleSet& ps = s_.particles();
   const PdAttributes& a = s_.attributes();
   PointFields p;
@@ -76,10 +89,27 @@ PointFields PdSimulation::point_fields() const {
   p.v = ps.vec3(a.v);
   p.material = ps.int32(a.material);
   p.id = ps.int32(a.id);
-  const Real* d = ps.real(a.damage);
-  const Real* t = ps.real(a.theta);
-  p.primary.emplace_back("damage", std::vector<float>(d, d + p.n));
-  p.extra.emplace_back("theta", std::vector<float>(t, t + p.n));
+  for (const std::string& name : names) {
+    PointAttribute out{name, T::Float, {}, {}};
+    if (name == "damage" || name == "theta") {
+      const Real* r = ps.real(name == "damage" ? a.damage : a.theta);
+      out.f.assign(r, r + p.n);
+    } else if (name == "rest") {
+      out.type = T::Vec3;
+      const Real* r = ps.real(a.x0);
+      out.f.assign(r, r + 3 * p.n);
+    } else if (name == "material") {
+      out.type = T::Int;
+      out.i.assign(p.material, p.material + p.n);
+    } else if (name == "vonmises") {
+      s_.compute_stress(space, stress_);  // sigma_i = 1/2 sum_j f_ij (x) xi_ij V_j
+      out.f.resize(p.n);
+      for (std::size_t i = 0; i < p.n; ++i) out.f[i] = von_mises(stress_[i]);
+    } else {
+      throw std::logic_error("peridynamic particles have no attribute " + name);
+    }
+    p.attributes.push_back(std::move(out));
+  }
   return p;
 }
 

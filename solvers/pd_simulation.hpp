@@ -42,7 +42,9 @@ class PdSimulation final : public Simulation {
   int profile_column(const std::string& label) const override;
   std::string run_summary(double wall) const override;
 
-  PointFields point_fields() const override;
+  // Attributes: vonmises (of PdSolver::compute_stress), damage, rest (x0), material, theta.
+  PointFields point_fields(const std::vector<std::string>& names,
+                           const exec::Space& space) override;
   double point_voxel_size() const override { return double(s_.settings().spacing); }
   bool surface(SurfaceMesh& out) const override;
   const char* surface_pattern() const override { return "surface_%04d"; }
@@ -55,6 +57,7 @@ class PdSimulation final : public Simulation {
 
  private:
   PdSolver s_;
+  std::vector<Mat3> stress_;  // output scratch (vonmises)
   PdSolver::Snapshot snapshot_;
   std::string description_;
   // What restore_sections reads into, applied by restored(); on a distributed run also what

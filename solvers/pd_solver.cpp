@@ -513,6 +513,7 @@ void PdSolver::compute_stress(const exec::Space& space, std::vector<Mat3>& stres
   stress.resize(particles_.size());
   std::vector<Vec3> f(particles_.size());
   pd_forces(space, view(), bonds_, params(), false, f.data(), stress.data(), &scratch_);
+  share(stress.data());  // distributed: each rank computed its own rows
 }
 
 PdDiagnostics PdSolver::diagnostics(const exec::Space& space) const {

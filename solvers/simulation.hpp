@@ -104,7 +104,15 @@ class Simulation {
   virtual std::string run_summary(double wall) const { return ""; }
 
   // --- Output.
-  virtual PointFields point_fields() const = 0;
+  // The point fields with the attributes `names` (core/particles/point_fields.hpp), in that
+  // order; the scene reader lets through only names the method has. Computed on `space`
+  // (stresses).
+  virtual PointFields point_fields(const std::vector<std::string>& names,
+                                   const exec::Space& space) = 0;
+  // Keeps every particle's current position as its rest position (attribute `rest`), by particle
+  // id: called after set-up and before a checkpoint is read. Methods that hold a reference
+  // position (peridynamics: x0) need not.
+  virtual void keep_rest_positions() {}
   virtual double point_voxel_size() const = 0;  // the VDB point grid's voxel (dx, or the spacing)
   // A surface mesh written per frame (false: none), and its file name pattern without extension
   // (printf with the frame number).

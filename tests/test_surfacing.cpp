@@ -1,6 +1,7 @@
 // Particle surfacing (io/surfacing.hpp, issue 29): the files written are read back with OpenVDB
 // and checked against the particles they came from.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <openvdb/openvdb.h>
 #include <openvdb/tools/Interpolation.h>
@@ -22,8 +23,14 @@ using namespace amalgam;
 
 namespace {
 
+// Per test and process: ctest runs the parameterised cases side by side (-j2), and a shared
+// folder was removed by one while the other wrote into it.
 std::string temp_dir(const std::string& name) {
-  const auto d = std::filesystem::temp_directory_path() / ("amalgam_surfacing_" + name);
+  std::string test = ::testing::UnitTest::GetInstance()->current_test_info()->name();
+  for (char& c : test)
+    if (c == '/') c = '_';
+  const auto d = std::filesystem::temp_directory_path() /
+                 ("amalgam_surfacing_" + name + "_" + test + "_" + std::to_string(::getpid()));
   std::filesystem::remove_all(d);
   std::filesystem::create_directories(d);
   return d.string();
@@ -344,7 +351,8 @@ TEST(Surfacing, FromVdbPointsFile) {
   const Vec3d c(0.5013, 0.4987, 0.5031);
   const Cloud ball = lattice_ball(c, 0.1, kH);
   const std::string dir = temp_dir("points");
-  write_vdb_points(dir + "/frame_0001.vdb", ball.fields(), kDx, exec::Space());
+  write_vdb_points(dir + "/frame_0001.vdb", ball.fields(), kDx, VdbPrecision::Compact,
+                   exec::Space());
   const SurfacingSpec s = spec(SurfacingMethod::Smooth);
   const SurfacingStats st =
       surface_vdb_points_file(dir + "/frame_0001.vdb", dir + "/s", kH, s, exec::Space());

@@ -1,6 +1,6 @@
 // What a frame writer (PLY, VDB points, previews) needs of any method's particles: positions,
-// velocities, material and a stable id, plus named float attributes, `primary` written before
-// material and id, `extra` after them (the PLY property order; VDB points keep the names).
+// velocities, a stable id and the material index, plus the typed attributes the scene's
+// output.attributes asks for (docs/output.md), written after P and v in the order asked.
 #pragma once
 
 #include <array>
@@ -13,18 +13,40 @@
 
 namespace amalgam {
 
+// The names output.attributes accepts (beyond P, v, id, always written), in documentation order:
+// deformation gradient, det F, plastic scalar, von Mises stress, peridynamic damage, rest
+// position, material index, temperature (melting MPM), enrichment state (particle domains),
+// dilatation (peridynamics). Which ones a scene's method has is checked when the scene is read.
+inline const std::vector<std::string>& point_attribute_names() {
+  static const std::vector<std::string> names = {"F",          "J",    "Jp",       "vonmises",
+                                                 "damage",     "rest", "material", "temperature",
+                                                 "enrichment", "theta"};
+  return names;
+}
+
+// One per-particle output attribute: Float (1 float), Vec3 (3), Mat3 (9, row-major: F00 F01 F02
+// F10 ...) or Int (int32).
+struct PointAttribute {
+  enum class Type { Float, Vec3, Mat3, Int };
+  std::string name;
+  Type type = Type::Float;
+  std::vector<float> f;         // n * width() values (Float, Vec3, Mat3)
+  std::vector<std::int32_t> i;  // n values (Int)
+  int width() const { return type == Type::Vec3 ? 3 : type == Type::Mat3 ? 9 : 1; }
+};
+
 struct PointFields {
   std::size_t n = 0;
   const Vec3* x = nullptr;
   const Vec3* v = nullptr;
-  const std::int32_t* material = nullptr;
+  const std::int32_t* material = nullptr;  // always set (previews, surfacing); written on request
   const std::int32_t* id = nullptr;
-  std::vector<std::pair<std::string, std::vector<float>>> primary, extra;
-  // The float attribute of that name (primary or extra), or null.
+  std::vector<PointAttribute> attributes;   // written after P and v, in this order
+  std::vector<std::string> material_names;  // by index: VDB metadata when `material` is written
+  // The Float attribute of that name, or null.
   const std::vector<float>* find(const std::string& name) const {
-    for (const auto* list : {&primary, &extra})
-      for (const auto& a : *list)
-        if (a.first == name) return &a.second;
+    for (const auto& a : attributes)
+      if (a.name == name && a.type == PointAttribute::Type::Float) return &a.f;
     return nullptr;
   }
 };
