@@ -993,6 +993,23 @@ std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds
 
 namespace {
 
+// A bond list of the layout `offsets`, its copied per-bond arrays sized (copy_bond fills them).
+PdBonds sized_bonds(const std::vector<std::uint64_t>& offsets) {
+  const std::uint64_t total = offsets.back();
+  PdBonds out;
+  out.offsets = offsets;
+  out.neighbor.resize(total);
+  out.length.resize(total);
+  out.omega.resize(total);
+  out.shear_omega.resize(total);
+  out.volume.resize(total);
+  out.plastic.resize(total);
+  out.intact.resize(total);
+  out.lane.resize(total);
+  out.dense.resize(offsets.size() - 1);
+  return out;
+}
+
 // Bond k of `from` into slot o of `to` (the per-bond arrays that are not rebuilt afterwards).
 inline void copy_bond(const PdBonds& from, std::uint64_t k, PdBonds& to, std::uint64_t o) {
   to.neighbor[o] = from.neighbor[k];
@@ -1024,17 +1041,7 @@ std::uint64_t select_bonds(const exec::Space& space, const char* label_copy, PdB
   off[n] = total;
   const std::uint64_t removed = bonds.size() - total;
   if (removed == 0) return 0;
-  PdBonds out;
-  out.offsets = off;
-  out.neighbor.resize(total);
-  out.length.resize(total);
-  out.omega.resize(total);
-  out.shear_omega.resize(total);
-  out.volume.resize(total);
-  out.plastic.resize(total);
-  out.intact.resize(total);
-  out.lane.resize(total);
-  out.dense.resize(n);
+  PdBonds out = sized_bonds(off);
   exec::parallel_for(space, label_copy, exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     std::uint64_t o = off[i];
@@ -1059,21 +1066,11 @@ void pd_keep_rows(const exec::Space& space, PdBonds& bonds,
   for (std::size_t i = 0; i < n; ++i)
     off[i + 1] = off[i] + (keep_row[i] ? bonds.offsets[i + 1] - bonds.offsets[i] : 0);
   const std::uint64_t total = off[n];
-  PdBonds out;
-  out.offsets = off;
-  out.neighbor.resize(total);
-  out.reverse.resize(total);
-  out.length.resize(total);
-  out.omega.resize(total);
-  out.shear_omega.resize(total);
-  out.volume.resize(total);
-  out.plastic.resize(total);
-  out.intact.resize(total);
-  out.lane.resize(total);
+  PdBonds out = sized_bonds(off);
+  out.reverse.resize(total);  // and the mirrored arrays, copied rather than rebuilt
   out.omega_r.resize(total);
   out.shear_omega_r.resize(total);
   out.plastic_r.resize(total);
-  out.dense.assign(n, 0);
   exec::parallel_for(space, "pd.keep_rows", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     out.dense[i] = keep_row[i] ? bonds.dense[i] : 1;  // an empty row is trivially whole
