@@ -10,10 +10,12 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <memory>
 
 #include "apps/commands.hpp"
 #include "core/dist/comm.hpp"
 #include "core/errors.hpp"
+#include "core/exec/background.hpp"
 #include "io/checkpoint.hpp"
 #include "io/files.hpp"
 #include "io/preview.hpp"
@@ -45,13 +47,23 @@ const char* preview_attribute(ColorBy c) {
   }
 }
 
+double seconds_since(std::chrono::steady_clock::time_point t0) {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
 // Files are written by MPI rank 0 only: on a distributed run every rank holds the whole particle
 // state (solvers/pd_distributed.cpp), and the other ranks take part in the collectives alone.
 bool writes_files() {
   return dist::Comm::world().root();
 }
 
-// The frame files of the simulation's current state.
+// The frame files of the simulation's current state. write(f) copies what frame f writes (the
+// point fields, the preview's attribute, the grid's nodes, the surface mesh) into a snapshot on
+// the simulation's thread; the files are written from it by the output worker: in the background
+// while the next frame simulates (asynchronous output, the default), or at once (--sync-output).
+// At most one frame is in flight: write(f + 1) waits for frame f's files, and wait() is called
+// before every checkpoint, so a checkpoint never claims a frame that is not on disk. A write error
+// in the background is rethrown by the next write or wait, naming the file.
 class FrameWriter {
  public:
   FrameWriter(Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space)
@@ -62,46 +74,48 @@ class FrameWriter {
         camera_(preview_camera(scene)),
         splat_(preview_radius(scene)),
         floor_y_(preview_floor(scene)),
-        spacing_(particle_spacing(scene)) {}
+        spacing_(particle_spacing(scene)),
+        async_(!rs.sync_output && writes_files()),
+        // The writer's OpenVDB work runs on its own thread alone (an arena of one), beside the
+        // simulation's --threads; synchronous output uses the simulation's space, as it waits.
+        writer_space_(async_ ? exec::Space(exec::Backend::Serial, 1) : space),
+        worker_(async_) {
+    // Test hook (tests/async_interrupt_test.sh): the writer sleeps this long before each frame,
+    // so a frame is certainly in flight when the test's injected SIGINT arrives.
+    if (const char* d = std::getenv("AMALGAM_TEST_WRITE_DELAY_MS")) delay_ms_ = std::atoi(d);
+  }
 
   void write(int f) {
-    const PointFields p = point_fields();  // collective when distributed (von Mises stress)
+    PointFields p = point_fields();  // collective when distributed (von Mises stress)
     if (!writes_files()) return;
-    const OutputSpec& out = scene_.output;
+    const auto t0 = std::chrono::steady_clock::now();
+    auto s = std::make_shared<Snapshot>(std::move(p));
     if (rs_.preview) {
       const char* attr = preview_attribute(scene_.preview.color_by);
-      const std::vector<float>* scalar = attr ? p.find(attr) : nullptr;
-      PointFields extra;  // the preview's attribute when the frames do not carry it
-      if (attr && !scalar && has_attribute(attr)) {
-        extra = sim_.point_fields({attr}, space_);
-        scalar = extra.find(attr);
-      }
-      write_png(numbered(rs_.out_dir, "preview_%04d", f, "png"),
-                render_points(p.n, p.x, p.v, p.material, scalar ? scalar->data() : nullptr, camera_,
-                              splat_, scene_.preview.width, scene_.preview.height,
-                              scene_.preview.color_by, floor_y_));
+      if (const std::vector<float>* a = attr ? s->points.fields.find(attr) : nullptr)
+        s->preview_scalar = *a;
+      else if (attr && has_attribute(attr))  // the preview's attribute when frames do not carry it
+        s->preview_scalar = *sim_.point_fields({attr}, space_).find(attr);
     }
-    write_points(numbered(rs_.out_dir, "frame_%04d", f, ""), p);
-    if (out.surfacing.enabled) {  // surfacing_NNNN.vdb (+ .obj / .ply): io/surfacing.hpp
-      std::string base = numbered(rs_.out_dir, "surfacing_%04d", f, "");
-      base.pop_back();  // the "." before the (empty) extension
-      write_surfacing(base, p, spacing_, out.surfacing, space_);
-    }
+    const OutputSpec& out = scene_.output;
     if (out.grid_volumes && f > 0 && sim_.grid())  // the grid exists once a substep ran
-      write_vdb_grid_fields(numbered(rs_.out_dir, "frame_%04d", f, "grid.vdb"), *sim_.grid(),
-                            sim_.point_voxel_size(), space_);
-    if ((out.surface_obj || out.surface_ply) && sim_.surface(mesh_)) {
-      if (out.surface_obj)
-        write_surface_obj(numbered(rs_.out_dir, sim_.surface_pattern(), f, "obj"), mesh_.vertices,
-                          mesh_.triangles, mesh_.crack);
-      if (out.surface_ply)
-        write_surface_ply(numbered(rs_.out_dir, sim_.surface_pattern(), f, "ply"), mesh_.vertices,
-                          mesh_.triangles, mesh_.crack);
-    }
+      s->grid = std::make_unique<GridNodes>(grid_nodes(*sim_.grid(), sim_.point_voxel_size()));
+    s->has_mesh = (out.surface_obj || out.surface_ply) && sim_.surface(s->mesh);
+    waited_ += seconds_since(t0);  // the copy is the simulation's share of asynchronous output
+    const auto t1 = std::chrono::steady_clock::now();
+    worker_.submit([this, f, s] { write_snapshot(f, *s); });
+    waited_ += seconds_since(t1);
   }
-  // The point files (PLY, VDB points, as the output asks) at `base` + extension; returns their
-  // paths.
-  std::vector<std::string> write_points(const std::string& base, const PointFields& p) const {
+  // Waits for the frame in flight; rethrows its write error.
+  void wait() {
+    const auto t0 = std::chrono::steady_clock::now();
+    worker_.wait();
+    waited_ += seconds_since(t0);
+  }
+  // The point files (PLY, VDB points, as the output asks) at `base` + extension, OpenVDB under
+  // `space`'s thread limit; returns their paths.
+  std::vector<std::string> write_points(const std::string& base, const PointFields& p,
+                                        const exec::Space& space) const {
     std::vector<std::string> paths;
     if (!writes_files()) return paths;
     if (scene_.output.ply) {
@@ -111,7 +125,7 @@ class FrameWriter {
     if (scene_.output.vdb_points) {
       paths.push_back(base + "vdb");
       write_vdb_points(paths.back(), p, sim_.point_voxel_size(), scene_.output.vdb_precision,
-                       space_);
+                       space);
     }
     return paths;
   }
@@ -121,8 +135,77 @@ class FrameWriter {
     p.material_names = scene_.material_names;
     return p;
   }
+  // "amalgam: output: ..." for the end of a run: bytes, the writer's seconds and rate, and the
+  // seconds the simulation spent on output (copying and waiting; with synchronous output, all).
+  std::string summary() const {
+    if (!writes_files() || frames_ == 0) return "";
+    char line[320];
+    std::snprintf(line, sizeof line,
+                  "amalgam: output (%s): %d frames, %.1f MB in %.3f s of writing (%.1f MB/s); "
+                  "simulation held %.3f s\n",
+                  async_ ? "asynchronous" : "synchronous", frames_, bytes_ * 1e-6, written_s_,
+                  bytes_ * 1e-6 / std::max(written_s_, 1e-9), async_ ? waited_ : written_s_);
+    return line;
+  }
 
  private:
+  struct Snapshot {
+    explicit Snapshot(PointFields p) : points(std::move(p)) {}
+    PointSnapshot points;
+    std::vector<float> preview_scalar;  // empty: coloured by material
+    std::unique_ptr<GridNodes> grid;
+    bool has_mesh = false;
+    SurfaceMesh mesh;
+  };
+
+  // Frame f's files from its snapshot (on the worker's thread when asynchronous).
+  void write_snapshot(int f, const Snapshot& s) {
+    if (delay_ms_ > 0) ::usleep(useconds_t(delay_ms_) * 1000);
+    const auto t0 = std::chrono::steady_clock::now();
+    const PointFields& p = s.points.fields;
+    const OutputSpec& out = scene_.output;
+    std::vector<std::string> paths;
+    if (rs_.preview) {
+      paths.push_back(numbered(rs_.out_dir, "preview_%04d", f, "png"));
+      write_png(paths.back(), render_points(p.n, p.x, p.v, p.material,
+                                            s.preview_scalar.empty() ? nullptr
+                                                                     : s.preview_scalar.data(),
+                                            camera_, splat_, scene_.preview.width,
+                                            scene_.preview.height, scene_.preview.color_by,
+                                            floor_y_));
+    }
+    for (std::string& path : write_points(numbered(rs_.out_dir, "frame_%04d", f, ""), p,
+                                          writer_space_))
+      paths.push_back(std::move(path));
+    if (out.surfacing.enabled) {  // surfacing_NNNN.vdb (+ .obj / .ply): io/surfacing.hpp
+      std::string base = numbered(rs_.out_dir, "surfacing_%04d", f, "");
+      base.pop_back();  // the "." before the (empty) extension
+      write_surfacing(base, p, spacing_, out.surfacing, writer_space_);
+      for (const char* ext : {".vdb", ".obj", ".ply"}) paths.push_back(base + ext);
+    }
+    if (s.grid) {
+      paths.push_back(numbered(rs_.out_dir, "frame_%04d", f, "grid.vdb"));
+      write_vdb_grid_nodes(paths.back(), *s.grid, writer_space_);
+    }
+    if (s.has_mesh) {
+      if (out.surface_obj) {
+        paths.push_back(numbered(rs_.out_dir, sim_.surface_pattern(), f, "obj"));
+        write_surface_obj(paths.back(), s.mesh.vertices, s.mesh.triangles, s.mesh.crack);
+      }
+      if (out.surface_ply) {
+        paths.push_back(numbered(rs_.out_dir, sim_.surface_pattern(), f, "ply"));
+        write_surface_ply(paths.back(), s.mesh.vertices, s.mesh.triangles, s.mesh.crack);
+      }
+    }
+    std::error_code ec;
+    for (const std::string& path : paths) {
+      const std::uintmax_t b = std::filesystem::file_size(path, ec);
+      if (!ec) bytes_ += double(b);
+    }
+    written_s_ += seconds_since(t0);
+    ++frames_;
+  }
+
   // Whether the method has attribute `name` (the scene reader's check).
   bool has_attribute(const char* name) const { return attribute_available(scene_, name); }
 
@@ -132,7 +215,13 @@ class FrameWriter {
   const exec::Space& space_;
   const Camera camera_;
   const double splat_, floor_y_, spacing_;
-  SurfaceMesh mesh_;
+  const bool async_;
+  const exec::Space writer_space_;
+  // Written by the worker's thread, read after wait() (summary): the worker's mutex orders them.
+  double bytes_ = 0, written_s_ = 0;
+  int frames_ = 0, delay_ms_ = 0;
+  double waited_ = 0;          // the simulation thread's
+  exec::BackgroundWorker worker_;  // last: destroyed (joined) first
 };
 
 // A per-substep CSV whose second column is a step number: its header and, on resume, the rows
@@ -217,7 +306,7 @@ class SampleWriter {
     rows_ += csv_row(cols);
     char base[64];
     std::snprintf(base, sizeof base, "/points_s%010llu.", (unsigned long long)sim_.step_count());
-    for (std::string& f : frames_.write_points(dir_ + base, frames_.point_fields()))
+    for (std::string& f : frames_.write_points(dir_ + base, frames_.point_fields(), space_))
       written_.push_back(std::move(f));
   }
   void discard() {
@@ -239,10 +328,6 @@ class SampleWriter {
   std::string dir_, csv_, rows_;
   std::vector<std::string> written_;
 };
-
-double seconds_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-}
 
 // Profiler seconds so far per profile column of the simulation.
 std::vector<double> profile_seconds(const Simulation& sim, const exec::Profiler& p,
@@ -314,6 +399,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
             sim.restore_frame_start();
             steps_log.discard();
             samples.discard();
+            frames.wait();  // the frame in flight is on disk before the checkpoint claims it
             sim.prepare_checkpoint();
             if (writes_files())
               write_checkpoint(checkpoint_path, sim, f, scene.fingerprint, attempt);
@@ -392,6 +478,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
       write_file_atomic(csv_path, csv);
     }
     if ((rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames) {
+      frames.wait();  // frames up to f are on disk before the checkpoint claims them
       sim.prepare_checkpoint();
       if (writes_files()) write_checkpoint(checkpoint_path, sim, f + 1, scene.fingerprint);
     }
@@ -413,8 +500,9 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
         std::cout << line << "\n";
     }
   }
+  frames.wait();
   const double wall = seconds_since(t_start);
-  const std::string summary = sim.run_summary(wall);  // collective when distributed
+  const std::string summary = sim.run_summary(wall) + frames.summary();  // collective
   if (!rs.quiet) {
     if (tty) std::cout << "\n";
     std::cout << "amalgam: done: " << scene.frames - rs.first_frame + 1 << " frames, "

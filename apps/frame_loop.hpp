@@ -23,6 +23,7 @@ struct RunSettings {
   int checkpoint_every = 0;  // frames; 0 = only at the end and on a signal
   int max_retries = 3;
   bool quiet = false, preview = false;
+  bool sync_output = false;  // --sync-output: frames written on the simulation's thread
 };
 
 // Runs frames first_frame..scene.frames of `sim`; returns the exit code (0, or 128 + signal).

@@ -32,7 +32,7 @@ const char* kRunHelp =
     "usage: amalgam run SCENE.json [--backend serial|openmp|tbb|threads|kokkos] [--threads N] [--out "
     "DIR]\n"
     "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--retries N]\n"
-    "                  [--preview] [--quiet] [--force]\n"
+    "                  [--preview] [--quiet] [--force] [--sync-output]\n"
     "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
     "position, velocity, id and the scene's output.attributes per particle (VDB points compact\n"
     "unless output.vdb_points is \"full\"),\n"
@@ -45,6 +45,9 @@ const char* kRunHelp =
     "all is refused (exit 3) unless --force.\n"
     "--preview also renders DIR/preview_NNNN.png per frame (point splats; camera from the\n"
     "scene's \"preview\" block or fitted to the objects).\n"
+    "Frames are written by a background thread while the next frame simulates (one frame in\n"
+    "flight; its OpenVDB work on that one thread); --sync-output writes them on the simulation's\n"
+    "threads instead, which wait (the files are the same bytes).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
     "uninterrupted run (frames may be raised to extend it).\n"
     "Defaults: --backend openmp (threads: plain std::threads, for ThreadSanitizer runs), --threads "
@@ -119,7 +122,7 @@ int run_command(const std::vector<std::string>& args) {
     o = parse_options(args,
                       {"--backend", "--threads", "--out", "--frames", "--checkpoint-every",
                        "--resume", "--retries"},
-                      {"--quiet", "--help", "--preview", "--force"});
+                      {"--quiet", "--help", "--preview", "--force", "--sync-output"});
     if (o.flag("--help")) {
       std::cout << kRunHelp;
       return kOk;
@@ -147,6 +150,7 @@ int run_command(const std::vector<std::string>& args) {
                        ": MPM does not run on several MPI ranks yet (issue 28; "
                        "peridynamics does): run one rank, with --threads for the cores");
     rs.preview = o.flag("--preview");
+    rs.sync_output = o.flag("--sync-output");
     rs.checkpoint_every = scene.output.checkpoint_every;
     if (const auto* c = o.get("--checkpoint-every"))
       rs.checkpoint_every = parse_int("--checkpoint-every", *c, 0, 1000000);

@@ -199,12 +199,32 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
       compact ? long(openvdb::io::COMPRESS_BLOSC | openvdb::io::COMPRESS_ACTIVE_MASK) : -1L);
 }
 
-void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx,
-                           const exec::Space& space) {
+GridNodes grid_nodes(const SparseGrid& grid, double dx) {
+  GridNodes g;
+  g.dx = dx;
+  const Real* a = grid.node4(0);
+  for (const std::int32_t leaf : grid.active_leaves()) {
+    const Vec3i base = grid.leaf_coords()[size_t(leaf)] * kLeafDim;
+    const Real* n = a + size_t(leaf) * kLeafNodes * 4;
+    for (int i = 0; i < kLeafDim; ++i)
+      for (int j = 0; j < kLeafDim; ++j)
+        for (int k = 0; k < kLeafDim; ++k) {
+          const Real* node = n + leaf_offset(i, j, k) * 4;
+          if (!(node[0] > 0)) continue;
+          g.ijk.push_back({base[0] + i, base[1] + j, base[2] + k});
+          g.mass.push_back(float(node[0]));
+          g.velocity.push_back({float(node[1]), float(node[2]), float(node[3])});
+        }
+  }
+  return g;
+}
+
+void write_vdb_grid_nodes(const std::string& path, const GridNodes& g, const exec::Space& space) {
   static std::once_flag init;
   std::call_once(init, [] { openvdb::initialize(); });
   write_vdb_file(path, space, "VDB grid fields", [&] {
-    const openvdb::math::Transform::Ptr xform = openvdb::math::Transform::createLinearTransform(dx);
+    const openvdb::math::Transform::Ptr xform =
+        openvdb::math::Transform::createLinearTransform(g.dx);
     auto mass = openvdb::FloatGrid::create(0.0f);
     auto vel = openvdb::Vec3SGrid::create(openvdb::Vec3s(0.0f));
     mass->setTransform(xform);
@@ -214,22 +234,18 @@ void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, doub
     vel->setVectorType(openvdb::VEC_CONTRAVARIANT_RELATIVE);
     auto ma = mass->getAccessor();
     auto va = vel->getAccessor();
-    const Real* a = grid.node4(0);
-    for (const std::int32_t leaf : grid.active_leaves()) {
-      const Vec3i base = grid.leaf_coords()[size_t(leaf)] * kLeafDim;
-      const Real* n = a + size_t(leaf) * kLeafNodes * 4;
-      for (int i = 0; i < kLeafDim; ++i)
-        for (int j = 0; j < kLeafDim; ++j)
-          for (int k = 0; k < kLeafDim; ++k) {
-            const Real* node = n + leaf_offset(i, j, k) * 4;
-            if (!(node[0] > 0)) continue;
-            const openvdb::Coord c(base[0] + i, base[1] + j, base[2] + k);
-            ma.setValue(c, float(node[0]));
-            va.setValue(c, openvdb::Vec3s(float(node[1]), float(node[2]), float(node[3])));
-          }
+    for (std::size_t q = 0; q < g.mass.size(); ++q) {
+      const openvdb::Coord c(g.ijk[q][0], g.ijk[q][1], g.ijk[q][2]);
+      ma.setValue(c, g.mass[q]);
+      va.setValue(c, openvdb::Vec3s(g.velocity[q][0], g.velocity[q][1], g.velocity[q][2]));
     }
     return openvdb::GridCPtrVec{mass, vel};
   });
+}
+
+void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx,
+                           const exec::Space& space) {
+  write_vdb_grid_nodes(path, grid_nodes(grid, dx), space);
 }
 
 }  // namespace amalgam

@@ -7,7 +7,9 @@
 // space's thread limit (exec::with_thread_limit). docs/output.md has sizes and error bounds.
 #pragma once
 
+#include <array>
 #include <string>
+#include <vector>
 
 #include "core/exec/exec.hpp"
 #include "core/particles/particle_set.hpp"
@@ -36,5 +38,17 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
 // active leaves (nodes with zero mass are left inactive). Houdini reads them with a File SOP.
 void write_vdb_grid_fields(const std::string& path, const SparseGrid& grid, double dx,
                            const exec::Space& space);
+
+// The same in two steps, for asynchronous output (apps/frame_loop.cpp): the grid's nodes with mass
+// copied out (index space, mass, velocity as floats), then written from that copy, byte for byte
+// the file write_vdb_grid_fields writes.
+struct GridNodes {
+  double dx = 0;
+  std::vector<std::array<int, 3>> ijk;
+  std::vector<float> mass;
+  std::vector<std::array<float, 3>> velocity;
+};
+GridNodes grid_nodes(const SparseGrid& grid, double dx);
+void write_vdb_grid_nodes(const std::string& path, const GridNodes& g, const exec::Space& space);
 
 }  // namespace amalgam

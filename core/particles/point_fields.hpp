@@ -51,6 +51,30 @@ struct PointFields {
   }
 };
 
+// A PointFields that owns its particle arrays: a copy of positions, velocities, materials and ids
+// taken after a frame's last substep, which asynchronous output writes while the simulation moves
+// on (apps/frame_loop.cpp). Not copyable: `fields` points into the vectors (a move keeps their
+// buffers).
+struct PointSnapshot {
+  std::vector<Vec3> x, v;
+  std::vector<std::int32_t> material, id;
+  PointFields fields;
+
+  explicit PointSnapshot(PointFields p)
+      : x(p.x, p.x + p.n),
+        v(p.v, p.v + p.n),
+        material(p.material, p.material + p.n),
+        id(p.id, p.id + p.n),
+        fields(std::move(p)) {
+    fields.x = x.data();
+    fields.v = v.data();
+    fields.material = material.data();
+    fields.id = id.data();
+  }
+  PointSnapshot(const PointSnapshot&) = delete;
+  PointSnapshot& operator=(const PointSnapshot&) = delete;
+};
+
 // A triangle surface written per frame (enriched MPM's embedded meshes, peridynamic crack
 // meshes): crack[f] = 1 marks crack faces.
 struct SurfaceMesh {
