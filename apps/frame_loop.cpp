@@ -167,15 +167,14 @@ class FrameWriter {
     std::vector<std::string> paths;
     if (rs_.preview) {
       paths.push_back(numbered(rs_.out_dir, "preview_%04d", f, "png"));
-      write_png(paths.back(), render_points(p.n, p.x, p.v, p.material,
-                                            s.preview_scalar.empty() ? nullptr
-                                                                     : s.preview_scalar.data(),
-                                            camera_, splat_, scene_.preview.width,
-                                            scene_.preview.height, scene_.preview.color_by,
-                                            floor_y_));
+      write_png(paths.back(),
+                render_points(p.n, p.x, p.v, p.material,
+                              s.preview_scalar.empty() ? nullptr : s.preview_scalar.data(), camera_,
+                              splat_, scene_.preview.width, scene_.preview.height,
+                              scene_.preview.color_by, floor_y_));
     }
-    for (std::string& path : write_points(numbered(rs_.out_dir, "frame_%04d", f, ""), p,
-                                          writer_space_))
+    for (std::string& path :
+         write_points(numbered(rs_.out_dir, "frame_%04d", f, ""), p, writer_space_))
       paths.push_back(std::move(path));
     if (out.surfacing.enabled) {  // surfacing_NNNN.vdb (+ .obj / .ply): io/surfacing.hpp
       std::string base = numbered(rs_.out_dir, "surfacing_%04d", f, "");
@@ -220,7 +219,7 @@ class FrameWriter {
   // Written by the worker's thread, read after wait() (summary): the worker's mutex orders them.
   double bytes_ = 0, written_s_ = 0;
   int frames_ = 0, delay_ms_ = 0;
-  double waited_ = 0;          // the simulation thread's
+  double waited_ = 0;              // the simulation thread's
   exec::BackgroundWorker worker_;  // last: destroyed (joined) first
 };
 

@@ -10,7 +10,11 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <cctype>
+#include <cerrno>
+#include <cstring>
+#include <fstream>
 #include <cstdio>
 #include <mutex>
 #include <nlohmann/json.hpp>
@@ -75,6 +79,39 @@ void add_requested(openvdb::points::PointDataGrid& grid,
   }
 }
 
+// The particle indices in ascending id order: ids 0..n-1 (every method's ids until particles are
+// added or removed) placed directly, any other set sorted.
+std::vector<size_t> id_order(const std::int32_t* id, size_t n) {
+  std::vector<size_t> order(n, n);
+  bool direct = true;
+  for (size_t i = 0; i < n && direct; ++i) {
+    const std::int32_t d = id[i];
+    direct = d >= 0 && size_t(d) < n && order[size_t(d)] == n;
+    if (direct) order[size_t(d)] = i;
+  }
+  if (direct) return order;
+  for (size_t i = 0; i < n; ++i) order[i] = i;
+  std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return id[a] < id[b]; });
+  return order;
+}
+
+// Attribute `a` with its values in `order`.
+PointAttribute reordered(const PointAttribute& a, const std::vector<size_t>& order) {
+  PointAttribute r;
+  r.name = a.name;
+  r.type = a.type;
+  const size_t w = size_t(a.width());
+  if (a.type == PointAttribute::Type::Int) {
+    r.i.resize(order.size());
+    for (size_t k = 0; k < order.size(); ++k) r.i[k] = a.i[order[k]];
+  } else {
+    r.f.resize(order.size() * w);
+    for (size_t k = 0; k < order.size(); ++k)
+      for (size_t c = 0; c < w; ++c) r.f[k * w + c] = a.f[order[k] * w + c];
+  }
+  return r;
+}
+
 // OpenVDB writes a random UUID into every file's header (io::Archive::writeHeader), so two
 // identical runs would write different bytes. It is replaced by one derived from the file's other
 // bytes: the same content gives the same file, different content a different UUID. The header is
@@ -125,6 +162,16 @@ void derive_uuid(const TempFile& f, const std::string& path) {
     throw InputError(path + ": cannot write the VDB file's UUID");
 }
 
+// io::File::write (OpenVDB 10, io/File.cc) opens an std::ofstream, calls Archive::write(os,
+// grids, seekable = true) and closes it without looking at the stream's state: a full disk leaves a
+// truncated file and no error. The same protected call, on a stream whose state is checked, writes
+// the same bytes and reports the failure.
+struct StreamArchive : openvdb::io::Archive {
+  void write_seekable(std::ostream& os, const openvdb::GridCPtrVec& grids) const {
+    Archive::write(os, grids, /*seekable=*/true);
+  }
+};
+
 }  // namespace
 
 void write_vdb_file(const std::string& path, const exec::Space& space, const char* what,
@@ -134,10 +181,13 @@ void write_vdb_file(const std::string& path, const exec::Space& space, const cha
   exec::with_thread_limit(space, [&] {
     try {
       const openvdb::GridCPtrVec grids = build();
-      openvdb::io::File file(tmp.open_name());
-      if (compression >= 0) file.setCompression(std::uint32_t(compression));
-      file.write(grids);
-      file.close();
+      errno = 0;
+      StreamArchive archive;
+      if (compression >= 0) archive.setCompression(std::uint32_t(compression));
+      std::ofstream os(tmp.open_name(), std::ios_base::out | std::ios_base::binary);
+      archive.write_seekable(os, grids);
+      os.close();
+      if (!os) error = std::string("write failed: ") + std::strerror(errno ? errno : EIO);
     } catch (const std::exception& e) {  // openvdb::Exception, std::bad_alloc, I/O errors
       error = std::string(e.what()).empty() ? "unknown error" : e.what();
     }
@@ -160,10 +210,16 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
   const size_t n = p.n;
   std::vector<openvdb::Vec3R> P(n);
   std::vector<openvdb::Vec3s> v(n);
-  std::vector<openvdb::Int32> id(p.id, p.id + n);
-  for (size_t i = 0; i < n; ++i) {
-    P[i] = openvdb::Vec3R(double(p.x[i][0]), double(p.x[i][1]), double(p.x[i][2]));
-    v[i] = openvdb::Vec3s(float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2]));
+  std::vector<openvdb::Int32> id(n);
+  // Points in id order: OpenVDB keeps the input order inside each voxel, so ids there ascend and
+  // Blosc packs them better (jelly_drop in motion: 0.3-0.5 B per particle less than the solver's
+  // cell-sorted order), and the file's order no longer depends on the solver's sorting.
+  const std::vector<size_t> order = id_order(p.id, n);
+  for (size_t k = 0; k < n; ++k) {
+    const size_t i = order[k];
+    P[k] = openvdb::Vec3R(double(p.x[i][0]), double(p.x[i][1]), double(p.x[i][2]));
+    v[k] = openvdb::Vec3s(float(p.v[i][0]), float(p.v[i][1]), float(p.v[i][2]));
+    id[k] = p.id[i];
   }
   const PointAttributeVector<openvdb::Vec3R> positions(P);
   const auto build = [&] {
@@ -182,7 +238,7 @@ void write_vdb_points(const std::string& path, const PointFields& p, double voxe
       add_attribute(*grid, *index, "v", v);
     add_attribute(*grid, *index, "id", id);
     for (const PointAttribute& a : p.attributes) {
-      add_requested(*grid, *index, a, precision);
+      add_requested(*grid, *index, reordered(a, order), precision);
       if (a.name == "material")  // the names by index, as a JSON array (ASCII, escaped)
         grid->insertMeta(
             "material_names",
