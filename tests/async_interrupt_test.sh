@@ -14,7 +14,7 @@ rm -rf "$out"
 # Substeps of frame 1 (diagnostics.csv column 4): SIGINT arrives during the next one.
 n1=$(awk -F, 'NR == 2 { print $4 }' "$out/ref/diagnostics.csv")
 [ "$n1" -gt 0 ] 2>/dev/null || fail "no substep count for frame 1 in diagnostics.csv"
-AMALGAM_TEST_WRITE_DELAY_MS=1500 AMALGAM_TEST_SIGINT_AT_SUBSTEP=$((n1 + 1)) \
+AMALGAM_TEST_WRITE_DELAY_MS=3000 AMALGAM_TEST_SIGINT_AT_SUBSTEP=$((n1 + 1)) \
   "$amalgam" run "$scene" --frames $frames --threads 2 --out "$out/int" --quiet 2> "$out/int.err"
 rc=$?
 [ $rc -eq 130 ] || { cat "$out/int.err"; fail "expected exit 130, got $rc"; }
