@@ -144,11 +144,18 @@ def add_volume(path, density):
 
 
 def bounds(objs):
+    """World-space bounds: a mesh's vertices (its bound_box is stale before evaluation), else the
+    evaluated object's bounding box (a volume's grids)."""
     lo = Vector((math.inf,) * 3)
     hi = Vector((-math.inf,) * 3)
+    deps = bpy.context.evaluated_depsgraph_get()
     for o in objs:
-        for c in o.bound_box:
-            w = o.matrix_world @ Vector(c)
+        if o.type == "MESH" and len(o.data.vertices) > 0:
+            pts = [o.matrix_world @ v.co for v in o.data.vertices]
+        else:
+            e = o.evaluated_get(deps)
+            pts = [e.matrix_world @ Vector(c) for c in e.bound_box]
+        for w in pts:
             lo = Vector(min(a, b) for a, b in zip(lo, w))
             hi = Vector(max(a, b) for a, b in zip(hi, w))
     return lo, hi
@@ -168,6 +175,7 @@ def main():
     scene.cycles.use_denoising = False  # Debian's Blender 3.4.1 has no OpenImageDenoise
     scene.cycles.use_adaptive_sampling = False
     scene.cycles.seed = 0
+    scene.cycles.volume_bounces = 2  # lets light scatter through the fog (default 0: dark)
     if a.threads > 0:
         scene.render.threads_mode = "FIXED"
         scene.render.threads = a.threads
@@ -180,8 +188,8 @@ def main():
 
     world = bpy.data.worlds.new("world")
     world.use_nodes = True
-    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.9, 0.9, 0.92, 1.0)
-    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.6
+    world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.35, 0.37, 0.42, 1.0)
+    world.node_tree.nodes["Background"].inputs["Strength"].default_value = 1.0
     scene.world = world
 
     panels = []  # (label, objects)
@@ -193,21 +201,22 @@ def main():
     for o in everything:
         o.matrix_world = Y_UP_TO_Z_UP @ o.matrix_world
     bpy.context.view_layer.update()
+    lo_hi = bounds(everything) if everything else None
     if a.vdb:
-        lo_hi = bounds(everything) if everything else None
         vol = add_volume(a.vdb, 1.0)
         for o in vol:
             o.matrix_world = Y_UP_TO_Z_UP @ o.matrix_world
         bpy.context.view_layer.update()
         lo, hi = bounds(vol) if lo_hi is None else lo_hi
-        # Density scale: optical depth ~ 20 across the body's smallest extent unless given.
+        # Density scale: optical depth ~ 15 across the body's smallest extent unless given.
         size = max(min(hi - lo), 1e-6)
-        dens = a.density if a.density > 0 else 20.0 / size
+        dens = a.density if a.density > 0 else 15.0 / size
         vol[0].data.materials[0].node_tree.nodes["Principled Volume"].inputs[
             "Density"].default_value = dens
         panels.append(("density", vol))
         everything += vol
-    lo, hi = bounds(everything)
+    # The camera frames the points and mesh when given (a volume's bounds are its grid's, padded).
+    lo, hi = lo_hi if a.vdb and lo_hi is not None else bounds(everything)
 
     # Camera: given in scene (Y-up) coordinates, or looking at the bounds from the front right.
     cam_data = bpy.data.cameras.new("camera")
@@ -227,12 +236,13 @@ def main():
         dist = radius / math.sin(math.radians(a.fov) / 2 * min(1.0, height / width)) * 1.05
         eye = target + Vector((0.55, -1.0, 0.6)).normalized() * dist
     cam.location = eye
+    print("render_blender.py: bounds", tuple(lo), tuple(hi), "eye", tuple(eye))
     cam.rotation_euler = (target - eye).to_track_quat("-Z", "Y").to_euler()
     cam_data.clip_start = 1e-3 * (eye - target).length
     cam_data.clip_end = 100 * (eye - target).length
 
     sun = bpy.data.objects.new("sun", bpy.data.lights.new("sun", "SUN"))
-    sun.data.energy = 3.0
+    sun.data.energy = 4.0
     sun.rotation_euler = (math.radians(40), math.radians(10), math.radians(30))
     scene.collection.objects.link(sun)
 
