@@ -91,8 +91,8 @@ class FrameWriter {
       write_vdb_grid_fields(numbered(rs_.out_dir, "frame_%04d", f, "grid.vdb"), *sim_.grid(),
                             sim_.point_voxel_size(), space_);
     if ((out.surface_obj || out.surface_ply) && sim_.surface(mesh_)) {
-      const char* what = mesh_.crack.empty() ? "embedded surface mesh"
-                                             : "surface with crack faces (group crack)";
+      const char* what =
+          mesh_.crack.empty() ? "embedded surface mesh" : "surface with crack faces (group crack)";
       if (out.surface_obj)
         write_mesh_obj(numbered(rs_.out_dir, sim_.surface_pattern(), f, "obj"), mesh_, what);
       if (out.surface_ply)

@@ -130,11 +130,11 @@ int surface_command(const std::vector<std::string>& args) {
   int threads = exec::hardware_threads();
   int frames_at_once = 0;  // 0: as many as threads
   try {
-    o = parse_options(
-        args,
-        {"--scene", "--method", "--voxel-size", "--radius-scale", "--spacing", "--filters",
-         "--grids", "--mesh", "--adaptivity", "--groups", "--frames", "--frames-at-once", "--threads", "--out"},
-        {"--help", "--quiet"});
+    o = parse_options(args,
+                      {"--scene", "--method", "--voxel-size", "--radius-scale", "--spacing",
+                       "--filters", "--grids", "--mesh", "--adaptivity", "--groups", "--frames",
+                       "--frames-at-once", "--threads", "--out"},
+                      {"--help", "--quiet"});
     if (o.flag("--help")) {
       std::cout << kSurfaceHelp;
       return kOk;
@@ -203,24 +203,22 @@ int surface_command(const std::vector<std::string>& args) {
       std::vector<SurfacingStats> stats(n);
       std::vector<std::exception_ptr> errors(n);  // rethrown in frame order after the wave
       std::vector<double> seconds(n, 0.0);
-      exec::parallel_for_chunks(outer, "surface_frames", exec::Index(n), 1,
-                                [&](exec::Index b, exec::Index e) {
-                                  for (exec::Index k = b; k < e; ++k) {
-                                    const auto& [f, path] = list[w + std::size_t(k)];
-                                    char base[32];
-                                    std::snprintf(base, sizeof base, "/surfacing_%04d", f);
-                                    const auto t = std::chrono::steady_clock::now();
-                                    try {
-                                      stats[k] = surface_vdb_points_file(path, out + base, spacing,
-                                                                         spec, inner);
-                                    } catch (...) {
-                                      errors[k] = std::current_exception();
-                                    }
-                                    seconds[k] = std::chrono::duration<double>(
-                                                     std::chrono::steady_clock::now() - t)
-                                                     .count();
-                                  }
-                                });
+      exec::parallel_for_chunks(
+          outer, "surface_frames", exec::Index(n), 1, [&](exec::Index b, exec::Index e) {
+            for (exec::Index k = b; k < e; ++k) {
+              const auto& [f, path] = list[w + std::size_t(k)];
+              char base[32];
+              std::snprintf(base, sizeof base, "/surfacing_%04d", f);
+              const auto t = std::chrono::steady_clock::now();
+              try {
+                stats[k] = surface_vdb_points_file(path, out + base, spacing, spec, inner);
+              } catch (...) {
+                errors[k] = std::current_exception();
+              }
+              seconds[k] =
+                  std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+            }
+          });
       for (std::size_t k = 0; k < n; ++k) {
         if (errors[k]) std::rethrow_exception(errors[k]);
         ++done;

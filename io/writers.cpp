@@ -80,7 +80,8 @@ namespace {
 void check_mesh(const std::string& path, const SurfaceMesh& m) {
   const std::size_t nv = m.vertices.size(), nt = m.triangles.size();
   if ((!m.normals.empty() && m.normals.size() != nv) ||
-      (!m.velocity.empty() && m.velocity.size() != nv) || (!m.crack.empty() && m.crack.size() != nt))
+      (!m.velocity.empty() && m.velocity.size() != nv) ||
+      (!m.crack.empty() && m.crack.size() != nt))
     throw std::logic_error(path + ": mesh arrays of different lengths");
 }
 
@@ -126,8 +127,7 @@ void write_mesh_obj(const std::string& path, const SurfaceMesh& m, const std::st
 
 void write_mesh_ply(const std::string& path, const SurfaceMesh& m, const std::string& what) {
   check_mesh(path, m);
-  const bool normals = !m.normals.empty(), velocity = !m.velocity.empty(),
-             crack = !m.crack.empty();
+  const bool normals = !m.normals.empty(), velocity = !m.velocity.empty(), crack = !m.crack.empty();
   std::ostringstream h;
   h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam: " << what << "\n"
     << "element vertex " << m.vertices.size() << "\n"

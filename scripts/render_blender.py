@@ -208,9 +208,9 @@ def main():
             o.matrix_world = Y_UP_TO_Z_UP @ o.matrix_world
         bpy.context.view_layer.update()
         lo, hi = bounds(vol) if lo_hi is None else lo_hi
-        # Density scale: optical depth ~ 15 across the body's smallest extent unless given.
+        # Density scale: optical depth ~ 30 across the body's smallest extent unless given.
         size = max(min(hi - lo), 1e-6)
-        dens = a.density if a.density > 0 else 15.0 / size
+        dens = a.density if a.density > 0 else 30.0 / size
         vol[0].data.materials[0].node_tree.nodes["Principled Volume"].inputs[
             "Density"].default_value = dens
         panels.append(("density", vol))

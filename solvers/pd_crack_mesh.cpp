@@ -165,9 +165,8 @@ void PdCrackMesh::split_vertex(std::uint32_t v) {
   incident_[v] = kept;
 }
 
-void PdCrackMesh::vertex_velocities(const Vec3* v, const Real* volume,
-                                    const std::int32_t* material, const PdMaterial* materials,
-                                    std::vector<double>& weight,
+void PdCrackMesh::vertex_velocities(const Vec3* v, const Real* volume, const std::int32_t* material,
+                                    const PdMaterial* materials, std::vector<double>& weight,
                                     std::vector<Vec3d>& velocity) const {
   const std::size_t nv = std::size_t(vertex_count_);
   weight.assign(nv, 0.0);

@@ -55,7 +55,8 @@ class PdCrackMesh {
   // triangles over the used vertices only (compact indices); crack[f] = 1 for crack faces. With
   // `vertex_velocity` (vertex_velocities()), `velocity` gets the velocity of each vertex written.
   void surface(std::vector<Vec3>& vertices, std::vector<std::array<std::uint32_t, 3>>& triangles,
-               std::vector<std::uint8_t>& crack, const std::vector<Vec3d>* vertex_velocity = nullptr,
+               std::vector<std::uint8_t>& crack,
+               const std::vector<Vec3d>* vertex_velocity = nullptr,
                std::vector<Vec3>* velocity = nullptr) const;
 
   std::size_t tetrahedra() const { return tets_.size(); }

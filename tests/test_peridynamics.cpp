@@ -1140,8 +1140,8 @@ TEST(PdCrackMesh, VerticesFollowTheParticles) {
   std::vector<double> weight;
   std::vector<Vec3d> vertex_v;
   mesh.vertex_velocities(ps.vec3(solver.attributes().v), ps.real(solver.attributes().volume),
-                         ps.int32(solver.attributes().material), solver.materials().data(),
-                         weight, vertex_v);
+                         ps.int32(solver.attributes().material), solver.materials().data(), weight,
+                         vertex_v);
   std::vector<Vec3> verts, vel;
   std::vector<std::array<std::uint32_t, 3>> tris;
   std::vector<std::uint8_t> crack;
