@@ -13,10 +13,7 @@
 #include <openvdb/tools/VolumeToMesh.h>
 
 #include <cmath>
-#include <cstdio>
-#include <cstring>
 #include <mutex>
-#include <sstream>
 
 #include "core/errors.hpp"
 #include "io/vdb_file.hpp"
