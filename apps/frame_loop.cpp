@@ -187,13 +187,15 @@ class FrameWriter {
       write_vdb_grid_nodes(paths.back(), *s.grid, writer_space_);
     }
     if (s.has_mesh) {
+      const char* what =
+          s.mesh.crack.empty() ? "embedded surface mesh" : "surface with crack faces (group crack)";
       if (out.surface_obj) {
         paths.push_back(numbered(rs_.out_dir, sim_.surface_pattern(), f, "obj"));
-        write_surface_obj(paths.back(), s.mesh.vertices, s.mesh.triangles, s.mesh.crack);
+        write_mesh_obj(paths.back(), s.mesh, what);
       }
       if (out.surface_ply) {
         paths.push_back(numbered(rs_.out_dir, sim_.surface_pattern(), f, "ply"));
-        write_surface_ply(paths.back(), s.mesh.vertices, s.mesh.triangles, s.mesh.crack);
+        write_mesh_ply(paths.back(), s.mesh, what);
       }
     }
     std::error_code ec;

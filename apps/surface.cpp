@@ -1,14 +1,18 @@
 // `amalgam surface RUN_DIR`: surfaces the frames a run wrote (frame_NNNN.vdb points) into
 // surfacing_NNNN.vdb (+ .obj / .ply), as output.surfacing does during a run (io/surfacing.hpp).
-// One frame at a time (memory: one frame's particles and grids); each frame's OpenVDB tools run
-// on --threads threads.
+// Parallel over frames and within a frame: K frames at a time (--frames-at-once, default
+// --threads) through the exec layer, each frame's OpenVDB tools on --threads / K threads; memory:
+// K frames' particles and grids.
+#include <algorithm>
 #include <chrono>
+#include <exception>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
 #include <map>
 #include <sstream>
 #include <stdexcept>
+#include <vector>
 
 #include "apps/commands.hpp"
 #include "core/errors.hpp"
@@ -24,11 +28,14 @@ const char* kSurfaceHelp =
     "                       [--voxel-size M] [--radius-scale S] [--spacing M]\n"
     "                       [--filters dilate,smooth,erode|none] [--grids surface,density,v]\n"
     "                       [--mesh none|obj|ply] [--adaptivity A] [--groups MATERIAL,...]\n"
-    "                       [--frames A-B] [--threads N] [--out DIR] [--quiet]\n"
+    "                       [--frames A-B] [--threads N] [--frames-at-once K] [--out DIR]\n"
+    "                       [--quiet]\n"
     "Surfaces the frames RUN_DIR/frame_NNNN.vdb (VDB points written by amalgam run) into\n"
     "DIR/surfacing_NNNN.vdb with the grids surface (level set), density (fog volume) and v\n"
     "(velocity), and with --mesh a triangle mesh surfacing_NNNN.obj or .ply (docs/scenes.md,\n"
-    "output.surfacing). One frame at a time; OpenVDB's tools use --threads threads within it.\n"
+    "output.surfacing). K frames at a time (default K = --threads), each frame's OpenVDB tools\n"
+    "on --threads / K threads: at most K frames in memory; the files are the same bytes for any\n"
+    "--threads and K.\n"
     "--scene takes the defaults from the scene the run used: its output.surfacing block, the\n"
     "voxel size dx / 2, the particle spacing and the material names for --groups; options given\n"
     "here override it. Without --scene the voxel size and the particle spacing default to half\n"
@@ -121,12 +128,13 @@ int surface_command(const std::vector<std::string>& args) {
   Options o;
   int first = 0, last = 9999;
   int threads = exec::hardware_threads();
+  int frames_at_once = 0;  // 0: as many as threads
   try {
-    o = parse_options(
-        args,
-        {"--scene", "--method", "--voxel-size", "--radius-scale", "--spacing", "--filters",
-         "--grids", "--mesh", "--adaptivity", "--groups", "--frames", "--threads", "--out"},
-        {"--help", "--quiet"});
+    o = parse_options(args,
+                      {"--scene", "--method", "--voxel-size", "--radius-scale", "--spacing",
+                       "--filters", "--grids", "--mesh", "--adaptivity", "--groups", "--frames",
+                       "--frames-at-once", "--threads", "--out"},
+                      {"--help", "--quiet"});
     if (o.flag("--help")) {
       std::cout << kSurfaceHelp;
       return kOk;
@@ -143,6 +151,9 @@ int surface_command(const std::vector<std::string>& args) {
       }
     }
     if (const auto* t = o.get("--threads")) threads = parse_int("--threads", *t, 1, 4096);
+    if (const auto* c = o.get("--frames-at-once"))
+      frames_at_once = parse_int("--frames-at-once", *c, 1, 4096);
+    if (frames_at_once == 0) frames_at_once = threads;
   } catch (const std::invalid_argument& e) {
     std::cerr << "amalgam surface: " << printable(e.what()) << "\n" << kSurfaceHelp;
     return kUsage;
@@ -175,23 +186,49 @@ int surface_command(const std::vector<std::string>& args) {
     std::error_code ec;
     std::filesystem::create_directories(out, ec);
     if (ec) throw InputError(out + ": cannot create output directory: " + ec.message());
-    const exec::Space space(exec::Backend::TBB, threads);
+    // Frames in waves of `concurrent`, each frame's OpenVDB tools on its share of the threads
+    // (exec::with_thread_limit inside write_surfacing): at most `concurrent` frames' particles
+    // and grids in memory; every frame's files depend only on its input, so the output is the
+    // same bytes whatever the thread count. Progress is printed per frame, in frame order, as
+    // each wave ends.
+    const int concurrent = std::max(1, std::min({frames_at_once, threads, int(frames.size())}));
+    const exec::Space outer(exec::Backend::TBB, concurrent);
+    const exec::Space inner(exec::Backend::TBB, std::max(1, threads / concurrent));
+    const std::vector<std::pair<int, std::string>> list(frames.begin(), frames.end());
     const auto t0 = std::chrono::steady_clock::now();
     std::size_t done = 0, particles = 0;
-    for (const auto& [f, path] : frames) {
-      set_phase("surfacing " + path);
-      char base[32];
-      std::snprintf(base, sizeof base, "/surfacing_%04d", f);
-      const auto t = std::chrono::steady_clock::now();
-      const SurfacingStats st = surface_vdb_points_file(path, out + base, spacing, spec, space);
-      ++done;
-      particles += st.particles;
-      if (!o.flag("--quiet")) {
-        const double s =
-            std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
-        std::printf("frame %d (%zu/%zu): %zu particles, %zu voxels, %zu triangles, %.2f s\n", f,
-                    done, frames.size(), st.particles, st.active_voxels, st.triangles, s);
-        std::fflush(stdout);
+    for (std::size_t w = 0; w < list.size(); w += std::size_t(concurrent)) {
+      const std::size_t n = std::min(list.size() - w, std::size_t(concurrent));
+      set_phase("surfacing " + list[w].second + (n > 1 ? " to " + list[w + n - 1].second : ""));
+      std::vector<SurfacingStats> stats(n);
+      std::vector<std::exception_ptr> errors(n);  // rethrown in frame order after the wave
+      std::vector<double> seconds(n, 0.0);
+      exec::parallel_for_chunks(
+          outer, "surface_frames", exec::Index(n), 1, [&](exec::Index b, exec::Index e) {
+            for (exec::Index k = b; k < e; ++k) {
+              const auto& [f, path] = list[w + std::size_t(k)];
+              char base[32];
+              std::snprintf(base, sizeof base, "/surfacing_%04d", f);
+              const auto t = std::chrono::steady_clock::now();
+              try {
+                stats[k] = surface_vdb_points_file(path, out + base, spacing, spec, inner);
+              } catch (...) {
+                errors[k] = std::current_exception();
+              }
+              seconds[k] =
+                  std::chrono::duration<double>(std::chrono::steady_clock::now() - t).count();
+            }
+          });
+      for (std::size_t k = 0; k < n; ++k) {
+        if (errors[k]) std::rethrow_exception(errors[k]);
+        ++done;
+        particles += stats[k].particles;
+        if (!o.flag("--quiet")) {
+          std::printf("frame %d (%zu/%zu): %zu particles, %zu voxels, %zu triangles, %.2f s\n",
+                      list[w + k].first, done, list.size(), stats[k].particles,
+                      stats[k].active_voxels, stats[k].triangles, seconds[k]);
+          std::fflush(stdout);
+        }
       }
     }
     if (!o.flag("--quiet")) {

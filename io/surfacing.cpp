@@ -13,10 +13,7 @@
 #include <openvdb/tools/VolumeToMesh.h>
 
 #include <cmath>
-#include <cstdio>
-#include <cstring>
 #include <mutex>
-#include <sstream>
 
 #include "core/errors.hpp"
 #include "io/vdb_file.hpp"
@@ -159,88 +156,39 @@ void filter(FloatGrid& surface, const std::vector<SurfaceFilter>& filters) {
   }
 }
 
-struct Mesh {
-  std::vector<Vec3s> points, normals, velocity;
-  std::vector<openvdb::Vec3I> triangles;
-};
-
 // tools::volumeToMesh, quads split into two triangles, wound counter-clockwise seen from outside
 // (OpenVDB's polygons face the other way); area-weighted vertex normals from the triangles, and
 // the velocity grid sampled trilinearly (tools::BoxSampler) at the vertices.
-Mesh mesh_of(const FloatGrid& surface, const Vec3SGrid& v, double adaptivity) {
-  Mesh m;
+SurfaceMesh mesh_of(const FloatGrid& surface, const Vec3SGrid& v, double adaptivity) {
+  std::vector<Vec3s> points;
+  std::vector<openvdb::Vec3I> triangles;
   std::vector<openvdb::Vec4I> quads;
-  openvdb::tools::volumeToMesh(surface, m.points, m.triangles, quads, 0.0, adaptivity);
-  m.triangles.reserve(m.triangles.size() + 2 * quads.size());
+  openvdb::tools::volumeToMesh(surface, points, triangles, quads, 0.0, adaptivity);
+  SurfaceMesh m;
+  m.triangles.reserve(triangles.size() + 2 * quads.size());
+  for (const auto& t : triangles) m.triangles.push_back({t[0], t[2], t[1]});
   for (const auto& q : quads) {
-    m.triangles.emplace_back(q[0], q[1], q[2]);
-    m.triangles.emplace_back(q[0], q[2], q[3]);
+    m.triangles.push_back({q[0], q[2], q[1]});
+    m.triangles.push_back({q[0], q[3], q[2]});
   }
-  for (auto& t : m.triangles) std::swap(t[1], t[2]);
-  m.normals.assign(m.points.size(), Vec3s(0.0f));
+  std::vector<Vec3s> normals(points.size(), Vec3s(0.0f));
   for (const auto& t : m.triangles) {
-    const Vec3s n = (m.points[t[1]] - m.points[t[0]]).cross(m.points[t[2]] - m.points[t[0]]);
-    for (int k = 0; k < 3; ++k) m.normals[t[k]] += n;
+    const Vec3s n = (points[t[1]] - points[t[0]]).cross(points[t[2]] - points[t[0]]);
+    for (int k = 0; k < 3; ++k) normals[t[k]] += n;
   }
-  for (auto& n : m.normals) {
-    const float len = n.length();
-    n = len > 0 ? n / len : Vec3s(0.0f);
-  }
-  m.velocity.resize(m.points.size());
   openvdb::tools::GridSampler<Vec3SGrid, openvdb::tools::BoxSampler> sampler(v);
-  for (std::size_t i = 0; i < m.points.size(); ++i)
-    m.velocity[i] = sampler.wsSample(openvdb::Vec3d(m.points[i]));
+  m.vertices.resize(points.size());
+  m.normals.resize(points.size());
+  m.velocity.resize(points.size());
+  for (std::size_t i = 0; i < points.size(); ++i) {
+    const float len = normals[i].length();
+    const Vec3s n = len > 0 ? normals[i] / len : Vec3s(0.0f);
+    const Vec3s u = sampler.wsSample(openvdb::Vec3d(points[i]));
+    m.vertices[i] = Vec3(Real(points[i][0]), Real(points[i][1]), Real(points[i][2]));
+    m.normals[i] = Vec3(Real(n[0]), Real(n[1]), Real(n[2]));
+    m.velocity[i] = Vec3(Real(u[0]), Real(u[1]), Real(u[2]));
+  }
   return m;
-}
-
-void write_mesh_obj(const std::string& path, const Mesh& m) {
-  std::string out = "# written by Amalgam: particle surface (io/surfacing.cpp)\n";
-  out.reserve(out.size() + m.points.size() * 80 + m.triangles.size() * 40);
-  char line[160];
-  for (const auto& p : m.points) {
-    std::snprintf(line, sizeof line, "v %.7g %.7g %.7g\n", double(p[0]), double(p[1]),
-                  double(p[2]));
-    out += line;
-  }
-  for (const auto& n : m.normals) {
-    std::snprintf(line, sizeof line, "vn %.5g %.5g %.5g\n", double(n[0]), double(n[1]),
-                  double(n[2]));
-    out += line;
-  }
-  for (const auto& t : m.triangles) {
-    std::snprintf(line, sizeof line, "f %u//%u %u//%u %u//%u\n", t[0] + 1, t[0] + 1, t[1] + 1,
-                  t[1] + 1, t[2] + 1, t[2] + 1);
-    out += line;
-  }
-  write_file_atomic(path, out);
-}
-
-template <class T>
-void put(std::string& buf, const T& value) {
-  char b[sizeof(T)];
-  std::memcpy(b, &value, sizeof(T));
-  buf.append(b, sizeof(T));  // the project's targets are little-endian, as the PLY header says
-}
-
-void write_mesh_ply(const std::string& path, const Mesh& m) {
-  std::ostringstream h;
-  h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam: particle surface\n"
-    << "element vertex " << m.points.size() << "\n"
-    << "property float x\nproperty float y\nproperty float z\n"
-    << "property float nx\nproperty float ny\nproperty float nz\n"
-    << "property float vx\nproperty float vy\nproperty float vz\n"
-    << "element face " << m.triangles.size() << "\n"
-    << "property list uchar uint vertex_indices\nend_header\n";
-  std::string buf = h.str();
-  buf.reserve(buf.size() + m.points.size() * 36 + m.triangles.size() * 13);
-  for (std::size_t i = 0; i < m.points.size(); ++i)
-    for (const Vec3s* a : {&m.points[i], &m.normals[i], &m.velocity[i]})
-      for (int k = 0; k < 3; ++k) put(buf, float((*a)[k]));
-  for (const auto& t : m.triangles) {
-    put(buf, std::uint8_t(3));
-    for (int k = 0; k < 3; ++k) put(buf, std::uint32_t(t[k]));
-  }
-  write_file_atomic(path, buf);
 }
 
 // Surfaces `q` and writes the files; runs every OpenVDB tool under the space's thread limit.
@@ -251,7 +199,7 @@ SurfacingStats surface_and_write(const std::string& base, const Particles& q, do
   SurfacingStats st;
   st.particles = q.P.size();
   const double radius = surfacing_radius(s, spacing);
-  Mesh mesh;
+  SurfaceMesh mesh;
   write_vdb_file(base + ".vdb", space, "surface VDB", [&] {
     const auto xform = openvdb::math::Transform::createLinearTransform(s.voxel_size);
     Grids g;
@@ -279,11 +227,11 @@ SurfacingStats surface_and_write(const std::string& base, const Particles& q, do
     return grids;
   });
   st.files.push_back(base + ".vdb");
-  if (s.mesh == SurfaceMeshFormat::Obj) write_mesh_obj(base + ".obj", mesh);
-  if (s.mesh == SurfaceMeshFormat::Ply) write_mesh_ply(base + ".ply", mesh);
+  if (s.mesh == SurfaceMeshFormat::Obj) write_mesh_obj(base + ".obj", mesh, "particle surface");
+  if (s.mesh == SurfaceMeshFormat::Ply) write_mesh_ply(base + ".ply", mesh, "particle surface");
   if (s.mesh != SurfaceMeshFormat::None)
     st.files.push_back(base + (s.mesh == SurfaceMeshFormat::Obj ? ".obj" : ".ply"));
-  st.vertices = mesh.points.size();
+  st.vertices = mesh.vertices.size();
   st.triangles = mesh.triangles.size();
   return st;
 }

@@ -1,7 +1,7 @@
 // Render-ready surfaces from particles (issue 29): a narrow-band level set built with OpenVDB's
 // own point rasterisers, optionally filtered, written as one VDB file with the grids `surface`
 // (level set), `density` (fog volume) and `v` (velocity), and optionally a triangle mesh (OBJ or
-// binary PLY) with per-vertex normals (and velocity in PLY). Every OpenVDB tool call runs inside
+// binary PLY, io/writers.hpp's mesh writer) with per-vertex normals (and velocity in PLY). Every OpenVDB tool call runs inside
 // exec::with_thread_limit; files are written to a new temporary file and renamed, the VDB file with
 // the UUID derived from its bytes (io/vdb_file.hpp), so identical input writes identical files.
 //

@@ -8,6 +8,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <sstream>
+#include <stdexcept>
 
 #include "core/errors.hpp"
 #include "io/files.hpp"
@@ -75,56 +76,81 @@ void write_ply_points(const std::string& path, const PointFields& p) {
   write_file_atomic(path, buf);
 }
 
-void write_surface_obj(const std::string& path, const std::vector<Vec3>& vertices,
-                       const std::vector<std::array<std::uint32_t, 3>>& triangles,
-                       const std::vector<std::uint8_t>& crack) {
-  std::string out =
-      "# written by Amalgam: deformed surface (group crack: peridynamic crack faces)\n";
-  out.reserve(out.size() + vertices.size() * 40 + triangles.size() * 30);
-  char line[96];
-  for (const Vec3& v : vertices) {
+namespace {
+void check_mesh(const std::string& path, const SurfaceMesh& m) {
+  const std::size_t nv = m.vertices.size(), nt = m.triangles.size();
+  if ((!m.normals.empty() && m.normals.size() != nv) ||
+      (!m.velocity.empty() && m.velocity.size() != nv) ||
+      (!m.crack.empty() && m.crack.size() != nt))
+    throw std::logic_error(path + ": mesh arrays of different lengths");
+}
+
+template <class T>
+void put(std::string& buf, const T& value) {
+  char b[sizeof(T)];
+  std::memcpy(b, &value, sizeof(T));
+  buf.append(b, sizeof(T));  // the project's targets are little-endian, as the PLY header says
+}
+}  // namespace
+
+void write_mesh_obj(const std::string& path, const SurfaceMesh& m, const std::string& what) {
+  check_mesh(path, m);
+  const bool normals = !m.normals.empty(), groups = !m.crack.empty();
+  std::string out = "# written by Amalgam: " + what + "\n";
+  out.reserve(out.size() + m.vertices.size() * (normals ? 80 : 40) + m.triangles.size() * 40);
+  char line[160];
+  for (const Vec3& v : m.vertices) {
     std::snprintf(line, sizeof line, "v %.7g %.7g %.7g\n", double(v[0]), double(v[1]),
                   double(v[2]));
     out += line;
   }
-  for (int group = 0; group < 2; ++group) {
-    out += group == 0 ? "g surface\n" : "g crack\n";
-    for (std::size_t f = 0; f < triangles.size(); ++f) {
-      if (int(crack[f] != 0) != group) continue;
-      std::snprintf(line, sizeof line, "f %u %u %u\n", triangles[f][0] + 1, triangles[f][1] + 1,
-                    triangles[f][2] + 1);
+  for (const Vec3& n : m.normals) {
+    std::snprintf(line, sizeof line, "vn %.5g %.5g %.5g\n", double(n[0]), double(n[1]),
+                  double(n[2]));
+    out += line;
+  }
+  for (int group = 0; group < (groups ? 2 : 1); ++group) {
+    if (groups) out += group == 0 ? "g surface\n" : "g crack\n";
+    for (std::size_t f = 0; f < m.triangles.size(); ++f) {
+      if (groups && int(m.crack[f] != 0) != group) continue;
+      const auto& t = m.triangles[f];
+      if (normals)
+        std::snprintf(line, sizeof line, "f %u//%u %u//%u %u//%u\n", t[0] + 1, t[0] + 1, t[1] + 1,
+                      t[1] + 1, t[2] + 1, t[2] + 1);
+      else
+        std::snprintf(line, sizeof line, "f %u %u %u\n", t[0] + 1, t[1] + 1, t[2] + 1);
       out += line;
     }
   }
   write_file_atomic(path, out);
 }
 
-void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertices,
-                       const std::vector<std::array<std::uint32_t, 3>>& triangles,
-                       const std::vector<std::uint8_t>& crack) {
+void write_mesh_ply(const std::string& path, const SurfaceMesh& m, const std::string& what) {
+  check_mesh(path, m);
+  const bool normals = !m.normals.empty(), velocity = !m.velocity.empty(), crack = !m.crack.empty();
   std::ostringstream h;
-  h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam: surface with crack faces\n"
-    << "element vertex " << vertices.size()
-    << "\nproperty float x\nproperty float y\nproperty float z\n"
-    << "element face " << triangles.size()
-    << "\nproperty list uchar int vertex_indices\nproperty uchar crack\n"
-    << "end_header\n";
+  h << "ply\nformat binary_little_endian 1.0\ncomment written by Amalgam: " << what << "\n"
+    << "element vertex " << m.vertices.size() << "\n"
+    << "property float x\nproperty float y\nproperty float z\n";
+  if (normals) h << "property float nx\nproperty float ny\nproperty float nz\n";
+  if (velocity) h << "property float vx\nproperty float vy\nproperty float vz\n";
+  h << "element face " << m.triangles.size() << "\n"
+    << "property list uchar uint vertex_indices\n";
+  if (crack) h << "property uchar crack\n";
+  h << "end_header\n";
   std::string buf = h.str();
-  const std::size_t header = buf.size();
-  buf.resize(header + vertices.size() * 12 + triangles.size() * 14);
-  char* dst = buf.data() + header;
-  for (const Vec3& v : vertices) {
-    const float p[3] = {float(v[0]), float(v[1]), float(v[2])};
-    std::memcpy(dst, p, 12);
-    dst += 12;
+  buf.reserve(buf.size() + m.vertices.size() * 36 + m.triangles.size() * 14);
+  for (std::size_t i = 0; i < m.vertices.size(); ++i) {
+    for (int k = 0; k < 3; ++k) put(buf, float(m.vertices[i][k]));
+    if (normals)
+      for (int k = 0; k < 3; ++k) put(buf, float(m.normals[i][k]));
+    if (velocity)
+      for (int k = 0; k < 3; ++k) put(buf, float(m.velocity[i][k]));
   }
-  for (std::size_t f = 0; f < triangles.size(); ++f) {
-    *dst++ = 3;
-    const std::int32_t idx[3] = {std::int32_t(triangles[f][0]), std::int32_t(triangles[f][1]),
-                                 std::int32_t(triangles[f][2])};
-    std::memcpy(dst, idx, 12);
-    dst += 12;
-    *dst++ = char(crack[f]);
+  for (std::size_t f = 0; f < m.triangles.size(); ++f) {
+    put(buf, std::uint8_t(3));
+    for (int k = 0; k < 3; ++k) put(buf, std::uint32_t(m.triangles[f][k]));
+    if (crack) put(buf, std::uint8_t(m.crack[f]));
   }
   write_file_atomic(path, buf);
 }

@@ -18,15 +18,16 @@ namespace amalgam {
 // Blender and ParaView.
 void write_ply_points(const std::string& path, const PointFields& p);
 
-// A triangle surface (peridynamic crack meshes): OBJ with the groups "surface" and "crack" (the
-// triangles with crack[f] = 1 go to "crack"), or binary PLY with a uchar face property "crack".
-// Both atomic; Houdini, Blender and ParaView read them.
-void write_surface_obj(const std::string& path, const std::vector<Vec3>& vertices,
-                       const std::vector<std::array<std::uint32_t, 3>>& triangles,
-                       const std::vector<std::uint8_t>& crack);
-void write_surface_ply(const std::string& path, const std::vector<Vec3>& vertices,
-                       const std::vector<std::array<std::uint32_t, 3>>& triangles,
-                       const std::vector<std::uint8_t>& crack);
+// Every triangle mesh Amalgam writes (particle surfaces of output.surfacing, enriched-MPM embedded
+// meshes, peridynamic crack surfaces) goes through these two writers; both atomic, read by
+// Houdini, Blender and ParaView. The optional arrays of `m` are written when not empty:
+// - OBJ: `v x y z`, `vn` normals (faces then `f a//a b//b c//c`), and with `crack` the groups
+//   "surface" and "crack" (the triangles with crack[f] = 1). OBJ has no velocity.
+// - binary little-endian PLY: vertex x y z [nx ny nz] [vx vy vz] (floats), face
+//   `list uchar uint vertex_indices` [uchar crack].
+// `what` names the mesh in the file's comment.
+void write_mesh_obj(const std::string& path, const SurfaceMesh& m, const std::string& what);
+void write_mesh_ply(const std::string& path, const SurfaceMesh& m, const std::string& what);
 
 // Writes `content` to `path` atomically (a new temporary file, then rename: io/files.hpp).
 // Throws InputError.

@@ -1,7 +1,18 @@
 #!/usr/bin/env bash
 # Installs every build/test dependency of Amalgam from Debian packages.
 # Safe to run any number of times: apt-get skips what is already installed.
+#   scripts/install_deps.sh           build/test dependencies (what CI installs)
+#   scripts/install_deps.sh --render  also Blender (scripts/render_blender.sh, the render smoke
+#                                     test); opt-in because it is large and CI does not need it
 set -euo pipefail
+
+RENDER=0
+for a in "$@"; do
+  case "$a" in
+    --render) RENDER=1 ;;
+    *) echo "install_deps.sh: unknown option '$a' (only --render)" >&2; exit 2 ;;
+  esac
+done
 
 PKGS=(
   build-essential cmake ninja-build pkg-config
@@ -14,6 +25,8 @@ PKGS=(
   libtrilinos-kokkos-dev   # the optional Kokkos exec backend (Kokkos 3.4.1, Serial space)
   libopenmpi-dev openmpi-bin libtrilinos-zoltan-dev  # distributed runs: MPI ranks, Zoltan partitioning
 )
+# Debian 12's blender 3.4.1: headless Cycles renders of surfaced frames (no OpenImageDenoise).
+[ "$RENDER" -eq 1 ] && PKGS+=(blender)
 
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then

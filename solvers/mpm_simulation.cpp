@@ -269,7 +269,11 @@ bool MpmSimulation::surface(SurfaceMesh& out) const {
   const MpmEnriched* e = s_.enriched();
   if (!e || !e->domains().has_surface()) return false;
   e->domains().surface(s_.particles().int32(e->attributes().corners), out.vertices, out.triangles);
-  out.crack.assign(out.triangles.size(), 0);
+  // Per-vertex velocity: the velocity of the particle whose domain embeds the vertex (particles
+  // are checkpointed, so a resumed run writes the same; the corners' velocities are not).
+  e->domains().surface_velocity(s_.particles().vec3(s_.attributes().v), out.velocity);
+  out.normals.clear();
+  out.crack.clear();
   return true;
 }
 

@@ -155,6 +155,12 @@ void ParticleDomains::surface(const std::int32_t* particle_corners, std::vector<
   triangles = surf_tris_;
 }
 
+void ParticleDomains::surface_velocity(const Vec3* particle_v, std::vector<Vec3>& velocity) const {
+  velocity.resize(surf_particle_.size());
+  for (std::size_t k = 0; k < surf_particle_.size(); ++k)
+    velocity[k] = particle_v[std::size_t(surf_particle_[k])];
+}
+
 std::size_t ParticleDomains::disable_melted(const exec::Space& space, const DomainParticleView& p,
                                             const MaterialParams* materials) {
   disabled_ = domain_disable_melted(space, p, materials);

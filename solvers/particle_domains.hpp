@@ -73,6 +73,8 @@ class ParticleDomains {
   bool has_surface() const { return !surf_tris_.empty(); }
   void surface(const std::int32_t* particle_corners, std::vector<Vec3>& vertices,
                std::vector<std::array<std::uint32_t, 3>>& triangles) const;
+  // The velocity of each embedded vertex: that of the particle whose domain holds it.
+  void surface_velocity(const Vec3* particle_v, std::vector<Vec3>& velocity) const;
 
   std::size_t corner_count() const { return corners_.size(); }
   std::size_t point_count() const { return points_.size(); }

@@ -165,36 +165,50 @@ void PdCrackMesh::split_vertex(std::uint32_t v) {
   incident_[v] = kept;
 }
 
-void PdCrackMesh::move_vertices(const Vec3* v, const Real* volume, const std::int32_t* material,
-                                const PdMaterial* materials, Real dt) {
+void PdCrackMesh::vertex_velocities(const Vec3* v, const Real* volume, const std::int32_t* material,
+                                    const PdMaterial* materials, std::vector<double>& weight,
+                                    std::vector<Vec3d>& velocity) const {
   const std::size_t nv = std::size_t(vertex_count_);
-  weight_.assign(nv, 0.0);
-  velocity_.assign(nv, Vec3d::Zero());
+  weight.assign(nv, 0.0);
+  velocity.assign(nv, Vec3d::Zero());
   for (std::size_t t = 0; t < tets_.size(); ++t) {  // eqs. 19, 20: 1/4 m_p per incident tetrahedron
     const std::size_t p = first_particle_ + t;
     const double m = 0.25 * double(materials[material[p]].density) * double(volume[p]);
     for (std::uint32_t c : tets_[t]) {
-      weight_[c] += m;
-      velocity_[c] += m * v[p].cast<double>();
+      weight[c] += m;
+      velocity[c] += m * v[p].cast<double>();
     }
   }
-  for (std::size_t k = 0; k < nv; ++k)  // eq. 21
-    if (weight_[k] > 0) x_[k] += (dt * (velocity_[k] / weight_[k])).cast<Real>();
+  for (std::size_t k = 0; k < nv; ++k)
+    if (weight[k] > 0) velocity[k] = velocity[k] / weight[k];
+}
+
+void PdCrackMesh::move_vertices(const Vec3* v, const Real* volume, const std::int32_t* material,
+                                const PdMaterial* materials, Real dt) {
+  vertex_velocities(v, volume, material, materials, weight_, velocity_);
+  for (std::size_t k = 0; k < std::size_t(vertex_count_); ++k)  // eq. 21
+    if (weight_[k] > 0) x_[k] += (dt * velocity_[k]).cast<Real>();
 }
 
 void PdCrackMesh::surface(std::vector<Vec3>& vertices,
                           std::vector<std::array<std::uint32_t, 3>>& triangles,
-                          std::vector<std::uint8_t>& crack) const {
+                          std::vector<std::uint8_t>& crack,
+                          const std::vector<Vec3d>* vertex_velocity,
+                          std::vector<Vec3>* velocity) const {
   vertices.clear();
   triangles.clear();
   crack.clear();
+  if (velocity) velocity->clear();
   std::vector<std::uint32_t> remap(std::size_t(vertex_count_), ~std::uint32_t(0));
   auto emit = [&](std::uint32_t t, std::uint8_t o, std::uint8_t is_crack) {
     std::array<std::uint32_t, 3> tri;
     for (int k = 0; k < 3; ++k) {
       const std::uint32_t g = tets_[t][outward_[t][3 * o + k]];
-      if (remap[g] == ~std::uint32_t(0))
-        remap[g] = std::uint32_t(vertices.size()), vertices.push_back(x_[g]);
+      if (remap[g] == ~std::uint32_t(0)) {
+        remap[g] = std::uint32_t(vertices.size());
+        vertices.push_back(x_[g]);
+        if (velocity && vertex_velocity) velocity->push_back((*vertex_velocity)[g].cast<Real>());
+      }
       tri[k] = remap[g];
     }
     triangles.push_back(tri);

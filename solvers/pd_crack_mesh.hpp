@@ -45,11 +45,19 @@ class PdCrackMesh {
   // 19-21); mass = density x volume per particle.
   void move_vertices(const Vec3* v, const Real* volume, const std::int32_t* material,
                      const PdMaterial* materials, Real dt);
+  // The velocity move_vertices gives each vertex (eqs. 19, 20), from the particles' velocities:
+  // `weight` and `velocity` get one entry per vertex in use (0 for a vertex without particles).
+  void vertex_velocities(const Vec3* v, const Real* volume, const std::int32_t* material,
+                         const PdMaterial* materials, std::vector<double>& weight,
+                         std::vector<Vec3d>& velocity) const;
 
   // The surface: original boundary faces and both sides of every crack face, outward-oriented
-  // triangles over the used vertices only (compact indices); crack[f] = 1 for crack faces.
+  // triangles over the used vertices only (compact indices); crack[f] = 1 for crack faces. With
+  // `vertex_velocity` (vertex_velocities()), `velocity` gets the velocity of each vertex written.
   void surface(std::vector<Vec3>& vertices, std::vector<std::array<std::uint32_t, 3>>& triangles,
-               std::vector<std::uint8_t>& crack) const;
+               std::vector<std::uint8_t>& crack,
+               const std::vector<Vec3d>* vertex_velocity = nullptr,
+               std::vector<Vec3>* velocity = nullptr) const;
 
   std::size_t tetrahedra() const { return tets_.size(); }
   std::size_t vertices() const { return std::size_t(vertex_count_); }

@@ -119,10 +119,19 @@ bool PdSimulation::surface(SurfaceMesh& out) const {
   std::vector<Vec3> verts;
   std::vector<std::array<std::uint32_t, 3>> tris;
   std::vector<std::uint8_t> crack;
+  std::vector<double> weight;
+  std::vector<Vec3d> vertex_v;
+  std::vector<Vec3> vel;
+  const ParticleSet& ps = s_.particles();
+  const PdAttributes& a = s_.attributes();
   for (const PdCrackMesh& m : s_.crack_meshes()) {  // one surface file for all meshes
-    m.surface(verts, tris, crack);
+    // Per-vertex velocity: the motion move_vertices gives the vertex (eqs. 19, 20).
+    m.vertex_velocities(ps.vec3(a.v), ps.real(a.volume), ps.int32(a.material),
+                        s_.materials().data(), weight, vertex_v);
+    m.surface(verts, tris, crack, &vertex_v, &vel);
     const auto base = std::uint32_t(out.vertices.size());
     out.vertices.insert(out.vertices.end(), verts.begin(), verts.end());
+    out.velocity.insert(out.velocity.end(), vel.begin(), vel.end());
     for (auto t : tris) out.triangles.push_back({t[0] + base, t[1] + base, t[2] + base});
     out.crack.insert(out.crack.end(), crack.begin(), crack.end());
   }

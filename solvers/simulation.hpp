@@ -114,8 +114,8 @@ class Simulation {
   // position (peridynamics: x0) need not.
   virtual void keep_rest_positions() {}
   virtual double point_voxel_size() const = 0;  // the VDB point grid's voxel (dx, or the spacing)
-  // A surface mesh written per frame (false: none), and its file name pattern without extension
-  // (printf with the frame number).
+  // A surface mesh written per frame (false: none; with per-vertex velocity, and crack faces for
+  // peridynamics), and its file name pattern without extension (printf with the frame number).
   virtual bool surface(SurfaceMesh& out) const { return false; }
   virtual const char* surface_pattern() const { return "surface_%04d"; }
   // The background grid of the last substep (grid volumes), when the method has one.

@@ -23,7 +23,7 @@ if [ $rc -ne 130 ]; then echo "expected exit 130 after SIGINT, got $rc"; exit 1;
 ls "$out/int"/*.tmp >/dev/null 2>&1 && { echo "half-written files left"; exit 1; }
 "$amalgam" run "$scene" --frames $frames --threads 2 --out "$out/int" --resume "$out/int/checkpoint.amck" --quiet \
   || { echo "resume failed"; exit 1; }
-for f in $(cd "$out/ref" && ls frame_*.ply surface_*.obj frame_*_surface.obj samples.csv samples/*.ply 2>/dev/null); do
+for f in $(cd "$out/ref" && ls frame_*.ply surface_*.obj surface_*.ply frame_*_surface.obj frame_*_surface.ply samples.csv samples/*.ply 2>/dev/null); do
   cmp "$out/ref/$f" "$out/int/$f" || { echo "$f differs after resume"; exit 1; }
 done
 if [ -d "$out/ref/samples" ]; then  # samples every N substeps: the same files, none left over

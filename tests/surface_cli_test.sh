@@ -17,16 +17,24 @@ head -c 400 "$out/run/surfacing_0001.ply" | grep -aq "property float vx" || fail
 ls "$out/run"/*.tmp >/dev/null 2>&1 && fail "temporary files left"
 
 "$amalgam" surface --help | grep -q "usage: amalgam surface" || fail "--help"
-for t in 1 2; do
-  "$amalgam" surface "$out/run" --scene "$scene" --threads $t --mesh obj --out "$out/t$t" --quiet \
-    || fail "surface --threads $t failed"
-done
+# t1: one thread, one frame at a time; t2: two frames at once on one thread each (the default
+# for --threads 2); t2k1: one frame at a time on two threads. The same bytes from each.
+"$amalgam" surface "$out/run" --scene "$scene" --threads 1 --mesh obj --out "$out/t1" --quiet \
+  || fail "surface --threads 1 failed"
+"$amalgam" surface "$out/run" --scene "$scene" --threads 2 --mesh obj --out "$out/t2" > "$out/t2.log" \
+  || fail "surface --threads 2 failed"
+"$amalgam" surface "$out/run" --scene "$scene" --threads 2 --frames-at-once 1 --mesh obj --out "$out/t2k1" \
+  --quiet || fail "surface --threads 2 --frames-at-once 1 failed"
 for f in 0 1 2; do
+  grep -q "^frame $f ($((f + 1))/3): " "$out/t2.log" || fail "no progress line for frame $f with 2 frames at once"
   for ext in vdb obj; do
-    cmp "$out/t1/surfacing_000$f.$ext" "$out/t2/surfacing_000$f.$ext" \
-      || fail "surfacing_000$f.$ext differs between 1 and 2 threads"
+    for d in t2 t2k1; do
+      cmp "$out/t1/surfacing_000$f.$ext" "$out/$d/surfacing_000$f.$ext" \
+        || fail "surfacing_000$f.$ext differs between t1 and $d"
+    done
   done
 done
+grep -q "surfaced 3 frames" "$out/t2.log" || fail "no summary line"
 "$amalgam" surface "$out/run" --frames 1-1 --method spheres --out "$out/one" > "$out/one.log" \
   || fail "surface --frames 1-1 failed"
 grep -q "frame 1 (1/1)" "$out/one.log" || fail "no progress line for frame 1"
@@ -34,6 +42,8 @@ grep -q "frame 1 (1/1)" "$out/one.log" || fail "no progress line for frame 1"
 
 "$amalgam" surface "$out/run" --voxel-size -1 >/dev/null 2>&1; rc=$?
 [ $rc -eq 2 ] || fail "negative --voxel-size: exit $rc, expected 2"
+"$amalgam" surface "$out/run" --frames-at-once 0 >/dev/null 2>&1; rc=$?
+[ $rc -eq 2 ] || fail "--frames-at-once 0: exit $rc, expected 2"
 "$amalgam" surface "$out/run" --filters blur 2>&1 | grep -q "unknown filter 'blur'" || fail "unknown filter message"
 "$amalgam" surface "$out/run" --scene "$scene" --groups steel 2>&1 | grep -q 'unknown material "steel"' \
   || fail "unknown group message"

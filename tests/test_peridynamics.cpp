@@ -1104,6 +1104,18 @@ TEST(PdCrackMesh, VerticesFollowTheParticles) {
                        Real(1e-3));
     for (std::size_t k = 0; k < mesh.vertices(); ++k)
       EXPECT_LT((mesh.positions()[k] - before[k] - Vec3(1, -2, 3) * Real(1e-3)).norm(), 1e-6) << k;
+    // The velocity written with the surface (PLY vx vy vz) is that motion: v for every vertex.
+    std::vector<double> weight;
+    std::vector<Vec3d> vertex_v;
+    mesh.vertex_velocities(v.data(), ps.real(solver.attributes().volume),
+                           ps.int32(solver.attributes().material), solver.materials().data(),
+                           weight, vertex_v);
+    std::vector<Vec3> verts, vel;
+    std::vector<std::array<std::uint32_t, 3>> tris;
+    std::vector<std::uint8_t> crack;
+    mesh.surface(verts, tris, crack, &vertex_v, &vel);
+    ASSERT_EQ(vel.size(), verts.size());
+    for (const Vec3& u : vel) EXPECT_LT((u - Vec3(1, -2, 3)).norm(), 1e-5);
   }
   solver.prescribe_velocity(Vec3::Constant(-1), Vec3(Real(0.8 * h), 1, 1), Vec3(-20, 0, 0));
   solver.prescribe_velocity(Vec3(Real(3.2 * h), -1, -1), Vec3::Constant(1), Vec3(20, 0, 0));
@@ -1122,6 +1134,33 @@ TEST(PdCrackMesh, VerticesFollowTheParticles) {
     worst = std::max(worst, double((c - x[t]).norm()));
   }
   EXPECT_LT(worst, 0.5 * h);
+  // The surface's per-vertex velocity after the fracture: the ends' vertices (all their
+  // tetrahedra's particles prescribed) move at exactly -20 and +20 m/s along x, and every vertex's
+  // (a weighted mean of particle velocities) lies within the particles' range on each axis.
+  std::vector<double> weight;
+  std::vector<Vec3d> vertex_v;
+  mesh.vertex_velocities(ps.vec3(solver.attributes().v), ps.real(solver.attributes().volume),
+                         ps.int32(solver.attributes().material), solver.materials().data(), weight,
+                         vertex_v);
+  std::vector<Vec3> verts, vel;
+  std::vector<std::array<std::uint32_t, 3>> tris;
+  std::vector<std::uint8_t> crack;
+  mesh.surface(verts, tris, crack, &vertex_v, &vel);
+  ASSERT_EQ(vel.size(), verts.size());
+  const Vec3* pv = ps.vec3(solver.attributes().v);
+  Vec3 lo = pv[0], hi = pv[0];
+  for (std::size_t i = 0; i < ps.size(); ++i) lo = lo.cwiseMin(pv[i]), hi = hi.cwiseMax(pv[i]);
+  int left = 0, right = 0;
+  for (const Vec3& u : vel) {
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_GE(u[k], lo[k] - 1e-4 * (1 + std::abs(lo[k])));
+      EXPECT_LE(u[k], hi[k] + 1e-4 * (1 + std::abs(hi[k])));
+    }
+    left += (u - Vec3(-20, 0, 0)).norm() < 1e-4;
+    right += (u - Vec3(20, 0, 0)).norm() < 1e-4;
+  }
+  EXPECT_GE(left, 25);  // the 5 x 5 vertices of the plane x = 0, at least
+  EXPECT_GE(right, 25);
 }
 
 // Bond compaction (PdSettings::compact_fraction) must not change the run: every kernel skips

@@ -9,6 +9,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <map>
@@ -18,6 +19,7 @@
 #include "io/scene.hpp"
 #include "io/surfacing.hpp"
 #include "io/vdb_points.hpp"
+#include "io/writers.hpp"
 
 using namespace amalgam;
 
@@ -414,4 +416,51 @@ TEST(Surfacing, SceneKeys) {
       EXPECT_NE(std::string(e.what()).find(message), std::string::npos) << e.what();
     }
   }
+}
+
+// The one mesh writer (io/writers.hpp) for particle surfaces, embedded meshes and crack surfaces:
+// PLY vertex properties x y z [nx ny nz] [vx vy vz] and the face property crack, OBJ groups.
+TEST(MeshWriter, PlyCarriesVelocityAndCrackFacesObjTheGroups) {
+  SurfaceMesh m;
+  m.vertices = {Vec3(0, 0, 0), Vec3(1, 0, 0), Vec3(0, 1, 0), Vec3(0, 0, 1)};
+  m.triangles = {{0, 2, 1}, {0, 1, 3}, {0, 3, 2}, {1, 2, 3}};
+  m.velocity = {Vec3(1, 2, 3), Vec3(-1, 0, 0.5), Vec3(0, 0, 0), Vec3(4, 5, 6)};
+  m.crack = {0, 1, 0, 1};
+  const std::string dir = temp_dir("mesh");
+  write_mesh_ply(dir + "/m.ply", m, "test");
+  write_mesh_obj(dir + "/m.obj", m, "test");
+  const std::string ply = bytes_of(dir + "/m.ply");
+  const std::string header_end = "end_header\n";
+  const std::size_t body = ply.find(header_end) + header_end.size();
+  const std::string header = ply.substr(0, body);
+  EXPECT_NE(header.find("element vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+                        "property float vx\nproperty float vy\nproperty float vz\n"),
+            std::string::npos)
+      << header;
+  EXPECT_EQ(header.find("property float nx"), std::string::npos);  // no normals given
+  EXPECT_NE(header.find("element face 4\nproperty list uchar uint vertex_indices\n"
+                        "property uchar crack\n"),
+            std::string::npos);
+  ASSERT_EQ(ply.size(), body + 4 * 24 + 4 * 14);
+  for (std::size_t i = 0; i < 4; ++i) {
+    float rec[6];
+    std::memcpy(rec, ply.data() + body + 24 * i, sizeof rec);
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_EQ(rec[k], float(m.vertices[i][k]));
+      EXPECT_EQ(rec[3 + k], float(m.velocity[i][k]));
+    }
+  }
+  for (std::size_t f = 0; f < 4; ++f) {
+    const char* face = ply.data() + body + 96 + 14 * f;
+    std::uint32_t idx[3];
+    std::memcpy(idx, face + 1, 12);
+    EXPECT_EQ(face[0], 3);
+    for (int k = 0; k < 3; ++k) EXPECT_EQ(idx[k], m.triangles[f][k]);
+    EXPECT_EQ(int(face[13]), int(m.crack[f]));
+  }
+  EXPECT_EQ(bytes_of(dir + "/m.obj"),
+            "# written by Amalgam: test\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
+            "g surface\nf 1 3 2\nf 1 4 3\ng crack\nf 1 2 4\nf 2 3 4\n");
+  m.crack.pop_back();  // arrays of different lengths: refused
+  EXPECT_THROW(write_mesh_ply(dir + "/bad.ply", m, "test"), std::logic_error);
 }

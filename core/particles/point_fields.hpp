@@ -75,12 +75,16 @@ struct PointSnapshot {
   PointSnapshot& operator=(const PointSnapshot&) = delete;
 };
 
-// A triangle surface written per frame (enriched MPM's embedded meshes, peridynamic crack
-// meshes): crack[f] = 1 marks crack faces.
+// A triangle surface written per frame (particle surfaces, enriched MPM's embedded meshes,
+// peridynamic crack meshes; io/writers.hpp write_mesh_obj / write_mesh_ply). Optional arrays are
+// empty when absent: normals and velocity have one entry per vertex, crack one per triangle
+// (crack[f] = 1 marks crack faces).
 struct SurfaceMesh {
   std::vector<Vec3> vertices;
   std::vector<std::array<std::uint32_t, 3>> triangles;
-  std::vector<std::uint8_t> crack;
+  std::vector<Vec3> normals;        // unit vertex normals
+  std::vector<Vec3> velocity;       // m/s
+  std::vector<std::uint8_t> crack;  // per triangle
 };
 
 }  // namespace amalgam
