@@ -170,6 +170,21 @@ void read_mpm_simulation(JsonObject& sim, Scene& s) {
       sim.fail("order", "particle domains use linear grid weights (enriched MPM eq. 3)");
   }
   if (sim.has("kill")) read_kill(sim, s);
+  if (sim.has("sleep")) {
+    JsonObject z = sim.object("sleep");
+    SleepSettings& sl = s.mpm.sleep;
+    sl.enabled = z.boolean("enabled", true);
+    sl.speed = Real(z.number("speed", 0.02, 0, kHuge, true));
+    sl.strain_rate = Real(z.number("strain_rate", 0.5, 0, kHuge, true));
+    sl.time = Real(z.number("time", 0.1, 0, kHuge));
+    sl.halo = Real(z.number("halo", 2 * double(s.mpm.dx), 0, kHuge));
+    z.finish();
+    if (sl.enabled &&
+        (s.mpm.implicit || s.mpm.transfer == Transfer::PicFlip || s.mpm.domains.enabled))
+      sim.fail("sleep",
+               "needs the explicit integrator with transfer \"mls\" or \"apic\" (not implicit, "
+               "PIC/FLIP nor particle domains)");
+  }
 }
 
 void check_mpm_objects(JsonObject& sim, Scene& s) {
@@ -190,6 +205,8 @@ void check_mpm_objects(JsonObject& sim, Scene& s) {
     sim.fail(
         "domains",
         "particle domains cannot be combined with configuration maps (objects' \"configuration\")");
+  if (s.mpm.sleep.enabled && s.mpm.configuration_maps)
+    sim.fail("sleep", "not with A-ULMPM objects (\"configuration\" blocks): plain MPM only");
   if (sim.has("kill") && s.mpm.configuration_maps)
     sim.fail("kill", "not with A-ULMPM objects (\"configuration\" blocks): plain MPM only");
   if (sim.has("contact") && !s.mpm.configuration_maps)

@@ -197,7 +197,8 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
        {"max_enriched_fraction", dc.max_enriched_fraction},
        {"enriched_corners", double(dc.last_enriched_corners), true},
        {"emitted", double(s_.source_counters().emitted - frame_sources_.emitted), true},
-       {"killed", double(s_.source_counters().killed - frame_sources_.killed), true}});
+       {"killed", double(s_.source_counters().killed - frame_sources_.killed), true},
+       {"sleeping", double(s_.sleep() ? s_.sleep()->sleeping(s_.particles()) : 0), true}});
   if (s_.settings().implicit) {
     char cg[64];
     std::snprintf(cg, sizeof cg, "CG %.1f it/step",
@@ -329,6 +330,7 @@ void MpmSimulation::restored(double time, std::uint64_t steps) {
   } else {
     check_permutation_attribute(ps, "id");
   }
+  check_index_attribute(ps, "asleep", 0, 1);
   check_low_part(ps, "x", "x_lo");
   check_low_part(ps, "F", "F_lo");
   if (const MpmAul* a = s_.aul())

@@ -52,6 +52,14 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
   }
   if (settings_.kill.enabled() && (settings_.configuration_maps || settings_.domains.enabled))
     throw InputError("kill regions need plain MPM (not A-ULMPM objects nor particle domains)");
+  if (settings_.sleep.enabled) {
+    if (settings_.configuration_maps || settings_.domains.enabled || settings_.implicit ||
+        settings_.transfer == Transfer::PicFlip)
+      throw InputError(
+          "sleeping needs explicit MLS or APIC MPM (not implicit, PIC/FLIP, A-ULMPM "
+          "objects nor particle domains)");
+    sleep_ = std::make_unique<MpmSleep>(particles_, settings_.sleep);
+  }
   if (settings_.configuration_maps) aul_ = std::make_unique<MpmAul>(particles_, settings_.contact);
   if (settings_.domains.enabled) enriched_ = std::make_unique<MpmEnriched>(particles_);
   if (settings_.implicit) implicit_ = std::make_unique<MpmImplicit>(settings_.solver);
@@ -182,8 +190,10 @@ MpmParticleView MpmSolver::particle_view() {
 
 MpmGridView MpmSolver::grid_view() {
   Real* second = channels_.second >= 0 ? grid_.node4(channels_.second) : nullptr;
-  return make_grid_view(grid_, enriched_ ? enriched_->domains().bins() : bins_, grid_.node4(0),
-                        second);
+  MpmGridView g = make_grid_view(grid_, enriched_ ? enriched_->domains().bins() : bins_,
+                                 grid_.node4(0), second);
+  if (sleep_) g.bin_end = sleep_->bin_end();
+  return g;
 }
 
 const Collider* MpmSolver::colliders_at(Real t) const {
@@ -220,6 +230,9 @@ void MpmSolver::sort_particles(const exec::Space& space) {
 
 void MpmSolver::update_grid(const exec::Space& space) {
   grid_.update_topology(space, bins_);
+  if (sleep_)
+    sleep_->decide(space, particles_, attr_, bins_, settings_.dx, time_, colliders_at(Real(time_)),
+                   int(colliders_.size()), emitters_);
 }
 
 // Lagrangian mode with colliders: MLS/APIC rasterise the node positions q_i inside the momentum
@@ -253,6 +266,7 @@ void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
     g.q = grid_.node4(channels_.positions);
   }
   grid_update(space, g, prm);
+  if (sleep_) sleep_->pin_nodes(space, grid_, bins_, grid_.node4(0));
 }
 
 MpmGridView MpmSolver::grid_view_with_positions() {
@@ -263,6 +277,7 @@ MpmGridView MpmSolver::grid_view_with_positions() {
 
 void MpmSolver::grid_to_particle(const exec::Space& space, Real dt) {
   g2p(space, particle_view(), grid_view(), step_params(dt));
+  if (sleep_) sleep_->rest(space, particles_, attr_, dt);
 }
 
 void MpmSolver::collide_particles(const exec::Space& space, Real dt) {

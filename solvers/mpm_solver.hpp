@@ -31,6 +31,7 @@
 #include "kernels/mpm_transfers.hpp"
 #include "solvers/configuration_maps.hpp"
 #include "solvers/implicit_system.hpp"
+#include "solvers/mpm_sleep.hpp"
 #include "solvers/mpm_sources.hpp"
 #include "solvers/object_contact.hpp"
 #include "solvers/particle_domains.hpp"
@@ -64,6 +65,8 @@ struct MpmSettings {
   // Kill regions (solvers/mpm_sources.hpp): particles leaving the box or entering a volume are
   // removed at the end of every substep. Plain MPM (explicit or implicit) only.
   KillSettings kill;
+  // Sleeping blocks (solvers/mpm_sleep.hpp). Explicit MLS/APIC only.
+  SleepSettings sleep;
 };
 
 struct MpmDiagnostics {
@@ -112,6 +115,7 @@ class MpmSolver {
   const MpmImplicit* implicit() const { return implicit_.get(); }
   MpmAul* aul() { return aul_.get(); }
   const MpmAul* aul() const { return aul_.get(); }
+  const MpmSleep* sleep() const { return sleep_.get(); }
   MpmEnriched* enriched() { return enriched_.get(); }
   const MpmEnriched* enriched() const { return enriched_.get(); }
 
@@ -214,6 +218,7 @@ class MpmSolver {
   std::vector<Vec3> emitted_x_;      // emission scratch
   std::vector<std::uint8_t> keep_;   // kill scratch: survivor flags
   std::vector<std::uint32_t> kept_;  // kill scratch: survivor indices
+  std::unique_ptr<MpmSleep> sleep_;
   std::unique_ptr<MpmImplicit> implicit_;
   std::unique_ptr<MpmAul> aul_;
   std::unique_ptr<MpmEnriched> enriched_;

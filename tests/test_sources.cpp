@@ -254,3 +254,89 @@ TEST(Emitters, SceneErrorsNameTheKey) {
   no_end.replace(no_end.find("\"end\": 1.0, \"seed\""), 18, "\"seed\"");
   EXPECT_NE(error(no_end).find("/emitters/0/end"), std::string::npos);
 }
+
+namespace {
+// A damped jelly block settling on the floor (asleep from about t = 0.27 s), with a ball falling
+// onto it from 1.2 m above: it comes within the halo (the next leaf, 0.4 m) at about 0.38 s and
+// lands at about 0.49 s.
+const std::string kSleepScene = R"({
+  "simulation": {"dx": 0.05, "frames": 2, "max_dt": 2e-3,
+                 "sleep": {"speed": 0.05, "strain_rate": 2, "time": 0.05}},
+  "materials": {"jelly": {"density": 1000, "youngs_modulus": 1e5, "viscosity": 100},
+                "rock": {"density": 3000, "youngs_modulus": 1e6}},
+  "objects": [{"shape": "box", "min": [0.2, 0.1, 0.2], "max": [0.8, 0.3, 0.8], "material": "jelly",
+               "particles_per_cell": 1},
+              {"shape": "sphere", "center": [0.5, 1.5, 0.5], "radius": 0.08, "material": "rock",
+               "particles_per_cell": 1}],
+  "colliders": [{"type": "half_space", "point": [0, 0.1, 0], "normal": [0, 1, 0], "boundary": "sticky"}]
+})";
+
+std::size_t asleep_count(const MpmSolver& s) {
+  return s.sleep()->sleeping(s.particles());
+}
+}  // namespace
+
+TEST(Sleep, RestingMaterialSleepsStaysPutAndWakesWhenHit) {
+  const Scene scene = parse_scene(kSleepScene, "z.json");
+  MpmSolver s = build_solver(scene);
+  const exec::Space space(exec::Backend::OpenMP, 2);
+  const std::size_t n = s.particles().size();
+  std::size_t most = 0;
+  std::vector<Vec3d> at_sleep;
+  double slept_at = -1;
+  while (s.time() < 0.33) {
+    s.step(space, s.stable_dt(space));
+    const std::size_t z = asleep_count(s);
+    most = std::max(most, z);
+    if (slept_at < 0 && z + 20 >= n) {  // all of the block (the ball, 20 particles, falls)
+      slept_at = s.time();
+      at_sleep = s.positions_by_id();
+    }
+  }
+  ASSERT_GT(slept_at, 0) << "the block never fell asleep (most asleep: " << most << " of " << n
+                         << ")";
+  // While asleep, the block does not move at all.
+  const std::vector<Vec3d> before = s.positions_by_id();
+  const std::int32_t* flag = s.particles().int32(s.particles().id("asleep"));
+  const std::int32_t* id = s.particles().int32(s.attributes().id);
+  std::size_t still = 0;
+  for (std::size_t p = 0; p < n; ++p)
+    if (flag[p]) {
+      EXPECT_EQ(before[std::size_t(id[p])], at_sleep[std::size_t(id[p])]);
+      ++still;
+    }
+  EXPECT_GT(still, n / 2);
+  // The ball lands: the block under it wakes and moves.
+  std::size_t fewest = n;
+  while (s.time() < 0.7) {
+    s.step(space, s.stable_dt(space));
+    fewest = std::min(fewest, asleep_count(s));
+  }
+  const std::vector<Vec3d> after = s.positions_by_id();
+  double moved = 0;
+  for (std::size_t i = 0; i + 20 < n; ++i) moved = std::max(moved, (after[i] - before[i]).norm());
+  EXPECT_GT(moved, 1e-3) << "the block did not move when the ball hit it";
+  EXPECT_EQ(fewest, 0u);  // the whole block woke (it lies within one halo of the ball)
+}
+
+TEST(Sleep, BitwiseAcrossBackendsThreadsAndCheckpoint) {
+  const Scene scene = parse_scene(kSleepScene, "z.json");
+  MpmSimulation ref(build_solver(scene));
+  run_to(ref.solver(), exec::Space(exec::Backend::Serial, 1), 0.3);
+  EXPECT_GT(asleep_count(ref.solver()), 0u);
+  for (const exec::Space& sp :
+       {exec::Space(exec::Backend::OpenMP, 2), exec::Space(exec::Backend::TBB, 2)}) {
+    MpmSolver s = build_solver(scene);
+    run_to(s, sp, 0.3);
+    expect_same(ref.particles(), s.particles());
+  }
+  const std::string path = tmp_path("sleep.amck");
+  write_checkpoint(path, ref, 3, scene.fingerprint);
+  MpmSimulation b(build_solver(scene));
+  read_checkpoint(path, b, scene.fingerprint);
+  const exec::Space space(exec::Backend::OpenMP, 2);
+  run_to(ref.solver(), space, 0.6);
+  run_to(b.solver(), space, 0.6);
+  expect_same(ref.particles(), b.particles());
+  std::remove(path.c_str());
+}
