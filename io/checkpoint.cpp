@@ -17,8 +17,10 @@ namespace amalgam {
 namespace {
 constexpr char kMagic[] = "AMALGAM-CKPT\n";
 constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
-// 4: MPM positions' and F's low parts (x_lo, F_lo); 5: peridynamic positions' low parts (x_lo)
-constexpr std::uint32_t kVersion = 5;
+// 4: MPM positions' and F's low parts (x_lo, F_lo); 5: peridynamic positions' low parts (x_lo);
+// 6: the particle count may differ from the scene's initial one (MPM emitters and kill regions,
+// whose state follows in section sources.state)
+constexpr std::uint32_t kVersion = 6;
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -97,8 +99,11 @@ void write_state(const std::string& path, const ParticleSet& ps, double time, st
 }
 
 // Reads into ps (same attribute layout) and the sections (same names and sizes, in order).
+// `max_particles`: the most particles the run can hold when its count varies (emitters, kill
+// regions), else 0 (the checkpoint must hold exactly ps.size()).
 CheckpointState read_state(const std::string& path, ParticleSet& ps,
-                           std::uint64_t scene_fingerprint, const std::vector<Section>& sections) {
+                           std::uint64_t scene_fingerprint, const std::vector<Section>& sections,
+                           std::size_t max_particles) {
   // Never more than the memory there is (a hostile size would end in bad_alloc).
   const std::uint64_t avail = available_memory_bytes();
   const std::string d =
@@ -159,6 +164,13 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
                      " particle attributes, expected " +
                      std::to_string(ps.attribute_count() - int(nmissing)));
+  if (max_particles > 0 && version >= 6) {  // checked before anything is sized by it
+    if (n > max_particles)
+      throw InputError(path + ": checkpoint field 'particle count' is " + std::to_string(n) +
+                       ", above the " + std::to_string(max_particles) +
+                       " particles this scene can hold (its objects and emitters)");
+    ps.resize(std::size_t(n));
+  }
   if (n != ps.size())
     throw InputError(path + ": checkpoint field 'particle count' is " + std::to_string(n) +
                      ", this scene has " + std::to_string(ps.size()) + " particles");
@@ -222,7 +234,8 @@ void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
 CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
                                 std::uint64_t scene_fingerprint) {
   const CheckpointState st =
-      read_state(path, sim.particles(), scene_fingerprint, sim.restore_sections());
+      read_state(path, sim.particles(), scene_fingerprint, sim.restore_sections(),
+                 sim.variable_particle_count() ? sim.max_particle_count() : 0);
   try {
     sim.restored(st.time, st.steps);
   } catch (const InputError& e) {

@@ -192,6 +192,83 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
   return s;
 }
 
+// An emitter (solvers/mpm_sources.hpp): a box, sphere or closed mesh the material flows through
+// with `velocity` from `start` to `end`, sampled at the object density.
+EmitterSpec read_emitter(JsonObject o, const std::map<std::string, int>& materials,
+                         const Scene& scene) {
+  EmitterSpec e;
+  e.where = o.where("");
+  if (!e.where.empty() && e.where.back() == '/') e.where.pop_back();
+  const std::string shape = o.choice("shape", "", {"box", "sphere", "mesh"});
+  std::string shape_key = "min";
+  if (shape == "box") {
+    e.shape = EmitterShape::Box;
+    e.min = o.required_vec3("min");
+    e.max = o.required_vec3("max");
+    for (int a = 0; a < 3; ++a)
+      if (!(e.max[a] > e.min[a]))
+        o.fail("max", "every component must exceed the matching one of \"min\"");
+  } else if (shape == "sphere") {
+    e.shape = EmitterShape::Sphere;
+    shape_key = "center";
+    e.center = o.required_vec3("center");
+    e.radius = Real(o.required_number("radius", 0, kHuge, true));
+    e.min = e.center - Vec3::Constant(e.radius);
+    e.max = e.center + Vec3::Constant(e.radius);
+  } else {
+    e.shape = EmitterShape::Mesh;
+    shape_key = "file";
+    e.mesh = read_mesh_object(o, scene.file);
+    Vec3d lo, hi;
+    mesh_bounds(*e.mesh, lo, hi);
+    e.min = lo.cast<Real>();
+    e.max = hi.cast<Real>();
+  }
+  const std::string mat = o.string("material", "");
+  if (!o.has("material")) o.fail("material", "missing required material name");
+  const auto it = materials.find(mat);
+  if (it == materials.end()) o.fail("material", "unknown material \"" + mat + "\"");
+  e.material = it->second;
+  e.velocity = o.vec3("velocity", Vec3::Zero());
+  e.start = o.number("start", 0, 0, kHuge);
+  e.end = o.required_number("end", 0, kHuge, true);
+  if (!(e.end > e.start)) o.fail("end", "must be after \"start\"");
+  e.particles_per_cell = int(o.integer("particles_per_cell", 8, 1, 64));
+  e.jitter = Real(o.number("jitter", 0.5, 0, 1));
+  e.seed = std::uint64_t(o.integer("seed", 1, 0, (1LL << 62)));
+  e.temperature = Real(o.number("temperature", 293.15, 0, kHuge));
+  o.finish();
+  // A lattice point must not cross the volume within one substep: the chord through the
+  // centre along v is at least two substeps' travel at max_dt.
+  const double speed = double(e.velocity.norm());
+  if (speed > 0) {
+    const Vec3d dir = e.velocity.cast<double>() / speed;
+    double chord = 2 * double(e.radius);
+    if (e.shape != EmitterShape::Sphere) {
+      chord = 1e300;
+      for (int a = 0; a < 3; ++a)
+        if (std::abs(dir[a]) > 1e-12)
+          chord = std::min(chord, double(e.max[a] - e.min[a]) / std::abs(dir[a]));
+    }
+    if (chord < 2 * speed * double(scene.mpm.max_dt))
+      o.fail("velocity", "the material would cross the emitter (" + std::to_string(chord) +
+                             " m along the velocity) in under two substeps of max_dt = " +
+                             std::to_string(double(scene.mpm.max_dt)) +
+                             " s: enlarge the emitter along its velocity or lower max_dt");
+  }
+  const KillSettings& k = scene.mpm.kill;
+  if (k.outside)
+    for (int a = 0; a < 3; ++a)
+      if (e.min[a] < k.min[a] || e.max[a] > k.max[a])
+        o.fail(shape_key,
+               "the emitter reaches outside the simulation domain (/simulation/kill/outside)");
+  const double most = e.max_particles(scene.mpm.dx);
+  if (most > 2e9)
+    o.fail("end", "the emitter could emit " + std::to_string(most) +
+                      " particles, more than 2e9: shorten it, lower its speed or raise dx");
+  return e;
+}
+
 }  // namespace
 
 // Geometry and motion shared by colliders and heat sources.
@@ -348,6 +425,8 @@ bool any_material(const SceneSpec& s, bool (*has)(const MaterialParams&)) {
 // Why the scene's method cannot give attribute `name` ("" if it can).
 std::string attribute_missing(const SceneSpec& s, const std::string& name) {
   const bool pd = s.method == Method::Peridynamics;
+  if (name == "rest" && !s.emitters.empty())
+    return "particles emitted during the run (/emitters) have no rest position";
   if (name == "vonmises" || name == "rest" || name == "material") return "";
   if (pd) return name == "damage" || name == "theta" ? "" : "MPM only";
   if (name == "F" || name == "J") return "";
@@ -423,10 +502,13 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   s.mpm.gravity = sim.vec3("gravity", Vec3(0, Real(-9.81), 0));
   s.mpm.max_speed = Real(sim.number("max_speed", 1e4, 0, kHuge, true));
   s.frames = int(sim.integer("frames", 48, 1, kMaxFrames));
-  if (pd)
+  if (pd) {
+    for (const char* k : {"kill", "sleep"})
+      if (sim.has(k)) sim.fail(k, "only for MPM scenes (\"method\": \"mpm\")");
     read_pd_simulation(sim, s);
-  else
+  } else {
     read_mpm_simulation(sim, s);
+  }
   sim.finish();
 
   std::map<std::string, int> mat_index;
@@ -457,6 +539,15 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   else
     read_mpm_sources(top, s);
   for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c, file));
+  if (top.has("emitters")) {
+    if (pd)
+      top.fail("emitters", "only for MPM scenes (peridynamic particles are bonded at set-up)");
+    if (s.mpm.domains.enabled || s.mpm.configuration_maps)
+      top.fail("emitters",
+               "not with particle domains (/simulation/domains) nor A-ULMPM objects "
+               "(\"configuration\" blocks): plain MPM only");
+    for (auto& e : top.objects("emitters")) s.emitters.push_back(read_emitter(e, mat_index, s));
+  }
 
   JsonObject out = top.object("output");
   s.output.directory = out.string("directory", "out");

@@ -87,6 +87,31 @@ HeatSource read_heat_source(JsonObject o) {
   return h;
 }
 
+// Kill regions (solvers/mpm_sources.hpp): "outside" {min, max}, "volumes" [regions].
+void read_kill(JsonObject& sim, Scene& s) {
+  JsonObject k = sim.object("kill");
+  KillSettings& kill = s.mpm.kill;
+  if (k.has("outside")) {
+    JsonObject b = k.object("outside");
+    kill.outside = true;
+    kill.min = b.required_vec3("min");
+    kill.max = b.required_vec3("max");
+    for (int a = 0; a < 3; ++a)
+      if (!(kill.max[a] > kill.min[a]))
+        b.fail("max", "every component must exceed the matching one of \"min\"");
+    b.finish();
+  }
+  for (auto& v : k.objects("volumes")) {
+    if (v.has("velocity")) v.fail("velocity", "kill volumes do not move");
+    kill.volumes.push_back(read_region(v));
+    v.finish();
+  }
+  k.finish();
+  if (!kill.enabled()) sim.fail("kill", "give \"outside\" or \"volumes\"");
+  if (s.mpm.domains.enabled)
+    sim.fail("kill", "not with particle domains (/simulation/domains): plain MPM only");
+}
+
 }  // namespace
 
 void read_mpm_simulation(JsonObject& sim, Scene& s) {
@@ -144,6 +169,22 @@ void read_mpm_simulation(JsonObject& sim, Scene& s) {
     if (sim.has("order"))
       sim.fail("order", "particle domains use linear grid weights (enriched MPM eq. 3)");
   }
+  if (sim.has("kill")) read_kill(sim, s);
+  if (sim.has("sleep")) {
+    JsonObject z = sim.object("sleep");
+    SleepSettings& sl = s.mpm.sleep;
+    sl.enabled = z.boolean("enabled", true);
+    sl.speed = Real(z.number("speed", 0.02, 0, kHuge, true));
+    sl.strain_rate = Real(z.number("strain_rate", 0.5, 0, kHuge, true));
+    sl.time = Real(z.number("time", 0.1, 0, kHuge));
+    sl.halo = Real(z.number("halo", 2 * double(s.mpm.dx), 0, kHuge));
+    z.finish();
+    if (sl.enabled &&
+        (s.mpm.implicit || s.mpm.transfer == Transfer::PicFlip || s.mpm.domains.enabled))
+      sim.fail("sleep",
+               "needs the explicit integrator with transfer \"mls\" or \"apic\" (not implicit, "
+               "PIC/FLIP nor particle domains)");
+  }
 }
 
 void check_mpm_objects(JsonObject& sim, Scene& s) {
@@ -164,6 +205,10 @@ void check_mpm_objects(JsonObject& sim, Scene& s) {
     sim.fail(
         "domains",
         "particle domains cannot be combined with configuration maps (objects' \"configuration\")");
+  if (s.mpm.sleep.enabled && s.mpm.configuration_maps)
+    sim.fail("sleep", "not with A-ULMPM objects (\"configuration\" blocks): plain MPM only");
+  if (sim.has("kill") && s.mpm.configuration_maps)
+    sim.fail("kill", "not with A-ULMPM objects (\"configuration\" blocks): plain MPM only");
   if (sim.has("contact") && !s.mpm.configuration_maps)
     sim.fail(
         "contact",

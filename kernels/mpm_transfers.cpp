@@ -162,7 +162,7 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
           // Particles in batches of up to W of one material: their stresses at once (one per vector
           // lane, the values of one at a time: MaterialParams::kirchhoff_lanes), then their scatter.
           constexpr int W = lanes::kN<Real>;
-          const std::uint32_t q1 = g.bin_start[b + 1];
+          const std::uint32_t q1 = g.end_of(b);
           for (std::uint32_t q0 = g.bin_start[b]; q0 < q1;) {
             const int n = one_material_run<W>(p.material, q0, q1);
             Real plastic[W], temperature[W];
@@ -342,7 +342,8 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
           if constexpr (CH == 8) simd::store4(d + 4, simd::load4(g.b + n));
         });
         const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-        for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q) {
+        const std::uint32_t q1 = g.end_of(b);
+        for (std::uint32_t q = g.bin_start[b]; q < q1; ++q) {
           if constexpr (L)
             g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], lo(p.x_lo, q), p.v[q],
                                              p.C[q], p.F[q], nullptr, p.F_s + q, p.F_0s + q, dx,

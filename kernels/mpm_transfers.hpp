@@ -75,6 +75,10 @@ struct MpmGridView {
   // Lagrangian mode, MLS/APIC: when set, P2G also scatters (m, m q) into it (the node positions
   // of p2g_positions, fused into the momentum scatter: one stencil, an 8-lane block).
   Real* q_out = nullptr;
+  // Sleeping blocks (solvers/mpm_sleep.hpp): when set, bin b's particles are
+  // [bin_start[b], bin_end[b]) in P2G and G2P (bin_end[b] = bin_start[b]: the bin sleeps).
+  const std::uint32_t* bin_end = nullptr;
+  std::uint32_t end_of(std::size_t b) const { return bin_end ? bin_end[b] : bin_start[b + 1]; }
 };
 
 class SparseGrid;

@@ -85,6 +85,12 @@ void estimate_mpm(const SceneSpec& s, RunEstimate& e) {
       leaves *= std::ceil((double(o.max[a]) - double(o.min[a]) + 4 * dx) / (kLeafDim * dx)) + 1;
     e.grid_leaves += leaves;
   }
+  for (const EmitterSpec& em : s.emitters) {  // emitted particles start at the emitter's velocity
+    const Vec3 centre = (em.min + em.max) / 2;
+    const Real h = Real(em.spacing(s.mpm.dx));
+    probe.add_particles({centre}, em.velocity, Vec3::Zero(), centre, em.material, h * h * h,
+                        em.temperature);
+  }
   try {
     e.dt = double(probe.stable_dt(exec::Space()));
   } catch (const SimulationError& err) {
@@ -162,6 +168,15 @@ RunEstimate estimate_run(const SceneSpec& s) {
       throw InputError(object_path(k) + ": " + err.what());
     }
     e.particles += object_particles(o, dx);
+  }
+  // Emitters: the most particles each can emit (memory is sized for all of them alive at once).
+  for (const EmitterSpec& em : s.emitters) {
+    try {
+      check_grid_range(em.min.cast<double>(), em.max.cast<double>(), dx, "the emitter");
+    } catch (const InputError& err) {
+      throw InputError(em.where + ": " + err.what());
+    }
+    e.particles += em.max_particles(s.mpm.dx);
   }
   for (std::size_t k = 0; k < s.colliders.size(); ++k) {
     const ColliderSpec& c = s.colliders[k];

@@ -127,6 +127,17 @@ MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
         solver.enriched()->add_object(solver, first, h);
     }
   }
+  std::vector<EmitterSpec> emitters = scene.emitters;
+  for (EmitterSpec& e : emitters)
+    if (e.mesh) {  // inside/outside from the mesh's distance field at the emitter's spacing
+      const double h = e.spacing(scene.mpm.dx);
+      try {
+        e.sdf = bake_sdf(*e.mesh, h, 2 * h, space);
+      } catch (const InputError& err) {
+        throw InputError(e.where + "/file: " + err.what());
+      }
+    }
+  solver.set_emitters(std::move(emitters));
   return solver;
 }
 

@@ -1,5 +1,6 @@
 #include "solvers/mpm_simulation.hpp"
 
+#include <climits>
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -116,11 +117,18 @@ void MpmSimulation::keep_rest_positions() {
   const ParticleSet& ps = s_.particles();
   const Vec3* x = ps.vec3(s_.attributes().x);
   const std::int32_t* id = ps.int32(s_.attributes().id);
-  rest_.assign(ps.size(), Vec3::Zero());
+  rest_.assign(std::size_t(s_.next_id()), Vec3::Zero());
   for (std::size_t i = 0; i < ps.size(); ++i) rest_[std::size_t(id[i])] = x[i];
 }
 
-MpmSimulation::MpmSimulation(MpmSolver solver) : s_(std::move(solver)) {}
+MpmSimulation::MpmSimulation(MpmSolver solver) : s_(std::move(solver)) {
+  initial_particles_ = s_.next_id();
+  double most = 0;
+  for (const EmitterSpec& e : s_.emitters()) most += e.max_particles(s_.settings().dx);
+  emitted_bound_ = std::int64_t(std::min(most, double(INT32_MAX)));
+  max_particles_ =
+      std::size_t(std::min(initial_particles_ + emitted_bound_, std::int64_t(INT32_MAX)));
+}
 
 std::string MpmSimulation::describe() const {
   std::ostringstream os;
@@ -142,6 +150,7 @@ void MpmSimulation::restore_frame_start() {
 }
 
 void MpmSimulation::begin_frame() {
+  frame_sources_ = s_.source_counters();
   if (s_.implicit()) s_.implicit()->reset_counters();
   if (s_.enriched()) s_.enriched()->domains().reset_counters();
 }
@@ -174,18 +183,22 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
     enriched_max_ = std::max(enriched_max_, dc.max_enriched_fraction);
   }
   ++frames_;
-  r.columns.insert(r.columns.end(),
-                   {{"particles", double(s_.particles().size()), true},
-                    {"leaves", double(s_.grid().leaf_count()), true},
-                    {"active_leaves", double(s_.grid().active_leaves().size()), true},
-                    {"cg_iterations", double(ic.iterations), true},
-                    {"cg_max_iterations", double(ic.max_iterations), true},
-                    {"cg_max_residual", ic.max_residual},
-                    {"cg_unconverged", double(ic.unconverged), true},
-                    {"enriched_fraction", enriched},
-                    {"transitional_fraction", transitional},
-                    {"max_enriched_fraction", dc.max_enriched_fraction},
-                    {"enriched_corners", double(dc.last_enriched_corners), true}});
+  r.columns.insert(
+      r.columns.end(),
+      {{"particles", double(s_.particles().size()), true},
+       {"leaves", double(s_.grid().leaf_count()), true},
+       {"active_leaves", double(s_.grid().active_leaves().size()), true},
+       {"cg_iterations", double(ic.iterations), true},
+       {"cg_max_iterations", double(ic.max_iterations), true},
+       {"cg_max_residual", ic.max_residual},
+       {"cg_unconverged", double(ic.unconverged), true},
+       {"enriched_fraction", enriched},
+       {"transitional_fraction", transitional},
+       {"max_enriched_fraction", dc.max_enriched_fraction},
+       {"enriched_corners", double(dc.last_enriched_corners), true},
+       {"emitted", double(s_.source_counters().emitted - frame_sources_.emitted), true},
+       {"killed", double(s_.source_counters().killed - frame_sources_.killed), true},
+       {"sleeping", double(s_.sleep() ? s_.sleep()->sleeping(s_.particles()) : 0), true}});
   if (s_.settings().implicit) {
     char cg[64];
     std::snprintf(cg, sizeof cg, "CG %.1f it/step",
@@ -279,11 +292,23 @@ bool MpmSimulation::surface(SurfaceMesh& out) const {
 
 // Enriched MPM: the particle-domain corners' positions (the rest of the corner state is rebuilt
 // every substep from the particles).
+// Emitters and kill regions: the next particle id and the emitted and killed counts (emission
+// itself is a function of the clock).
 std::vector<StateSection> MpmSimulation::checkpoint_sections() {
-  MpmEnriched* e = s_.enriched();
-  if (!e) return {};
-  return {{"domains.corner_x", reinterpret_cast<char*>(e->domains().corner_positions()),
-           e->domains().corner_count() * sizeof(Vec3)}};
+  source_state_[0] = s_.next_id();
+  source_state_[1] = s_.source_counters().emitted;
+  source_state_[2] = s_.source_counters().killed;
+  return restore_sections();
+}
+
+std::vector<StateSection> MpmSimulation::restore_sections() {
+  std::vector<StateSection> out;
+  if (variable_particle_count())
+    out.push_back({"sources.state", reinterpret_cast<char*>(source_state_), sizeof source_state_});
+  if (MpmEnriched* e = s_.enriched())
+    out.push_back({"domains.corner_x", reinterpret_cast<char*>(e->domains().corner_positions()),
+                   e->domains().corner_count() * sizeof(Vec3)});
+  return out;
 }
 
 // What a checkpoint gave the particles is checked before a kernel indexes with it (a material
@@ -292,7 +317,24 @@ void MpmSimulation::restored(double time, std::uint64_t steps) {
   const ParticleSet& ps = s_.particles();
   check_finite_attributes(ps);
   check_index_attribute(ps, "material", 0, std::int64_t(s_.materials().size()) - 1);
-  check_permutation_attribute(ps, "id");
+  if (variable_particle_count()) {
+    const std::int64_t next = source_state_[0], emitted = source_state_[1],
+                       killed = source_state_[2];
+    if (next < std::int64_t(ps.size()) || next > std::int64_t(INT32_MAX))
+      throw InputError("section sources.state: next particle id " + std::to_string(next) +
+                       " is outside [" + std::to_string(ps.size()) + ", 2^31 - 1]");
+    if (emitted < 0 || emitted > emitted_bound_ || killed < 0 || killed > next ||
+        next != initial_particles_ + emitted || std::int64_t(ps.size()) != next - killed)
+      throw InputError("section sources.state: emitted " + std::to_string(emitted) +
+                       " and killed " + std::to_string(killed) + " particles disagree with " +
+                       std::to_string(ps.size()) + " particles and next id " +
+                       std::to_string(next));
+    check_unique_attribute(ps, "id", next);
+    s_.restore_sources(next, SourceCounters{emitted, killed});
+  } else {
+    check_permutation_attribute(ps, "id");
+  }
+  check_index_attribute(ps, "asleep", 0, 1);
   check_low_part(ps, "x", "x_lo");
   check_low_part(ps, "F", "F_lo");
   if (const MpmAul* a = s_.aul())

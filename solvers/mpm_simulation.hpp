@@ -69,6 +69,11 @@ class MpmSimulation final : public Simulation {
   const ParticleSet& particles() const override { return s_.particles(); }
   ParticleSet& particles() override { return s_.particles(); }
   std::vector<StateSection> checkpoint_sections() override;
+  std::vector<StateSection> restore_sections() override;
+  std::size_t max_particle_count() const override { return max_particles_; }
+  bool variable_particle_count() const override {
+    return !s_.emitters().empty() || s_.settings().kill.enabled();
+  }
   void restored(double time, std::uint64_t steps) override;
 
  private:
@@ -77,6 +82,13 @@ class MpmSimulation final : public Simulation {
   std::vector<Vec3> rest_;  // rest positions by particle id (keep_rest_positions), or empty
   double frame_time_ = 0;
   std::uint64_t frame_steps_ = 0;
+  // Emitters and kill regions: the counters at the frame's start, the bound on the particle count
+  // (the initial particles plus what the emitters can emit), and the checkpointed state
+  // (next particle id, emitted, killed).
+  SourceCounters frame_sources_;
+  std::size_t max_particles_ = 0;
+  std::int64_t initial_particles_ = 0, emitted_bound_ = 0;
+  std::int64_t source_state_[3] = {0, 0, 0};
   // Particle domains: enriched particle fraction, summed over the frames of this run and its
   // largest value in one substep.
   double enriched_sum_ = 0, enriched_max_ = 0;

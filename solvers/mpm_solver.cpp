@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <climits>
 #include <cmath>
+#include <limits>
 #include <sstream>
 
 #include "core/errors.hpp"
@@ -49,6 +50,16 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
             "particle domains need elastic solid materials (fixed_corotated, neo_hookean, "
             "stvk_hencky) without viscosity (they may melt)");
   }
+  if (settings_.kill.enabled() && (settings_.configuration_maps || settings_.domains.enabled))
+    throw InputError("kill regions need plain MPM (not A-ULMPM objects nor particle domains)");
+  if (settings_.sleep.enabled) {
+    if (settings_.configuration_maps || settings_.domains.enabled || settings_.implicit ||
+        settings_.transfer == Transfer::PicFlip)
+      throw InputError(
+          "sleeping needs explicit MLS or APIC MPM (not implicit, PIC/FLIP, A-ULMPM "
+          "objects nor particle domains)");
+    sleep_ = std::make_unique<MpmSleep>(particles_, settings_.sleep);
+  }
   if (settings_.configuration_maps) aul_ = std::make_unique<MpmAul>(particles_, settings_.contact);
   if (settings_.domains.enabled) enriched_ = std::make_unique<MpmEnriched>(particles_);
   if (settings_.implicit) implicit_ = std::make_unique<MpmImplicit>(settings_.solver);
@@ -62,6 +73,8 @@ MpmSolver& MpmSolver::operator=(MpmSolver&&) noexcept = default;
 
 void MpmSolver::save(Snapshot& s) const {
   particles_.save(s.particles);
+  s.next_id = next_id_;
+  s.sources = sources_;
   s.corners.clear();
   if (enriched_) {
     const Vec3* c = enriched_->domains().corner_positions();
@@ -70,6 +83,8 @@ void MpmSolver::save(Snapshot& s) const {
 }
 void MpmSolver::restore(const Snapshot& s) {
   particles_.restore(s.particles);
+  next_id_ = s.next_id;
+  sources_ = s.sources;
   if (enriched_)
     std::copy(s.corners.begin(), s.corners.end(), enriched_->domains().corner_positions());
   if (aul_) aul_->invalidate_bins();
@@ -86,8 +101,8 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
                               Real temperature, const ConfigurationPolicy& policy) {
   if (material < 0 || size_t(material) >= materials_.size())
     throw InputError("material index out of range");
-  if (particles_.size() + x.size() > size_t(INT32_MAX))
-    throw InputError("more than 2^31 particles");
+  if (next_id_ + std::int64_t(x.size()) > std::int64_t(INT32_MAX))
+    throw InputError("more than 2^31 particle ids");
   const size_t n0 = particles_.size();
   particles_.resize(n0 + x.size());
   Vec3* px = particles_.vec3(attr_.x);
@@ -113,11 +128,51 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
     pm[p] = mass;
     pV[p] = volume_per_particle;
     pmat[p] = material;
-    pid[p] = std::int32_t(p);
+    pid[p] = std::int32_t(next_id_ + std::int64_t(i));
     if (pplastic) pplastic[p] = mat.initial_plastic();
     if (ptemp) ptemp[p] = temperature;
   }
+  next_id_ += std::int64_t(x.size());
   if (aul_) aul_->add_object(particles_, px, n0, x.size(), policy, settings_.dx);
+}
+
+void MpmSolver::set_emitters(std::vector<EmitterSpec> emitters) {
+  for (const EmitterSpec& e : emitters) {
+    if (aul_ || enriched_)
+      throw InputError(e.where +
+                       ": emitters need plain MPM (not A-ULMPM objects nor particle "
+                       "domains)");
+    if (e.material < 0 || size_t(e.material) >= materials_.size())
+      throw InputError(e.where + ": material index out of range");
+  }
+  emitters_ = std::move(emitters);
+}
+
+void MpmSolver::restore_sources(std::int64_t next_id, const SourceCounters& c) {
+  next_id_ = next_id;
+  sources_ = c;
+}
+
+void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
+  for (const EmitterSpec& e : emitters_) {
+    emitted_x_.clear();
+    e.emit(settings_.dx, t0, t1, emitted_x_);
+    if (emitted_x_.empty()) continue;
+    const Real h = Real(e.spacing(settings_.dx));
+    add_particles(emitted_x_, e.velocity, Vec3::Zero(), Vec3::Zero(), e.material, h * h * h,
+                  e.temperature);
+    sources_.emitted += std::int64_t(emitted_x_.size());
+  }
+  if (!settings_.kill.enabled()) return;
+  const std::size_t n = particles_.size();
+  keep_.resize(n);
+  mark_survivors(space, settings_.kill, particles_.vec3(attr_.x), n, keep_.data());
+  kept_.clear();
+  for (std::size_t p = 0; p < n; ++p)
+    if (keep_[p]) kept_.push_back(std::uint32_t(p));
+  if (kept_.size() == n) return;
+  sources_.killed += std::int64_t(n - kept_.size());
+  particles_.compact(space, kept_.data(), kept_.size());
 }
 
 MpmParticleView MpmSolver::particle_view() {
@@ -135,8 +190,10 @@ MpmParticleView MpmSolver::particle_view() {
 
 MpmGridView MpmSolver::grid_view() {
   Real* second = channels_.second >= 0 ? grid_.node4(channels_.second) : nullptr;
-  return make_grid_view(grid_, enriched_ ? enriched_->domains().bins() : bins_, grid_.node4(0),
-                        second);
+  MpmGridView g = make_grid_view(grid_, enriched_ ? enriched_->domains().bins() : bins_,
+                                 grid_.node4(0), second);
+  if (sleep_) g.bin_end = sleep_->bin_end();
+  return g;
 }
 
 const Collider* MpmSolver::colliders_at(Real t) const {
@@ -173,6 +230,9 @@ void MpmSolver::sort_particles(const exec::Space& space) {
 
 void MpmSolver::update_grid(const exec::Space& space) {
   grid_.update_topology(space, bins_);
+  if (sleep_)
+    sleep_->decide(space, particles_, attr_, bins_, settings_.dx, time_, colliders_at(Real(time_)),
+                   int(colliders_.size()), emitters_);
 }
 
 // Lagrangian mode with colliders: MLS/APIC rasterise the node positions q_i inside the momentum
@@ -206,6 +266,7 @@ void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
     g.q = grid_.node4(channels_.positions);
   }
   grid_update(space, g, prm);
+  if (sleep_) sleep_->pin_nodes(space, grid_, bins_, grid_.node4(0));
 }
 
 MpmGridView MpmSolver::grid_view_with_positions() {
@@ -216,6 +277,7 @@ MpmGridView MpmSolver::grid_view_with_positions() {
 
 void MpmSolver::grid_to_particle(const exec::Space& space, Real dt) {
   g2p(space, particle_view(), grid_view(), step_params(dt));
+  if (sleep_) sleep_->rest(space, particles_, attr_, dt);
 }
 
 void MpmSolver::collide_particles(const exec::Space& space, Real dt) {
@@ -262,8 +324,10 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
       if (aul_) aul_->keep_split(space, particles_, attr_.F);
     }
   }
+  const double t0 = time_;
   time_ += double(dt);
   ++steps_;
+  if (!emitters_.empty() || settings_.kill.enabled()) emit_and_kill(space, t0, time_);
 }
 
 namespace {
@@ -330,7 +394,11 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
   // particles whose domain is disabled have explicit stresses).
   const bool explicit_stress = !implicit_ || (enriched_ && enriched_->explicit_stresses());
   const Real wave = explicit_stress ? std::max(max_wave_speed_, chk.max_wave) : Real(0);
-  const Real denom = chk.max_speed + wave;
+  // Emitters about to emit start at their velocity.
+  Real speed = chk.max_speed;
+  for (const EmitterSpec& e : emitters_)
+    if (time_ < e.end) speed = std::max(speed, e.velocity.norm());
+  const Real denom = speed + wave;
   Real dt = denom > 0 ? settings_.cfl * settings_.dx / denom : settings_.max_dt;
   // Explicit viscosity: the diffusion number nu dt / dx^2 must stay below 1/(2 d) = 1/6.
   if (max_kinematic_viscosity_ > 0)
@@ -342,7 +410,8 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
 }
 
 std::vector<Vec3d> MpmSolver::positions_by_id() const {
-  std::vector<Vec3d> out(particles_.size());
+  std::vector<Vec3d> out(std::size_t(next_id_),
+                         Vec3d::Constant(std::numeric_limits<double>::quiet_NaN()));
   const std::int32_t* id = particles_.int32(attr_.id);
   const Vec3* x = particles_.vec3(attr_.x);
   const Vec3* lo = particles_.vec3(attr_.x_lo);

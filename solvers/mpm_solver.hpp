@@ -31,6 +31,8 @@
 #include "kernels/mpm_transfers.hpp"
 #include "solvers/configuration_maps.hpp"
 #include "solvers/implicit_system.hpp"
+#include "solvers/mpm_sleep.hpp"
+#include "solvers/mpm_sources.hpp"
 #include "solvers/object_contact.hpp"
 #include "solvers/particle_domains.hpp"
 #include "sparse_grid/binning.hpp"
@@ -60,6 +62,11 @@ struct MpmSettings {
   ObjectContactSettings contact;
   // Dynamically enriched MPM: particles carry connected hexahedral domains (explicit or implicit).
   DomainSettings domains;
+  // Kill regions (solvers/mpm_sources.hpp): particles leaving the box or entering a volume are
+  // removed at the end of every substep. Plain MPM (explicit or implicit) only.
+  KillSettings kill;
+  // Sleeping blocks (solvers/mpm_sleep.hpp). Explicit MLS/APIC only.
+  SleepSettings sleep;
 };
 
 struct MpmDiagnostics {
@@ -108,6 +115,7 @@ class MpmSolver {
   const MpmImplicit* implicit() const { return implicit_.get(); }
   MpmAul* aul() { return aul_.get(); }
   const MpmAul* aul() const { return aul_.get(); }
+  const MpmSleep* sleep() const { return sleep_.get(); }
   MpmEnriched* enriched() { return enriched_.get(); }
   const MpmEnriched* enriched() const { return enriched_.get(); }
 
@@ -119,6 +127,19 @@ class MpmSolver {
                      const Vec3& centre, int material, Real volume_per_particle,
                      Real temperature = 0, const ConfigurationPolicy& policy = {});
 
+  // Emitters (solvers/mpm_sources.hpp), run at the end of every substep. Plain MPM (explicit or
+  // implicit) only: throws InputError naming the emitter with A-ULMPM or particle domains.
+  void set_emitters(std::vector<EmitterSpec> emitters);
+  const std::vector<EmitterSpec>& emitters() const { return emitters_; }
+  // The id the next added particle gets (ids are never reused), and the particles emitted and
+  // killed so far.
+  std::int64_t next_id() const { return next_id_; }
+  const SourceCounters& source_counters() const { return sources_; }
+  // Restores both after particles were loaded from a checkpoint.
+  void restore_sources(std::int64_t next_id, const SourceCounters& c);
+  // Emission and kill regions for the substep (t0, t1], as step() runs them after the transfers.
+  void emit_and_kill(const exec::Space& space, double t0, double t1);
+
   // Largest stable substep (CFL). Also the stability guard: throws SimulationError naming the
   // step, particle and quantity if any velocity or F is not finite or a speed exceeds max_speed.
   Real stable_dt(const exec::Space& space) const;
@@ -126,7 +147,8 @@ class MpmSolver {
   void step(const exec::Space& space, Real dt);
   MpmDiagnostics diagnostics(const exec::Space& space) const;
   // Particle positions in the order the particles were added (by stable id; sorting permutes the
-  // storage), for comparisons between runs and against a rest shape.
+  // storage), for comparisons between runs and against a rest shape: next_id() entries, NaN for
+  // the ids of killed particles.
   std::vector<Vec3d> positions_by_id() const;
 
   // Phases of step(), public so tests, benchmarks and the components can drive them one by one.
@@ -144,6 +166,8 @@ class MpmSolver {
   struct Snapshot {
     ParticleSet::Snapshot particles;
     std::vector<Vec3> corners;
+    std::int64_t next_id = 0;
+    SourceCounters sources;
   };
   void save(Snapshot& s) const;
   void restore(const Snapshot& s);
@@ -188,6 +212,13 @@ class MpmSolver {
   SparseGrid grid_;
   double time_ = 0;
   std::uint64_t steps_ = 0;
+  std::vector<EmitterSpec> emitters_;
+  std::int64_t next_id_ = 0;
+  SourceCounters sources_;
+  std::vector<Vec3> emitted_x_;      // emission scratch
+  std::vector<std::uint8_t> keep_;   // kill scratch: survivor flags
+  std::vector<std::uint32_t> kept_;  // kill scratch: survivor indices
+  std::unique_ptr<MpmSleep> sleep_;
   std::unique_ptr<MpmImplicit> implicit_;
   std::unique_ptr<MpmAul> aul_;
   std::unique_ptr<MpmEnriched> enriched_;

@@ -86,6 +86,7 @@ struct SceneSpec {
   std::vector<ObjectSpec> objects;
   std::vector<ColliderSpec> colliders;
   std::vector<HeatSource> heat_sources;
+  std::vector<EmitterSpec> emitters;  // MPM (solvers/mpm_sources.hpp)
 };
 
 // Samples an object's particles on a jittered lattice of spacing dx / cbrt(ppc), seeded and

@@ -128,6 +128,10 @@ class Simulation {
   virtual ParticleSet& particles() = 0;
   virtual std::vector<StateSection> checkpoint_sections() = 0;
   virtual std::vector<StateSection> restore_sections() { return checkpoint_sections(); }
+  // The most particles a checkpoint of this run can hold: the count it starts with unless
+  // particles are emitted or removed (a checkpoint's other count is then refused).
+  virtual std::size_t max_particle_count() const { return particles().size(); }
+  virtual bool variable_particle_count() const { return false; }
   virtual void restored(double time, std::uint64_t steps) = 0;
 };
 

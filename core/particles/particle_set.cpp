@@ -1,6 +1,7 @@
 #include "core/particles/particle_set.hpp"
 
 #include <cmath>
+#include <algorithm>
 #include <cstring>
 #include <limits>
 #include <stdexcept>
@@ -80,31 +81,41 @@ void gather_records(const exec::Space& space, std::size_t n, const std::uint32_t
 }  // namespace
 
 void ParticleSet::permute(const exec::Space& space, const std::uint32_t* perm) {
+  gather(space, perm, n_);
+}
+
+void ParticleSet::compact(const exec::Space& space, const std::uint32_t* index, std::size_t m) {
+  if (m > n_) throw std::invalid_argument("ParticleSet::compact keeps more particles than it has");
+  gather(space, index, m);
+  resize(m);
+}
+
+void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, std::size_t n) {
   for (auto& a : attrs_) {
     const int w = a.words();
     const std::uint32_t* src = a.front.data();
     std::uint32_t* dst = a.back.data();
     switch (w) {  // the widths of scalars, Vec3 and Mat3 in float and double
       case 1:
-        gather_records<1>(space, n_, perm, src, dst);
+        gather_records<1>(space, n, perm, src, dst);
         break;
       case 2:
-        gather_records<2>(space, n_, perm, src, dst);
+        gather_records<2>(space, n, perm, src, dst);
         break;
       case 3:
-        gather_records<3>(space, n_, perm, src, dst);
+        gather_records<3>(space, n, perm, src, dst);
         break;
       case 6:
-        gather_records<6>(space, n_, perm, src, dst);
+        gather_records<6>(space, n, perm, src, dst);
         break;
       case 9:
-        gather_records<9>(space, n_, perm, src, dst);
+        gather_records<9>(space, n, perm, src, dst);
         break;
       case 18:
-        gather_records<18>(space, n_, perm, src, dst);
+        gather_records<18>(space, n, perm, src, dst);
         break;
       default:
-        exec::parallel_for(space, "particles.permute", exec::Index(n_), [=](exec::Index i) {
+        exec::parallel_for(space, "particles.permute", exec::Index(n), [=](exec::Index i) {
           const std::uint32_t* s = src + size_t(perm[i]) * size_t(w);
           std::uint32_t* d = dst + size_t(i) * size_t(w);
           for (int k = 0; k < w; ++k) d[k] = s[k];
@@ -188,10 +199,14 @@ void check_low_part(const ParticleSet& ps, const std::string& hi, const std::str
 }
 
 void check_permutation_attribute(const ParticleSet& ps, const std::string& name) {
+  check_unique_attribute(ps, name, std::int64_t(ps.size()));  // n distinct values in [0, n)
+}
+
+void check_unique_attribute(const ParticleSet& ps, const std::string& name, std::int64_t limit) {
   const ParticleSet::Id a = ps.find(name);
   if (a < 0) return;
-  check_index_attribute(ps, name, 0, std::int64_t(ps.size()) - 1);
-  std::vector<bool> seen(ps.size(), false);
+  check_index_attribute(ps, name, 0, limit - 1);
+  std::vector<bool> seen(std::size_t(std::max<std::int64_t>(limit, 0)), false);
   const std::int32_t* v = ps.int32(a);
   for (std::size_t i = 0; i < ps.size(); ++i) {
     if (seen[std::size_t(v[i])])

@@ -54,6 +54,9 @@ class ParticleSet {
 
   // For every attribute: front[i] = old_front[perm[i]] for i < size().
   void permute(const exec::Space& space, const std::uint32_t* perm);
+  // Keeps the m particles index[0 .. m) (increasing: survivors keep their order) and drops the
+  // rest: front[i] = old_front[index[i]] for i < m, then size() == m.
+  void compact(const exec::Space& space, const std::uint32_t* index, std::size_t m);
 
   // A copy of every attribute's values (front buffers only: half the set's memory), and its
   // restoration into a set with the same attributes (used to retry a failed frame).
@@ -72,6 +75,8 @@ class ParticleSet {
     std::vector<std::uint32_t> front, back;  // 4-byte words: Real=float uses 1 word, double 2
     int words() const;
   };
+  // front[i] = old_front[perm[i]] for i < m, every attribute.
+  void gather(const exec::Space& space, const std::uint32_t* perm, std::size_t m);
   std::vector<Attr> attrs_;
   std::size_t n_ = 0;
 };
@@ -100,5 +105,8 @@ void check_index_attribute(const ParticleSet& ps, const std::string& name, std::
 void check_low_part(const ParticleSet& ps, const std::string& hi, const std::string& lo);
 // `name` (when present) holds each of 0 .. size()-1 exactly once (particle ids).
 void check_permutation_attribute(const ParticleSet& ps, const std::string& name);
+// `name` (when present) holds distinct values in [0, limit) (particle ids once particles are
+// emitted or removed).
+void check_unique_attribute(const ParticleSet& ps, const std::string& name, std::int64_t limit);
 
 }  // namespace amalgam
