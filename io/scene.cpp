@@ -1,6 +1,8 @@
 #include "io/scene.hpp"
 
 #include <algorithm>
+#include <cctype>
+#include <cstdio>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
@@ -10,6 +12,7 @@
 #include <sstream>
 
 #include "core/errors.hpp"
+#include "core/geometry/level_set_collider.hpp"
 #include "core/hash.hpp"
 #include "io/files.hpp"
 #include "io/mesh.hpp"
@@ -303,15 +306,120 @@ Collider read_region(JsonObject& o, bool allow_mesh) {
 
 namespace {
 
+// The run's length, which fixes the frames a collider sequence needs.
+struct FrameRange {
+  int frames = 48;
+  double fps = 24;
+};
+
+// A frame pattern: exactly one %d, %Nd or %0Nd conversion and no other '%'.
+bool is_frame_pattern(const std::string& f) {
+  const auto p = f.find('%');
+  if (p == std::string::npos || f.find('%', p + 1) != std::string::npos) return false;
+  std::size_t q = p + 1;
+  while (q < f.size() && q < p + 4 && std::isdigit(static_cast<unsigned char>(f[q]))) ++q;
+  return q < f.size() && f[q] == 'd';
+}
+std::string frame_file(const std::string& pattern, int k) {
+  char buf[4096];
+  std::snprintf(buf, sizeof buf, pattern.c_str(), k);
+  return buf;
+}
+bool ends_with_vdb(const std::string& f) {
+  return f.size() >= 4 && std::equal(f.end() - 4, f.end(), ".vdb");
+}
+
+// The collider's geometry: a mesh file, a .vdb level set, or a sequence of either ("%04d" in
+// the file name: frame first_frame + k at time k / frame_rate). A sequence needs the frames
+// bracketing every time of the run, k = 0 .. ceil(frames / fps * frame_rate); each is checked
+// now (exists; a .vdb has a float level set; a mesh has frame 0's topology).
+void read_collider_source(JsonObject& o, ColliderSpec& c, const std::string& scene_file,
+                          const FrameRange& run) {
+  const std::string file = o.string("file", "");
+  const bool sequence = file.find('%') != std::string::npos;
+  const bool vdb = ends_with_vdb(file);
+  if (sequence && !is_frame_pattern(file))
+    o.fail("file", "\"" + file + "\": a frame sequence takes one %d, %4d or %04d and no other '%'");
+  c.frame_rate = o.number("frame_rate", run.fps, 0, 1e6, true);
+  const int first = int(o.integer("first_frame", 0, 0, 100000000));
+  if (!sequence && o.has("frame_rate")) o.fail("frame_rate", "only for a frame sequence (%04d)");
+  if (!sequence && o.has("first_frame")) o.fail("first_frame", "only for a frame sequence (%04d)");
+  if (vdb) c.vdb_grid = o.string("grid", "");
+  if (!vdb && o.has("grid")) o.fail("grid", "only for a .vdb level set");
+  if (!sequence && !vdb) {
+    c.mesh = read_mesh_object(o, scene_file);
+    return;
+  }
+  const std::vector<std::string> placing = {"scale", "rotate_degrees", "translate"};
+  if (vdb)
+    for (const auto& k : placing)
+      if (o.has(k)) o.fail(k, "not for a .vdb level set (place it with keyframes or in the file)");
+  const double count = std::ceil(run.frames / run.fps * c.frame_rate - 1e-9) + 1;
+  if (!sequence) {
+    const std::string path = scene_relative(file, scene_file).string();
+    const std::string why = check_level_set_file(path, c.vdb_grid);
+    if (!why.empty()) o.fail("file", "\"" + file + "\": " + why);
+    c.vdb_files.push_back(path);
+    return;
+  }
+  if (!(count <= 100000))
+    o.fail("frame_rate", "the run needs " + std::to_string(count) + " frames of the sequence");
+  std::ostringstream wf;
+  wf << "frames " << first << " to " << first + int(count) - 1 << " (the run's " << run.frames
+     << " frames at fps " << run.fps << ", frame_rate " << c.frame_rate << ")";
+  const std::string where_frames = wf.str();
+  for (int k = 0; k < int(count); ++k) {
+    const std::string name = frame_file(file, first + k);
+    const std::string path = scene_relative(name, scene_file).string();
+    if (!std::filesystem::exists(path))
+      o.fail("file", "frame " + std::to_string(first + k) + " of the sequence, \"" + name +
+                         "\", does not exist; the run needs " + where_frames);
+    if (vdb) {
+      const std::string why = check_level_set_file(path, c.vdb_grid);
+      if (!why.empty()) o.fail("file", "\"" + name + "\": " + why);
+      c.vdb_files.push_back(path);
+      continue;
+    }
+    auto mesh = std::make_shared<TriangleMesh>();
+    try {
+      *mesh = load_mesh(path);
+    } catch (const InputError& e) {
+      std::string msg = e.what();
+      if (msg.rfind(path, 0) == 0) msg = msg.substr(path.size());
+      o.fail("file", "mesh file \"" + name + "\"" + msg);
+    }
+    place_points(o, mesh->vertices);
+    if (!c.mesh_frames.empty()) {
+      const TriangleMesh& m0 = *c.mesh_frames[0];
+      if (mesh->vertices.size() != m0.vertices.size() || mesh->triangles != m0.triangles)
+        o.fail("file", "mesh file \"" + name + "\" has " + std::to_string(mesh->vertices.size()) +
+                           " vertices and " + std::to_string(mesh->triangles.size()) +
+                           " triangles, \"" + frame_file(file, first) + "\" " +
+                           std::to_string(m0.vertices.size()) + " and " +
+                           std::to_string(m0.triangles.size()) +
+                           (mesh->vertices.size() == m0.vertices.size() &&
+                                    mesh->triangles.size() == m0.triangles.size()
+                                ? " connected differently"
+                                : "") +
+                           ": a deforming sequence keeps one topology");
+    }
+    c.mesh_frames.push_back(std::move(mesh));
+  }
+  o.boolean("allow_open", false);
+}
+
 // Mesh collider: the mesh (file, scale, rotate_degrees, translate, allow_open) is its rest pose,
 // baked by the factory (solvers/factory.hpp) to a signed distance field of spacing dx; it moves
 // with `velocity` or by `keyframes` (time, translate, rotate_degrees: a rigid motion about
 // `pivot`, default the mesh's box centre).
-void read_mesh_collider(JsonObject& o, ColliderSpec& c, const std::string& scene_file) {
-  c.mesh = read_mesh_object(o, scene_file);
+void read_mesh_collider(JsonObject& o, ColliderSpec& c, const std::string& scene_file,
+                        const FrameRange& run) {
   c.where = o.where("file");
+  read_collider_source(o, c, scene_file, run);
   Vec3d lo = Vec3d::Constant(1e300), hi = Vec3d::Constant(-1e300);
-  for (const auto& v : c.mesh->vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
+  if (c.mesh) mesh_bounds(*c.mesh, lo, hi);
+  if (!c.mesh_frames.empty()) mesh_bounds(*c.mesh_frames[0], lo, hi);
+  if (!c.vdb_files.empty()) lo = hi = Vec3d::Zero();  // a level set: pivot at its origin
   c.pivot = o.vec3("pivot", (0.5 * (lo + hi)).cast<Real>());
   const bool has_velocity = o.has("velocity");
   c.velocity = o.vec3("velocity", Vec3::Zero());
@@ -344,10 +452,10 @@ void read_until(JsonObject& o, Collider& c) {
 
 namespace {
 
-ColliderSpec read_collider(JsonObject o, const std::string& scene_file) {
+ColliderSpec read_collider(JsonObject o, const std::string& scene_file, const FrameRange& run) {
   ColliderSpec c;
   static_cast<Collider&>(c) = read_region(o, true);
-  if (c.shape == ColliderShape::Mesh) read_mesh_collider(o, c, scene_file);
+  if (c.shape == ColliderShape::Mesh) read_mesh_collider(o, c, scene_file, run);
   read_until(o, c);
   const std::string b = o.choice("boundary", "separate", {"sticky", "slip", "separate"});
   c.boundary = b == "sticky" ? BoundaryType::Sticky
@@ -538,7 +646,8 @@ Scene parse_scene(const std::string& text, const std::string& file) {
     read_pd_conditions(top, s);
   else
     read_mpm_sources(top, s);
-  for (auto& c : top.objects("colliders")) s.colliders.push_back(read_collider(c, file));
+  for (auto& c : top.objects("colliders"))
+    s.colliders.push_back(read_collider(c, file, FrameRange{s.frames, s.fps}));
   if (top.has("emitters")) {
     if (pd)
       top.fail("emitters", "only for MPM scenes (peridynamic particles are bonded at set-up)");

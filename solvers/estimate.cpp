@@ -183,20 +183,11 @@ RunEstimate estimate_run(const SceneSpec& s) {
     if (!c.mesh) continue;
     Vec3d lo, hi;
     mesh_bounds(*c.mesh, lo, hi);
-    const double samples = sdf_samples(lo, hi, dx, 4 * dx);  // build_colliders' margin
-    if (!(samples <= kMaxSdfSamples))
-      throw InputError("/colliders/" + std::to_string(k) +
-                       ": the mesh's baked distance field "
-                       "would have " +
-                       human(samples) + " samples at dx = " + std::to_string(dx) +
-                       ", more than the limit of " + human(kMaxSdfSamples) + "; coarsen dx");
     try {
       check_grid_range(lo, hi, dx, "the mesh");
     } catch (const InputError& err) {
       throw InputError("/colliders/" + std::to_string(k) + ": " + err.what());
     }
-    e.collider_samples += samples;
-    e.bytes += samples * sizeof(float);
   }
   if (s.method == Method::Mpm)
     estimate_mpm(s, e);
@@ -221,7 +212,6 @@ std::string describe(const RunEstimate& e) {
     os << human(e.bonds) << " bonds, ";
   else
     os << human(e.grid_leaves) << " grid leaves, ";
-  if (e.collider_samples > 0) os << human(e.collider_samples) << " collider samples, ";
   char dt[32];
   std::snprintf(dt, sizeof dt, "%.3g", e.dt);
   os << "about " << bytes_text(e.bytes) << ", " << human(e.substeps_per_frame)

@@ -12,12 +12,11 @@
 namespace amalgam {
 
 struct RunEstimate {
-  double particles = 0;         // from each object's shape and lattice (curved shapes: by volume)
-  double grid_leaves = 0;       // MPM: 8^3-node leaves around the objects at the start
-  double bonds = 0;             // peridynamics: directed bonds (lattice neighbours in the horizon)
-  double collider_samples = 0;  // mesh colliders' baked distance-field samples
-  double bytes = 0;             // resident memory of the state (particles, grid or bonds, snapshot)
-  double dt = 0;                // the first substep's stable step (s)
+  double particles = 0;    // from each object's shape and lattice (curved shapes: by volume)
+  double grid_leaves = 0;  // MPM: 8^3-node leaves around the objects at the start
+  double bonds = 0;        // peridynamics: directed bonds (lattice neighbours in the horizon)
+  double bytes = 0;        // resident memory of the state (particles, grid or bonds, snapshot)
+  double dt = 0;           // the first substep's stable step (s)
   double substeps_per_frame = 0;
   double substeps = 0;  // the whole run
 };

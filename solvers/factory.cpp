@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "core/errors.hpp"
+#include "core/geometry/level_set_collider.hpp"
 #include "solvers/mpm_enriched.hpp"
 #include "solvers/mpm_simulation.hpp"
 #include "solvers/pd_simulation.hpp"
@@ -26,12 +27,19 @@ std::vector<Collider> build_colliders(const SceneSpec& scene, const exec::Space&
   std::vector<Collider> out;
   for (const ColliderSpec& spec : scene.colliders) {
     Collider c = spec;
-    if (spec.mesh) {  // the rest pose's distance field, exact to 4 dx beyond the surface
-      try {
-        c.sdf = bake_sdf(*spec.mesh, double(scene.mpm.dx), 4.0 * double(scene.mpm.dx), space);
-      } catch (const InputError& e) {
-        throw InputError(spec.where + ": " + e.what());
+    // The rest pose's sparse level set of voxel dx, built as the material reaches it (exact
+    // within 4 dx of the surface); .vdb files read now (frames 0 and 1 of a sequence).
+    try {
+      const double dx = double(scene.mpm.dx);
+      if (spec.mesh) c.field = make_mesh_field(spec.mesh, dx);
+      if (!spec.mesh_frames.empty())
+        c.field = make_mesh_sequence_field(spec.mesh_frames, spec.frame_rate, dx);
+      if (!spec.vdb_files.empty()) {
+        c.field = make_vdb_field(spec.vdb_files, spec.vdb_grid, spec.frame_rate);
+        c.field->prepare({}, 0, space);
       }
+    } catch (const InputError& e) {
+      throw InputError(spec.where + ": " + e.what());
     }
     if (spec.drive)  // a prescribed-velocity region: its field is finite at its corners at t = 0
       for (int k = 0; k < 8; ++k) {

@@ -7,6 +7,7 @@
 #include <sstream>
 
 #include "core/errors.hpp"
+#include "core/geometry/level_set_collider.hpp"
 #include "solvers/mpm_aul.hpp"
 #include "solvers/mpm_enriched.hpp"
 #include "solvers/mpm_implicit.hpp"
@@ -304,6 +305,10 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
     os << "step " << steps_ << ": time step must be positive and finite, got " << dt;
     throw SimulationError(os.str());
   }
+  // Field colliders (meshes, level sets) built around the material for this substep's end time,
+  // where every kernel queries them (core/geometry/level_set_collider.hpp).
+  prepare_colliders(colliders_, particles_.vec3(attr_.x), particles_.size(), settings_.dx,
+                    Real(time_) + dt, space);
   if (enriched_) {
     enriched_->step(space, *this, dt);  // particle domains: their own substep (Algorithm 1)
   } else {

@@ -188,6 +188,7 @@ class MpmSolver {
   // Colliders with keyframed poses evaluated at time t (the kernels see rigid poses only).
   const Collider* colliders_at(Real t) const;
   int collider_count() const { return int(colliders_.size()); }
+  const std::vector<Collider>& colliders() const { return colliders_; }
 
  private:
   friend class MpmAul;

@@ -7,6 +7,7 @@
 #include <stdexcept>
 #include <utility>
 
+#include "core/geometry/level_set_collider.hpp"
 #include "core/errors.hpp"
 
 namespace amalgam {
@@ -346,6 +347,8 @@ void PdSolver::kick_drift(const exec::Space& space, Real dt) {
 
 void PdSolver::apply_colliders(const exec::Space& space, Real t) {
   if (colliders_.empty()) return;
+  prepare_colliders(colliders_, particles_.vec3(attr_.x), particles_.size(), settings_.horizon, t,
+                    space);  // field colliders around the particles
   std::vector<Collider> posed;
   for (const Collider& c : colliders_) posed.push_back(c.posed_at(t));
   const Collider* cols = posed.data();

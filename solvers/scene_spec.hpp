@@ -68,7 +68,13 @@ struct PdPrecrackSpec {
 // into the collider's distance field (build_colliders), and `where` names the scene file and JSON
 // path of its "file" key for errors.
 struct ColliderSpec : Collider {
-  std::shared_ptr<const TriangleMesh> mesh;
+  std::shared_ptr<const TriangleMesh> mesh;  // a static or keyframed mesh
+  // A sequence of meshes of one topology, or .vdb level sets (one file: static or keyframed),
+  // frame k at time k / frame_rate (core/geometry/level_set_collider.hpp).
+  std::vector<std::shared_ptr<const TriangleMesh>> mesh_frames;
+  std::vector<std::string> vdb_files;
+  std::string vdb_grid;  // empty: the first float level set of each file
+  double frame_rate = 24;
   std::string where;
 };
 

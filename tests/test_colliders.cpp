@@ -2,6 +2,7 @@
 // with Coulomb friction (Stomakhin et al. 2013).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -10,6 +11,7 @@
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
 #include "core/geometry/colliders.hpp"
+#include "core/exec/exec.hpp"
 
 using namespace amalgam;
 
@@ -133,21 +135,24 @@ Scene mesh_collider_scene(const std::string& obj, const std::string& collider_ex
 }
 }  // namespace
 
-// The baked SDF of a cube mesh matches the analytic box distance within one cell (trilinear
+// The level set of a cube mesh matches the analytic box distance within one cell (trilinear
 // interpolation of the exact field; edges and corners are where it is worst).
 TEST(MeshCollider, BakedDistanceMatchesTheBox) {
   const std::string obj = write_cube("amalgam_cube.obj", Vec3d(0.5, 0.3, 0.5), 0.2);
   const Scene s = mesh_collider_scene(obj, "");
   ASSERT_EQ(s.colliders.size(), 1u);
-  const Collider c = build_colliders(s)[0];
+  Collider c = build_colliders(s)[0];
   ASSERT_EQ(c.shape, ColliderShape::Mesh);
+  c.prepare({Box3{Vec3d::Zero(), Vec3d::Ones()}}, 0, exec::Space());  // built where sampled
   std::mt19937 rng(3);
   std::uniform_real_distribution<double> u(0.22, 0.78);
   double worst = 0;
   for (int t = 0; t < 2000; ++t) {
     const Vec3d x(u(rng), u(rng) - 0.2, u(rng));
-    worst = std::max(
-        worst, std::abs(double(c.phi(x.cast<Real>(), 0)) - box_sdf(x, Vec3d(0.5, 0.3, 0.5), 0.2)));
+    // exact within the band of 4 dx, clamped to +-4 dx beyond it (kLevelSetBand)
+    const double band = 4 * 0.02;
+    const double exact = std::clamp(box_sdf(x, Vec3d(0.5, 0.3, 0.5), 0.2), -band, band);
+    worst = std::max(worst, std::abs(double(c.phi(x.cast<Real>(), 0)) - exact));
   }
   EXPECT_LT(worst, 0.02);
   // Normals point out of the faces.
@@ -163,9 +168,11 @@ TEST(MeshCollider, KeyframedPoseAndVelocity) {
   const Scene s =
       mesh_collider_scene(obj, R"(, "keyframes": [{"time": 0}, {"time": 1, "translate": [0.2, 0, 0],
                                               "rotate_degrees": [0, 90, 0]}])");
-  const Collider c = build_colliders(s)[0];
+  Collider c = build_colliders(s)[0];
+  c.prepare({Box3{Vec3d::Constant(-0.5), Vec3d::Constant(1.5)}}, 0, exec::Space());
   // At t = 1 the cube is at (0.7, 0.3, 0.5); at t = 0.5 at (0.6, 0.3, 0.5), turned 45 deg.
-  EXPECT_NEAR(double(c.phi(Vec3(0.7, 0.3, 0.5), 1)), -0.1, 0.01);
+  // the centre, 0.1 deep, is beyond the level set's exact band of 4 dx: clamped to -0.08
+  EXPECT_NEAR(double(c.phi(Vec3(0.7, 0.3, 0.5), 1)), -0.08, 0.01);
   EXPECT_NEAR(double(c.phi(Vec3(0.7, 0.45, 0.5), 1)), 0.05, 0.01);
   const double diag = 0.1 * std::sqrt(2.0);  // half diagonal of the turned square along x
   EXPECT_NEAR(double(c.phi(Vec3(Real(0.6 + diag + 0.03), 0.3, 0.5), 0.5)), 0.03 / 1.0, 0.012);
@@ -193,7 +200,8 @@ TEST(MeshCollider, BlockLandsOnMeshBox) {
   const Scene s = mesh_collider_scene(obj, "");
   MpmSolver solver = build_solver(s);
   const exec::Space space(exec::Backend::OpenMP, 2);
-  const Collider box = build_colliders(s)[0];
+  Collider box = build_colliders(s)[0];
+  box.prepare({Box3{Vec3d::Zero(), Vec3d::Ones()}}, 0, space);
   const auto& ps = solver.particles();
   double ymin_run = 1e9, centre = 0;
   int steps = 0;

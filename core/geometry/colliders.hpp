@@ -1,9 +1,8 @@
 // Colliders applied to grid velocities (Stomakhin et al. 2013 grid-based collisions): analytic
 // half-spaces, solid boxes and spheres, static or moving with a constant velocity, and triangle
-// meshes as a baked signed distance field, static, translating or keyframed (rigid translation +
-// rotation about a pivot). Sticky, slip or separating boundaries with Coulomb friction. Pure
-// functions of (x, t, v): a mesh's SDF is a dense array (built by io/ from an OpenVDB level
-// set), so kernels never touch an OpenVDB tree.
+// meshes and .vdb level sets (static, translating or keyframed: rigid translation + rotation about
+// a pivot; or per-frame deforming sequences) as a sparse lazily built ColliderField. Sticky, slip
+// or separating boundaries with Coulomb friction. Pure functions of (x, t, v) once prepared.
 #pragma once
 
 #include <Eigen/Geometry>
@@ -11,6 +10,7 @@
 #include <cmath>
 #include <limits>
 #include <memory>
+#include <type_traits>
 #include <vector>
 
 #include "core/math/expression.hpp"
@@ -18,43 +18,50 @@
 
 namespace amalgam {
 
-// Dense signed distance samples phi(origin + h (i, j, k)) of a mesh in its rest pose, i fastest;
-// negative inside. Outside the sampled box phi is the distance to the box plus `outside`.
-struct SdfGrid {
-  Vec3d origin = Vec3d::Zero();
-  double h = 1;
-  int n[3] = {0, 0, 0};
-  std::vector<float> phi;
-  float outside = 1;
+namespace exec {
+class Space;
+}
 
-  float at(int i, int j, int k) const {
-    return phi[(size_t(k) * size_t(n[1]) + size_t(j)) * size_t(n[0]) + size_t(i)];
-  }
-  // Trilinear phi and its gradient (of the interpolant) at rest-pose point p.
-  Real sample(const Vec3& p, Vec3* grad) const {
-    Vec3d g = (p.cast<double>() - origin) / h;
-    const Vec3d clamped =
-        g.cwiseMax(Vec3d::Zero()).cwiseMin(Vec3d(n[0] - 1.001, n[1] - 1.001, n[2] - 1.001));
-    const double box = (g - clamped).norm() * h;
-    const int i = int(clamped[0]), j = int(clamped[1]), k = int(clamped[2]);
-    const double fx = clamped[0] - i, fy = clamped[1] - j, fz = clamped[2] - k;
-    double c[2][2][2];
-    for (int a = 0; a < 2; ++a)
-      for (int b = 0; b < 2; ++b)
-        for (int d = 0; d < 2; ++d) c[a][b][d] = at(i + a, j + b, k + d);
-    auto lerp = [](double u, double v, double t) { return u + (v - u) * t; };
-    const double x00 = lerp(c[0][0][0], c[1][0][0], fx), x10 = lerp(c[0][1][0], c[1][1][0], fx);
-    const double x01 = lerp(c[0][0][1], c[1][0][1], fx), x11 = lerp(c[0][1][1], c[1][1][1], fx);
-    const double y0 = lerp(x00, x10, fy), y1 = lerp(x01, x11, fy);
-    if (grad) {
-      const double dx0 = lerp(lerp(c[1][0][0] - c[0][0][0], c[1][1][0] - c[0][1][0], fy),
-                              lerp(c[1][0][1] - c[0][0][1], c[1][1][1] - c[0][1][1], fy), fz);
-      const double dy = lerp(x10 - x00, x11 - x01, fz);
-      const double dz = y1 - y0;
-      *grad = (Vec3d(dx0, dy, dz) / h).cast<Real>();
+// Trilinear value of the 8 corner samples c[a][b][d] (a along x) at fractions f, and its
+// gradient (of the interpolant, per unit of index) if asked.
+template <class T>
+T trilinear(const T (&c)[2][2][2], const Vec3d& f, Vec3d* grad_index = nullptr) {
+  auto lerp = [](const T& u, const T& v, double t) -> T { return u + (v - u) * t; };
+  const T x00 = lerp(c[0][0][0], c[1][0][0], f[0]), x10 = lerp(c[0][1][0], c[1][1][0], f[0]);
+  const T x01 = lerp(c[0][0][1], c[1][0][1], f[0]), x11 = lerp(c[0][1][1], c[1][1][1], f[0]);
+  const T y0 = lerp(x00, x10, f[1]), y1 = lerp(x01, x11, f[1]);
+  if constexpr (std::is_arithmetic_v<T>) {
+    if (grad_index) {
+      const double dx0 = lerp(lerp(c[1][0][0] - c[0][0][0], c[1][1][0] - c[0][1][0], f[1]),
+                              lerp(c[1][0][1] - c[0][0][1], c[1][1][1] - c[0][1][1], f[1]), f[2]);
+      *grad_index = Vec3d(dx0, lerp(x10 - x00, x11 - x01, f[2]), y1 - y0);
     }
-    return Real(lerp(y0, y1, fz) + (box > 0 ? box + outside : 0.0));
   }
+  return lerp(y0, y1, f[2]);
+}
+
+// An axis-aligned box [lo, hi].
+struct Box3 {
+  Vec3d lo, hi;
+};
+
+// A collider's shape as a field in its rest frame (core/geometry/level_set_collider.hpp): a mesh
+// or a .vdb level set, static or a per-frame sequence interpolated in time. Sparse and built
+// lazily: prepare() (serial, between kernels) makes it valid over boxes the material can reach;
+// sample() is const and thread-safe (VDB trees read through per-call accessors), so kernels never
+// mutate a tree. Every sample is a pure function of (point, time) whatever was built before, so
+// runs are bitwise identical on every backend, thread count and after a checkpoint resume.
+class ColliderField {
+ public:
+  virtual ~ColliderField() = default;
+  // phi (negative inside) at rest-frame point p, time t; its gradient and the surface's own
+  // velocity (a deforming sequence; zero for a rigid shape), both in the rest frame, if asked.
+  virtual Real sample(const Vec3& p, Real t, Vec3* grad, Vec3* vel) const = 0;
+  // Builds (or loads) the field over these rest-frame boxes for time t. Deterministic.
+  virtual void prepare(const std::vector<Box3>& boxes, Real t, const exec::Space& space) = 0;
+  virtual bool deforming() const { return false; }
+  virtual std::size_t voxels() const = 0;  // voxels built / loaded now
+  virtual std::size_t bytes() const = 0;   // memory of the trees now
 };
 
 // Rigid pose at a time: x = R (x0 - pivot) + pivot + translation for rest-pose x0.
@@ -77,8 +84,8 @@ struct Collider {
   Vec3 half_extent = Vec3::Ones();
   Real radius = 1;
   Vec3 velocity = Vec3::Zero();  // rigid translation velocity of the collider
-  // Mesh: the baked SDF (rest pose), its pivot and keyframes (none: moves with `velocity`).
-  std::shared_ptr<const SdfGrid> sdf;
+  // Mesh / level set: its field (rest pose), pivot and keyframes (none: moves with `velocity`).
+  std::shared_ptr<ColliderField> field;
   Vec3 pivot = Vec3::Zero();
   std::vector<RigidKeyframe> keys;
   // Mesh without keys: constant pose rate, R = rotation, T = translation + t velocity, spin omega
@@ -135,6 +142,29 @@ struct Collider {
     c.keys.clear();
     return c;
   }
+  // Makes a field collider valid where points of these world boxes may query it at time t: the
+  // boxes mapped to the rest frame by the pose at t (between kernels, serially).
+  void prepare(const std::vector<Box3>& world, Real t, const exec::Space& space) {
+    if (!field || t > until) return;
+    Mat3 R;
+    Vec3 T, v, w;
+    pose(t, R, T, v, w);
+    std::vector<Box3> rest;
+    rest.reserve(world.size());
+    const Mat3d Rt = R.transpose().cast<double>();
+    const Vec3d shift = (pivot + T).cast<double>(), pv = pivot.cast<double>();
+    for (const Box3& b : world) {  // the rest-frame box of the 8 corners
+      Box3 r{Vec3d::Constant(1e300), Vec3d::Constant(-1e300)};
+      for (int k = 0; k < 8; ++k) {
+        const Vec3d c((k & 1) ? b.hi[0] : b.lo[0], (k & 2) ? b.hi[1] : b.lo[1],
+                      (k & 4) ? b.hi[2] : b.lo[2]);
+        const Vec3d q = Rt * (c - shift) + pv;
+        r.lo = r.lo.cwiseMin(q), r.hi = r.hi.cwiseMax(q);
+      }
+      rest.push_back(r);
+    }
+    field->prepare(rest, t, space);
+  }
   // Velocity of the collider's material point at x, time t.
   Vec3 velocity_at(const Vec3& x, Real t) const {
     if (drive) return drive->at(x.cast<double>(), double(t)).cast<Real>();
@@ -142,7 +172,13 @@ struct Collider {
     Mat3 R;
     Vec3 T, v, w;
     pose(t, R, T, v, w);
-    return v + w.cross(x - (pivot + T));
+    Vec3 rigid = v + w.cross(x - (pivot + T));
+    if (field && field->deforming()) {  // the surface's own motion, turned into the world frame
+      Vec3 vf;
+      field->sample(R.transpose() * (x - pivot - T) + pivot, t, nullptr, &vf);
+      rigid += R * vf;
+    }
+    return rigid;
   }
 
   // Signed distance to the collider surface (negative inside the solid) at time t.
@@ -154,7 +190,7 @@ struct Collider {
         Mat3 R;
         Vec3 T, v, w;
         pose(t, R, T, v, w);
-        return sdf->sample(R.transpose() * (x - pivot - T) + pivot, nullptr);
+        return field->sample(R.transpose() * (x - pivot - T) + pivot, t, nullptr, nullptr);
       }
       case ColliderShape::HalfSpace:
         return (x - c).dot(normal);
@@ -175,7 +211,7 @@ struct Collider {
         Mat3 R;
         Vec3 T, v, w, g;
         pose(t, R, T, v, w);
-        sdf->sample(R.transpose() * (x - pivot - T) + pivot, &g);
+        field->sample(R.transpose() * (x - pivot - T) + pivot, t, &g, nullptr);
         const Vec3 n = R * g;
         return n.norm() > 0 ? Vec3(n.normalized()) : Vec3::UnitY();
       }

@@ -1,5 +1,5 @@
-// Triangle mesh geometry: watertightness, enclosed volume, and the two OpenVDB level-set uses
-// (particle sampling inside a mesh, a mesh collider's distance field). The OpenVDB tools run in
+// Triangle mesh geometry: watertightness, enclosed volume, particle sampling inside a mesh through
+// an OpenVDB level set (mesh colliders' fields: level_set_collider.cpp). The OpenVDB tools run in
 // the caller's exec::Space's task arena, so `--threads` bounds them (core/exec/exec.hpp).
 #include "core/geometry/triangle_mesh.hpp"
 
@@ -48,12 +48,6 @@ void mesh_bounds(const TriangleMesh& m, Vec3d& lo, Vec3d& hi) {
   for (const auto& v : m.vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
 }
 
-double sdf_samples(const Vec3d& lo, const Vec3d& hi, double h, double margin) {
-  double n = 1;
-  for (int a = 0; a < 3; ++a) n *= std::ceil((hi[a] - lo[a] + 2 * margin) / h) + 2;
-  return n;
-}
-
 void check_grid_range(const Vec3d& lo, const Vec3d& hi, double h, const std::string& what) {
   const double far = std::max(lo.cwiseAbs().maxCoeff(), hi.cwiseAbs().maxCoeff());
   if (!(far / h < kMaxGridIndex)) {
@@ -81,7 +75,7 @@ struct VdbMesh {
 }  // namespace
 
 namespace {
-// The bodies below run whole inside the space's task arena (sample_mesh, bake_sdf): the level set's
+// The bodies below run whole inside the space's task arena (sample_mesh): the level set's
 // construction and also its destruction, which OpenVDB parallelises too.
 std::vector<Vec3> sample_mesh_limited(const TriangleMesh& m, double h, double jitter,
                                       std::uint64_t seed) {
@@ -112,55 +106,12 @@ std::vector<Vec3> sample_mesh_limited(const TriangleMesh& m, double h, double ji
   return out;
 }
 
-std::shared_ptr<const SdfGrid> bake_sdf_limited(const TriangleMesh& m, double h, double margin) {
-  const VdbMesh vm(m);
-  const auto& pts = vm.pts;
-  const auto& tris = vm.tris;
-  std::vector<openvdb::Vec4I> quads;
-  Vec3d lo(1e300, 1e300, 1e300), hi(-1e300, -1e300, -1e300);
-  for (const auto& v : m.vertices) lo = lo.cwiseMin(v), hi = hi.cwiseMax(v);
-  const auto xform = openvdb::math::Transform::createLinearTransform(h);
-  const float band_out = float(margin / h) + 2.0f, band_in = float((hi - lo).maxCoeff() / h) + 2.0f;
-  auto sdf = std::make_shared<SdfGrid>();
-  sdf->h = h;
-  sdf->origin = lo - Vec3d::Constant(margin);
-  const double samples = sdf_samples(lo, hi, h, margin);
-  if (!(samples <= kMaxSdfSamples))  // also NaN; checked in doubles before any int conversion
-    throw InputError("mesh collider: the baked distance field would have " +
-                     std::to_string(samples) + " samples, more than the limit of " +
-                     std::to_string(kMaxSdfSamples) + "; coarsen dx");
-  check_grid_range(lo, hi, h, "mesh collider");
-  for (int a = 0; a < 3; ++a) sdf->n[a] = int(std::ceil((hi[a] - lo[a] + 2 * margin) / h)) + 2;
-  const auto grid = openvdb::tools::meshToSignedDistanceField<openvdb::FloatGrid>(
-      *xform, pts, tris, quads, band_out, band_in);
-  sdf->outside = float(margin);
-  sdf->phi.resize(size_t(sdf->n[0]) * size_t(sdf->n[1]) * size_t(sdf->n[2]));
-  const auto acc = grid->getConstAccessor();
-  openvdb::tools::GridSampler<openvdb::FloatGrid::ConstAccessor, openvdb::tools::BoxSampler>
-      sampler(acc, *xform);
-  size_t q = 0;
-  for (int k = 0; k < sdf->n[2]; ++k)
-    for (int j = 0; j < sdf->n[1]; ++j)
-      for (int i = 0; i < sdf->n[0]; ++i) {
-        const Vec3d p = sdf->origin + h * Vec3d(i, j, k);
-        sdf->phi[q++] = float(sampler.wsSample(openvdb::Vec3d(p[0], p[1], p[2])));
-      }
-  return sdf;
-}
-
 }  // namespace
 
 std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed,
                               const exec::Space& space) {
   std::vector<Vec3> out;
   exec::with_thread_limit(space, [&] { out = sample_mesh_limited(m, h, jitter, seed); });
-  return out;
-}
-
-std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin,
-                                        const exec::Space& space) {
-  std::shared_ptr<const SdfGrid> out;
-  exec::with_thread_limit(space, [&] { out = bake_sdf_limited(m, h, margin); });
   return out;
 }
 

@@ -1,6 +1,6 @@
 // Triangle meshes: the watertightness check, the enclosed volume, particle sampling inside a
-// closed mesh and a mesh collider's distance field, both through an OpenVDB level set
-// (tools::meshToLevelSet, tools::meshToSignedDistanceField) run under the caller's thread limit.
+// closed mesh through an OpenVDB level set (tools::meshToLevelSet) run under the caller's thread
+// limit. A mesh collider's field: core/geometry/level_set_collider.hpp.
 #pragma once
 
 #include <array>
@@ -35,18 +35,8 @@ double enclosed_volume(const TriangleMesh& m);
 std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed,
                               const exec::Space& space);
 
-// Signed distance field of the mesh (tools::meshToSignedDistanceField, exact distance inside
-// and out to `margin` beyond the surface), baked into a dense array of spacing h covering the
-// mesh's box plus margin: what a mesh collider samples.
-std::shared_ptr<const SdfGrid> bake_sdf(const TriangleMesh& m, double h, double margin,
-                                        const exec::Space& space);
-
 // Bounding box of the vertices.
 void mesh_bounds(const TriangleMesh& m, Vec3d& lo, Vec3d& hi);
-// Samples of a mesh collider's baked distance field over [lo, hi] widened by margin (bake_sdf),
-// and their limit (4 bytes each, dense until colliders become sparse level sets).
-constexpr double kMaxSdfSamples = 2e8;
-double sdf_samples(const Vec3d& lo, const Vec3d& hi, double h, double margin);
 // Grid and level-set indices are 32-bit: |x| / h must stay below 2^30 (InputError naming `what`).
 constexpr double kMaxGridIndex = 1073741824.0;
 void check_grid_range(const Vec3d& lo, const Vec3d& hi, double h, const std::string& what);
