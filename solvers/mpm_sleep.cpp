@@ -15,7 +15,7 @@ std::uint64_t leaf_key(const Vec3i& c) {
 }
 bool moving(const Collider& c, double t) {
   if (double(c.until) < t) return false;  // released
-  return c.velocity.squaredNorm() > 0 || !c.keys.empty() || c.drive ||
+  return c.velocity.squaredNorm() > 0 || c.omega.squaredNorm() > 0 || !c.keys.empty() || c.drive ||
          (c.field && c.field->deforming());  // a deforming sequence moves where it grows
 }
 }  // namespace
