@@ -137,10 +137,13 @@ MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
   }
   std::vector<EmitterSpec> emitters = scene.emitters;
   for (EmitterSpec& e : emitters)
-    if (e.mesh) {  // inside/outside from the mesh's distance field at the emitter's spacing
-      const double h = e.spacing(scene.mpm.dx);
+    if (e.mesh) {  // inside/outside from the mesh's level set at the emitter's spacing, built
+      const double h = e.spacing(scene.mpm.dx);  // over the emitter's box once (it does not move)
       try {
-        e.sdf = bake_sdf(*e.mesh, h, 2 * h, space);
+        std::shared_ptr<ColliderField> field = make_mesh_field(e.mesh, h);
+        const Vec3d pad = Vec3d::Constant(2 * h);
+        field->prepare({Box3{e.min.cast<double>() - pad, e.max.cast<double>() + pad}}, 0, space);
+        e.field = std::move(field);
       } catch (const InputError& err) {
         throw InputError(e.where + "/file: " + err.what());
       }

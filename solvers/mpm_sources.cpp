@@ -22,7 +22,7 @@ bool EmitterSpec::inside(const Vec3d& p) const {
     case EmitterShape::Mesh:
       for (int a = 0; a < 3; ++a)
         if (!(p[a] >= double(min[a]) && p[a] <= double(max[a]))) return false;
-      return sdf->sample(p.cast<Real>(), nullptr) < 0;
+      return field->sample(p.cast<Real>(), 0, nullptr, nullptr) < 0;
   }
   return false;
 }

@@ -39,7 +39,7 @@ struct EmitterSpec {
   Vec3 center = Vec3::Zero();                   // sphere
   Real radius = 1;                              // sphere
   std::shared_ptr<const TriangleMesh> mesh;     // mesh: placed in the scene
-  std::shared_ptr<const SdfGrid> sdf;           // mesh: its distance field (the factory bakes it)
+  std::shared_ptr<const ColliderField> field;   // mesh: its level set over min..max (the factory)
   int material = 0;
   Vec3 velocity = Vec3::Zero();
   double start = 0, end = 0;  // s
