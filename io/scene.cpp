@@ -29,6 +29,14 @@ std::filesystem::path scene_relative(const std::string& file, const std::string&
              : std::filesystem::path(scene_file).parent_path() / file;
 }
 
+void read_box(JsonObject& o, Vec3& min, Vec3& max) {
+  min = o.required_vec3("min");
+  max = o.required_vec3("max");
+  for (int a = 0; a < 3; ++a)
+    if (!(max[a] > min[a]))
+      o.fail("max", "every component must exceed the matching one of \"min\"");
+}
+
 namespace {
 
 // Places mesh points by the object's scale, rotate_degrees and translate:
@@ -90,6 +98,19 @@ std::shared_ptr<const TetMesh> read_tet_object(JsonObject& o, const std::string&
   return mesh;
 }
 
+// The index of the material named by key "material".
+int read_material_name(JsonObject& o, const std::map<std::string, int>& materials) {
+  const std::string mat = o.string("material", "");
+  if (!o.has("material")) o.fail("material", "missing required material name");
+  const auto it = materials.find(mat);
+  if (it == materials.end()) {
+    std::string known;
+    for (const auto& kv : materials) known += (known.empty() ? "" : ", ") + kv.first;
+    o.fail("material", "unknown material \"" + mat + "\" (defined in /materials: " + known + ")");
+  }
+  return it->second;
+}
+
 ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials,
                        const std::string& scene_file, bool peridynamics, bool domains) {
   ObjectSpec s;
@@ -116,11 +137,7 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
     s.center = o.vec3("center", Real(0.5) * (s.min + s.max));
   } else if (shape == "box") {
     s.shape = ObjectShape::Box;
-    s.min = o.required_vec3("min");
-    s.max = o.required_vec3("max");
-    for (int a = 0; a < 3; ++a)
-      if (!(s.max[a] > s.min[a]))
-        o.fail("max", "every component must exceed the matching one of \"min\"");
+    read_box(o, s.min, s.max);
     s.center = o.vec3("center", Real(0.5) * (s.min + s.max));
   } else if (shape == "sphere") {
     s.shape = ObjectShape::Sphere;
@@ -149,15 +166,7 @@ ObjectSpec read_object(JsonObject o, const std::map<std::string, int>& materials
     s.min = s.center - half;
     s.max = s.center + half;
   }
-  const std::string mat = o.string("material", "");
-  if (!o.has("material")) o.fail("material", "missing required material name");
-  const auto it = materials.find(mat);
-  if (it == materials.end()) {
-    std::string known;
-    for (const auto& kv : materials) known += (known.empty() ? "" : ", ") + kv.first;
-    o.fail("material", "unknown material \"" + mat + "\" (defined in /materials: " + known + ")");
-  }
-  s.material = it->second;
+  s.material = read_material_name(o, materials);
   if (o.has_expressions("velocity"))
     s.velocity_field = o.vector_field("velocity");
   else
@@ -206,11 +215,7 @@ EmitterSpec read_emitter(JsonObject o, const std::map<std::string, int>& materia
   std::string shape_key = "min";
   if (shape == "box") {
     e.shape = EmitterShape::Box;
-    e.min = o.required_vec3("min");
-    e.max = o.required_vec3("max");
-    for (int a = 0; a < 3; ++a)
-      if (!(e.max[a] > e.min[a]))
-        o.fail("max", "every component must exceed the matching one of \"min\"");
+    read_box(o, e.min, e.max);
   } else if (shape == "sphere") {
     e.shape = EmitterShape::Sphere;
     shape_key = "center";
@@ -227,11 +232,7 @@ EmitterSpec read_emitter(JsonObject o, const std::map<std::string, int>& materia
     e.min = lo.cast<Real>();
     e.max = hi.cast<Real>();
   }
-  const std::string mat = o.string("material", "");
-  if (!o.has("material")) o.fail("material", "missing required material name");
-  const auto it = materials.find(mat);
-  if (it == materials.end()) o.fail("material", "unknown material \"" + mat + "\"");
-  e.material = it->second;
+  e.material = read_material_name(o, materials);
   e.velocity = o.vec3("velocity", Vec3::Zero());
   e.start = o.number("start", 0, 0, kHuge);
   e.end = o.required_number("end", 0, kHuge, true);

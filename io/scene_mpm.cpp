@@ -94,11 +94,7 @@ void read_kill(JsonObject& sim, Scene& s) {
   if (k.has("outside")) {
     JsonObject b = k.object("outside");
     kill.outside = true;
-    kill.min = b.required_vec3("min");
-    kill.max = b.required_vec3("max");
-    for (int a = 0; a < 3; ++a)
-      if (!(kill.max[a] > kill.min[a]))
-        b.fail("max", "every component must exceed the matching one of \"min\"");
+    read_box(b, kill.min, kill.max);
     b.finish();
   }
   for (auto& v : k.objects("volumes")) {

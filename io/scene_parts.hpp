@@ -19,6 +19,8 @@ constexpr double kHuge = 1e30;
 
 // A file named in a scene: absolute, or relative to the scene file's folder.
 std::filesystem::path scene_relative(const std::string& file, const std::string& scene_file);
+// Keys "min" and "max" of a box, max above min in every component.
+void read_box(JsonObject& o, Vec3& min, Vec3& max);
 // Geometry and motion shared by colliders and heat sources (mesh: the caller reads the mesh).
 Collider read_region(JsonObject& o, bool allow_mesh = false);
 // `until` (s): the region acts up to this time only (a grip that lets go, a heater switched off).
