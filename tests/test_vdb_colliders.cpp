@@ -18,6 +18,7 @@
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
 #include "solvers/mpm_simulation.hpp"
+#include "solvers/pd_simulation.hpp"
 
 using namespace amalgam;
 namespace fs = std::filesystem;
@@ -357,5 +358,45 @@ TEST(VdbCollider, CorruptVdbAndMissingFrameAreInputErrors) {
                       "\"grow_0001.vdb\", does not exist"),
             std::string::npos)
       << error("grow_%04d.vdb");
+  fs::remove_all(dir);
+}
+
+// Peridynamics takes field colliders too: a plate pressed by a keyframed .vdb ball ends within a
+// cell of the same plate pressed by the analytic sphere moving at the same speed.
+TEST(VdbCollider, PeridynamicsPressWithVdbBallMatchesAnalytic) {
+  const std::string dir = temp_dir("pd");
+  write_sphere_vdb(dir + "/ball.vdb", 0.05, Vec3d(0, 0, 0), 0.005);
+  auto run = [&](const std::string& collider) {
+    const Scene s = parse_scene(
+        R"({"simulation": {"method": "peridynamics", "dx": 0.01, "fps": 400, "frames": 1,
+      "gravity": [0, 0, 0]},
+      "materials": {"p": {"model": "peridynamic", "density": 1000, "bulk_modulus": 1e6, "shear_modulus": 6e5}},
+      "objects": [{"shape": "box", "min": [0, 0, 0], "max": [0.2, 0.03, 0.2], "material": "p"}],
+      "boundary_conditions": [{"min": [-1, -1, -1], "max": [0.012, 1, 1]}, {"min": [0.188, -1, -1], "max": [1, 1, 1]}],
+      "colliders": [)" +
+            collider + R"(]})",
+        dir + "/scene.json");
+    const exec::Space space(exec::Backend::OpenMP, 2);
+    auto sim = make_simulation(s, space);
+    for (int i = 0; i < 200; ++i) sim->advance(space, Real(1e-4));
+    const auto& pd = dynamic_cast<PdSimulation&>(*sim).solver();
+    const Vec3* x = pd.particles().vec3(pd.attributes().x);
+    const Vec3* x0 = pd.particles().vec3(pd.attributes().x0);
+    double pressed = 0;  // the deepest a particle was pushed down
+    for (size_t p = 0; p < pd.particles().size(); ++p)
+      pressed = std::max(pressed, double(x0[p][1] - x[p][1]));
+    return std::make_pair(std::vector<Vec3>(x, x + pd.particles().size()), pressed);
+  };
+  // The ball's bottom starts at 0.028, in the plate's top layer, and moves down at 0.4 m/s.
+  const auto [a, pressed_a] = run(R"({"type": "mesh", "file": "ball.vdb", "boundary": "slip",
+    "keyframes": [{"time": 0, "translate": [0.1, 0.078, 0.1]}, {"time": 1, "translate": [0.1, -0.322, 0.1]}]})");
+  const auto [b, pressed_b] = run(
+      R"({"type": "sphere", "center": [0.1, 0.078, 0.1], "radius": 0.05, "velocity": [0, -0.4, 0], "boundary": "slip"})");
+  ASSERT_EQ(a.size(), b.size());
+  double worst = 0;
+  for (size_t p = 0; p < a.size(); ++p) worst = std::max(worst, double((a[p] - b[p]).norm()));
+  EXPECT_GT(pressed_b, 5e-4);  // the ball did press the plate
+  EXPECT_NEAR(pressed_a, pressed_b, 0.25 * pressed_b);
+  EXPECT_LT(worst, 0.01);
   fs::remove_all(dir);
 }
