@@ -410,7 +410,8 @@ void read_collider_source(JsonObject& o, ColliderSpec& c, const std::string& sce
 }
 
 // Mesh collider: the mesh (file, scale, rotate_degrees, translate, allow_open) is its rest pose,
-// baked by the factory (solvers/factory.hpp) to a signed distance field of spacing dx; it moves
+// turned by the factory (solvers/factory.hpp) into a sparse level set of spacing dx built lazily
+// where the material is (core/geometry/level_set_collider.hpp); it moves
 // with `velocity` or by `keyframes` (time, translate, rotate_degrees: a rigid motion about
 // `pivot`, default the mesh's box centre).
 void read_mesh_collider(JsonObject& o, ColliderSpec& c, const std::string& scene_file,

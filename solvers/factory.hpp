@@ -16,7 +16,7 @@
 
 namespace amalgam {
 
-// The scene's colliders, mesh colliders with their distance fields baked.
+// The scene's colliders; mesh and .vdb colliders with their sparse fields (built lazily later).
 std::vector<Collider> build_colliders(const SceneSpec& scene,
                                       const exec::Space& space = exec::Space());
 // The MPM solver of an MPM scene with its particles (and particle domains).
