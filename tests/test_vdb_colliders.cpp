@@ -10,7 +10,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
-#include <map>
+#include <utility>
 
 #include "core/errors.hpp"
 #include "core/geometry/level_set_collider.hpp"
@@ -55,35 +55,6 @@ void write_sphere_vdb(const std::string& path, double r, const Vec3d& c, double 
     grids.push_back(v);
   }
   openvdb::io::File(path).write(grids);
-}
-
-// A closed unit sphere: an octahedron subdivided `levels` times, outward triangles.
-TriangleMesh unit_sphere(int levels) {
-  TriangleMesh m;
-  m.vertices = {Vec3d(1, 0, 0),  Vec3d(-1, 0, 0), Vec3d(0, 1, 0),
-                Vec3d(0, -1, 0), Vec3d(0, 0, 1),  Vec3d(0, 0, -1)};
-  m.triangles = {{0, 2, 4}, {2, 1, 4}, {1, 3, 4}, {3, 0, 4},
-                 {2, 0, 5}, {1, 2, 5}, {3, 1, 5}, {0, 3, 5}};
-  for (int l = 0; l < levels; ++l) {
-    std::map<std::pair<int, int>, int> mid;
-    auto midpoint = [&](int a, int b) {
-      const auto key = std::make_pair(std::min(a, b), std::max(a, b));
-      auto it = mid.find(key);
-      if (it != mid.end()) return it->second;
-      m.vertices.push_back((m.vertices[size_t(a)] + m.vertices[size_t(b)]).normalized());
-      return mid[key] = int(m.vertices.size()) - 1;
-    };
-    std::vector<std::array<std::int32_t, 3>> next;
-    for (const auto& t : m.triangles) {
-      const int a = midpoint(t[0], t[1]), b = midpoint(t[1], t[2]), c = midpoint(t[2], t[0]);
-      next.push_back({t[0], a, c});
-      next.push_back({a, t[1], b});
-      next.push_back({c, b, t[2]});
-      next.push_back({a, b, c});
-    }
-    m.triangles = next;
-  }
-  return m;
 }
 
 void write_obj(const std::string& path, const TriangleMesh& m, double scale, const Vec3d& c) {
@@ -147,7 +118,7 @@ TEST(VdbCollider, SphereFromFileMatchesAnalyticSphere) {
 // The lazily built mesh level set: exact distance near a closed mesh, the right sign deep
 // inside (far beyond the band), and built only where asked.
 TEST(VdbCollider, MeshLevelSetSignFarInsideAndLazy) {
-  const TriangleMesh sphere = unit_sphere(3);
+  const TriangleMesh sphere = unit_sphere_mesh(3);
   auto mesh = std::make_shared<TriangleMesh>(sphere);
   for (auto& v : mesh->vertices) v = v * 1.0 + Vec3d(0.5, 0.5, 0.5);  // radius 1 at (.5,.5,.5)
   Collider c;
@@ -208,7 +179,7 @@ namespace {
 // A sphere growing at `rate` m/s (radius 0.1 + rate t) about (0.5, 0.5, 0.5), as .vdb frames
 // (kind "vdb", "vdb_v" with velocity grids) or OBJ frames ("obj"), 24 frames per second.
 std::string growing_sphere(const std::string& dir, const std::string& kind, double rate, int n) {
-  const TriangleMesh unit = unit_sphere(3);
+  const TriangleMesh unit = unit_sphere_mesh(3);
   for (int k = 0; k <= n; ++k) {
     const double r = 0.1 + rate * k / 24.0;
     if (kind == "obj")

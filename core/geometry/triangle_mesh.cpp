@@ -8,6 +8,7 @@
 #include <openvdb/tools/MeshToVolume.h>
 
 #include <algorithm>
+#include <map>
 #include <mutex>
 #include <sstream>
 #include <unordered_map>
@@ -113,6 +114,34 @@ std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, st
   std::vector<Vec3> out;
   exec::with_thread_limit(space, [&] { out = sample_mesh_limited(m, h, jitter, seed); });
   return out;
+}
+
+TriangleMesh unit_sphere_mesh(int levels) {
+  TriangleMesh m;
+  m.vertices = {Vec3d(1, 0, 0),  Vec3d(-1, 0, 0), Vec3d(0, 1, 0),
+                Vec3d(0, -1, 0), Vec3d(0, 0, 1),  Vec3d(0, 0, -1)};
+  m.triangles = {{0, 2, 4}, {2, 1, 4}, {1, 3, 4}, {3, 0, 4},
+                 {2, 0, 5}, {1, 2, 5}, {3, 1, 5}, {0, 3, 5}};
+  for (int l = 0; l < levels; ++l) {
+    std::map<std::pair<int, int>, int> mid;
+    auto midpoint = [&](int a, int b) {
+      const auto key = std::make_pair(std::min(a, b), std::max(a, b));
+      const auto it = mid.find(key);
+      if (it != mid.end()) return it->second;
+      m.vertices.push_back((m.vertices[size_t(a)] + m.vertices[size_t(b)]).normalized());
+      return mid[key] = int(m.vertices.size()) - 1;
+    };
+    std::vector<std::array<std::int32_t, 3>> next;
+    for (const auto& t : m.triangles) {
+      const int a = midpoint(t[0], t[1]), b = midpoint(t[1], t[2]), c = midpoint(t[2], t[0]);
+      next.push_back({t[0], a, c});
+      next.push_back({a, t[1], b});
+      next.push_back({c, b, t[2]});
+      next.push_back({a, b, c});
+    }
+    m.triangles = next;
+  }
+  return m;
 }
 
 }  // namespace amalgam

@@ -37,6 +37,10 @@ std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, st
 
 // Bounding box of the vertices.
 void mesh_bounds(const TriangleMesh& m, Vec3d& lo, Vec3d& hi);
+
+// A closed unit sphere: an octahedron subdivided `levels` times (8 * 4^levels triangles, wound
+// outward), vertices on the sphere. For tests and benchmarks of mesh colliders.
+TriangleMesh unit_sphere_mesh(int levels);
 // Grid and level-set indices are 32-bit: |x| / h must stay below 2^30 (InputError naming `what`).
 constexpr double kMaxGridIndex = 1073741824.0;
 void check_grid_range(const Vec3d& lo, const Vec3d& hi, double h, const std::string& what);
