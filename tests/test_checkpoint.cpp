@@ -215,3 +215,62 @@ TEST(Checkpoint, OnlyRegularFilesAreRead) {
                 .find("checkpoint is a directory"),
             std::string::npos);
 }
+
+// Emitters and kill regions (checkpoint format 6): the particle count varies, and the state
+// section sources.state (next id, emitted, killed) must agree with the particles and ids it
+// comes with, whatever the checksum says.
+TEST(Checkpoint, EmissionStateIsCheckedAgainstTheParticles) {
+  const std::string text = R"({
+    "simulation": {"dx": 0.05, "frames": 2, "max_dt": 2e-3,
+                   "kill": {"outside": {"min": [0, 0.3, 0], "max": [1, 1, 1]}}},
+    "materials": {"water": {"model": "fluid", "density": 1000, "bulk_modulus": 1e4}},
+    "objects": [{"shape": "box", "min": [0.1, 0.35, 0.1], "max": [0.3, 0.45, 0.3], "material": "water",
+                 "velocity": [0, -2, 0]}],
+    "emitters": [{"shape": "box", "min": [0.45, 0.8, 0.45], "max": [0.55, 0.9, 0.55],
+                  "material": "water", "velocity": [0, -4, 0], "end": 1.0}]
+  })";
+  const Scene scene = parse_scene(text, "e.json");
+  MpmSimulation a(build_solver(scene));
+  const exec::Space space;
+  while (a.solver().source_counters().killed == 0 || a.solver().source_counters().emitted == 0)
+    a.advance(space, a.stable_dt(space));
+  const std::string path = tmp_path("sources.amck"), bad = tmp_path("sources_bad.amck");
+  write_checkpoint(path, a, 1, scene.fingerprint);
+  const std::string good = slurp(path);
+  auto error_of = [&](const std::string& d) {
+    spit(bad, d);
+    MpmSimulation s(build_solver(scene));
+    try {
+      read_checkpoint(bad, s, scene.fingerprint);
+    } catch (const InputError& e) {
+      return std::string(e.what());
+    }
+    return std::string();
+  };
+  ASSERT_EQ(error_of(good), "");
+  const std::size_t name = good.find("sources.state");
+  ASSERT_NE(name, std::string::npos);
+  const std::size_t state = name + std::strlen("sources.state") + 8;  // after the u64 size
+  std::int64_t next, emitted, killed;
+  std::memcpy(&next, good.data() + state, 8);
+  std::memcpy(&emitted, good.data() + state + 8, 8);
+  std::memcpy(&killed, good.data() + state + 16, 8);
+  ASSERT_EQ(next, std::int64_t(a.solver().next_id()));
+  ASSERT_GT(emitted, 0);
+  ASSERT_GT(killed, 0);
+  // A next id below an id in use would hand that id out again.
+  EXPECT_NE(error_of(with_field(good, state, next - 1)).find("disagree"), std::string::npos);
+  EXPECT_NE(error_of(with_field(good, state, std::int64_t(1) << 40))
+                .find("section sources.state: next particle id 1099511627776 is outside"),
+            std::string::npos);
+  EXPECT_NE(error_of(with_field(good, state + 8, std::int64_t(-1))).find("emitted -1"),
+            std::string::npos);
+  EXPECT_NE(error_of(with_field(good, state + 16, killed + 1)).find("disagree"), std::string::npos);
+  // An id repeated among the particles.
+  const std::size_t id = attribute_data_at(good, "id");
+  std::int32_t id0;
+  std::memcpy(&id0, good.data() + id, 4);
+  EXPECT_NE(error_of(with_field(good, id + 4, id0)).find("'id'"), std::string::npos);
+  std::remove(path.c_str());
+  std::remove(bad.c_str());
+}
