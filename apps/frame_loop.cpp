@@ -411,6 +411,11 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
                         << f - 1 << " complete; frame " << f
                         << " starts again from t = " << sim.time() << " s); continue with --resume "
                         << checkpoint_path << "\n";
+            // Every rank leaves only once rank 0's checkpoint is on disk: a rank returning
+            // 128 + sig ends the job (apps/main.cpp), which would otherwise kill rank 0 while it
+            // still waits for its frame in flight or writes the checkpoint. (Should rank 0 fail
+            // to write it, its own error ends the job and releases the others.)
+            if (comm.size() > 1) comm.barrier();
             return 128 + sig;
           }
           // Split what is left of the frame evenly into stable substeps (no sliver at the end).
