@@ -1,25 +1,51 @@
 #include "kernels/material_update.hpp"
 
+#include <algorithm>
 #include <cmath>
+
+#include "core/math/lanes.hpp"
+#include "core/math/svd3.hpp"
 
 namespace amalgam {
 
 void update_material_state(const exec::Space& space, const MpmParticleView& p,
                            const MaterialUpdateParams& prm) {
-  exec::parallel_for(space, "mpm.material_update", exec::Index(p.n), [&](exec::Index i) {
-    Real temperature = p.temperature ? p.temperature[i] : Real(0);
-    if (p.temperature && prm.nsources > 0) {
-      for (int s = 0; s < prm.nsources; ++s) {
-        const HeatSource& h = prm.sources[s];
-        if (h.region.phi(p.x[i], prm.time) <= 0)
-          temperature = h.temperature + (temperature - h.temperature) * std::exp(-h.rate * prm.dt);
+  // Groups of kN consecutive particles: the SVDs that the plastic return mappings start from are
+  // computed for the whole group at once, one particle per vector lane (svd3_lanes, bitwise each
+  // particle's svd3); everything else is per particle.
+  constexpr int kN = lanes::kN<Real>;
+  const exec::Index n = exec::Index(p.n), groups = (n + kN - 1) / kN;
+  exec::parallel_for(space, "mpm.material_update", groups, [&](exec::Index g) {
+    const exec::Index i0 = g * kN, i1 = std::min(n, i0 + kN);
+    Real temperature[kN];
+    Mat3 F[kN];
+    int lane_of[kN], m = 0;
+    for (exec::Index i = i0; i < i1; ++i) {
+      Real& ti = temperature[i - i0];
+      ti = p.temperature ? p.temperature[i] : Real(0);
+      if (p.temperature && prm.nsources > 0) {
+        for (int s = 0; s < prm.nsources; ++s) {
+          const HeatSource& h = prm.sources[s];
+          if (h.region.phi(p.x[i], prm.time) <= 0)
+            ti = h.temperature + (ti - h.temperature) * std::exp(-h.rate * prm.dt);
+        }
+        p.temperature[i] = ti;
       }
-      p.temperature[i] = temperature;
+      const bool svd = prm.materials[p.material[i]].project_takes_svd(ti);
+      lane_of[i - i0] = svd ? m : -1;
+      if (svd) F[m++] = p.F[i];
     }
-    Real plastic = p.plastic ? p.plastic[i] : Real(0);
-    if (prm.materials[p.material[i]].project(p.F[i], plastic, temperature)) {
-      if (p.plastic) p.plastic[i] = plastic;
-      if (p.F_lo) p.F_lo[i].setZero();  // the projected F is new: no low part carries over
+    Svd3<Real> d[kN];
+    if (m > 0) svd3_lanes(F, m, d);
+    for (exec::Index i = i0; i < i1; ++i) {
+      const MaterialParams& mat = prm.materials[p.material[i]];
+      const int l = lane_of[i - i0];
+      Real plastic = p.plastic ? p.plastic[i] : Real(0);
+      if (l >= 0 ? mat.project(p.F[i], plastic, d[l])
+                 : mat.project(p.F[i], plastic, temperature[i - i0])) {
+        if (p.plastic) p.plastic[i] = plastic;
+        if (p.F_lo) p.F_lo[i].setZero();  // the projected F is new: no low part carries over
+      }
     }
   });
 }

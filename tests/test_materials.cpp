@@ -467,3 +467,48 @@ TEST(Materials, KirchhoffOfABatchIsBitwiseThatOfOneParticle) {
     }
   EXPECT_GT(compared, 1000);
 }
+
+// The material update computes the SVDs that the plastic return mappings start from for several
+// particles at once (svd3_lanes) and passes them to project(F, plastic, svd): the projected F and
+// plastic state must be bitwise those of project(F, plastic, temperature), for every plastic
+// model, in batches that mix projected and elastic particles.
+TEST(Materials, ReturnMappingWithBatchSvdIsBitwiseThatOfOneParticle) {
+  constexpr int W = lanes::kN<Real>;
+  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  std::mt19937 rng(22);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (MaterialModel model :
+       {MaterialModel::Snow, MaterialModel::DruckerPrager, MaterialModel::VonMises}) {
+    MaterialParams m{model, l.mu, l.lambda, 1000};
+    m.friction_alpha = Real(0.4);
+    m.yield_stress = Real(1e3);
+    ASSERT_TRUE(m.project_takes_svd(300));
+    int projected = 0, kept = 0;
+    for (int t = 0; t < 400; ++t) {
+      const int n = 1 + t % W;
+      Mat3 F[W];
+      Real plastic[W];
+      for (int i = 0; i < n; ++i) {
+        F[i] = (t + i) % 3 == 0
+                   ? Mat3(Mat3::Identity() + Real(1e-4) * (random_F(rng) - Mat3::Identity()))
+                   : random_F(rng);
+        if (t % 5 == 0 && i == 0) F[i].col(2) *= Real(-1);  // inverted
+        plastic[i] = model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
+      }
+      Svd3<Real> d[W];
+      svd3_lanes(F, n, d);
+      for (int i = 0; i < n; ++i) {
+        Mat3 F1 = F[i], F2 = F[i];
+        Real p1 = plastic[i], p2 = plastic[i];
+        const bool c1 = m.project(F1, p1, Real(300));
+        const bool c2 = m.project(F2, p2, d[i]);
+        ASSERT_EQ(c1, c2);
+        ASSERT_EQ(0, std::memcmp(F1.data(), F2.data(), sizeof(Mat3))) << material_model_name(model);
+        ASSERT_EQ(0, std::memcmp(&p1, &p2, sizeof(Real)));
+        (c1 ? projected : kept)++;
+      }
+    }
+    EXPECT_GT(projected, 100) << material_model_name(model);
+    EXPECT_GT(kept, 50) << material_model_name(model);
+  }
+}

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <random>
 #include <vector>
@@ -181,4 +182,61 @@ void check_lanes_match_one_at_a_time() {
 TEST(Polar, LanesGiveBitwiseTheOneMatrixResult) {
   check_lanes_match_one_at_a_time<float>();
   check_lanes_match_one_at_a_time<double>();
+}
+
+// svd3_lanes runs the SVD of several matrices at once, one per vector lane. Each lane must give
+// bitwise svd3 of its matrix whatever the other lanes hold: lanes whose Jacobi sweeps stop at
+// different counts, whose rotations are skipped (zero off-diagonal, zero columns), that swap
+// columns or not, and NaN, zero, huge and tiny matrices share batches, also partial ones.
+template <class T>
+void check_svd_lanes_match_one_at_a_time() {
+  using M = Eigen::Matrix<T, 3, 3>;
+  constexpr int W = lanes::kN<T>;
+  std::mt19937 rng(12);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::vector<M> F;
+  for (int t = 0; t < 6000; ++t) {
+    M f = M::Identity();
+    const double scale = (t % 4 == 0) ? 1e-4 : (t % 4 == 1 ? 0.05 : (t % 4 == 2 ? 0.6 : 3.0));
+    for (int i = 0; i < 9; ++i) f(i) += T(scale * u(rng));
+    if (t % 7 == 0) f.col(1) *= T(1e-6);        // nearly flat
+    if (t % 11 == 0) f.col(2) *= T(-1);         // inverted
+    if (t % 13 == 0) f.col(0) = f.col(2);       // rank 2
+    if (t % 17 == 0) f = M::Identity() * T(2);  // repeated singular values, no rotation
+    if (t % 19 == 0) f = M::Zero();             // every rotation skipped
+    if (t % 23 == 0) f *= T(1e15);              // huge
+    if (t % 29 == 0) f *= T(1e-15);             // tiny
+    if (t % 31 == 0) f(1, 2) = std::numeric_limits<T>::quiet_NaN();
+    if (t % 37 == 0) f = M(Eigen::Matrix<T, 3, 1>(T(0.5), T(3), T(1)).asDiagonal());  // sorting
+    F.push_back(f);
+  }
+  std::shuffle(F.begin(), F.end(), rng);
+  int batches = 0;
+  for (std::size_t s = 0; s < F.size(); s += W) {
+    const int n = int(std::min<std::size_t>(W, F.size() - s)) - int(batches % 2);
+    if (n < 1) continue;
+    Svd3<T> d[W];
+    svd3_lanes<T>(&F[s], n, d);
+    // Bitwise equal, or NaN in both (a NaN's payload and sign depend on the operand order the
+    // compiler picks for a commutative operation: not part of the contract).
+    const auto same = [](const T* a, const T* b, int k) {
+      for (int e = 0; e < k; ++e)
+        if (std::memcmp(&a[e], &b[e], sizeof(T)) != 0 && !(std::isnan(a[e]) && std::isnan(b[e])))
+          return false;
+      return true;
+    };
+    for (int l = 0; l < n; ++l) {
+      const Svd3<T> one = svd3<T>(F[s + l]);
+      ASSERT_TRUE(same(one.U.data(), d[l].U.data(), 9)) << "lane " << l << " of\n" << F[s + l];
+      ASSERT_TRUE(same(one.V.data(), d[l].V.data(), 9)) << F[s + l];
+      ASSERT_TRUE(same(one.sigma.data(), d[l].sigma.data(), 3)) << F[s + l];
+    }
+    ++batches;
+  }
+  EXPECT_GT(batches, 6000 / W - 1);
+}
+
+TEST(Svd3, LanesGiveBitwiseTheOneMatrixResult) {
+  check_svd_lanes_match_one_at_a_time<float>();
+  check_svd_lanes_match_one_at_a_time<double>();
 }

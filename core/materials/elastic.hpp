@@ -216,8 +216,9 @@ struct StvkHenckyT {
     const V3 e = log_strain(s);
     return T(2) * mu * e + V3::Constant(lambda * e.sum());
   }
-  M3 kirchhoff(const M3& F) const {
-    const Svd3<T> d = svd3(F);
+  M3 kirchhoff(const M3& F) const { return kirchhoff(svd3(F)); }
+  // The same given the SVD of F (MaterialParams::kirchhoff_lanes computes several at once).
+  M3 kirchhoff(const Svd3<T>& d) const {
     V3 t = kirchhoff_sigma(d.sigma);
     // sign of sigma_i (inverted F): tau = P F^T = U diag(p_i sigma_i) U^T, p_i sigma_i = tau_hat_i
     // exactly when |sigma_i| >= kMinSigma.

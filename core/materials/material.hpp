@@ -76,22 +76,31 @@ struct MaterialParams {
   // kirchhoff() of n <= lanes::kN<Real> particles of this material, tau[l] bitwise what
   // kirchhoff(F[l], L[l], plastic[l], temperature[l]) gives. The fixed corotated models (also
   // snow's elasticity) take the rotations of all n at once, one particle per vector lane (P2G's
-  // hot spot); the others, and any batch with a melted particle, go one particle at a time.
+  // hot spot), the StVK-Hencky ones (also sand and von Mises) their SVDs; the neo-Hookean and
+  // fluid models, and any batch with a melted particle, go one particle at a time.
   void kirchhoff_lanes(const Mat3* F, const Mat3* L, const Real* plastic, const Real* temperature,
                        Mat3* tau, int n) const {
-    bool batch = model == MaterialModel::FixedCorotated || model == MaterialModel::Snow;
+    const bool hencky = model == MaterialModel::StvkHencky ||
+                        model == MaterialModel::DruckerPrager || model == MaterialModel::VonMises;
+    bool batch = hencky || model == MaterialModel::FixedCorotated || model == MaterialModel::Snow;
     for (int l = 0; l < n && batch && melting; ++l) batch = !melted(temperature[l]);
     if (!batch) {
       for (int l = 0; l < n; ++l) tau[l] = kirchhoff(F[l], L[l], plastic[l], temperature[l]);
       return;
     }
-    Real lmu[lanes::kN<Real>], llambda[lanes::kN<Real>];
-    for (int l = 0; l < n; ++l) {
-      const FixedCorotated m =
-          model == MaterialModel::Snow ? snow().elastic(plastic[l]) : FixedCorotated{mu, lambda};
-      lmu[l] = m.mu, llambda[l] = m.lambda;
+    if (hencky) {
+      Svd3<Real> d[lanes::kN<Real>];
+      svd3_lanes(F, n, d);
+      for (int l = 0; l < n; ++l) tau[l] = StvkHencky{mu, lambda}.kirchhoff(d[l]);
+    } else {
+      Real lmu[lanes::kN<Real>], llambda[lanes::kN<Real>];
+      for (int l = 0; l < n; ++l) {
+        const FixedCorotated m =
+            model == MaterialModel::Snow ? snow().elastic(plastic[l]) : FixedCorotated{mu, lambda};
+        lmu[l] = m.mu, llambda[l] = m.lambda;
+      }
+      FixedCorotated::kirchhoff_lanes(F, lmu, llambda, tau, n);
     }
-    FixedCorotated::kirchhoff_lanes(F, lmu, llambda, tau, n);
     if (viscosity > 0)
       for (int l = 0; l < n; ++l)
         tau[l] += (F[l].determinant() * viscosity) * (L[l] + L[l].transpose());
@@ -184,6 +193,26 @@ struct MaterialParams {
         return VonMisesT<Real>{mu, lambda, yield_stress, hardening_modulus}.project(F, plastic);
       case MaterialModel::Fluid:
         return WeaklyCompressibleT<Real>::reset(F);
+      default:
+        return false;
+    }
+  }
+  // Whether project() begins with the SVD of F (the return mappings of the plastic solids), so a
+  // caller can compute the SVDs of several particles at once (svd3_lanes) and pass them in.
+  bool project_takes_svd(Real temperature) const {
+    return !melted(temperature) &&
+           (model == MaterialModel::Snow || model == MaterialModel::DruckerPrager ||
+            model == MaterialModel::VonMises);
+  }
+  // project() of a material with project_takes_svd, given d = svd3(F): bitwise the same.
+  bool project(Mat3& F, Real& plastic, const Svd3<Real>& d) const {
+    switch (model) {
+      case MaterialModel::Snow:
+        return snow().project(F, plastic, d);
+      case MaterialModel::DruckerPrager:
+        return drucker_prager().project(F, plastic, d);
+      case MaterialModel::VonMises:
+        return VonMisesT<Real>{mu, lambda, yield_stress, hardening_modulus}.project(F, plastic, d);
       default:
         return false;
     }

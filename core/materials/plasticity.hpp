@@ -49,8 +49,9 @@ struct SnowT {
     const T h = hardening_factor(JP);
     return {mu0 * h, lambda0 * h};
   }
-  bool project(M3& FE, T& JP) const {
-    const Svd3<T> d = svd3(FE);
+  bool project(M3& FE, T& JP) const { return project(FE, JP, svd3(FE)); }
+  // The same given d = svd3(FE) (MaterialParams::project_lanes computes several at once).
+  bool project(M3& FE, T& JP, const Svd3<T>& d) const {
     V3 s = d.sigma;
     const T lo = T(1) - theta_c, hi = T(1) + theta_s;
     bool clamped = false;
@@ -101,8 +102,9 @@ struct DruckerPragerT {
     const V3 dev = eps - V3::Constant(tr / T(3));
     return dev.norm() + alpha * (T(3) * lambda + T(2) * mu) / (T(2) * mu) * (tr - trace_c);
   }
-  bool project(M3& FE, T& vc) const {
-    const Svd3<T> d = svd3(FE);
+  bool project(M3& FE, T& vc) const { return project(FE, vc, svd3(FE)); }
+  // The same given d = svd3(FE) (MaterialParams::project_lanes computes several at once).
+  bool project(M3& FE, T& vc, const Svd3<T>& d) const {
     const V3 e0 = detail::log_sigma(d, kMinSigma);
     const T shift = volume_correction ? vc / T(3) : T(0);
     V3 e = e0 + V3::Constant(shift);
@@ -145,8 +147,9 @@ struct VonMisesT {
     const V3 dev = eps - V3::Constant(eps.sum() / T(3));
     return T(2) * mu * dev.norm() - std::sqrt(T(2) / T(3)) * (yield_stress + hardening * a);
   }
-  bool project(M3& FE, T& a) const {
-    const Svd3<T> d = svd3(FE);
+  bool project(M3& FE, T& a) const { return project(FE, a, svd3(FE)); }
+  // The same given d = svd3(FE) (MaterialParams::project_lanes computes several at once).
+  bool project(M3& FE, T& a, const Svd3<T>& d) const {
     V3 e = detail::log_sigma(d, kMinSigma);
     const V3 dev = e - V3::Constant(e.sum() / T(3));
     const T n = dev.norm();

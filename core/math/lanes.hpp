@@ -10,7 +10,12 @@
 #include <cstdint>
 #include <cstddef>
 #include <cstring>
+#include <type_traits>
 #include <utility>
+
+#if defined(__SSE2__)
+#include <immintrin.h>
+#endif
 
 namespace amalgam::lanes {
 
@@ -81,11 +86,26 @@ inline bool any_impl(const M& m) {
   for (std::uint64_t x : w) r |= x;
   return r != 0;
 }
+// Per-lane square root: the packed instruction where there is one (IEEE sqrt is correctly
+// rounded, so it equals std::sqrt lane by lane; std::sqrt in a loop does not vectorise because
+// of errno), else one lane at a time.
 template <class T>
 inline V<T> sqrt_impl(const V<T>& x) {
+#if defined(__AVX__)
+  if constexpr (std::is_same_v<T, float>)
+    return reinterpret_cast<V<T>>(_mm256_sqrt_ps(reinterpret_cast<__m256>(x)));
+  else
+    return reinterpret_cast<V<T>>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(x)));
+#elif defined(__SSE2__)
+  if constexpr (std::is_same_v<T, float>)
+    return reinterpret_cast<V<T>>(_mm_sqrt_ps(reinterpret_cast<__m128>(x)));
+  else
+    return reinterpret_cast<V<T>>(_mm_sqrt_pd(reinterpret_cast<__m128d>(x)));
+#else
   V<T> r{};
   for (int l = 0; l < kN<T>; ++l) r[l] = std::sqrt(x[l]);
   return r;
+#endif
 }
 }  // namespace detail
 

@@ -29,98 +29,149 @@ struct Svd3 {
 
 namespace detail {
 
-// One Jacobi rotation zeroing S(p,q) of symmetric S, accumulated into V.
-template <class T>
-inline void jacobi_rotate(Eigen::Matrix<T, 3, 3>& S, Eigen::Matrix<T, 3, 3>& V, int p, int q) {
-  const T apq = S(p, q);
-  if (apq == T(0)) return;
-  const T tau = (S(q, q) - S(p, p)) / (T(2) * apq);
-  const T t = (tau >= T(0) ? T(1) : T(-1)) / (std::abs(tau) + std::sqrt(T(1) + tau * tau));
-  const T c = T(1) / std::sqrt(T(1) + t * t);
-  const T s = t * c;
-  // S <- J^T S J with J the Givens rotation in the (p,q) plane.
-  for (int k = 0; k < 3; ++k) {
-    const T skp = S(k, p), skq = S(k, q);
-    S(k, p) = c * skp - s * skq;
-    S(k, q) = s * skp + c * skq;
+// The SVD below on the entries of the matrices in storage order (X(r, c) = x[r + 3 c]), written
+// once for a scalar V = T (Mask = bool) and for a vector of lanes (V = lanes::V<T>, one matrix
+// per lane, Mask from a comparison). Every operation is element-wise IEEE arithmetic and every
+// data-dependent branch of the scalar algorithm is a per-lane select, so lane l computes bitwise
+// what the scalar instantiation computes for its matrix, whatever the other lanes hold (a lane
+// that has converged, or whose rotation is the identity, keeps its values; the discarded
+// arithmetic of such a lane may divide by zero, which selects then drop).
+
+// x in every lane (V a vector) or x (V a scalar).
+template <class V, class T>
+inline V splat_as(T x) {
+  return V{} + x;
+}
+template <class V>
+inline V abs_of(const V& x) {
+  return x < 0 ? V(-x) : x;  // -0 stays -0; only ever added to a positive number below
+}
+
+// One Jacobi rotation zeroing S(p,q) of the symmetric S (lanes in `m` whose S(p,q) != 0),
+// accumulated into Vm: S <- J^T S J, Vm <- Vm J with J the Givens rotation in the (p,q) plane.
+template <class T, class V, class Mask>
+inline void jacobi_rotate(V* S, V* Vm, int p, int q, const Mask& m) {
+  const V apq = S[p + 3 * q];
+  const Mask go = m & (apq != T(0));
+  if (!lanes::any(go)) return;
+  const V tau = (S[q + 3 * q] - S[p + 3 * p]) / (T(2) * apq);
+  const V sgn = tau >= T(0) ? splat_as<V>(T(1)) : splat_as<V>(T(-1));
+  const V t = sgn / (abs_of(tau) + lanes::sqrt(V(T(1) + tau * tau)));
+  const V c = T(1) / lanes::sqrt(V(T(1) + t * t));
+  const V s = t * c;
+  V Sn[9], Vn[9];
+  for (int e = 0; e < 9; ++e) Sn[e] = S[e], Vn[e] = Vm[e];
+  for (int k = 0; k < 3; ++k) {  // columns p, q
+    const V skp = Sn[k + 3 * p], skq = Sn[k + 3 * q];
+    Sn[k + 3 * p] = c * skp - s * skq;
+    Sn[k + 3 * q] = s * skp + c * skq;
+  }
+  for (int k = 0; k < 3; ++k) {  // then rows p, q
+    const V spk = Sn[p + 3 * k], sqk = Sn[q + 3 * k];
+    Sn[p + 3 * k] = c * spk - s * sqk;
+    Sn[q + 3 * k] = s * spk + c * sqk;
   }
   for (int k = 0; k < 3; ++k) {
-    const T spk = S(p, k), sqk = S(q, k);
-    S(p, k) = c * spk - s * sqk;
-    S(q, k) = s * spk + c * sqk;
+    const V vkp = Vn[k + 3 * p], vkq = Vn[k + 3 * q];
+    Vn[k + 3 * p] = c * vkp - s * vkq;
+    Vn[k + 3 * q] = s * vkp + c * vkq;
   }
-  for (int k = 0; k < 3; ++k) {
-    const T vkp = V(k, p), vkq = V(k, q);
-    V(k, p) = c * vkp - s * vkq;
-    V(k, q) = s * vkp + c * vkq;
-  }
+  for (int e = 0; e < 9; ++e) S[e] = go ? Sn[e] : S[e], Vm[e] = go ? Vn[e] : Vm[e];
 }
 
 // Givens rotation acting on rows (i, j) of B, zeroing B(j, col); accumulates Q so that the
-// original B equals Q * B_now.
-template <class T>
-inline void givens_zero(Eigen::Matrix<T, 3, 3>& B, Eigen::Matrix<T, 3, 3>& Q, int i, int j,
-                        int col) {
-  const T a = B(i, col), b = B(j, col);
-  const T r = std::sqrt(a * a + b * b);
-  if (r == T(0)) return;
-  const T c = a / r, s = b / r;
+// original B equals Q * B_now. Lanes with B(i, col) = B(j, col) = 0 are left as they are.
+template <class T, class V, class Mask>
+inline void givens_zero(V* B, V* Q, int i, int j, int col) {
+  const V a = B[i + 3 * col], b = B[j + 3 * col];
+  const V r = lanes::sqrt(V(a * a + b * b));
+  const Mask go = r != T(0);
+  if (!lanes::any(go)) return;
+  const V c = a / r, s = b / r;
   for (int k = 0; k < 3; ++k) {
-    const T bi = B(i, k), bj = B(j, k);
-    B(i, k) = c * bi + s * bj;
-    B(j, k) = -s * bi + c * bj;
+    const V bi = B[i + 3 * k], bj = B[j + 3 * k];
+    B[i + 3 * k] = go ? V(c * bi + s * bj) : bi;
+    B[j + 3 * k] = go ? V(-s * bi + c * bj) : bj;
   }
   for (int k = 0; k < 3; ++k) {
-    const T qi = Q(k, i), qj = Q(k, j);
-    Q(k, i) = c * qi + s * qj;
-    Q(k, j) = -s * qi + c * qj;
+    const V qi = Q[k + 3 * i], qj = Q[k + 3 * j];
+    Q[k + 3 * i] = go ? V(c * qi + s * qj) : qi;
+    Q[k + 3 * j] = go ? V(-s * qi + c * qj) : qj;
   }
 }
 
-template <class T>
-inline void swap_columns_keep_rotation(Eigen::Matrix<T, 3, 3>& V, Eigen::Matrix<T, 1, 3>& lambda,
-                                       int a, int b) {
-  std::swap(lambda(a), lambda(b));
+// Where m: columns a and b of Vm and lambda(a), lambda(b) swapped, column b negated (a swap
+// flips det; negating one column keeps Vm a rotation).
+template <class V, class Mask>
+inline void swap_columns_keep_rotation(V* Vm, V* lambda, int a, int b, const Mask& m) {
+  const V la = lambda[a], lb = lambda[b];
+  lambda[a] = m ? lb : la;
+  lambda[b] = m ? la : lb;
   for (int k = 0; k < 3; ++k) {
-    const T t = V(k, a);
-    V(k, a) = V(k, b);
-    V(k, b) = -t;  // a swap flips det; negating one column restores det = +1
+    const V va = Vm[k + 3 * a], vb = Vm[k + 3 * b];
+    Vm[k + 3 * a] = m ? vb : va;
+    Vm[k + 3 * b] = m ? V(-va) : vb;
   }
+}
+
+// F = U diag(sigma) Vm^T (see svd3): f the entries of F; u, vm receive those of U and V.
+template <class T, class V, class Mask>
+inline void svd3_entries(const V* f, V* u, V* vm, V* sigma) {
+  V S[9];  // F^T F
+  for (int j = 0; j < 3; ++j)
+    for (int i = 0; i < 3; ++i)
+      S[i + 3 * j] =
+          f[3 * i] * f[3 * j] + f[1 + 3 * i] * f[1 + 3 * j] + f[2 + 3 * i] * f[2 + 3 * j];
+  for (int e = 0; e < 9; ++e) vm[e] = splat_as<V>(e % 4 == 0 ? T(1) : T(0));
+  const V scale = S[0] + S[4] + S[8];
+  const T eps = std::numeric_limits<T>::epsilon();
+  const V tol = (eps * eps) * scale * scale;
+  Mask active = scale == scale;  // every lane (a NaN lane stops at the first test below)
+  for (int sweep = 0; sweep < 12; ++sweep) {
+    const V off = S[3] * S[3] + S[6] * S[6] + S[7] * S[7];
+    active = active & (off > tol);  // a lane stops for good once converged (or NaN)
+    if (!lanes::any(active)) break;
+    jacobi_rotate<T>(S, vm, 0, 1, active);
+    jacobi_rotate<T>(S, vm, 0, 2, active);
+    jacobi_rotate<T>(S, vm, 1, 2, active);
+  }
+  // Eigenvalues of F^T F in decreasing order, keeping V a rotation.
+  V lambda[3] = {S[0], S[4], S[8]};
+  swap_columns_keep_rotation(vm, lambda, 0, 1, lambda[0] < lambda[1]);
+  swap_columns_keep_rotation(vm, lambda, 0, 2, lambda[0] < lambda[2]);
+  swap_columns_keep_rotation(vm, lambda, 1, 2, lambda[1] < lambda[2]);
+  // QR of B = F V by Givens rotations: B = U R, U a rotation, R (nearly) diagonal.
+  V B[9];
+  for (int j = 0; j < 3; ++j)
+    for (int i = 0; i < 3; ++i)
+      B[i + 3 * j] = f[i] * vm[3 * j] + f[i + 3] * vm[1 + 3 * j] + f[i + 6] * vm[2 + 3 * j];
+  for (int e = 0; e < 9; ++e) u[e] = splat_as<V>(e % 4 == 0 ? T(1) : T(0));
+  givens_zero<T, V, Mask>(B, u, 0, 1, 0);
+  givens_zero<T, V, Mask>(B, u, 0, 2, 0);
+  givens_zero<T, V, Mask>(B, u, 1, 2, 1);
+  sigma[0] = B[0], sigma[1] = B[4], sigma[2] = B[8];
 }
 
 }  // namespace detail
 
 template <class T>
 inline Svd3<T> svd3(const Eigen::Matrix<T, 3, 3>& F) {
-  using M = Eigen::Matrix<T, 3, 3>;
   Svd3<T> out;
-  M S = F.transpose() * F;
-  M V = M::Identity();
-  const T scale = S.diagonal().sum();
-  const T tol =
-      std::numeric_limits<T>::epsilon() * std::numeric_limits<T>::epsilon() * scale * scale;
-  for (int sweep = 0; sweep < 12; ++sweep) {
-    const T off = S(0, 1) * S(0, 1) + S(0, 2) * S(0, 2) + S(1, 2) * S(1, 2);
-    if (!(off > tol)) break;  // also stops on NaN
-    detail::jacobi_rotate(S, V, 0, 1);
-    detail::jacobi_rotate(S, V, 0, 2);
-    detail::jacobi_rotate(S, V, 1, 2);
-  }
-  // Sort eigenvalues of F^T F in decreasing order, keeping V a rotation.
-  Eigen::Matrix<T, 1, 3> lambda(S(0, 0), S(1, 1), S(2, 2));
-  if (lambda(0) < lambda(1)) detail::swap_columns_keep_rotation(V, lambda, 0, 1);
-  if (lambda(0) < lambda(2)) detail::swap_columns_keep_rotation(V, lambda, 0, 2);
-  if (lambda(1) < lambda(2)) detail::swap_columns_keep_rotation(V, lambda, 1, 2);
-  // QR of B = F V by Givens rotations: B = U R, U a rotation, R (nearly) diagonal.
-  M B = F * V;
-  M U = M::Identity();
-  detail::givens_zero(B, U, 0, 1, 0);
-  detail::givens_zero(B, U, 0, 2, 0);
-  detail::givens_zero(B, U, 1, 2, 1);
-  out.U = U;
-  out.V = V;
-  out.sigma = Eigen::Matrix<T, 3, 1>(B(0, 0), B(1, 1), B(2, 2));
+  detail::svd3_entries<T, T, bool>(F.data(), out.U.data(), out.V.data(), out.sigma.data());
   return out;
+}
+
+// svd3 of n <= lanes::kN<T> matrices at once, one per vector lane: out[l] is bitwise svd3(F[l]).
+template <class T>
+inline void svd3_lanes(const Eigen::Matrix<T, 3, 3>* F, int n, Svd3<T>* out) {
+  using V = lanes::V<T>;
+  V f[9], u[9], v[9], s[3];
+  lanes::load_mat3(F, n, f);
+  detail::svd3_entries<T, V, lanes::Mask<T>>(f, u, v, s);
+  for (int l = 0; l < n; ++l) {
+    for (int e = 0; e < 9; ++e) out[l].U.data()[e] = u[e][l], out[l].V.data()[e] = v[e][l];
+    for (int i = 0; i < 3; ++i) out[l].sigma[i] = s[i][l];
+  }
 }
 
 namespace detail {
