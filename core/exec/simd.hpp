@@ -55,9 +55,14 @@ void set_simd_path(SimdPath p);
 std::string simd_description();
 
 // The entry-point table of the current path among a kernel file's compiled variants (null
-// pointers for variants not compiled).
+// pointers for variants not compiled; NotDeduced: a nullptr argument does not deduce Table).
+template <class T>
+struct NotDeduced {
+  using type = T;
+};
 template <class Table>
-const Table& pick_simd(const Table& baseline, const Table* avx2, const Table* avx512) {
+const Table& pick_simd(const Table& baseline, const typename NotDeduced<Table>::type* avx2,
+                       const typename NotDeduced<Table>::type* avx512) {
   switch (simd_path()) {
     case SimdPath::Avx512:
       if (avx512) return *avx512;
