@@ -7,6 +7,7 @@
 
 #include "apps/commands.hpp"
 #include "core/exec/exec.hpp"
+#include "core/exec/simd.hpp"
 #include "core/errors.hpp"
 #include "solvers/bench_scene.hpp"
 #include "solvers/mpm_implicit.hpp"
@@ -61,8 +62,9 @@ int implicit_bench(BenchSceneOptions so, int steps, int reps, const std::vector<
   const Real dt = fixed_dt > 0 ? Real(fixed_dt) : 10 * dt_cfl;
   std::cout << "# amalgam bench --implicit: sphere, " << so.particles << " particles, dx=" << so.dx
             << ", E=1e7, transfer=" << transfer_name(so.transfer) << ", precision=" << real_name()
-            << ", dt=" << dt << " (" << dt / dt_cfl << "x explicit CFL), " << steps
-            << " substeps x " << reps << " reps (median, [min, max])\n";
+            << ", simd=" << exec::simd_path_name(exec::simd_path()) << ", dt=" << dt << " ("
+            << dt / dt_cfl << "x explicit CFL), " << steps << " substeps x " << reps
+            << " reps (median, [min, max])\n";
   for (const auto backend : backends) {
     for (const int t : threads) {
       if (backend == exec::Backend::Serial && t != 1) continue;
@@ -185,8 +187,8 @@ int bench_command(const std::vector<std::string>& args) {
   if (implicit) return implicit_bench(so, steps, reps, threads, backends, fixed_dt);
   std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/"
             << int(std::lround(1 / so.dx)) << ", transfer=" << transfer_name(so.transfer)
-            << ", precision=" << real_name() << ", " << steps << " substeps x " << reps
-            << " reps (median, [min, max])\n";
+            << ", precision=" << real_name() << ", simd=" << exec::simd_description() << ", "
+            << steps << " substeps x " << reps << " reps (median, [min, max])\n";
   const Real dt = Real(1e-4);
   for (const auto backend : backends) {
     for (const int t : threads) {
@@ -222,14 +224,14 @@ int bench_command(const std::vector<std::string>& args) {
           line, sizeof line,
           "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
           "p2g_ns=%.1f g2p_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f leaves=%zu "
-          "bytes_per_particle=%zu bytes_per_node=%.1f",
+          "bytes_per_particle=%zu bytes_per_node=%.1f simd=%s",
           exec::backend_name(backend), t, so.particles, median(rate),
           *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()),
           ns({"mpm.p2g"}), ns({"mpm.g2p"}),
           ns({"bin.leaf_box", "bin.keys", "bin.radix_hist", "bin.radix_scatter",
               "particles.permute", "bin.find_runs"}),
           ns({"grid.topology"}), ns({"mpm.grid_clear", "mpm.grid_update"}), leaves, particle_bytes,
-          double(leaf_bytes) / 512.0);
+          double(leaf_bytes) / 512.0, exec::simd_path_name(exec::simd_path()));
       std::cout << line << std::endl;
     }
   }

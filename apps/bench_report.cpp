@@ -17,6 +17,7 @@
 #include "apps/commands.hpp"
 #include "core/errors.hpp"
 #include "core/exec/exec.hpp"
+#include "core/exec/simd.hpp"
 #include "core/math/types.hpp"
 #include "solvers/bench_suite.hpp"
 #include "io/plot.hpp"
@@ -323,6 +324,7 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
      << fmt("%.1f", std::atof(read_first("/proc/meminfo", "MemTotal").c_str()) / 1048576.0)
      << " GiB |\n"
      << "| precision | " << real_name() << " |\n"
+     << "| SIMD path | " << exec::simd_description() << " |\n"
      << "| compiler | g++ " << __VERSION__ << ", Release"
      << " |\n"
      << "| backends | ";

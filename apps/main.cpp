@@ -11,6 +11,7 @@
 #include "apps/commands.hpp"
 #include "core/dist/comm.hpp"
 #include "core/exec/exec.hpp"
+#include "core/exec/simd.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam::cli {
@@ -21,6 +22,7 @@ int info_command(const std::vector<std::string>&) {
             << "backends: ";
   for (auto b : exec::available_backends()) std::cout << exec::backend_name(b) << " ";
   std::cout << "\nhardware threads: " << exec::hardware_threads() << "\n"
+            << "SIMD path: " << exec::simd_description() << "\n"
             << "Eigen " << EIGEN_WORLD_VERSION << "." << EIGEN_MAJOR_VERSION << "."
             << EIGEN_MINOR_VERSION << ", oneTBB " << TBB_VERSION_MAJOR << "." << TBB_VERSION_MINOR
             << ", OpenVDB " << AMALGAM_OPENVDB_VERSION << "\n";
@@ -49,13 +51,41 @@ int dispatch(int argc, char** argv) {
       "  plot RUN_DIR     draw a run's diagnostics.csv to diagnostics.png (plot --help)\n"
       "  surface RUN_DIR  surface a run's frames into level set, density and mesh files "
       "(surface --help)\n"
-      "  info             version, backends, precision, dependency versions\n";
+      "  info             version, backends, precision, SIMD path, dependency versions\n"
+      "every command takes --simd baseline|avx2|avx512|auto (default: $AMALGAM_SIMD, else auto,\n"
+      "the widest vector path this CPU runs); results are bitwise the same on every path\n";
   if (argc < 2) {
     std::cerr << usage;
     return kUsage;
   }
   const std::string cmd = argv[1];
-  const std::vector<std::string> args(argv + 2, argv + argc);
+  // --simd PATH (or --simd=PATH), any command: the kernels' vector path (core/exec/simd.hpp).
+  std::vector<std::string> args;
+  std::string simd;
+  bool simd_given = false;
+  for (int i = 2; i < argc; ++i) {
+    const std::string a = argv[i];
+    if (a == "--simd") {
+      if (i + 1 >= argc) {
+        std::cerr << "amalgam: --simd needs a value (baseline, avx2, avx512 or auto)\n";
+        return kUsage;
+      }
+      simd = argv[++i], simd_given = true;
+    } else if (a.rfind("--simd=", 0) == 0) {
+      simd = a.substr(7), simd_given = true;
+    } else {
+      args.push_back(a);
+    }
+  }
+  try {
+    if (simd_given)
+      amalgam::exec::set_simd_path(amalgam::exec::parse_simd_path(simd));
+    else
+      amalgam::exec::simd_path();  // an invalid AMALGAM_SIMD is refused here, before any work
+  } catch (const std::invalid_argument& e) {
+    std::cerr << "amalgam: " << printable(e.what()) << "\n";
+    return kUsage;
+  }
   if (cmd == "run") return run_command(args);
   if (cmd == "validate") return validate_command(args);
   if (cmd == "bench") return bench_command(args);

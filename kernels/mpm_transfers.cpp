@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cstring>
 
+#include "core/exec/simd.hpp"
 #include "core/math/bspline.hpp"
 #include "core/math/lanes.hpp"
 #include "core/math/simd4.hpp"
@@ -38,6 +39,10 @@ MpmGridView make_grid_view(const SparseGrid& grid, const BinTable& bins, Real* a
   g.leaf_coord = grid.leaf_coords().data();
   return g;
 }
+
+// The kernels, once per instruction set (core/exec/simd.hpp: AMALGAM_ISA is isa_baseline,
+// isa_avx2 or isa_avx512).
+namespace AMALGAM_ISA {
 
 namespace {
 
@@ -545,4 +550,9 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
   });
 }
 
+extern const MpmKernelTable mpm_kernels;
+const MpmKernelTable mpm_kernels = {
+    &grid_clear, &p2g, &clear_node4, &p2g_positions, &grid_update, &grid_apply_colliders, &g2p};
+
+}  // namespace AMALGAM_ISA
 }  // namespace amalgam

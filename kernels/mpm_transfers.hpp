@@ -119,4 +119,22 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g, const 
 void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
          const MpmStepParams& prm);
 
+// The kernels above for one instruction set: mpm_transfers.cpp is compiled once per vector width
+// (core/exec/simd.hpp), each copy in its namespace with one of these tables; the functions above
+// call the table of exec::simd_path() (kernels/simd_dispatch.cpp). A new kernel of that file
+// goes in the table too.
+struct MpmKernelTable {
+  using Grid = void (*)(const exec::Space&, const MpmGridView&, const MpmStepParams&);
+  using Particles = void (*)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
+                             const MpmStepParams&);
+  Grid grid_clear;
+  Particles p2g;
+  void (*clear_node4)(const exec::Space&, const MpmGridView&, Real*);
+  void (*p2g_positions)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
+                        const MpmStepParams&, Real*);
+  Grid grid_update;
+  Grid grid_apply_colliders;
+  Particles g2p;
+};
+
 }  // namespace amalgam

@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "core/exec/simd.hpp"
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
 #include "test_util.hpp"
@@ -154,4 +155,85 @@ TEST(BackendDeterminism, MaterialsWithStateBitwiseIdentical) {
     EXPECT_GT(plastic, 10);
     EXPECT_GT(melted, 10);
   });
+}
+
+// Run-time vector width (core/exec/simd.hpp): the kernels compiled for AVX2 and AVX-512 give
+// the baseline's state bit for bit, on Serial and on 2 TBB threads. Paths this CPU (or build)
+// lacks are skipped, saying so.
+namespace {
+struct SimdGuard {  // restores the path a test found
+  exec::SimdPath saved = exec::simd_path();
+  ~SimdGuard() { exec::set_simd_path(saved); }
+};
+
+// The state after `steps` substeps of `scene` on every supported path and two configurations,
+// compared with the baseline path on Serial.
+void expect_same_on_every_path(const Scene& scene, int steps) {
+  SimdGuard guard;
+  std::vector<Real> ref;
+  for (const exec::SimdPath path :
+       {exec::SimdPath::Baseline, exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
+    if (!exec::simd_path_supported(path)) {
+      std::printf("SIMD path %s: skipped (%s)\n", exec::simd_path_name(path),
+                  exec::simd_path_compiled(path) ? "this CPU lacks it" : "not in this build");
+      continue;
+    }
+    exec::set_simd_path(path);
+    for (const exec::Space& space : {exec::Space(), exec::Space(exec::Backend::TBB, 2)}) {
+      MpmSolver s = build_solver(scene);
+      for (int i = 0; i < steps; ++i) s.step(space, s.stable_dt(space));
+      const std::vector<Real> st = state_bytes(s);
+      if (ref.empty()) {
+        ref = st;
+        continue;
+      }
+      ASSERT_EQ(st.size(), ref.size());
+      EXPECT_TRUE(test::bitwise_equal(st.data(), ref.data(), st.size()))
+          << exec::simd_path_name(path) << " on " << space.describe();
+    }
+    if (path != exec::SimdPath::Baseline)
+      std::printf("SIMD path %s: bitwise the baseline's\n", exec::simd_path_name(path));
+  }
+}
+}  // namespace
+
+TEST(SimdPaths, EveryTransferAndOrderBitwiseOnEveryPath) {
+  if (exec::supported_simd_paths().size() < 2)
+    GTEST_SKIP() << "only the baseline path runs here: " << exec::simd_description();
+  for (const char* transfer : {"mls", "apic", "flip"})
+    for (int order : {2, 3}) {
+      SCOPED_TRACE(std::string(transfer) + " order " + std::to_string(order));
+      expect_same_on_every_path(small_scene(transfer, order), 10);
+    }
+}
+
+TEST(SimdPaths, MaterialsAndImplicitBitwiseOnEveryPath) {
+  if (exec::supported_simd_paths().size() < 2)
+    GTEST_SKIP() << "only the baseline path runs here: " << exec::simd_description();
+  expect_same_on_every_path(material_scene(), 20);
+  expect_same_on_every_path(small_scene("mls", 2, "implicit"), 6);
+}
+
+TEST(SimdPaths, ParseOverrideAndDescribe) {
+  SimdGuard guard;
+  EXPECT_EQ(exec::parse_simd_path("baseline"), exec::SimdPath::Baseline);
+  EXPECT_EQ(exec::parse_simd_path("AUTO"), exec::best_simd_path());
+  EXPECT_EQ(exec::supported_simd_paths().front(), exec::SimdPath::Baseline);
+  try {
+    exec::parse_simd_path("sse9");
+    ADD_FAILURE() << "an unknown path was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("unknown SIMD path 'sse9'"), std::string::npos);
+  }
+  for (const exec::SimdPath p : {exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
+    if (exec::simd_path_supported(p)) {
+      exec::set_simd_path(p);
+      EXPECT_EQ(exec::simd_path(), p);
+      EXPECT_EQ(exec::simd_description().rfind(exec::simd_path_name(p), 0), 0u);
+    } else {
+      EXPECT_THROW(exec::set_simd_path(p), std::invalid_argument);
+    }
+  }
+  exec::set_simd_path(exec::SimdPath::Baseline);
+  EXPECT_EQ(exec::simd_description().rfind("baseline", 0), 0u);
 }

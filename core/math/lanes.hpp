@@ -1,6 +1,7 @@
 // One native vector register of T (float or double) as a GCC/Clang vector type, for kernels that
 // run the same scalar algorithm on several particles at once (structure of arrays across lanes):
-// 16 bytes (SSE2, the portable build), 32 with AVX. Operators are element-wise IEEE operations,
+// 16 bytes (SSE2, the portable build), 32 with AVX, 64 with AVX-512F (the kernel variants of
+// core/exec/simd.hpp are compiled with these flags). Operators are element-wise IEEE operations,
 // so lane l computes exactly what the scalar code computes for particle l, whatever the other
 // lanes hold; a comparison gives a mask (all ones or zero per lane) that selects with ?:.
 #pragma once
@@ -19,7 +20,9 @@
 
 namespace amalgam::lanes {
 
-#if defined(__AVX__)
+#if defined(__AVX512F__)
+inline constexpr int kBytes = 64;
+#elif defined(__AVX__)
 inline constexpr int kBytes = 32;
 #else
 inline constexpr int kBytes = 16;

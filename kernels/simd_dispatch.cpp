@@ -1,0 +1,49 @@
+// The public entry points of the kernel files compiled once per instruction set
+// (core/exec/simd.hpp; kernels/CMakeLists.txt, amalgam_simd_variants): each call runs the
+// variant of exec::simd_path().
+#include "core/exec/simd.hpp"
+#include "kernels/mpm_transfers.hpp"
+
+namespace amalgam {
+
+AMALGAM_SIMD_DECLARE(MpmKernelTable, mpm_kernels)
+
+namespace {
+const MpmKernelTable& mpm() {
+  return AMALGAM_SIMD_PICK(mpm_kernels);
+}
+// The node loops (clear, update, colliders) run the baseline's code on every path: measured
+// alternated by CPU time, the grid update's AVX2 and AVX-512 builds were 11 % and 4 % slower
+// than the baseline's (docs/benchmarks.md, "Run-time vector width"); their results are the same.
+const MpmKernelTable& mpm_nodes() {
+  return isa_baseline::mpm_kernels;
+}
+}  // namespace
+
+void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
+  mpm_nodes().grid_clear(space, g, prm);
+}
+void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+         const MpmStepParams& prm) {
+  mpm().p2g(space, p, g, prm);
+}
+void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out) {
+  mpm_nodes().clear_node4(space, g, out);
+}
+void p2g_positions(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                   const MpmStepParams& prm, Real* out) {
+  mpm().p2g_positions(space, p, g, prm, out);
+}
+void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
+  mpm_nodes().grid_update(space, g, prm);
+}
+void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
+                          const MpmStepParams& prm) {
+  mpm_nodes().grid_apply_colliders(space, g, prm);
+}
+void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+         const MpmStepParams& prm) {
+  mpm().g2p(space, p, g, prm);
+}
+
+}  // namespace amalgam
