@@ -1,6 +1,6 @@
 // MPM solver (course report Sec. 3.2; MLS-MPM as in A-ULMPM Sec. 5.8): the explicit core, which
 // the other MPM variants compose with. One substep, MpmSolver::step():
-//   sort_particles   stable radix sort by grid leaf, bins           (sparse_grid/binning)
+//   sort_particles   radix sort by grid leaf, then id in a bin; bins (sparse_grid/binning)
 //   update_grid      activate leaves, tables, colours                (sparse_grid)
 //   particle_to_grid mass, momentum, stress forces                   (kernels p2g)
 //   update_grid_velocities  p/m, gravity, forces -> v*; colliders    (kernels grid_update)

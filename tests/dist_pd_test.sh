@@ -3,10 +3,10 @@
 # run on 1, 2, 3 and 4 MPI ranks (and 2 ranks x 2 threads) are bitwise those of the single
 # process; a run checkpointed on 3 ranks resumes on 2 and on 1 and ends bitwise as the
 # uninterrupted run; an interrupt under mpirun stops every rank with exit 130 and a checkpoint
-# that resumes bitwise; MPM refuses several ranks with a clear message.
-# Usage: dist_pd_test.sh AMALGAM MPIEXEC SCENE MPM_SCENE OUTDIR
+# that resumes bitwise. (Distributed MPM: dist_mpm_test.sh.)
+# Usage: dist_pd_test.sh AMALGAM MPIEXEC SCENE OUTDIR
 set -u
-amalgam=$1 mpiexec=$2 scene=$3 mpm=$4 out=$5
+amalgam=$1 mpiexec=$2 scene=$3 out=$4
 export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1
 mpi() { local np=$1; shift; timeout 300 "$mpiexec" --oversubscribe -np "$np" "$amalgam" "$@"; }
 rm -rf "$out"
@@ -40,10 +40,4 @@ ls "$out/int"/*.tmp >/dev/null 2>&1 && { echo "half-written files left"; exit 1;
 mpi 3 run "$scene" --threads 1 --out "$out/int" --resume "$out/int/checkpoint.amck" --quiet ||
   { echo "resume after the interrupt failed"; exit 1; }
 same "$out/int" || exit 1
-# MPM does not run distributed yet: a clear refusal (exit 3), no frame written.
-msg=$(mpi 2 run "$mpm" --out "$out/mpm" --quiet 2>&1)
-rc=$?
-[ $rc -eq 3 ] || { echo "MPM on 2 ranks exited $rc, expected 3: $msg"; exit 1; }
-echo "$msg" | grep -q "MPM does not run on several MPI ranks yet" || { echo "unclear message: $msg"; exit 1; }
-ls "$out/mpm"/frame_* >/dev/null 2>&1 && { echo "MPM on 2 ranks wrote frames"; exit 1; }
 echo "distributed peridynamics: $(echo "$files" | wc -l) files bitwise identical on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1 ranks and after an interrupt on 4"
