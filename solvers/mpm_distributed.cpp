@@ -133,8 +133,6 @@ void MpmSolver::refuse_distributed() const {
   if (implicit_) refuse("implicit integration (simulation.implicit) is");
   if (aul_) refuse("A-ULMPM configuration maps (objects' \"configuration\") are");
   if (enriched_) refuse("particle domains (simulation.domains) are");
-  if (!emitters_.empty()) refuse("emitters are");
-  if (settings_.kill.enabled()) refuse("kill regions (simulation.kill) are");
   if (sleep_) refuse("sleeping (simulation.sleep) is");
   for (const Collider& c : colliders_)
     if (c.field) refuse("mesh and level-set colliders are");
@@ -462,6 +460,9 @@ void MpmSolver::gather_particles(ParticleSet& out) const {
     for (std::size_t b = 0; b < bins_.count(); ++b)
       for (std::uint32_t p = bins_.start[b]; p < bins_.start[b + 1]; ++p)
         order[2 * p] = leaf_key(bins_.leaf[b]), order[2 * p + 1] = std::uint64_t(id[p]);
+    // Particles emitted after the sort follow every sorted one, by id (emission order).
+    for (std::size_t p = bins_.start.empty() ? 0 : bins_.start.back(); p < n; ++p)
+      order[2 * p] = ~std::uint64_t(0), order[2 * p + 1] = std::uint64_t(id[p]);
   } else {
     for (std::size_t p = 0; p < n; ++p) order[2 * p] = rk.presort[p], order[2 * p + 1] = 0;
   }
@@ -501,6 +502,25 @@ void MpmSolver::gather_particles(ParticleSet& out) const {
       src += wa * 4;
     }
   }
+}
+
+// Emitted particles [first, size) were added on every rank: each keeps those in its own leaves.
+void MpmSolver::keep_owned_emitted(const exec::Space& space, std::size_t first) {
+  const int me = dist::Comm::world().rank();
+  const Vec3* x = particles_.vec3(attr_.x);
+  std::vector<std::uint32_t> keep(first);
+  for (std::size_t p = 0; p < first; ++p) keep[p] = std::uint32_t(p);
+  for (std::size_t p = first; p < particles_.size(); ++p)
+    if (x[p].allFinite() && ranks_->owner(particle_leaf(x[p])) == me)
+      keep.push_back(std::uint32_t(p));
+  if (keep.size() < particles_.size()) particles_.compact(space, keep.data(), keep.size());
+}
+
+// A stable compaction kept the particles `kept` (increasing): the bins of the last sort, which
+// give the gathered order, follow them.
+void MpmSolver::compact_bins(const std::vector<std::uint32_t>& kept) {
+  for (std::uint32_t& s : bins_.start)
+    s = std::uint32_t(std::lower_bound(kept.begin(), kept.end(), s) - kept.begin());
 }
 
 void MpmSolver::save_distributed(Snapshot& s) const {

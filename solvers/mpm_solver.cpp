@@ -160,6 +160,7 @@ void MpmSolver::restore_sources(std::int64_t next_id, const SourceCounters& c) {
 }
 
 void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
+  const std::size_t before = particles_.size();
   for (const EmitterSpec& e : emitters_) {
     emitted_x_.clear();
     e.emit(settings_.dx, t0, t1, emitted_x_);
@@ -169,6 +170,8 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
                   e.temperature);
     sources_.emitted += std::int64_t(emitted_x_.size());
   }
+  // Distributed: every rank emits alike (same ids) and keeps what falls in its own leaves.
+  if (ranks_ && particles_.size() > before) keep_owned_emitted(space, before);
   if (!settings_.kill.enabled()) return;
   const std::size_t n = particles_.size();
   keep_.resize(n);
@@ -176,9 +179,14 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
   kept_.clear();
   for (std::size_t p = 0; p < n; ++p)
     if (keep_[p]) kept_.push_back(std::uint32_t(p));
+  // Distributed: the count removed on all ranks (every rank's counters stay the same).
+  const std::uint64_t killed = ranks_ ? dist::Comm::world().sum(std::uint64_t(n - kept_.size()))
+                                      : std::uint64_t(n - kept_.size());
+  if (kept_.size() == n && killed == 0) return;
+  sources_.killed += std::int64_t(killed);
   if (kept_.size() == n) return;
-  sources_.killed += std::int64_t(n - kept_.size());
   particles_.compact(space, kept_.data(), kept_.size());
+  if (ranks_) compact_bins(kept_);
 }
 
 MpmParticleView MpmSolver::particle_view() {

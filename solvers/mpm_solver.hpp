@@ -228,6 +228,8 @@ class MpmSolver {
   void update_grid_distributed(const exec::Space& space);
   void particle_to_grid_distributed(const exec::Space& space, Real dt);
   void update_grid_velocities_distributed(const exec::Space& space, Real dt);
+  void keep_owned_emitted(const exec::Space& space, std::size_t first);
+  void compact_bins(const std::vector<std::uint32_t>& kept);
   void save_distributed(Snapshot& s) const;
   void restore_distributed(const Snapshot& s);
   MpmSettings settings_;
