@@ -149,58 +149,91 @@ __attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const V
   }
 }
 
+// Scatters bin b's particles into its zeroed block (P2G of one bin, before the flush).
+template <int Order, Transfer T, bool L, bool P, int CH>
+inline void scatter_bin(Block<Order, CH>& blk, std::uint32_t b, const MpmParticleView& p,
+                        const MpmGridView& g, const MpmStepParams& prm) {
+  const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
+  std::memset(blk.data, 0, sizeof(blk.data));
+  const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+  // Particles in batches of up to W of one material: their stresses at once (one per vector
+  // lane, the values of one at a time: MaterialParams::kirchhoff_lanes), then their scatter.
+  constexpr int W = lanes::kN<Real>;
+  const std::uint32_t q1 = g.end_of(b);
+  for (std::uint32_t q0 = g.bin_start[b]; q0 < q1;) {
+    const int n = one_material_run<W>(p.material, q0, q1);
+    Real plastic[W], temperature[W];
+    Mat3 tau[W], Lv[W], Fs_inv[W];
+    for (int l = 0; l < n; ++l) {
+      const std::uint32_t q = q0 + std::uint32_t(l);
+      plastic[l] = p.plastic ? p.plastic[q] : Real(0);
+      temperature[l] = p.temperature ? p.temperature[q] : Real(0);
+      if constexpr (L) {
+        // A-ULMPM eq. 20: P^0 (F^{0s})^T = tau (F^{sn})^{-T}; the material sees the spatial
+        // velocity gradient grad_s v (F^{sn})^{-1}.
+        Fs_inv[l] = p.F_s[q].inverse();
+        Lv[l] = p.C[q] * Fs_inv[l];
+      }
+    }
+    prm.materials[p.material[q0]].kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic, temperature,
+                                                  tau, n);
+    for (int l = 0; l < n; ++l) {
+      const std::uint32_t q = q0 + std::uint32_t(l);
+      if constexpr (!L) {
+        p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l], p.mass[q],
+                                   p.volume0[q], dx, inv_dx, dt);
+      } else {
+        p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q],
+                                      tau[l] * Fs_inv[l].transpose(), p.mass[q], p.volume0[q], dx,
+                                      inv_dx, dt, p.x[q], p.F_s[q]);
+      }
+    }
+    q0 += std::uint32_t(n);
+  }
+}
+
+// Distributed P2G: adds the partial blocks other ranks computed for this rank's leaves, those
+// of colour c (at most one per leaf: a colour's blocks do not overlap), into a and `second`.
+template <int CH>
+void add_imports(const exec::Space& space, const MpmGridView& g, int order, int c, Real* second) {
+  if (!g.imports) return;
+  const std::uint32_t i0 = g.import_colour_start[c], i1 = g.import_colour_start[c + 1];
+  exec::parallel_for(space, "mpm.p2g_imports", exec::Index(i1 - i0), [&](exec::Index ii) {
+    const P2GImport& im = g.imports[i0 + std::uint32_t(ii)];
+    const int t = im.t, ni = (t >> 2) & 1 ? order : kLeafDim, nj = (t >> 1) & 1 ? order : kLeafDim,
+              nk = t & 1 ? order : kLeafDim;
+    const Real* s = im.data;
+    for (int i = 0; i < ni; ++i)
+      for (int j = 0; j < nj; ++j)
+        for (int k = 0; k < nk; ++k, s += CH) {
+          const std::size_t n =
+              (std::size_t(im.leaf) * kLeafNodes + std::size_t(leaf_offset(i, j, k))) * 4;
+          simd::store4(g.a + n, simd::load4(g.a + n) + simd::load4(s));
+          if constexpr (CH == 8)
+            simd::store4(second + n, simd::load4(second + n) + simd::load4(s + 4));
+        }
+  });
+}
+
 template <int Order, Transfer T, bool L, bool P = false>
 void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
               const MpmStepParams& prm) {
   constexpr int CH = P ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
-  const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
+  Real* second = P ? g.q_out : g.b;
   for (int c = 0; c < 8; ++c) {
+    // Other ranks' partial blocks of this colour first (their leaves and this colour's local
+    // blocks are disjoint, so the order within a colour does not matter).
+    add_imports<CH>(space, g, Order, c, second);
     const std::uint32_t c0 = g.colour_start[c], c1 = g.colour_start[c + 1];
     exec::parallel_for(
         space, "mpm.p2g", exec::Index(c1 - c0),
         [&](exec::Index ci) {
           const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
           Blk blk;
-          std::memset(blk.data, 0, sizeof(blk.data));
-          const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-          // Particles in batches of up to W of one material: their stresses at once (one per vector
-          // lane, the values of one at a time: MaterialParams::kirchhoff_lanes), then their scatter.
-          constexpr int W = lanes::kN<Real>;
-          const std::uint32_t q1 = g.end_of(b);
-          for (std::uint32_t q0 = g.bin_start[b]; q0 < q1;) {
-            const int n = one_material_run<W>(p.material, q0, q1);
-            Real plastic[W], temperature[W];
-            Mat3 tau[W], Lv[W], Fs_inv[W];
-            for (int l = 0; l < n; ++l) {
-              const std::uint32_t q = q0 + std::uint32_t(l);
-              plastic[l] = p.plastic ? p.plastic[q] : Real(0);
-              temperature[l] = p.temperature ? p.temperature[q] : Real(0);
-              if constexpr (L) {
-                // A-ULMPM eq. 20: P^0 (F^{0s})^T = tau (F^{sn})^{-T}; the material sees the spatial
-                // velocity gradient grad_s v (F^{sn})^{-1}.
-                Fs_inv[l] = p.F_s[q].inverse();
-                Lv[l] = p.C[q] * Fs_inv[l];
-              }
-            }
-            prm.materials[p.material[q0]].kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic,
-                                                          temperature, tau, n);
-            for (int l = 0; l < n; ++l) {
-              const std::uint32_t q = q0 + std::uint32_t(l);
-              if constexpr (!L) {
-                p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l], p.mass[q],
-                                           p.volume0[q], dx, inv_dx, dt);
-              } else {
-                p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q],
-                                              tau[l] * Fs_inv[l].transpose(), p.mass[q],
-                                              p.volume0[q], dx, inv_dx, dt, p.x[q], p.F_s[q]);
-              }
-            }
-            q0 += std::uint32_t(n);
-          }
+          scatter_bin<Order, T, L, P>(blk, b, p, g, prm);
           // Flush into the 8 target leaves; P: (m, m q) into q_out, PIC/FLIP: the force lanes into b
           // (their lane 0 is 0, so b's stays 0).
-          Real* second = P ? g.q_out : g.b;
           blk.for_each_node(g.nbr8[b], [&](const Real* s, std::size_t leaf, int off) {
             const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
             simd::store4(g.a + n, simd::load4(g.a + n) + simd::load4(s));
@@ -210,6 +243,22 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
         },
         1);
   }
+}
+
+// Distributed P2G: the blocks of the listed bins, each handed to `take` (on the exec threads).
+template <int Order, Transfer T>
+void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                     const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
+                     const std::function<void(std::size_t, const Real*, int)>& take) {
+  constexpr int CH = channels_of(T);
+  exec::parallel_for(
+      space, "mpm.p2g_exports", exec::Index(nbins),
+      [&](exec::Index k) {
+        Block<Order, CH> blk;
+        scatter_bin<Order, T, false, false>(blk, bins[k], p, g, prm);
+        take(std::size_t(k), blk.data, CH);
+      },
+      1);
 }
 
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
@@ -459,6 +508,37 @@ void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepPar
 void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
          const MpmStepParams& prm) {
   dispatch<P2G>(prm.order, prm.transfer, space, p, g, prm);
+}
+
+template <int O, Transfer T>
+struct P2GBlocks {
+  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g,
+                  const MpmStepParams& prm, const std::uint32_t* bins, std::size_t n,
+                  const std::function<void(std::size_t, const Real*, int)>& take) {
+    p2g_blocks_impl<O, T>(s, p, g, prm, bins, n, take);
+  }
+};
+
+void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
+                const std::function<void(std::size_t, const Real*, int)>& take) {
+  dispatch<P2GBlocks>(prm.order, prm.transfer, space, p, g, prm, bins, nbins, take);
+}
+
+int block_part_nodes(int order, int t) {
+  return ((t >> 2) & 1 ? order : kLeafDim) * ((t >> 1) & 1 ? order : kLeafDim) *
+         (t & 1 ? order : kLeafDim);
+}
+
+void copy_block_part(const Real* block, int order, int ch, int t, Real* out) {
+  const int B = kLeafDim + order, tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
+  const int ni = tx ? order : kLeafDim, nj = ty ? order : kLeafDim, nk = tz ? order : kLeafDim;
+  for (int i = 0; i < ni; ++i)
+    for (int j = 0; j < nj; ++j)
+      for (int k = 0; k < nk; ++k, out += ch) {
+        const int at = (((tx * kLeafDim + i) * B + ty * kLeafDim + j) * B + tz * kLeafDim + k) * ch;
+        std::memcpy(out, block + at, std::size_t(ch) * sizeof(Real));
+      }
 }
 
 void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out) {

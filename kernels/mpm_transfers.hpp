@@ -19,6 +19,7 @@
 
 #include <array>
 #include <cstdint>
+#include <functional>
 
 #include "core/exec/exec.hpp"
 #include "core/materials/material.hpp"
@@ -56,6 +57,19 @@ struct MpmParticleView {
   const Mat3* F_0s = nullptr;
 };
 
+// Distributed P2G (solvers/mpm_distributed.cpp): the part of another rank's bin block that falls
+// in leaf `leaf` of this rank, the block's neighbour t (0..7: +x, +y, +z by bit, as nbr8), its
+// nodes i < ni, j < nj, k < nk of the leaf (8, or Order on a + side) z fastest, CH Reals each.
+struct P2GImport {
+  std::int32_t leaf;
+  std::int32_t t;
+  const Real* data;
+};
+// Nodes of a bin block's part in its neighbour leaf t, and that part copied out of the block
+// (`block`: the (8 + order)^3 x ch block of p2g_blocks) in P2GImport's layout.
+int block_part_nodes(int order, int t);
+void copy_block_part(const Real* block, int order, int ch, int t, Real* out);
+
 // What they use of the grid: channel sets and tables from SparseGrid + BinTable.
 struct MpmGridView {
   Real* a;  // [leaf][512][4]: (m, p) after P2G; (m, v_new) after the grid update
@@ -79,6 +93,11 @@ struct MpmGridView {
   // [bin_start[b], bin_end[b]) in P2G and G2P (bin_end[b] = bin_start[b]: the bin sleeps).
   const std::uint32_t* bin_end = nullptr;
   std::uint32_t end_of(std::size_t b) const { return bin_end ? bin_end[b] : bin_start[b + 1]; }
+  // Distributed P2G: partial blocks of other ranks' bins, grouped by the colour of their bin
+  // (imports[import_colour_start[c] .. [c + 1])); P2G adds colour c's before flushing its own
+  // colour-c bins, so every node sums the same blocks in the same order as one process.
+  const P2GImport* imports = nullptr;
+  const std::uint32_t* import_colour_start = nullptr;  // 9 entries
 };
 
 class SparseGrid;
@@ -103,6 +122,11 @@ void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepPar
 // Particle -> grid scatter of mass, momentum and (per scheme) force.
 void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
          const MpmStepParams& prm);
+// Distributed P2G: the P2G block of each listed bin, handed to take(k, block, ch) for bins[k]
+// (called on the exec threads, one bin at a time each; explicit Eulerian transfers only).
+void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
+                const std::function<void(std::size_t, const Real*, int)>& take);
 // Zeroes the active leaves of a [leaf][512][4] array (g.q_out before a fused P2G).
 void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out);
 // Lagrangian mode: scatters (m_p, m_p (x_p + F_s (X_i - X_p))) into `out` ([leaf][512][4]),

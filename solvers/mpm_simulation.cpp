@@ -7,6 +7,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "core/dist/comm.hpp"
 #include "core/errors.hpp"
 #include "solvers/mpm_aul.hpp"
 #include "solvers/mpm_enriched.hpp"
@@ -164,12 +165,29 @@ std::vector<Column> state_columns(const MpmDiagnostics& d) {
 }
 }  // namespace
 
+const ParticleSet& MpmSimulation::all_particles() const {
+  if (!s_.distributed()) return s_.particles();
+  if (gathered_version_ != s_.state_version()) {
+    s_.gather_particles(gathered_);
+    gathered_version_ = s_.state_version();
+  }
+  return gathered_;
+}
+
 std::vector<Column> MpmSimulation::sample(const exec::Space& space) const {
-  return state_columns(s_.diagnostics(space));
+  return state_columns(mpm_diagnostics(space, all_particles(), s_.attributes(), s_.materials()));
 }
 
 FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substeps) {
-  const MpmDiagnostics d = s_.diagnostics(space);
+  const MpmDiagnostics d = mpm_diagnostics(space, all_particles(), s_.attributes(), s_.materials());
+  // Distributed: the leaf counts summed over the ranks (owned active leaves: the single
+  // process's active leaves).
+  const dist::Comm& comm = dist::Comm::world();
+  const bool many = s_.distributed();
+  const double leaves = many ? double(comm.sum(std::uint64_t(s_.grid().leaf_count())))
+                             : double(s_.grid().leaf_count());
+  const double active = many ? double(comm.sum(std::uint64_t(s_.owned_active_leaves())))
+                             : double(s_.grid().active_leaves().size());
   FrameReport r;
   r.columns = state_columns(d);
   r.kinetic = d.kinetic;
@@ -185,9 +203,9 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
   ++frames_;
   r.columns.insert(
       r.columns.end(),
-      {{"particles", double(s_.particles().size()), true},
-       {"leaves", double(s_.grid().leaf_count()), true},
-       {"active_leaves", double(s_.grid().active_leaves().size()), true},
+      {{"particles", double(all_particles().size()), true},
+       {"leaves", leaves, true},
+       {"active_leaves", active, true},
        {"cg_iterations", double(ic.iterations), true},
        {"cg_max_iterations", double(ic.max_iterations), true},
        {"cg_max_residual", ic.max_residual},
@@ -252,6 +270,7 @@ std::string MpmSimulation::substep_log_row(int frame, Real dt) const {
 
 std::string MpmSimulation::run_summary(double wall) const {
   std::ostringstream os;
+  os << s_.distributed_summary();  // collective
   // A-ULMPM: configuration resets per object and the time they (and the re-binning they force)
   // took, against the whole run.
   const MpmAul* aul = s_.aul();

@@ -57,17 +57,23 @@ class MpmSimulation final : public Simulation {
 
   PointFields point_fields(const std::vector<std::string>& names,
                            const exec::Space& space) override {
-    return mpm_point_fields(s_.particles(), s_.attributes(), s_.materials(), names, space,
+    return mpm_point_fields(all_particles(), s_.attributes(), s_.materials(), names, space,
                             rest_.empty() ? nullptr : &rest_);
   }
+  // Distributed (solvers/mpm_distributed.cpp): the particles are split across the ranks here.
+  void begin_run(const exec::Space& space) override { s_.distribute(space); }
+  void prepare_checkpoint() override { (void)all_particles(); }
   void keep_rest_positions() override;
   double point_voxel_size() const override { return double(s_.settings().dx); }
   bool surface(SurfaceMesh& out) const override;
   const char* surface_pattern() const override { return "frame_%04d_surface"; }
   const SparseGrid* grid() const override { return &s_.grid(); }
 
-  const ParticleSet& particles() const override { return s_.particles(); }
-  ParticleSet& particles() override { return s_.particles(); }
+  // Distributed: rank 0's gathered copy of every rank's particles (what checkpoints write).
+  const ParticleSet& particles() const override {
+    return s_.distributed() ? gathered_ : s_.particles();
+  }
+  ParticleSet& particles() override { return s_.distributed() ? gathered_ : s_.particles(); }
   std::vector<StateSection> checkpoint_sections() override;
   std::vector<StateSection> restore_sections() override;
   std::size_t max_particle_count() const override { return max_particles_; }
@@ -77,7 +83,13 @@ class MpmSimulation final : public Simulation {
   void restored(double time, std::uint64_t steps) override;
 
  private:
+  // Every particle, in the single process's order: the solver's own on one process; distributed,
+  // gathered to rank 0 (empty elsewhere) once per state. Collective when distributed. The one
+  // place a distributed run joins its particles (per-rank output would replace it).
+  const ParticleSet& all_particles() const;
   MpmSolver s_;
+  mutable ParticleSet gathered_;
+  mutable std::uint64_t gathered_version_ = ~std::uint64_t(0);
   MpmSolver::Snapshot snapshot_;
   std::vector<Vec3> rest_;  // rest positions by particle id (keep_rest_positions), or empty
   double frame_time_ = 0;

@@ -6,6 +6,7 @@
 #include <limits>
 #include <sstream>
 
+#include "core/dist/comm.hpp"
 #include "core/errors.hpp"
 #include "core/geometry/level_set_collider.hpp"
 #include "solvers/mpm_aul.hpp"
@@ -81,6 +82,7 @@ void MpmSolver::save(Snapshot& s) const {
     const Vec3* c = enriched_->domains().corner_positions();
     s.corners.assign(c, c + enriched_->domains().corner_count());
   }
+  if (ranks_) save_distributed(s);
 }
 void MpmSolver::restore(const Snapshot& s) {
   particles_.restore(s.particles);
@@ -89,10 +91,13 @@ void MpmSolver::restore(const Snapshot& s) {
   if (enriched_)
     std::copy(s.corners.begin(), s.corners.end(), enriched_->domains().corner_positions());
   if (aul_) aul_->invalidate_bins();
+  if (ranks_) restore_distributed(s);
+  ++state_version_;
 }
 void MpmSolver::restore_clock(double time, std::uint64_t steps) {
   time_ = time;
   steps_ = steps;
+  ++state_version_;
   if (aul_)
     aul_->invalidate_bins();  // particles may have been replaced: re-bin before the next transfer
 }
@@ -155,6 +160,7 @@ void MpmSolver::restore_sources(std::int64_t next_id, const SourceCounters& c) {
 }
 
 void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
+  const std::size_t before = particles_.size();
   for (const EmitterSpec& e : emitters_) {
     emitted_x_.clear();
     e.emit(settings_.dx, t0, t1, emitted_x_);
@@ -164,6 +170,8 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
                   e.temperature);
     sources_.emitted += std::int64_t(emitted_x_.size());
   }
+  // Distributed: every rank emits alike (same ids) and keeps what falls in its own leaves.
+  if (ranks_ && particles_.size() > before) keep_owned_emitted(space, before);
   if (!settings_.kill.enabled()) return;
   const std::size_t n = particles_.size();
   keep_.resize(n);
@@ -171,9 +179,14 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
   kept_.clear();
   for (std::size_t p = 0; p < n; ++p)
     if (keep_[p]) kept_.push_back(std::uint32_t(p));
+  // Distributed: the count removed on all ranks (every rank's counters stay the same).
+  const std::uint64_t killed = ranks_ ? dist::Comm::world().sum(std::uint64_t(n - kept_.size()))
+                                      : std::uint64_t(n - kept_.size());
+  if (kept_.size() == n && killed == 0) return;
+  sources_.killed += std::int64_t(killed);
   if (kept_.size() == n) return;
-  sources_.killed += std::int64_t(n - kept_.size());
   particles_.compact(space, kept_.data(), kept_.size());
+  if (ranks_) compact_bins(kept_);
 }
 
 MpmParticleView MpmSolver::particle_view() {
@@ -225,11 +238,17 @@ MpmStepParams MpmSolver::step_params(Real dt) const {
 }
 
 void MpmSolver::sort_particles(const exec::Space& space) {
+  if (ranks_) return sort_distributed(space);
+  // Plain MPM: particles in (leaf, id) order, independent of their previous order, so that the
+  // ranks of a distributed run, each sorting the particles of its own leaves, put every bin's
+  // particles in the single process's order (the P2G sums of a node then add the same values in
+  // the same order; docs/architecture.md, "Distributed runs"). A-ULMPM keeps its stable order.
   binning_.sort_and_bin(space, particles_, aul_ ? aul_->attributes().X_s : attr_.x, settings_.dx,
-                        settings_.order, bins_);
+                        settings_.order, bins_, aul_ ? -1 : attr_.id);
 }
 
 void MpmSolver::update_grid(const exec::Space& space) {
+  if (ranks_) return update_grid_distributed(space);
   grid_.update_topology(space, bins_);
   if (sleep_)
     sleep_->decide(space, particles_, attr_, bins_, settings_.dx, time_, colliders_at(Real(time_)),
@@ -248,6 +267,7 @@ bool MpmSolver::positions_needed() const {
 }
 
 void MpmSolver::particle_to_grid(const exec::Space& space, Real dt) {
+  if (ranks_) return particle_to_grid_distributed(space, dt);
   MpmGridView g = grid_view();
   const MpmStepParams prm = step_params(dt);
   grid_clear(space, g, prm);
@@ -258,6 +278,7 @@ void MpmSolver::particle_to_grid(const exec::Space& space, Real dt) {
   p2g(space, particle_view(), g, prm);
 }
 void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
+  if (ranks_) return update_grid_velocities_distributed(space, dt);
   MpmStepParams prm = step_params(dt);
   if (implicit_) prm.ncolliders = 0;  // the implicit solve takes the colliders as constraints
   MpmGridView g = grid_view();
@@ -332,6 +353,7 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
   const double t0 = time_;
   time_ += double(dt);
   ++steps_;
+  ++state_version_;
   if (!emitters_.empty() || settings_.kill.enabled()) emit_and_kill(space, t0, time_);
 }
 
@@ -381,6 +403,28 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
         a.max_wave = std::max(a.max_wave, b.max_wave);
         return a;
       });
+  // Distributed: the guard's verdict and the speeds are reduced exactly (a flag, maxima), and
+  // every rank throws the message of the first rank that found a bad particle.
+  const dist::Comm& comm = dist::Comm::world();
+  const bool many = ranks_ && comm.size() > 1;
+  if (many && comm.max(std::int64_t(chk.bad >= 0)) > 0) {
+    std::string msg;
+    if (chk.bad >= 0)
+      msg = "step " + std::to_string(steps_) + ": particle id " +
+            std::to_string(particles_.int32(attr_.id)[chk.bad]) + " (rank " +
+            std::to_string(comm.rank()) + ") " +
+            (chk.what == 1   ? "has a non-finite velocity"
+             : chk.what == 2 ? "has a non-finite deformation gradient F"
+                             : "moves above the stability limit max_speed") +
+            "; the simulation blew up (reduce cfl or max_dt, or check material stiffness)";
+    std::vector<std::size_t> sizes;
+    const std::vector<char> all = comm.allgather(std::vector<char>(msg.begin(), msg.end()), &sizes);
+    std::size_t at = 0;
+    for (std::size_t q = 0; q < sizes.size() && msg.empty(); at += sizes[q++])
+      if (sizes[q] > 0)
+        msg.assign(all.begin() + std::ptrdiff_t(at), all.begin() + std::ptrdiff_t(at + sizes[q]));
+    throw SimulationError(msg);
+  }
   if (chk.bad >= 0) {
     std::ostringstream os;
     os << "step " << steps_ << " (t = " << time_ << " s): particle " << chk.bad << " ";
@@ -398,9 +442,10 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
   // Implicit: the elastic waves are integrated stably, only the material speed limits dt (but
   // particles whose domain is disabled have explicit stresses).
   const bool explicit_stress = !implicit_ || (enriched_ && enriched_->explicit_stresses());
-  const Real wave = explicit_stress ? std::max(max_wave_speed_, chk.max_wave) : Real(0);
+  const Real max_wave = many ? Real(comm.max(double(chk.max_wave))) : chk.max_wave;
+  const Real wave = explicit_stress ? std::max(max_wave_speed_, max_wave) : Real(0);
   // Emitters about to emit start at their velocity.
-  Real speed = chk.max_speed;
+  Real speed = many ? Real(comm.max(double(chk.max_speed))) : chk.max_speed;
   for (const EmitterSpec& e : emitters_)
     if (time_ < e.end) speed = std::max(speed, e.velocity.norm());
   const Real denom = speed + wave;
@@ -426,6 +471,12 @@ std::vector<Vec3d> MpmSolver::positions_by_id() const {
 }
 
 MpmDiagnostics MpmSolver::diagnostics(const exec::Space& space) const {
+  return mpm_diagnostics(space, particles_, attr_, materials_);
+}
+
+MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& particles_,
+                               const MpmAttributes& attr_,
+                               const std::vector<MaterialParams>& materials_) {
   struct Acc {
     double ke = 0, ee = 0, m = 0, vmax = 0;
     Vec3d p = Vec3d::Zero();

@@ -1,6 +1,6 @@
 // MPM solver (course report Sec. 3.2; MLS-MPM as in A-ULMPM Sec. 5.8): the explicit core, which
 // the other MPM variants compose with. One substep, MpmSolver::step():
-//   sort_particles   stable radix sort by grid leaf, bins           (sparse_grid/binning)
+//   sort_particles   radix sort by grid leaf, then id in a bin; bins (sparse_grid/binning)
 //   update_grid      activate leaves, tables, colours                (sparse_grid)
 //   particle_to_grid mass, momentum, stress forces                   (kernels p2g)
 //   update_grid_velocities  p/m, gravity, forces -> v*; colliders    (kernels grid_update)
@@ -21,6 +21,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <string>
 #include <vector>
 
 #include "core/exec/exec.hpp"
@@ -75,6 +76,11 @@ struct MpmDiagnostics {
   double max_speed = 0;
   double mass = 0;
 };
+
+// Energies, momentum and speeds of MPM particles (a parallel_reduce over them in their order).
+MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& particles,
+                               const MpmAttributes& attr,
+                               const std::vector<MaterialParams>& materials);
 
 // The channel sets of the grid's node rows ([leaf][512][4] per set) for a run, decided once:
 // set 0 holds (m, p) -> (m, v); PIC/FLIP and particle domains use set 1 for (-, f) -> (-, dv);
@@ -168,6 +174,10 @@ class MpmSolver {
     std::vector<Vec3> corners;
     std::int64_t next_id = 0;
     SourceCounters sources;
+    // Distributed: the bins of the particles' order (gather_particles).
+    BinTable bins;
+    bool sorted = false;
+    std::vector<std::uint64_t> presort;
   };
   void save(Snapshot& s) const;
   void restore(const Snapshot& s);
@@ -175,6 +185,20 @@ class MpmSolver {
   void set_cfl(Real cfl) { settings_.cfl = cfl; }
   // Restores the clock after particles were loaded from a checkpoint.
   void restore_clock(double time, std::uint64_t steps);
+
+  // --- Distributed runs (solvers/mpm_distributed.cpp, issue 28). Collective: keeps on this rank
+  // only the particles of the leaves it owns (Zoltan RCB of the leaves weighted by particles);
+  // throws InputError naming a feature that does not run distributed yet. One rank: nothing.
+  void distribute(const exec::Space& space);
+  bool distributed() const { return ranks_ != nullptr; }
+  // Collective: every rank's particles on rank 0 in the single process's order (`out` holds
+  // them there, no particle elsewhere): for frames, diagnostics and checkpoints.
+  void gather_particles(ParticleSet& out) const;
+  // Changes whenever the particles may have changed (a substep, a restore, distribute).
+  std::uint64_t state_version() const { return state_version_; }
+  // Collective: ranks, repartitions, imbalance and halo of the last substep, for the run summary.
+  std::string distributed_summary() const;
+  std::size_t owned_active_leaves() const;  // distributed: the active leaves this rank owns
 
   MpmParticleView particle_view();
   MpmGridView grid_view();
@@ -193,6 +217,21 @@ class MpmSolver {
  private:
   friend class MpmAul;
   friend class MpmEnriched;
+  struct Ranks;  // solvers/mpm_distributed.cpp
+  std::shared_ptr<Ranks> ranks_;
+  std::uint64_t state_version_ = 0;
+  Vec3i particle_leaf(const Vec3& x) const;  // the leaf of the particle's bin
+  void refuse_distributed() const;
+  void migrate(const exec::Space& space);
+  void repartition();
+  void sort_distributed(const exec::Space& space);
+  void update_grid_distributed(const exec::Space& space);
+  void particle_to_grid_distributed(const exec::Space& space, Real dt);
+  void update_grid_velocities_distributed(const exec::Space& space, Real dt);
+  void keep_owned_emitted(const exec::Space& space, std::size_t first);
+  void compact_bins(const std::vector<std::uint32_t>& kept);
+  void save_distributed(Snapshot& s) const;
+  void restore_distributed(const Snapshot& s);
   MpmSettings settings_;
   std::vector<MaterialParams> materials_;
   std::vector<Collider> colliders_;

@@ -61,7 +61,7 @@ LeafBox leaf_box(const exec::Space& space, const Vec3* x, exec::Index n, Real in
 }  // namespace
 
 void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, ParticleSet::Id x_id,
-                                   Real dx, int order, BinTable& bins) {
+                                   Real dx, int order, BinTable& bins, ParticleSet::Id id_id) {
   const exec::Index n = exec::Index(ps.size());
   bins.start.assign(1, 0u);
   bins.leaf.clear();
@@ -165,8 +165,6 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
     perm_.swap(perm_tmp_);
   }
 
-  ps.permute(space, perm_.data());
-
   // Bins: runs of equal keys.
   flags_.resize(size_t(n));
   const std::uint32_t* keys = keys_.data();
@@ -188,6 +186,17 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
     }
   });
   start[nbins] = std::uint32_t(n);
+  // Canonical order inside each bin: by particle id (the previous order is mostly sorted
+  // already, as most particles stay in their bin; ids are unique, so the order is total).
+  if (id_id >= 0) {
+    const std::int32_t* ids = ps.int32(id_id);
+    std::uint32_t* perm = perm_.data();
+    exec::parallel_for(space, "bin.order_by_id", exec::Index(nbins), [=](exec::Index b) {
+      std::sort(perm + start[b], perm + start[b + 1],
+                [ids](std::uint32_t a, std::uint32_t c) { return ids[a] < ids[c]; });
+    });
+  }
+  ps.permute(space, perm_.data());
 }
 
 }  // namespace amalgam

@@ -27,9 +27,14 @@ class ParticleBinning {
   static constexpr std::size_t kScratchBytesPerParticle = 5 * sizeof(std::uint32_t);
   // `order` is the B-spline order (1, 2 or 3) whose stencil base defines the key.
   // Sorts `ps` in place by leaf key (attribute `x_id` holds positions), fills `bins`.
+  // With `id_id` (an int32 attribute of unique particle ids), the particles of a bin are ordered
+  // by id: the order is then (leaf, id), a function of the particles alone, whatever order they
+  // came in (a distributed run's ranks hold and migrate the particles of their leaves, and a
+  // node's P2G sum must add them in the single process's order; docs/architecture.md). Without
+  // it the sort is stable: a bin keeps the particles' previous relative order.
   // Throws SimulationError naming the first particle whose position is not finite.
   void sort_and_bin(const exec::Space& space, ParticleSet& ps, ParticleSet::Id x_id, Real dx,
-                    int order, BinTable& bins);
+                    int order, BinTable& bins, ParticleSet::Id id_id = -1);
 
  private:
   std::vector<std::uint32_t> keys_, keys_tmp_, perm_, perm_tmp_, flags_;

@@ -108,7 +108,8 @@ void SparseGrid::retire_idle_leaves() {
   nbr27_stale_ = true;
 }
 
-void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins) {
+void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins,
+                                 const std::vector<Vec3i>* extra) {
   exec::ScopedRegion region(space.profiler(), "grid.topology");
   const size_t nb = bins.count();
   auto build = [&] {
@@ -123,6 +124,8 @@ void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins)
         leaf_idle_[size_t(li)] = 0;
       }
     }
+    if (extra)
+      for (const Vec3i& l : *extra) leaf_idle_[size_t(touch_leaf(l))] = 0;
   };
   build();
   const size_t used = size_t(std::count(leaf_idle_.begin(), leaf_idle_.end(), 0u));

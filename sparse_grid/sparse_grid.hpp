@@ -51,7 +51,10 @@ class SparseGrid {
 
   // Activates the leaves the bins' stencils reach and rebuilds tables. Serial by design
   // (OpenVDB topology edits are not thread-safe); only new leaves are created.
-  void update_topology(const exec::Space& space, const BinTable& bins);
+  // `extra`: more leaves to activate though no bin here reaches them (a distributed run's leaves
+  // that only other ranks' particles reach: solvers/mpm_distributed.cpp).
+  void update_topology(const exec::Space& space, const BinTable& bins,
+                       const std::vector<Vec3i>* extra = nullptr);
 
   static constexpr std::uint32_t kRetireAfter = 32;
   // Slots of the leaf table (live leaves and retired slots awaiting reuse): the size of every

@@ -223,12 +223,12 @@ void geom_multi(void* data, int, int, int n, ZOLTAN_ID_PTR, ZOLTAN_ID_PTR lids, 
 }
 }  // namespace
 
-std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids,
-                               const std::vector<double>& xyz, const std::vector<float>& weight,
-                               double imbalance_tolerance) {
-  const Comm& comm = Comm::world();
-  std::vector<int> owner(ids.size(), comm.rank());
-  if (comm.size() == 1) return owner;
+namespace {
+// A Zoltan RCB partition of the points; `keep_cuts`: the cuts stay in the returned struct (for
+// Zoltan_LB_Point_Assign). exp: this rank's points that move, as (local index, new rank).
+Zoltan_Struct* run_rcb(const std::vector<std::uint64_t>& ids, const std::vector<double>& xyz,
+                       const std::vector<float>& weight, double imbalance_tolerance, bool keep_cuts,
+                       std::vector<std::pair<std::size_t, int>>* exp) {
   if (sizeof(ZOLTAN_ID_TYPE) < sizeof(std::uint32_t))
     throw std::runtime_error("Zoltan: its id type is too small");
   for (std::uint64_t id : ids)
@@ -241,9 +241,12 @@ std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids,
   Zoltan_Set_Param(zz, "LB_METHOD", "RCB");
   Zoltan_Set_Param(zz, "NUM_GID_ENTRIES", "1");
   Zoltan_Set_Param(zz, "NUM_LID_ENTRIES", "1");
-  Zoltan_Set_Param(zz, "OBJ_WEIGHT_DIM", weight.empty() ? "0" : "1");
+  // Weighted when any rank has weights: a rank with no points has none, and Zoltan's reductions
+  // need the same weight dimension on every rank.
+  const bool weighted = Comm::world().max(std::int64_t(!weight.empty())) > 0;
+  Zoltan_Set_Param(zz, "OBJ_WEIGHT_DIM", weighted ? "1" : "0");
   Zoltan_Set_Param(zz, "RETURN_LISTS", "EXPORT");
-  Zoltan_Set_Param(zz, "KEEP_CUTS", "0");
+  Zoltan_Set_Param(zz, "KEEP_CUTS", keep_cuts ? "1" : "0");
   Zoltan_Set_Param(zz, "RCB_REUSE", "0");
   Zoltan_Set_Param(zz, "AVERAGE_CUTS",
                    "1");  // cuts midway between points: away from lattice planes
@@ -258,14 +261,50 @@ std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids,
   int *imp_p = nullptr, *imp_to = nullptr, *exp_p = nullptr, *exp_to = nullptr;
   const int rc = Zoltan_LB_Partition(zz, &changes, &ngid, &nlid, &nimp, &imp_g, &imp_l, &imp_p,
                                      &imp_to, &nexp, &exp_g, &exp_l, &exp_p, &exp_to);
-  if (rc == ZOLTAN_OK || rc == ZOLTAN_WARN)
-    for (int k = 0; k < nexp; ++k) owner[std::size_t(exp_l[k])] = exp_p[k];
+  if ((rc == ZOLTAN_OK || rc == ZOLTAN_WARN) && exp)
+    for (int k = 0; k < nexp; ++k) exp->push_back({std::size_t(exp_l[k]), exp_p[k]});
   Zoltan_LB_Free_Part(&imp_g, &imp_l, &imp_p, &imp_to);
   Zoltan_LB_Free_Part(&exp_g, &exp_l, &exp_p, &exp_to);
-  Zoltan_Destroy(&zz);
-  if (rc != ZOLTAN_OK && rc != ZOLTAN_WARN)
+  if (rc != ZOLTAN_OK && rc != ZOLTAN_WARN) {
+    Zoltan_Destroy(&zz);
     throw std::runtime_error("Zoltan_LB_Partition (RCB) failed with code " + std::to_string(rc));
+  }
+  return zz;
+}
+}  // namespace
+
+std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids,
+                               const std::vector<double>& xyz, const std::vector<float>& weight,
+                               double imbalance_tolerance) {
+  const Comm& comm = Comm::world();
+  std::vector<int> owner(ids.size(), comm.rank());
+  if (comm.size() == 1) return owner;
+  std::vector<std::pair<std::size_t, int>> exp;
+  Zoltan_Struct* zz = run_rcb(ids, xyz, weight, imbalance_tolerance, false, &exp);
+  Zoltan_Destroy(&zz);
+  for (const auto& e : exp) owner[e.first] = e.second;
   return owner;
+}
+
+RcbCuts RcbCuts::partition(const std::vector<std::uint64_t>& ids, const std::vector<double>& xyz,
+                           const std::vector<float>& weight, double imbalance_tolerance) {
+  RcbCuts c;
+  if (Comm::world().size() == 1) return c;
+  Zoltan_Struct* zz = run_rcb(ids, xyz, weight, imbalance_tolerance, true, nullptr);
+  c.zz_ = std::shared_ptr<void>(zz, [](void* z) {
+    Zoltan_Struct* p = static_cast<Zoltan_Struct*>(z);
+    Zoltan_Destroy(&p);
+  });
+  return c;
+}
+
+int RcbCuts::owner(const double* p) const {
+  if (!zz_) return 0;
+  double q[3] = {p[0], p[1], p[2]};
+  int proc = 0;
+  if (Zoltan_LB_Point_Assign(static_cast<Zoltan_Struct*>(zz_.get()), q, &proc) != ZOLTAN_OK)
+    throw std::runtime_error("Zoltan_LB_Point_Assign failed");
+  return proc;
 }
 
 #else  // no MPI: one rank
@@ -310,6 +349,13 @@ void Comm::abort(int code) const {
 std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids, const std::vector<double>&,
                                const std::vector<float>&, double) {
   return std::vector<int>(ids.size(), 0);
+}
+RcbCuts RcbCuts::partition(const std::vector<std::uint64_t>&, const std::vector<double>&,
+                           const std::vector<float>&, double) {
+  return RcbCuts();
+}
+int RcbCuts::owner(const double*) const {
+  return 0;
 }
 
 #endif

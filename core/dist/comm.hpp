@@ -9,6 +9,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -79,5 +80,21 @@ std::vector<T> from_bytes(const std::vector<char>& b) {
 std::vector<int> partition_rcb(const std::vector<std::uint64_t>& ids,
                                const std::vector<double>& xyz, const std::vector<float>& weight,
                                double imbalance_tolerance = 1.05);
+
+// Zoltan's RCB kept as its cuts (KEEP_CUTS): the owner of any point, also of a point that was not
+// partitioned (Zoltan_LB_Point_Assign walks the cut tree, which every rank holds), the same on
+// every rank. MPM leaves (solvers/mpm_distributed.cpp) are owned by the cut box their centre is
+// in. Default, one rank or without MPI: every point on rank 0.
+class RcbCuts {
+ public:
+  RcbCuts() = default;
+  // Collective: partitions this rank's points (global ids, weights) and keeps the cuts.
+  static RcbCuts partition(const std::vector<std::uint64_t>& ids, const std::vector<double>& xyz,
+                           const std::vector<float>& weight, double imbalance_tolerance = 1.05);
+  int owner(const double* p) const;  // local: no communication
+
+ private:
+  std::shared_ptr<void> zz_;  // the Zoltan_Struct holding the cuts
+};
 
 }  // namespace amalgam::dist

@@ -1,0 +1,53 @@
+# Shared by the distributed CLI tests (dist_pd_test.sh, dist_mpm_test.sh), sourced after they set
+# amalgam, mpiexec, scene and out. Each function prints what failed and returns 1.
+export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1 OMPI_MCA_rmaps_base_oversubscribe=1
+# mpi NP ARGS...: amalgam ARGS on NP ranks; NP = 0: one process without mpirun.
+mpi() {
+  local np=$1
+  shift
+  if [ "$np" -eq 0 ]; then timeout 300 "$amalgam" "$@"; else
+    timeout 300 "$mpiexec" --oversubscribe -np "$np" "$amalgam" "$@"; fi
+}
+# reference PATTERNS...: the single-process run into $out/ref; files: its files matching PATTERNS.
+reference() {
+  rm -rf "$out"
+  "$amalgam" run "$scene" --threads 1 --out "$out/ref" --quiet || { echo "single-process run failed"; return 1; }
+  files=$(cd "$out/ref" && ls $*)  # the patterns expand here, in the reference run
+}
+same() {  # same DIR: every reference file bitwise equal in DIR
+  for f in $files; do cmp -s "$out/ref/$f" "$1/$f" || { echo "$f differs in $1"; return 1; }; done
+}
+# ranks_match: runs on 1-4 ranks of one thread and on 2 ranks of 2 TBB threads, each bitwise.
+ranks_match() {
+  for np in 1 2 3 4; do
+    mpi $np run "$scene" --threads 1 --out "$out/np$np" --quiet || { echo "run on $np ranks failed"; return 1; }
+    same "$out/np$np" || return 1
+  done
+  mpi 2 run "$scene" --threads 2 --backend tbb --out "$out/np2t2" --quiet || { echo "2 x 2 failed"; return 1; }
+  same "$out/np2t2"
+}
+# resumes NP FRAMES NP2...: a checkpoint after FRAMES frames on NP ranks, resumed to the end on
+# each NP2 (0: one process), bitwise.
+resumes() {
+  local np=$1 frames=$2
+  shift 2
+  mpi "$np" run "$scene" --threads 1 --frames "$frames" --out "$out/c$np" --quiet || { echo "$np-rank part failed"; return 1; }
+  for np2 in "$@"; do
+    rm -rf "$out/c$np-$np2" && cp -r "$out/c$np" "$out/c$np-$np2"
+    mpi "$np2" run "$scene" --threads 1 --out "$out/c$np-$np2" --resume "$out/c$np-$np2/checkpoint.amck" --quiet ||
+      { echo "resume of $np ranks on $np2 failed"; return 1; }
+    same "$out/c$np-$np2" || return 1
+  done
+}
+# interrupted NP SUBSTEP NP2: SIGINT at the SUBSTEP-th substep on NP ranks: every rank stops with
+# 130, one checkpoint, no half-written file; resumed on NP2 ranks, bitwise.
+interrupted() {
+  AMALGAM_TEST_SIGINT_AT_SUBSTEP=$2 mpi "$1" run "$scene" --threads 1 --out "$out/int" --quiet 2>/dev/null
+  local rc=$?
+  [ $rc -eq 130 ] || { echo "interrupted run on $1 ranks exited $rc, expected 130"; return 1; }
+  [ -f "$out/int/checkpoint.amck" ] || { echo "no checkpoint after the interrupt"; return 1; }
+  ls "$out/int"/*.tmp >/dev/null 2>&1 && { echo "half-written files left"; return 1; }
+  mpi "$3" run "$scene" --threads 1 --out "$out/int" --resume "$out/int/checkpoint.amck" --quiet ||
+    { echo "resume after the interrupt failed"; return 1; }
+  same "$out/int"
+}

@@ -1,0 +1,185 @@
+// Distributed explicit MPM (solvers/mpm_distributed.cpp, issue 28) under `mpirun -np R` (ctest
+// runs R = 1..4; without MPI, one process): every rank also runs the single process's solver on
+// the whole scene as the reference. The grid after P2G and the grid update (owned leaves, whose
+// sums add other ranks' partial blocks, and the ghosts copied from their owners) is bitwise the
+// reference's; migration and repartitioning keep every particle on exactly one rank; the
+// particles gathered after many substeps (with forced repartitions) are bitwise the reference's.
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "core/dist/comm.hpp"
+#include "solvers/mpm_solver.hpp"
+#include "sparse_grid/sparse_grid.hpp"
+
+using namespace amalgam;
+
+namespace {
+
+// Two materials (a jelly blob and a snow blob) flying at each other with random affine velocity
+// fields over a frictional floor, a sphere collider falling on them.
+MpmSolver make_scene(Transfer t) {
+  MpmSettings s;
+  s.dx = Real(0.04);
+  s.transfer = t;
+  const Lame l = Lame::from_young_poisson(1e4, 0.3);
+  MaterialParams jelly{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
+  const Lame ls = Lame::from_young_poisson(4e4, 0.2);
+  MaterialParams snow{MaterialModel::Snow, ls.mu, ls.lambda, 400};
+  Collider floor;
+  floor.shape = ColliderShape::HalfSpace;
+  floor.origin = Vec3(0, Real(0.1), 0);
+  floor.friction = Real(0.3);
+  Collider ball;
+  ball.shape = ColliderShape::Sphere;
+  ball.origin = Vec3(Real(0.6), Real(0.8), Real(0.4));
+  ball.radius = Real(0.1);
+  ball.velocity = Vec3(0, -4, 0);
+  ball.boundary = BoundaryType::Slip;
+  MpmSolver solver(s, {jelly, snow}, {floor, ball});
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (int m = 0; m < 2; ++m) {
+    std::vector<Vec3> x;
+    for (int i = 0; i < 3000; ++i)
+      x.push_back(Vec3(Real(0.3 + 0.6 * m + 0.2 * u(rng)), Real(0.4 + 0.2 * u(rng)),
+                       Real(0.4 + 0.25 * u(rng))));
+    solver.add_particles(x, Vec3(Real(m ? -3 : 3), -1, 0), Vec3(0, 0, 4),
+                         Vec3(Real(0.3 + 0.6 * m), Real(0.4), Real(0.4)), m, Real(2e-5));
+  }
+  auto& ps = solver.particles();
+  const auto& a = solver.attributes();
+  for (std::size_t p = 0; p < ps.size(); ++p)
+    ps.vec3(a.v)[p] += Vec3(Real(u(rng)), Real(u(rng)), 0);
+  return solver;
+}
+
+// Every id on exactly one rank: the ranks' ids together are 0 .. n - 1 once each.
+void expect_each_id_once(const MpmSolver& d, std::size_t n) {
+  const dist::Comm& comm = dist::Comm::world();
+  const ParticleSet& ps = d.particles();
+  const std::int32_t* id = ps.int32(d.attributes().id);
+  const std::vector<std::int32_t> mine(id, id + ps.size());
+  std::vector<std::int32_t> all =
+      dist::from_bytes<std::int32_t>(comm.allgather(dist::as_bytes(mine), nullptr));
+  ASSERT_EQ(all.size(), n);
+  std::vector<int> seen(n, 0);
+  for (std::int32_t i : all) {
+    ASSERT_GE(i, 0);
+    ASSERT_LT(std::size_t(i), n);
+    ++seen[std::size_t(i)];
+  }
+  for (std::size_t i = 0; i < n; ++i) ASSERT_EQ(seen[i], 1) << "particle id " << i;
+}
+
+}  // namespace
+
+TEST(DistMpm, HaloSumsEqualTheSingleProcessBitwise) {
+  const exec::Space space(exec::Backend::Serial, 1);
+  for (Transfer t : {Transfer::Mls, Transfer::Apic, Transfer::PicFlip}) {
+    SCOPED_TRACE(transfer_name(t));
+    MpmSolver ref = make_scene(t), d = make_scene(t);
+    const std::size_t n = ref.particles().size();
+    d.distribute(space);
+    const GridChannels ch = ref.channels();
+    for (int step = 0; step < 12; ++step) {
+      const Real dt = ref.stable_dt(space);
+      ASSERT_EQ(dt, d.stable_dt(space));  // the exact max over ranks
+      for (MpmSolver* s : {&ref, &d}) {
+        s->sort_particles(space);
+        s->update_grid(space);
+        s->particle_to_grid(space, dt);
+        s->update_grid_velocities(space, dt);
+      }
+      // Every leaf this rank has (owned, or a ghost filled by its owner) holds the reference's
+      // node rows bit for bit: (m, v) and, PIC/FLIP, (-, dv).
+      std::size_t compared = 0;
+      for (std::int32_t li : d.grid().active_leaves()) {
+        const Vec3i c = d.grid().leaf_coords()[std::size_t(li)];
+        const std::int32_t lr = ref.grid().find_leaf(c * kLeafDim);
+        ASSERT_GE(lr, 0);
+        for (int set = 0; set < ch.count; ++set) {
+          const std::size_t row = std::size_t(kLeafNodes) * 4;
+          ASSERT_EQ(std::memcmp(d.grid().node4(set) + std::size_t(li) * row,
+                                ref.grid().node4(set) + std::size_t(lr) * row, row * sizeof(Real)),
+                    0)
+              << "step " << step << ", leaf (" << c.transpose() << "), channel set " << set;
+        }
+        ++compared;
+      }
+      EXPECT_GT(compared, 0u);
+      for (MpmSolver* s : {&ref, &d}) {
+        s->grid_to_particle(space, dt);
+        s->collide_particles(space, dt);
+        if (s->has_material_update()) s->update_materials(space, dt);
+        s->restore_clock(s->time() + double(dt), s->step_count() + 1);
+      }
+      expect_each_id_once(d, n);
+    }
+  }
+}
+
+TEST(DistMpm, MigrationAndRepartitionKeepEveryParticleOnceAndTheStateBitwise) {
+  const dist::Comm& comm = dist::Comm::world();
+  ::setenv("AMALGAM_TEST_REPARTITION_EVERY", "7", 1);  // forced repartitions with migration
+  const exec::Space space(exec::Backend::TBB, 2);      // (OpenMP spins on oversubscribed cores)
+  MpmSolver ref = make_scene(Transfer::Mls), d = make_scene(Transfer::Mls);
+  const std::size_t n = ref.particles().size();
+  d.distribute(space);
+  ::unsetenv("AMALGAM_TEST_REPARTITION_EVERY");
+  expect_each_id_once(d, n);
+  std::size_t fewest = n;
+  for (int step = 0; step < 40; ++step) {
+    const Real dt = ref.stable_dt(space);
+    ASSERT_EQ(dt, d.stable_dt(space));
+    ref.step(space, dt);
+    d.step(space, dt);
+    expect_each_id_once(d, n);
+    fewest = std::min(fewest, d.particles().size());
+  }
+  if (comm.size() > 1) EXPECT_LT(fewest, n);            // the particles are split, not replicated
+  const std::string summary = d.distributed_summary();  // collective
+  if (comm.size() > 1) {
+    EXPECT_NE(summary.find(" repartitions"), std::string::npos);
+  }
+  ParticleSet all;
+  d.gather_particles(all);
+  if (!comm.root()) {
+    EXPECT_EQ(all.size(), 0u);
+    return;
+  }
+  const ParticleSet& r = ref.particles();
+  ASSERT_EQ(all.size(), r.size());
+  for (int a = 0; a < r.attribute_count(); ++a) {
+    const std::size_t w = std::size_t(r.words_per_particle(a));
+    EXPECT_EQ(std::memcmp(all.words(a), r.words(a), r.size() * w * 4), 0) << r.name(a);
+  }
+}
+
+namespace {
+// Non-root ranks print their failures only, with the rank.
+class FailurePrinter : public ::testing::EmptyTestEventListener {
+  void OnTestPartResult(const ::testing::TestPartResult& r) override {
+    if (r.failed())
+      std::fprintf(stderr, "rank %d: %s:%d: %s\n", dist::Comm::world().rank(),
+                   r.file_name() ? r.file_name() : "?", r.line_number(), r.summary());
+  }
+};
+}  // namespace
+
+int main(int argc, char** argv) {
+  dist::Session session(&argc, &argv);
+  ::testing::InitGoogleTest(&argc, argv);
+  if (!dist::Comm::world().root()) {
+    auto& listeners = ::testing::UnitTest::GetInstance()->listeners();
+    delete listeners.Release(listeners.default_result_printer());
+    listeners.Append(new FailurePrinter);
+  }
+  const int rc = RUN_ALL_TESTS();
+  return dist::Comm::world().max(std::int64_t(rc)) != 0 ? 1 : 0;
+}
