@@ -505,15 +505,11 @@ void pd_mirror_bonds(const exec::Space& space, PdBonds& bonds) {
   bonds.omega_r.resize(nb);
   bonds.shear_omega_r.resize(nb);
   bonds.plastic_r.resize(nb);
-  bonds.volume_r.resize(nb);
-  bonds.lane_r.resize(nb);
   exec::parallel_for(space, "pd.mirror", exec::Index(nb), [&](exec::Index kk) {
     const std::size_t k = std::size_t(kk), r = std::size_t(bonds.reverse[k]);
     bonds.omega_r[k] = bonds.omega[r];
     bonds.shear_omega_r[k] = bonds.shear_omega[r];
     bonds.plastic_r[k] = bonds.plastic[r];
-    bonds.volume_r[k] = bonds.volume[r];
-    bonds.lane_r[k] = bonds.lane[r];
   });
 }
 
@@ -606,49 +602,37 @@ inline Vec3 displacement(const PdView& p, std::size_t i) {
 
 // What the dilatation pass gathers per neighbour.
 struct alignas(16) PosRec {
-  Real y[4];   // displacement u, kappa (the pair path's far end)
+  Real y[4];   // displacement u, 0
   Real x0[4];  // reference position, 0
 };
 
 // Gathered per block: the neighbour's current and reference position; the per-bond arrays are
 // read in place (DilSlice).
-// (Arrays 16 elements longer than the block: not a multiple of 4 KiB apart, so the stores of one
-// array do not falsely alias the loads of another.)
 struct DilBlock {
-  alignas(64) Real ex[kDilBlock + 16], ey[kDilBlock + 16],
-      ez[kDilBlock + 16];  // u_j - u_i (eta - xi)
-  alignas(64) Real xx[kDilBlock + 16], xy[kDilBlock + 16], xz[kDilBlock + 16];  // xi = x0_j - x0_i
-  alignas(64) Real kap_j[kDilBlock + 16], pad[kDilBlock + 16];  // kappa_j; unused lane
-  alignas(64) Real e[kDilBlock + 16], lambda[kDilBlock + 16],
-      ok[kDilBlock + 16];  // geometry (0 for dead bonds)
-  alignas(64) Real t[kDilBlock + 16], w1[kDilBlock + 16], w2[kDilBlock + 16],
-      w3[kDilBlock + 16];                   // terms of the sums
-  alignas(64) Real ep_new[kDilBlock + 16];  // plastic return
-  // The pair path: the reverse bond's terms (row j's t, w1, w2, w3).
-  alignas(64) Real tr[kDilBlock + 16], r1[kDilBlock + 16], r2[kDilBlock + 16], r3[kDilBlock + 16];
+  alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];     // u_j - u_i (eta - xi)
+  alignas(64) Real xx[kDilBlock], xy[kDilBlock], xz[kDilBlock];     // xi = x0_j - x0_i
+  alignas(64) Real pad[kDilBlock];                                  // the gathers' unused lane
+  alignas(64) Real e[kDilBlock], lambda[kDilBlock], ok[kDilBlock];  // geometry (0 for dead bonds)
+  alignas(64) Real t[kDilBlock], w1[kDilBlock], w2[kDilBlock], w3[kDilBlock];  // terms of the sums
+  alignas(64) Real ep_new[kDilBlock];                                          // plastic return
 };
 struct DilSlice {
   const Real *L, *omega, *shear, *vol, *ep;
   const std::uint8_t* live;
-  const Real *omega_r = nullptr, *shear_r = nullptr, *vol_r = nullptr, *ep_r = nullptr;  // pairs
 };
 
 void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t kb, int n,
                        const Real sub_y[4], const Real sub_x0[4], DilBlock& B) {
   const Real sub[2][4] = {{sub_y[0], sub_y[1], sub_y[2], sub_y[3]},
                           {sub_x0[0], sub_x0[1], sub_x0[2], sub_x0[3]}};
-  Real* const out[2][4] = {{B.ex, B.ey, B.ez, B.kap_j}, {B.xx, B.xy, B.xz, B.pad}};
+  Real* const out[2][4] = {{B.ex, B.ey, B.ez, B.pad}, {B.xx, B.xy, B.xz, B.pad}};
   gather_records<2, false>(recs, sizeof(PosRec), bonds.neighbor.data() + kb, n, sub, out);
 }
 
 // e, Lambda (eqs. 3, 6) and the terms of theta (eq. 5) and of the consistent sums (see header):
 // w = shear_omega V d with d = kappa Lambda (paper) or L / 3 (LPS).
-template <bool Paper, bool Plastic, bool Lps, bool Pair = false>
+template <bool Paper, bool Plastic, bool Lps>
 void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
-  // ivdep: the per-bond arrays never overlap the block's outputs, so GCC needs no run-time
-  // overlap checks, whose count (tens of pointer pairs) made it keep the scalar loop for blocks
-  // shorter than ~64 bonds (the pair path's half rows).
-#pragma GCC ivdep
   for (int m = 0; m < n; ++m) {  // vectorised
     const Real ex = B.xx[m] + B.ex[m], ey = B.xy[m] + B.ey[m], ez = B.xz[m] + B.ez[m];  // eta
     const Real l2 = ex * ex + ey * ey + ez * ez;
@@ -665,14 +649,7 @@ void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
     const Real d = Paper ? kappa * lambda : L / Real(3);
     const Real w = live * (S.shear[m] * S.vol[m] * d);
     B.w1[m] = w * e, B.w2[m] = w * d;
-    if (Plastic || Pair) B.w3[m] = Plastic ? w * S.ep[m] : Real(0);  // else the sum s3 is +0
-    if (Pair) {  // the same terms as row j computes them: e, Lambda and l are symmetric (eta_ji
-                 // = -eta_ij and xi_ji = -xi_ij exactly, so every product is the same)
-      B.tr[m] = S.omega_r[m] * e * (Lps ? L : lambda) * S.vol_r[m];
-      const Real dr = Paper ? B.kap_j[m] * lambda : L / Real(3);
-      const Real wr = live * (S.shear_r[m] * S.vol_r[m] * dr);
-      B.r1[m] = wr * e, B.r2[m] = wr * dr, B.r3[m] = Plastic ? wr * S.ep_r[m] : Real(0);
-    }
+    if (Plastic) B.w3[m] = w * S.ep[m];  // else every ep = 0: the sum s3 is +0
   }
 }
 
@@ -682,10 +659,6 @@ void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
 template <bool Paper>
 void plastic_block(DilBlock& B, const DilSlice& S, int n, Real theta, Real kappa, Real stiff_i,
                    Real psi0, Real ac, Real cap_ratio) {
-  // ivdep: the per-bond arrays never overlap the block's outputs, so GCC needs no run-time
-  // overlap checks, whose count (tens of pointer pairs) made it keep the scalar loop for blocks
-  // shorter than ~64 bonds (the pair path's half rows).
-#pragma GCC ivdep
   for (int m = 0; m < n; ++m) {  // vectorised
     const Real e = B.e[m], lambda = B.lambda[m], L = S.L[m];
     const Real ed = Paper ? e - kappa * lambda * theta : e - theta * L / Real(3);  // eq. 8 / LPS
@@ -738,230 +711,66 @@ Rec* scratch_records(PdScratch* scratch, std::vector<Real>& local, std::size_t n
   return reinterpret_cast<Rec*>(v.data());
 }
 
-// The pair path (issue 31). Each bond pair i < j is computed once, from row i: the block loop
-// gives row i's term and row j's term of the reverse bond, bit for bit what row j would compute
-// (eta_ji = -eta_ij and xi_ji = -xi_ij exactly, so l, e, Lambda and every product are the same,
-// and the pair's A_ij + A_ji is a commutative sum). Row i adds its own term into its lanes and row
-// j's term into row j's lanes (PdBonds::lane_r). A row's lanes must see its bonds in bond order:
-// its lower bonds (neighbours < j, first in the sorted row) come from the rows below it, which a
-// chunk processes in increasing order before the row itself adds its upper bonds. So the lane
-// sums are bitwise those of the row path, whatever the chunks, the thread count or the backend.
-// Chunks: contiguous rows [s, e) run on one thread each; a chunk first processes its halo, the
-// rows h <= i < s below it with bonds into [s, e) (only those bonds: the pairs that cross a chunk
-// boundary are computed by both chunks), then its own rows. A chunk whose halo is longer than
-// itself (particles in no spatial order) takes the row path instead.
-struct PairChunk {
-  std::size_t s, e, h;
-  bool forced;  // PdParams::pair_chunks given (tests): pairs whatever the halo
-  bool pairs() const { return forced || s - h <= e - s; }
-};
-std::size_t pair_chunk_count(const exec::Space& space, const PdParams& prm, std::size_t n) {
-  if (prm.pair_chunks > 0)
-    return std::min<std::size_t>(std::size_t(prm.pair_chunks), std::max<std::size_t>(n, 1));
-  // Fewer chunks, less halo; enough to share among the threads. Any count gives the same bits.
-  return std::max<std::size_t>(1,
-                               std::min<std::size_t>(2 * std::size_t(space.threads()), n / 4096));
-}
-PairChunk pair_chunk(const PdBonds& bonds, const PdParams& prm, std::size_t n, std::size_t c,
-                     std::size_t nc) {
-  PairChunk ch{n * c / nc, n * (c + 1) / nc, 0, prm.pair_chunks > 0};
-  ch.h = ch.s;
-  for (std::size_t i = ch.s; i < ch.e; ++i)
-    if (bonds.offsets[i] < bonds.offsets[i + 1])
-      ch.h = std::min<std::size_t>(ch.h, bonds.neighbor[bonds.offsets[i]]);
-  return ch;
-}
-// The first bond of row i from `from` on whose neighbour is >= j (rows are sorted).
-inline std::uint64_t first_at_least(const PdBonds& bonds, std::size_t i, std::uint64_t from,
-                                    std::size_t j) {
-  const std::uint32_t* b = bonds.neighbor.data();
-  return std::uint64_t(std::lower_bound(b + from, b + bonds.offsets[i + 1], std::uint32_t(j)) - b);
-}
-bool use_pair_path(const PdParams& prm, const PdBonds& bonds) {
-  return prm.pair_path && !bonds.rows_only;
-}
-// Lane accumulators of the pair path: kSumLanes quads per particle.
-Real* scratch_lanes(PdScratch* scratch, std::vector<Real>& local, std::size_t n) {
-  std::vector<Real>& v = scratch ? scratch->lanes : local;
-  const std::size_t need = n * kSumLanes * 4;
-  if (v.size() < need) v.resize(need);
-  return v.data();
-}
-// dst[m] (a quad, or null: skipped) += (c0[m], c1[m], c2[m], c3[m]), in m order.
-void add_quads(const Real* c0, const Real* c1, const Real* c2, const Real* c3, int n,
-               Real* const* dst) {
-  int m = 0;
-#if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
-  for (; m + 4 <= n; m += 4) {
-    __m128 q[4] = {_mm_loadu_ps(c0 + m), _mm_loadu_ps(c1 + m), _mm_loadu_ps(c2 + m),
-                   _mm_loadu_ps(c3 + m)};
-    _MM_TRANSPOSE4_PS(q[0], q[1], q[2], q[3]);
-    for (int l = 0; l < 4; ++l)
-      if (Real* d = dst[m + l]) _mm_storeu_ps(d, _mm_add_ps(_mm_loadu_ps(d), q[l]));
-  }
-#endif
-  for (; m < n; ++m)
-    if (Real* d = dst[m]) d[0] += c0[m], d[1] += c1[m], d[2] += c2[m], d[3] += c3[m];
-}
-// The chunk's lanes are zeroed just before the first term reaches them (rows [s, z) are open), so
-// they are still in cache when the row's own terms and totals come (zeroing the whole chunk
-// first left them to be fetched back from memory).
-struct LaneWindow {
-  Real* lanes;
-  std::size_t z, e;
-  void open(std::size_t end) {
-    end = std::min(end, e);
-    if (end <= z) return;
-    std::fill(lanes + z * kSumLanes * 4, lanes + end * kSumLanes * 4, Real(0));
-    z = end;
-  }
-  // Before row i's bonds [kb, ke): its own lanes (own) and those of its far ends.
-  void open(const PdBonds& bonds, std::size_t i, std::uint64_t ke, bool own) {
-    std::size_t end = own ? i + 1 : z;
-    if (ke > bonds.offsets[i])  // the last neighbour (rows are sorted)
-      end = std::max<std::size_t>(end, std::size_t(bonds.neighbor[ke - 1]) + 1);
-    open(end);
-  }
-};
-
-// The lanes of a particle combined as lane_total does, per component.
-inline void quad_totals(const Real* acc, Real out[4]) {
-  Real a[kSumLanes];
-  for (int c = 0; c < 4; ++c) {
-    for (int l = 0; l < kSumLanes; ++l) a[l] = acc[4 * l + c];
-    out[c] = lane_total(a);
-  }
-}
-
 }  // namespace
 
 void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
                    PdScratch* scratch) {
   const bool consistent = prm.consistent;
-  std::vector<Real> local, local_lanes;
+  std::vector<Real> local;
   PosRec* const recs = scratch_records<PosRec>(scratch, local, p.n);
-  Real* const lanes = scratch_lanes(scratch, local_lanes, p.n);
   exec::parallel_for(space, "pd.dilatation_rows", exec::Index(p.n), [&](exec::Index i) {
     const Vec3 u = displacement(p, std::size_t(i));
     ::new (static_cast<void*>(recs + i))
-        PosRec{{u[0], u[1], u[2], p.kappa[i]}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
+        PosRec{{u[0], u[1], u[2], 0}, {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}};
   });
   auto kernel = [&](auto paper_c, auto plastic_c, auto lps_c) {
     constexpr bool Paper = decltype(paper_c)::value, Plastic = decltype(plastic_c)::value;
     constexpr bool Lps = decltype(lps_c)::value;
-    auto slice = [&](std::uint64_t kb) {
-      return DilSlice{bonds.length.data() + kb,      bonds.omega.data() + kb,
-                      bonds.shear_omega.data() + kb, bonds.volume.data() + kb,
-                      bonds.plastic.data() + kb,     bonds.intact.data() + kb};
-    };
-    auto subs = [&](std::size_t i, Real sub_y[4], Real sub_x0[4]) {
-      for (int a = 0; a < 3; ++a) sub_y[a] = recs[i].y[a], sub_x0[a] = p.x0[i][a];
-      sub_y[3] = 0, sub_x0[3] = 0;
-    };
-    // Row path, first part: row i's lane sums (t, w1, w2, w3) into its lanes.
-    auto row_sums = [&](std::size_t i) {
-      const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-      Real sub_y[4], sub_x0[4];
-      subs(i, sub_y, sub_x0);
-      const bool dense = bonds.dense[i] != 0;
-      alignas(32) Real a[4][kSumLanes] = {};
-      DilBlock B;
-      for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
-        const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
-        gather_dilatation(recs, bonds, kb, n, sub_y, sub_x0, B);
-        dilatation_block<Paper, Plastic, Lps>(B, slice(kb), n, p.kappa[i]);
-        const std::uint8_t* lane = bonds.lane.data() + kb;
-        lane_sum(B.t, lane, dense, n, a[0]);
-        if (consistent) lane_sum(B.w1, lane, dense, n, a[1]), lane_sum(B.w2, lane, dense, n, a[2]);
-        if (consistent && Plastic) lane_sum(B.w3, lane, dense, n, a[3]);
-      }
-      for (int l = 0; l < kSumLanes; ++l)
-        for (int c = 0; c < 4; ++c)
-          lanes[(i * kSumLanes + std::size_t(l)) * 4 + std::size_t(c)] = a[c][l];
-    };
-    // Pair path (see PairChunk): bonds [kb, ke) of row i, whose own terms are added when `own`,
-    // and whose far ends' terms are added when the far end is below e.
-    auto pair_bonds = [&](std::size_t i, std::uint64_t kb0, std::uint64_t ke, bool own,
-                          std::size_t e, DilBlock& B) {
-      Real sub_y[4], sub_x0[4];
-      subs(i, sub_y, sub_x0);
-      Real* dst[kDilBlock];
-      for (std::uint64_t kb = kb0; kb < ke; kb += kDilBlock) {
-        const int n = int(std::min<std::uint64_t>(kDilBlock, ke - kb));
-        gather_dilatation(recs, bonds, kb, n, sub_y, sub_x0, B);
-        DilSlice S = slice(kb);
-        S.omega_r = bonds.omega_r.data() + kb, S.shear_r = bonds.shear_omega_r.data() + kb;
-        S.vol_r = bonds.volume_r.data() + kb, S.ep_r = bonds.plastic_r.data() + kb;
-        dilatation_block<Paper, Plastic, Lps, true>(B, S, n, p.kappa[i]);
-        if (own) {
-          for (int m = 0; m < n; ++m)
-            dst[m] = lanes + (i * kSumLanes + bonds.lane[kb + std::uint64_t(m)]) * 4;
-          add_quads(B.t, B.w1, B.w2, B.w3, n, dst);
-        }
-        for (int m = 0; m < n; ++m) {
-          const std::uint64_t k = kb + std::uint64_t(m);
-          const std::size_t j = bonds.neighbor[k];
-          dst[m] = j < e ? lanes + (j * kSumLanes + bonds.lane_r[k]) * 4 : nullptr;
-        }
-        add_quads(B.tr, B.r1, B.r2, B.r3, n, dst);
-      }
-    };
-    if (use_pair_path(prm, bonds)) {
-      const std::size_t nc = pair_chunk_count(space, prm, p.n);
-      exec::parallel_for(
-          space, "pd.dilatation", exec::Index(nc),
-          [&](exec::Index c) {
-            const PairChunk ch = pair_chunk(bonds, prm, p.n, std::size_t(c), nc);
-            if (!ch.pairs()) {
-              for (std::size_t i = ch.s; i < ch.e; ++i) row_sums(i);
-              return;
-            }
-            LaneWindow w{lanes, ch.s, ch.e};
-            DilBlock B;
-            for (std::size_t i = ch.h; i < ch.s; ++i) {  // the halo: bonds into [s, e)
-              const std::uint64_t kb = first_at_least(bonds, i, bonds.offsets[i], ch.s);
-              const std::uint64_t ke = first_at_least(bonds, i, kb, ch.e);
-              if (kb == ke) continue;
-              w.open(bonds, i, ke, false);
-              pair_bonds(i, kb, ke, false, ch.e, B);
-            }
-            for (std::size_t i = ch.s; i < ch.e; ++i) {  // own rows: their upper bonds
-              w.open(bonds, i, bonds.offsets[i + 1], true);
-              pair_bonds(i, first_at_least(bonds, i, bonds.offsets[i], i + 1), bonds.offsets[i + 1],
-                         true, ch.e, B);
-            }
-          },
-          1);
-    } else {
-      exec::parallel_for(space, "pd.dilatation", exec::Index(p.n),
-                         [&](exec::Index i) { row_sums(std::size_t(i)); });
-    }
-    exec::parallel_for(space, "pd.dilatation_finish", exec::Index(p.n), [&](exec::Index ii) {
+    exec::parallel_for(space, "pd.dilatation", exec::Index(p.n), [&](exec::Index ii) {
       const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
+      const Real sub_y[4] = {recs[i].y[0], recs[i].y[1], recs[i].y[2], 0};
+      const Real sub_x0[4] = {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0};
+      const Real kap = p.kappa[i];
+      const bool one_block = k1 - k0 <= std::uint64_t(kDilBlock);
+      DilBlock B;
+      auto slice = [&](std::uint64_t kb) {
+        return DilSlice{bonds.length.data() + kb,      bonds.omega.data() + kb,
+                        bonds.shear_omega.data() + kb, bonds.volume.data() + kb,
+                        bonds.plastic.data() + kb,     bonds.intact.data() + kb};
+      };
+      auto load = [&](std::uint64_t kb) {
+        const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
+        gather_dilatation(recs, bonds, kb, n, sub_y, sub_x0, B);
+        dilatation_block<Paper, Plastic, Lps>(B, slice(kb), n, kap);
+        return n;
+      };
       const PdMaterial& mat = prm.materials[p.material[i]];
       const bool plastic = Plastic && mat.psi0 < std::numeric_limits<Real>::infinity();
       // s1..s3: the consistent term's sums (see header); a plastic particle's q comes from the
       // plastic return below instead.
       const bool sums = consistent && !plastic;
-      Real tot[4];
-      quad_totals(lanes + i * kSumLanes * 4, tot);
-      const Real sum = tot[0], s1 = tot[1], s2 = tot[2], s3 = Plastic ? tot[3] : Real(0);
+      const bool dense = bonds.dense[i] != 0;
+      alignas(32) Real a0[kSumLanes] = {}, a1[kSumLanes] = {}, a2[kSumLanes] = {},
+                       a3[kSumLanes] = {};
+      for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
+        const int n = load(kb);
+        const std::uint8_t* lane = bonds.lane.data() + kb;
+        lane_sum(B.t, lane, dense, n, a0);
+        if (sums) lane_sum(B.w1, lane, dense, n, a1), lane_sum(B.w2, lane, dense, n, a2);
+        if (sums && Plastic) lane_sum(B.w3, lane, dense, n, a3);
+      }
+      const Real sum = lane_total(a0), s1 = lane_total(a1), s2 = lane_total(a2),
+                 s3 = lane_total(a3);
       const Real theta = Real(3) * sum / p.m[i];
       p.theta[i] = theta;
       const Real qscale = p.b[i] * Real(3) / p.m[i];
       if (sums) p.q[i] = qscale * (s1 - theta * s2 - s3);
       if (!plastic) return;
-      Real sub_y[4], sub_x0[4];
-      subs(i, sub_y, sub_x0);
-      const Real kap = p.kappa[i];
       Real Q = 0;
       const Real ac = std::sqrt(Real(2) * mat.psi0);
-      DilBlock B;
       for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
-        const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
-        gather_dilatation(recs, bonds, kb, n, sub_y, sub_x0, B);
-        dilatation_block<Paper, Plastic, Lps>(B, slice(kb), n, kap);
+        const int n = one_block ? int(k1 - k0) : load(kb);  // one block: still loaded
         plastic_block<Paper>(B, slice(kb), n, theta, kap, Real(4) * p.b[i], mat.psi0, ac,
                              mat.plastic_cap);
         for (int m = 0; m < n; ++m) {
@@ -989,17 +798,13 @@ namespace {
 // Gathered per block: only what is indexed by the neighbour j (the per-bond arrays are read in
 // place, contiguous from the block's first bond).
 struct ForceBlock {
-  alignas(64) Real ex[kBlock + 16], ey[kBlock + 16], ez[kBlock + 16];  // u_j - u_i (eta - xi)
-  alignas(64) Real xx[kBlock + 16], xy[kBlock + 16], xz[kBlock + 16];  // xi = x0_j - x0_i
-  alignas(64) Real dil_j[kBlock + 16], b_j[kBlock + 16], c_j[kBlock + 16], crit_j[kBlock + 16];
-  alignas(64) Real pad0[kBlock + 16], pad1[kBlock + 16];  // the gathers' unused lanes
-  alignas(64) Real fx[kBlock + 16], fy[kBlock + 16],
-      fz[kBlock + 16];                           // out: pair force density (0 for dead bonds)
-  alignas(64) std::uint8_t broken[kBlock + 16];  // out: eq. 18 holds (fracture)
-  // The pair path: the reverse bond's force density (row j's term), zeros (the quads' fourth
-  // lane), and the intact flags a halo row reads from row j (its own may be written meanwhile).
-  alignas(64) Real gx[kBlock + 16], gy[kBlock + 16], gz[kBlock + 16], zero[kBlock + 16];
-  alignas(64) std::uint8_t live[kBlock + 16];
+  alignas(64) Real ex[kBlock], ey[kBlock], ez[kBlock];  // u_j - u_i (eta - xi)
+  alignas(64) Real xx[kBlock], xy[kBlock], xz[kBlock];  // xi = x0_j - x0_i
+  alignas(64) Real dil_j[kBlock], b_j[kBlock], c_j[kBlock], crit_j[kBlock];
+  alignas(64) Real pad0[kBlock], pad1[kBlock];  // the gathers' unused lanes
+  alignas(64) Real fx[kBlock], fy[kBlock],
+      fz[kBlock];                           // out: pair force density (0 for dead bonds)
+  alignas(64) std::uint8_t broken[kBlock];  // out: eq. 18 holds (fracture)
 };
 
 // Per particle i: the terms of A_ij that depend on i only.
@@ -1019,13 +824,11 @@ struct alignas(16) ForceRec {
 struct BondSlice {
   const Real *L, *omega, *shear, *vol, *epi, *omega_r, *shear_r, *epj;
   const std::uint8_t* live;
-  const Real* vol_r = nullptr;  // the pair path
 };
 
-template <bool Paper, bool Fracture, bool Plastic, bool Lps, bool Pair = false>
+template <bool Paper, bool Fracture, bool Plastic, bool Lps>
 void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Real delta,
                  bool classical) {
-#pragma GCC ivdep                // (see dilatation_block)
   for (int m = 0; m < n; ++m) {  // vectorised: no branches, no gathers
     const Real epi = Plastic ? S.epi[m] : Real(0), epj = Plastic ? S.epj[m] : Real(0);
     const Real ex = B.xx[m] + B.ex[m], ey = B.xy[m] + B.ey[m], ez = B.xz[m] + B.ez[m];  // eta
@@ -1048,10 +851,6 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
     const Real c =
         live * (Real(0.5) * (aij + aji) * S.vol[m] * (inv * L));  // eq. 1 with eq. 2, / l
     B.fx[m] = c * ex, B.fy[m] = c * ey, B.fz[m] = c * ez;
-    if (Pair) {  // row j's term: its A_ji + A_ij is this sum, its eta is -eta (see PairChunk)
-      const Real cr = live * (Real(0.5) * (aji + aij) * S.vol_r[m] * (inv * L));
-      B.gx[m] = cr * -ex, B.gy[m] = cr * -ey, B.gz[m] = cr * -ez;
-    }
     if (Fracture) {  // eq. 18 (or the classical bond stretch), from both ends: symmetric
       const Real d = classical ? L : delta;
       B.broken[m] = ok & (((e - epi) / d > r.crit) | ((e - epj) / d > B.crit_j[m]));
@@ -1070,9 +869,8 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
   const bool consistent = prm.consistent;
   // Per particle: the far end's terms and positions, gathered once per bond below (and a row's
   // own terms read back from its record).
-  std::vector<Real> local, local_lanes;
+  std::vector<Real> local;
   ForceRec* const recs = scratch_records<ForceRec>(scratch, local, p.n);
-  Real* const lanes = scratch_lanes(scratch, local_lanes, p.n);
   exec::parallel_for(space, "pd.forces_rows", exec::Index(p.n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     const PdMaterial& mi = mats[p.material[i]];
@@ -1088,28 +886,15 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
   auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c, auto lps_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
     constexpr bool Plastic = decltype(plastic_c)::value, Lps = decltype(lps_c)::value;
-    auto subs = [&](std::size_t i, Real sub[3][4]) {
-      for (int a = 0; a < 3; ++a) sub[0][a] = recs[i].y[a], sub[1][a] = p.x0[i][a];
-      sub[0][3] = sub[1][3] = 0;
-      for (int a = 0; a < 4; ++a) sub[2][a] = 0;
-    };
-    auto slice = [&](std::uint64_t kb) {
-      return BondSlice{bonds.length.data() + kb,        bonds.omega.data() + kb,
-                       bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
-                       bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
-                       bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
-                       bonds.intact.data() + kb,        bonds.volume_r.data() + kb};
-    };
-    auto row_of = [&](std::size_t i) {
-      const ForceRec& own = recs[i];
-      return ForceRow{own.y[3], own.x0[3], own.cc[0], own.cc[1]};
-    };
-    // Row path: every bond of row i from row i.
-    auto row_force = [&](std::size_t i) {
+    exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
+      const std::size_t i = std::size_t(ii);
       const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-      Real sub[3][4];
-      subs(i, sub);
-      const ForceRow ri = row_of(i);
+      const Real sub_y[4] = {recs[i].y[0], recs[i].y[1], recs[i].y[2], 0};
+      const Real sub[3][4] = {{sub_y[0], sub_y[1], sub_y[2], 0},
+                              {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0},
+                              {0, 0, 0, 0}};
+      const ForceRec& own = recs[i];
+      const ForceRow ri{own.y[3], own.x0[3], own.cc[0], own.cc[1]};
       const bool dense = bonds.dense[i] != 0;
       alignas(32) Real ax[kSumLanes] = {}, ay[kSumLanes] = {}, az[kSumLanes] = {};
       Mat3 s = Mat3::Zero();
@@ -1121,7 +906,12 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
         const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
         const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
         gather_records<3, true>(recs, sizeof(ForceRec), nb, n, sub, out);
-        force_block<Paper, Fracture, Plastic, Lps>(B, slice(kb), n, ri, delta, classical);
+        const BondSlice S{bonds.length.data() + kb,        bonds.omega.data() + kb,
+                          bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
+                          bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
+                          bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
+                          bonds.intact.data() + kb};
+        force_block<Paper, Fracture, Plastic, Lps>(B, S, n, ri, delta, classical);
         const std::uint8_t* lane = bonds.lane.data() + kb;
         lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
             lane_sum(B.fz, lane, dense, n, az);
@@ -1139,89 +929,7 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
       }
       force[i] = Vec3(lane_total(ax), lane_total(ay), lane_total(az));
       if (stress) stress[i] = s;
-    };
-    // Pair path (see PairChunk): bonds [kb, ke) of row i; row i's own terms when `own` (a row of
-    // the chunk), the far ends' terms where the far end is below e. Fracture writes each row's
-    // flag from the chunk that owns the row; a halo row reads the flag of the far end's row (its
-    // own may be written by its chunk meanwhile: both are equal at the start of the pass).
-    auto pair_bonds = [&](std::size_t i, std::uint64_t kb0, std::uint64_t ke, bool own,
-                          std::size_t e, ForceBlock& B) {
-      Real sub[3][4];
-      subs(i, sub);
-      const ForceRow ri = row_of(i);
-      Real* const out[3][4] = {{B.ex, B.ey, B.ez, B.dil_j},
-                               {B.xx, B.xy, B.xz, B.b_j},
-                               {B.c_j, B.crit_j, B.pad0, B.pad1}};
-      Real* dst[kBlock];
-      for (std::uint64_t kb = kb0; kb < ke; kb += kBlock) {
-        const int n = int(std::min<std::uint64_t>(kBlock, ke - kb));
-        const std::uint32_t* nb = bonds.neighbor.data() + kb;
-        gather_records<3, true>(recs, sizeof(ForceRec), nb, n, sub, out);
-        BondSlice S = slice(kb);
-        if (!own) {
-          for (int m = 0; m < n; ++m)
-            B.live[m] = bonds.intact[bonds.reverse[kb + std::uint64_t(m)]];
-          S.live = B.live;
-        }
-        force_block<Paper, Fracture, Plastic, Lps, true>(B, S, n, ri, delta, classical);
-        if (own) {
-          for (int m = 0; m < n; ++m)
-            dst[m] = lanes + (i * kSumLanes + bonds.lane[kb + std::uint64_t(m)]) * 4;
-          add_quads(B.fx, B.fy, B.fz, B.zero, n, dst);
-        }
-        for (int m = 0; m < n; ++m) {
-          const std::uint64_t k = kb + std::uint64_t(m);
-          dst[m] =
-              nb[m] < e ? lanes + (std::size_t(nb[m]) * kSumLanes + bonds.lane_r[k]) * 4 : nullptr;
-        }
-        add_quads(B.gx, B.gy, B.gz, B.zero, n, dst);
-        if (Fracture) {
-          unsigned any = 0;
-          for (int m = 0; m < n; ++m) any |= B.broken[m];
-          if (any)
-            for (int m = 0; m < n; ++m) {
-              if (!B.broken[m]) continue;
-              const std::uint64_t k = kb + std::uint64_t(m);
-              if (own) bonds.intact[k] = 0;
-              if (nb[m] < e) bonds.intact[bonds.reverse[k]] = 0;
-            }
-        }
-      }
-    };
-    if (stress || !use_pair_path(prm, bonds)) {
-      exec::parallel_for(space, "pd.forces", exec::Index(p.n),
-                         [&](exec::Index i) { row_force(std::size_t(i)); });
-      return;
-    }
-    const std::size_t nc = pair_chunk_count(space, prm, p.n);
-    exec::parallel_for(
-        space, "pd.forces", exec::Index(nc),
-        [&](exec::Index c) {
-          const PairChunk ch = pair_chunk(bonds, prm, p.n, std::size_t(c), nc);
-          if (!ch.pairs()) {
-            for (std::size_t i = ch.s; i < ch.e; ++i) row_force(i);
-            return;
-          }
-          LaneWindow w{lanes, ch.s, ch.e};
-          ForceBlock B;
-          std::fill(B.zero, B.zero + kBlock, Real(0));
-          for (std::size_t i = ch.h; i < ch.s; ++i) {  // the halo: bonds into [s, e)
-            const std::uint64_t kb = first_at_least(bonds, i, bonds.offsets[i], ch.s);
-            const std::uint64_t ke = first_at_least(bonds, i, kb, ch.e);
-            if (kb == ke) continue;
-            w.open(bonds, i, ke, false);
-            pair_bonds(i, kb, ke, false, ch.e, B);
-          }
-          for (std::size_t i = ch.s; i < ch.e; ++i) {  // own rows: their upper bonds
-            w.open(bonds, i, bonds.offsets[i + 1], true);
-            pair_bonds(i, first_at_least(bonds, i, bonds.offsets[i], i + 1), bonds.offsets[i + 1],
-                       true, ch.e, B);
-            Real tot[4];  // row i's lanes are complete: the rows below came first
-            quad_totals(lanes + i * kSumLanes * 4, tot);
-            force[i] = Vec3(tot[0], tot[1], tot[2]);
-          }
-        },
-        1);
+    });
   };
   with_form(prm, [&](auto paper_c, auto lps_c) {
     with_flag(fracture, [&](auto fracture_c) {
@@ -1376,9 +1084,6 @@ void pd_keep_rows(const exec::Space& space, PdBonds& bonds,
   out.omega_r.resize(total);
   out.shear_omega_r.resize(total);
   out.plastic_r.resize(total);
-  out.volume_r.resize(total);
-  out.lane_r.resize(total);
-  out.rows_only = true;
   exec::parallel_for(space, "pd.keep_rows", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     out.dense[i] = keep_row[i] ? bonds.dense[i] : 1;  // an empty row is trivially whole
@@ -1392,8 +1097,6 @@ void pd_keep_rows(const exec::Space& space, PdBonds& bonds,
       out.omega_r[o] = bonds.omega_r[k];
       out.shear_omega_r[o] = bonds.shear_omega_r[k];
       out.plastic_r[o] = bonds.plastic_r[k];
-      out.volume_r[o] = bonds.volume_r[k];
-      out.lane_r[o] = bonds.lane_r[k];
     }
   });
   bonds = std::move(out);

@@ -108,14 +108,6 @@ struct PdBonds {
   // built with (lane = position mod kSumLanes: the vectorised path).
   std::vector<std::uint8_t> lane;   // per bond
   std::vector<std::uint8_t> dense;  // per row
-  // The pair path (see pd_forces): each bond pair is computed once, from its lower row, whose
-  // thread adds the reverse bond's term into the far end's lanes; it reads the reverse bond's
-  // volume and lane from these mirrors (pd_mirror_bonds).
-  std::vector<Real> volume_r;
-  std::vector<std::uint8_t> lane_r;
-  // pd_keep_rows: reverse indices of rows not kept are kNoReverse, so the passes take the row
-  // path (every bond from its own row), which gives the same bits.
-  bool rows_only = false;
   std::size_t size() const { return neighbor.size(); }
   std::size_t particles() const { return offsets.empty() ? 0 : offsets.size() - 1; }
 };
@@ -137,10 +129,6 @@ struct PdParams {
   // Some material yields (a finite psi0). When none does, every plastic extension stays 0 and the
   // passes skip reading them (8 of the force pass's 37 bytes per bond): bitwise the same results.
   bool plastic = true;
-  // Each bond pair computed once (the pair path of pd_dilatation and pd_forces); false: every
-  // directed bond from its own row (the row path). Bitwise the same results; tests compare them.
-  bool pair_path = true;
-  int pair_chunks = 0;  // chunks of rows of the pair path (0: automatic); any count, same bits
 };
 
 // Per-particle constants of the model (set up once from the reference configuration).
@@ -233,7 +221,6 @@ void pd_mirror_bonds(const exec::Space& space, PdBonds& bonds);
 // not allocate and zero them (n x 32 and n x 48 bytes) on every call.
 struct PdScratch {
   std::vector<Real> records;
-  std::vector<Real> lanes;  // the pair path's lane sums: n x kSumLanes quads
 };
 void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
                    PdScratch* scratch = nullptr);

@@ -213,62 +213,6 @@ TEST_P(PdForms, ElasticPathIsBitwiseThePlasticPath) {
   EXPECT_NE(std::count(a.intact.begin(), a.intact.end(), 1), 0);
 }
 
-// The pair path (each bond pair computed once, chunks with halos) gives bitwise the row path's
-// theta, q, forces, plastic extensions and broken bonds, whatever the chunk count, with plastic
-// yield, fracture and compacted rows.
-TEST_P(PdForms, PairPathIsBitwiseTheRowPath) {
-  const exec::Space space(exec::Backend::OpenMP, 2);
-  PdMaterial m = glass();
-  m.critical_stretch = Real(3e-4);  // some bonds of the deformed block break
-  m.psi0 = pd_psi0_from_yield_stress(Real(2e6), Real(3.015 * kLc));  // some bonds yield
-  PdSolver solver = make_block(8, settings(GetParam().dev, GetParam().correction), m, space);
-  std::mt19937 rng(5);
-  std::uniform_real_distribution<double> u(-1, 1);
-  deform(solver, space, [&](const Vec3& x0) {
-    return Vec3(x0 + Vec3d(u(rng), u(rng), u(rng)).cast<Real>() * Real(2e-4));
-  });
-  PdBonds bonds0 = solver.bonds();
-  for (std::size_t k = 0; k < bonds0.size(); k += 7)  // compacted rows: break, then remove
-    bonds0.intact[k] = bonds0.intact[bonds0.reverse[k]] = 0;
-  pd_compact_bonds(space, bonds0);
-  const PdView v = solver.view();
-  struct Out {
-    std::vector<Real> theta, q, plastic;
-    std::vector<Vec3> f;
-    std::vector<std::uint8_t> intact;
-  };
-  auto run = [&](bool pairs, int chunks) {
-    PdParams prm = solver.params();
-    prm.consistent = GetParam().correction;
-    prm.pair_path = pairs;
-    prm.pair_chunks = chunks;
-    PdBonds b = bonds0;
-    Out o;
-    for (int step = 0; step < 2; ++step) {  // the second step sees the first's yield and breaks
-      pd_dilatation(space, v, b, prm);
-      o.f.assign(v.n, Vec3::Zero());
-      pd_forces(space, v, b, prm, true, o.f.data(), nullptr);
-    }
-    o.theta.assign(v.theta, v.theta + v.n), o.q.assign(v.q, v.q + v.n);
-    o.plastic = b.plastic, o.intact = b.intact;
-    return o;
-  };
-  const Out row = run(false, 0);
-  EXPECT_NE(std::count(row.intact.begin(), row.intact.end(), 0), 0);
-  EXPECT_NE(std::count_if(row.plastic.begin(), row.plastic.end(), [](Real e) { return e != 0; }), 0)
-      << "no bond yielded: the plastic test is vacuous";
-  for (int chunks : {1, 3, 7, 40}) {
-    const Out pair = run(true, chunks);
-    EXPECT_TRUE(test::bitwise_equal(row.theta.data(), pair.theta.data(), row.theta.size()))
-        << chunks;
-    EXPECT_TRUE(test::bitwise_equal(row.q.data(), pair.q.data(), row.q.size())) << chunks;
-    EXPECT_TRUE(test::bitwise_equal(row.f.data(), pair.f.data(), row.f.size())) << chunks;
-    EXPECT_TRUE(test::bitwise_equal(row.plastic.data(), pair.plastic.data(), row.plastic.size()))
-        << chunks;
-    EXPECT_EQ(row.intact, pair.intact) << chunks;
-  }
-}
-
 INSTANTIATE_TEST_SUITE_P(Peridynamics, PdForms,
                          ::testing::Values(Form{PdDeviatoric::Paper, false},
                                            Form{PdDeviatoric::Paper, true},
