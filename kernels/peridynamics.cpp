@@ -858,10 +858,19 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
   }
 }
 
+// phi_i = 1 - n_i / N_i (eq. 18's damage) of row i; returns n_i.
+inline std::uint64_t row_damage(const PdView& p, const PdBonds& bonds, std::size_t i) {
+  std::int32_t c = 0;
+  for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) c += bonds.intact[k];
+  p.damage[i] = p.bonds0[i] > 0 ? Real(1) - Real(c) / Real(p.bonds0[i]) : Real(0);
+  return std::uint64_t(c);
+}
+
 }  // namespace
 
 void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
-               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch) {
+               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch,
+               std::uint64_t* intact) {
   const Real delta = prm.horizon;
   const bool paper = prm.model == PdModel::Paper && prm.deviatoric == PdDeviatoric::Paper;
   const bool classical = prm.criterion == PdCriterion::Classical;
@@ -886,50 +895,55 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
   auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c, auto lps_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
     constexpr bool Plastic = decltype(plastic_c)::value, Lps = decltype(lps_c)::value;
-    exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
-      const std::size_t i = std::size_t(ii);
-      const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-      const Real sub_y[4] = {recs[i].y[0], recs[i].y[1], recs[i].y[2], 0};
-      const Real sub[3][4] = {{sub_y[0], sub_y[1], sub_y[2], 0},
-                              {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0},
-                              {0, 0, 0, 0}};
-      const ForceRec& own = recs[i];
-      const ForceRow ri{own.y[3], own.x0[3], own.cc[0], own.cc[1]};
-      const bool dense = bonds.dense[i] != 0;
-      alignas(32) Real ax[kSumLanes] = {}, ay[kSumLanes] = {}, az[kSumLanes] = {};
-      Mat3 s = Mat3::Zero();
-      ForceBlock B;
-      Real* const out[3][4] = {{B.ex, B.ey, B.ez, B.dil_j},
-                               {B.xx, B.xy, B.xz, B.b_j},
-                               {B.c_j, B.crit_j, B.pad0, B.pad1}};
-      for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
-        const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
-        const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
-        gather_records<3, true>(recs, sizeof(ForceRec), nb, n, sub, out);
-        const BondSlice S{bonds.length.data() + kb,        bonds.omega.data() + kb,
-                          bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
-                          bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
-                          bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
-                          bonds.intact.data() + kb};
-        force_block<Paper, Fracture, Plastic, Lps>(B, S, n, ri, delta, classical);
-        const std::uint8_t* lane = bonds.lane.data() + kb;
-        lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
-            lane_sum(B.fz, lane, dense, n, az);
-        if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
-          for (int m = 0; m < n; ++m)
-            s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) *
-                 Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
-        if (Fracture) {
-          unsigned any = 0;  // vectorised OR first: bonds rarely break
-          for (int m = 0; m < n; ++m) any |= B.broken[m];
-          if (any)
-            for (int m = 0; m < n; ++m)
-              if (B.broken[m]) bonds.intact[kb + std::uint64_t(m)] = 0;
-        }
-      }
-      force[i] = Vec3(lane_total(ax), lane_total(ay), lane_total(az));
-      if (stress) stress[i] = s;
-    });
+    const std::uint64_t count = exec::parallel_reduce(
+        space, "pd.forces", exec::Index(p.n), std::uint64_t(0),
+        [&](exec::Index ii, std::uint64_t& acc) {
+          const std::size_t i = std::size_t(ii);
+          const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
+          const Real sub_y[4] = {recs[i].y[0], recs[i].y[1], recs[i].y[2], 0};
+          const Real sub[3][4] = {{sub_y[0], sub_y[1], sub_y[2], 0},
+                                  {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0},
+                                  {0, 0, 0, 0}};
+          const ForceRec& own = recs[i];
+          const ForceRow ri{own.y[3], own.x0[3], own.cc[0], own.cc[1]};
+          const bool dense = bonds.dense[i] != 0;
+          alignas(32) Real ax[kSumLanes] = {}, ay[kSumLanes] = {}, az[kSumLanes] = {};
+          Mat3 s = Mat3::Zero();
+          ForceBlock B;
+          Real* const out[3][4] = {{B.ex, B.ey, B.ez, B.dil_j},
+                                   {B.xx, B.xy, B.xz, B.b_j},
+                                   {B.c_j, B.crit_j, B.pad0, B.pad1}};
+          for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
+            const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
+            const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
+            gather_records<3, true>(recs, sizeof(ForceRec), nb, n, sub, out);
+            const BondSlice S{bonds.length.data() + kb,        bonds.omega.data() + kb,
+                              bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
+                              bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
+                              bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
+                              bonds.intact.data() + kb};
+            force_block<Paper, Fracture, Plastic, Lps>(B, S, n, ri, delta, classical);
+            const std::uint8_t* lane = bonds.lane.data() + kb;
+            lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
+                lane_sum(B.fz, lane, dense, n, az);
+            if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
+              for (int m = 0; m < n; ++m)
+                s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) *
+                     Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
+            if (Fracture) {
+              unsigned any = 0;  // vectorised OR first: bonds rarely break
+              for (int m = 0; m < n; ++m) any |= B.broken[m];
+              if (any)
+                for (int m = 0; m < n; ++m)
+                  if (B.broken[m]) bonds.intact[kb + std::uint64_t(m)] = 0;
+            }
+          }
+          force[i] = Vec3(lane_total(ax), lane_total(ay), lane_total(az));
+          if (stress) stress[i] = s;
+          if (intact) acc += row_damage(p, bonds, i);  // after the row's fracture (pd_damage)
+        },
+        [](std::uint64_t a, std::uint64_t b) { return a + b; });
+    if (intact) *intact = count;
   };
   with_form(prm, [&](auto paper_c, auto lps_c) {
     with_flag(fracture, [&](auto fracture_c) {
@@ -993,14 +1007,7 @@ void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds&
 std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds& bonds) {
   return exec::parallel_reduce(
       space, "pd.damage", exec::Index(p.n), std::uint64_t(0),
-      [&](exec::Index ii, std::uint64_t& acc) {
-        const std::size_t i = std::size_t(ii);
-        std::int32_t c = 0;
-        for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k)
-          c += bonds.intact[k];
-        p.damage[i] = p.bonds0[i] > 0 ? Real(1) - Real(c) / Real(p.bonds0[i]) : Real(0);
-        acc += std::uint64_t(c);
-      },
+      [&](exec::Index i, std::uint64_t& acc) { acc += row_damage(p, bonds, std::size_t(i)); },
       [](std::uint64_t a, std::uint64_t b) { return a + b; });
 }
 
