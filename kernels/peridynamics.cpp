@@ -527,31 +527,44 @@ constexpr int kDilBlock = 256;  // dilatation pass: a whole row of up to 256 bon
                                 // stays in one block for the plastic return
 static_assert(kBlock % kSumLanes == 0 && kDilBlock % kSumLanes == 0, "blocks start on lane 0");
 
-// Gathers per neighbour: 16-byte quads of per-particle records, four neighbours at a time.
-// out_q[m] = rec(idx[m]).quad[q] - sub[q] for m < n, the quad being the 4 Reals at byte offset
-// `quad` of each record (records `stride` bytes apart, 16-byte aligned). SSE: four records per
-// step loaded whole and transposed (4 loads, 8 shuffles, 4 stores for 16 values instead of 16
-// scalar loads and stores); the same values as the scalar loop.
-void gather_quads(const void* records, std::size_t stride, std::size_t quad,
-                  const std::uint32_t* idx, int n, const Real sub[4], Real* o0, Real* o1, Real* o2,
-                  Real* o3) {
-  const char* base = static_cast<const char*>(records) + quad;
+// Gathers per neighbour: the first Q 16-byte quads of per-particle records, four neighbours at a
+// time, every quad of a record loaded from one address (one index load and one address per
+// neighbour for all Q quads). out[q][c][m] = rec(idx[m]).quad[q][c] - sub[q][c] for m < n
+// (records `stride` bytes apart, 16-byte aligned; sub null: nothing subtracted, for the last
+// quad when `last_raw`). SSE: four records per step loaded whole and transposed (4 loads, 8
+// shuffles, 4 stores for 16 values instead of 16 scalar loads and stores); the same values as
+// the scalar loop.
+template <int Q, bool LastRaw>
+void gather_records(const void* records, std::size_t stride, const std::uint32_t* idx, int n,
+                    const Real (*sub)[4], Real* const (*out)[4]) {
+  const char* base = static_cast<const char*>(records);
   int m = 0;
 #if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
-  const __m128 sv = _mm_loadu_ps(sub);
-  auto at = [&](int k) {
-    return _mm_sub_ps(_mm_load_ps(reinterpret_cast<const float*>(base + idx[k] * stride)), sv);
-  };
+  __m128 sv[Q];
+  for (int q = 0; q < Q; ++q) sv[q] = _mm_loadu_ps(sub[q]);
   for (; m + 4 <= n; m += 4) {
-    __m128 a = at(m), b = at(m + 1), c = at(m + 2), d = at(m + 3);
-    _MM_TRANSPOSE4_PS(a, b, c, d);
-    _mm_storeu_ps(o0 + m, a), _mm_storeu_ps(o1 + m, b), _mm_storeu_ps(o2 + m, c),
-        _mm_storeu_ps(o3 + m, d);
+    const float* r0 = reinterpret_cast<const float*>(base + std::size_t(idx[m]) * stride);
+    const float* r1 = reinterpret_cast<const float*>(base + std::size_t(idx[m + 1]) * stride);
+    const float* r2 = reinterpret_cast<const float*>(base + std::size_t(idx[m + 2]) * stride);
+    const float* r3 = reinterpret_cast<const float*>(base + std::size_t(idx[m + 3]) * stride);
+    for (int q = 0; q < Q; ++q) {
+      __m128 a = _mm_load_ps(r0 + 4 * q), b = _mm_load_ps(r1 + 4 * q), c = _mm_load_ps(r2 + 4 * q),
+             d = _mm_load_ps(r3 + 4 * q);
+      if (!(LastRaw && q == Q - 1)) {
+        a = _mm_sub_ps(a, sv[q]), b = _mm_sub_ps(b, sv[q]), c = _mm_sub_ps(c, sv[q]);
+        d = _mm_sub_ps(d, sv[q]);
+      }
+      _MM_TRANSPOSE4_PS(a, b, c, d);
+      _mm_storeu_ps(out[q][0] + m, a), _mm_storeu_ps(out[q][1] + m, b);
+      _mm_storeu_ps(out[q][2] + m, c), _mm_storeu_ps(out[q][3] + m, d);
+    }
   }
 #endif
   for (; m < n; ++m) {
-    const Real* r = reinterpret_cast<const Real*>(base + idx[m] * stride);
-    o0[m] = r[0] - sub[0], o1[m] = r[1] - sub[1], o2[m] = r[2] - sub[2], o3[m] = r[3] - sub[3];
+    const Real* r = reinterpret_cast<const Real*>(base + std::size_t(idx[m]) * stride);
+    for (int q = 0; q < Q; ++q)
+      for (int c = 0; c < 4; ++c)
+        out[q][c][m] = (LastRaw && q == Q - 1) ? r[4 * q + c] : r[4 * q + c] - sub[q][c];
   }
 }
 
@@ -610,9 +623,10 @@ struct DilSlice {
 
 void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t kb, int n,
                        const Real sub_y[4], const Real sub_x0[4], DilBlock& B) {
-  const std::uint32_t* nb = bonds.neighbor.data() + kb;
-  gather_quads(recs, sizeof(PosRec), offsetof(PosRec, y), nb, n, sub_y, B.ex, B.ey, B.ez, B.pad);
-  gather_quads(recs, sizeof(PosRec), offsetof(PosRec, x0), nb, n, sub_x0, B.xx, B.xy, B.xz, B.pad);
+  const Real sub[2][4] = {{sub_y[0], sub_y[1], sub_y[2], sub_y[3]},
+                          {sub_x0[0], sub_x0[1], sub_x0[2], sub_x0[3]}};
+  Real* const out[2][4] = {{B.ex, B.ey, B.ez, B.pad}, {B.xx, B.xy, B.xz, B.pad}};
+  gather_records<2, false>(recs, sizeof(PosRec), bonds.neighbor.data() + kb, n, sub, out);
 }
 
 // e, Lambda (eqs. 3, 6) and the terms of theta (eq. 5) and of the consistent sums (see header):
@@ -799,7 +813,7 @@ struct ForceRow {
       crit;  // a theta - q; b; ed = e - c g (g = Lambda: paper, L: LPS); critical stretch
 };
 
-// What the force pass gathers per neighbour, in three 16-byte quads (gather_quads).
+// What the force pass gathers per neighbour, in three 16-byte quads (gather_records).
 struct alignas(16) ForceRec {
   Real y[4];   // displacement u (see displacement()), a theta - q
   Real x0[4];  // reference position, b
@@ -844,10 +858,19 @@ void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Re
   }
 }
 
+// phi_i = 1 - n_i / N_i (eq. 18's damage) of row i; returns n_i.
+inline std::uint64_t row_damage(const PdView& p, const PdBonds& bonds, std::size_t i) {
+  std::int32_t c = 0;
+  for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) c += bonds.intact[k];
+  p.damage[i] = p.bonds0[i] > 0 ? Real(1) - Real(c) / Real(p.bonds0[i]) : Real(0);
+  return std::uint64_t(c);
+}
+
 }  // namespace
 
 void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
-               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch) {
+               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch,
+               std::uint64_t* intact) {
   const Real delta = prm.horizon;
   const bool paper = prm.model == PdModel::Paper && prm.deviatoric == PdDeviatoric::Paper;
   const bool classical = prm.criterion == PdCriterion::Classical;
@@ -872,51 +895,55 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
   auto kernel = [&](auto paper_c, auto fracture_c, auto plastic_c, auto lps_c) {
     constexpr bool Paper = decltype(paper_c)::value, Fracture = decltype(fracture_c)::value;
     constexpr bool Plastic = decltype(plastic_c)::value, Lps = decltype(lps_c)::value;
-    exec::parallel_for(space, "pd.forces", exec::Index(p.n), [&](exec::Index ii) {
-      const std::size_t i = std::size_t(ii);
-      const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
-      const Real sub_y[4] = {recs[i].y[0], recs[i].y[1], recs[i].y[2], 0};
-      const Real sub_x0[4] = {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0}, sub_0[4] = {0, 0, 0, 0};
-      const ForceRec& own = recs[i];
-      const ForceRow ri{own.y[3], own.x0[3], own.cc[0], own.cc[1]};
-      const bool dense = bonds.dense[i] != 0;
-      alignas(32) Real ax[kSumLanes] = {}, ay[kSumLanes] = {}, az[kSumLanes] = {};
-      Mat3 s = Mat3::Zero();
-      ForceBlock B;
-      for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
-        const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
-        const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
-        const ForceRec* rec = recs;
-        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, y), nb, n, sub_y, B.ex, B.ey, B.ez,
-                     B.dil_j);
-        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, x0), nb, n, sub_x0, B.xx, B.xy, B.xz,
-                     B.b_j);
-        gather_quads(rec, sizeof(ForceRec), offsetof(ForceRec, cc), nb, n, sub_0, B.c_j, B.crit_j,
-                     B.pad0, B.pad1);
-        const BondSlice S{bonds.length.data() + kb,        bonds.omega.data() + kb,
-                          bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
-                          bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
-                          bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
-                          bonds.intact.data() + kb};
-        force_block<Paper, Fracture, Plastic, Lps>(B, S, n, ri, delta, classical);
-        const std::uint8_t* lane = bonds.lane.data() + kb;
-        lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
-            lane_sum(B.fz, lane, dense, n, az);
-        if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
-          for (int m = 0; m < n; ++m)
-            s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) *
-                 Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
-        if (Fracture) {
-          unsigned any = 0;  // vectorised OR first: bonds rarely break
-          for (int m = 0; m < n; ++m) any |= B.broken[m];
-          if (any)
-            for (int m = 0; m < n; ++m)
-              if (B.broken[m]) bonds.intact[kb + std::uint64_t(m)] = 0;
-        }
-      }
-      force[i] = Vec3(lane_total(ax), lane_total(ay), lane_total(az));
-      if (stress) stress[i] = s;
-    });
+    const std::uint64_t count = exec::parallel_reduce(
+        space, "pd.forces", exec::Index(p.n), std::uint64_t(0),
+        [&](exec::Index ii, std::uint64_t& acc) {
+          const std::size_t i = std::size_t(ii);
+          const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
+          const Real sub_y[4] = {recs[i].y[0], recs[i].y[1], recs[i].y[2], 0};
+          const Real sub[3][4] = {{sub_y[0], sub_y[1], sub_y[2], 0},
+                                  {p.x0[i][0], p.x0[i][1], p.x0[i][2], 0},
+                                  {0, 0, 0, 0}};
+          const ForceRec& own = recs[i];
+          const ForceRow ri{own.y[3], own.x0[3], own.cc[0], own.cc[1]};
+          const bool dense = bonds.dense[i] != 0;
+          alignas(32) Real ax[kSumLanes] = {}, ay[kSumLanes] = {}, az[kSumLanes] = {};
+          Mat3 s = Mat3::Zero();
+          ForceBlock B;
+          Real* const out[3][4] = {{B.ex, B.ey, B.ez, B.dil_j},
+                                   {B.xx, B.xy, B.xz, B.b_j},
+                                   {B.c_j, B.crit_j, B.pad0, B.pad1}};
+          for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
+            const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
+            const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
+            gather_records<3, true>(recs, sizeof(ForceRec), nb, n, sub, out);
+            const BondSlice S{bonds.length.data() + kb,        bonds.omega.data() + kb,
+                              bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
+                              bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
+                              bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
+                              bonds.intact.data() + kb};
+            force_block<Paper, Fracture, Plastic, Lps>(B, S, n, ri, delta, classical);
+            const std::uint8_t* lane = bonds.lane.data() + kb;
+            lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
+                lane_sum(B.fz, lane, dense, n, az);
+            if (stress)  // sigma_i = 1/2 sum_j f_ij (x) xi V_j
+              for (int m = 0; m < n; ++m)
+                s += Real(0.5) * Vec3(B.fx[m], B.fy[m], B.fz[m]) *
+                     Vec3(B.xx[m], B.xy[m], B.xz[m]).transpose();
+            if (Fracture) {
+              unsigned any = 0;  // vectorised OR first: bonds rarely break
+              for (int m = 0; m < n; ++m) any |= B.broken[m];
+              if (any)
+                for (int m = 0; m < n; ++m)
+                  if (B.broken[m]) bonds.intact[kb + std::uint64_t(m)] = 0;
+            }
+          }
+          force[i] = Vec3(lane_total(ax), lane_total(ay), lane_total(az));
+          if (stress) stress[i] = s;
+          if (intact) acc += row_damage(p, bonds, i);  // after the row's fracture (pd_damage)
+        },
+        [](std::uint64_t a, std::uint64_t b) { return a + b; });
+    if (intact) *intact = count;
   };
   with_form(prm, [&](auto paper_c, auto lps_c) {
     with_flag(fracture, [&](auto fracture_c) {
@@ -980,14 +1007,7 @@ void pd_contact_forces(const exec::Space& space, const PdView& p, const PdBonds&
 std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds& bonds) {
   return exec::parallel_reduce(
       space, "pd.damage", exec::Index(p.n), std::uint64_t(0),
-      [&](exec::Index ii, std::uint64_t& acc) {
-        const std::size_t i = std::size_t(ii);
-        std::int32_t c = 0;
-        for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k)
-          c += bonds.intact[k];
-        p.damage[i] = p.bonds0[i] > 0 ? Real(1) - Real(c) / Real(p.bonds0[i]) : Real(0);
-        acc += std::uint64_t(c);
-      },
+      [&](exec::Index i, std::uint64_t& acc) { acc += row_damage(p, bonds, std::size_t(i)); },
       [](std::uint64_t a, std::uint64_t b) { return a + b; });
 }
 

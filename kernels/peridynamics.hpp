@@ -230,9 +230,12 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
 // T_i<x_j - x_i> - T_j<x_i - x_j>). stress (optional): sigma_i = 1/2 sum_j f_ij (x) xi V_j (the
 // peridynamic stress of a homogeneous deformation). fracture: after the force, bonds whose
 // criterion (eq. 18) holds from either end break; both rows decide alike, so breaking stays
-// symmetric. Returns nothing; force is a density (N/m^3).
+// symmetric. Returns nothing; force is a density (N/m^3). intact (optional): the pass also does
+// pd_damage's work, each row's damage right after its fracture (the row's flags are then in
+// cache: one pass over the bonds fewer per step), and stores the number of intact directed bonds.
 void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
-               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch = nullptr);
+               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch = nullptr,
+               std::uint64_t* intact = nullptr);
 
 // Short-range contact (fragments, or bodies, meeting), as LAMMPS's peri styles do: particles
 // closer than `distance` that share no intact bond repel with force density

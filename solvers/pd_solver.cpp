@@ -374,7 +374,9 @@ void PdSolver::compute_dilatation(const exec::Space& space) {
 }
 
 void PdSolver::compute_forces(const exec::Space& space) {
-  pd_forces(space, view(), bonds_, params(), settings_.fracture, force_.data(), nullptr, &scratch_);
+  // With the damage (update_damage's work, in the same pass: one pass over the bonds fewer).
+  pd_forces(space, view(), bonds_, params(), settings_.fracture, force_.data(), nullptr, &scratch_,
+            &intact_);
 }
 
 Real PdSolver::contact_distance() const {
@@ -497,10 +499,9 @@ void PdSolver::step(const exec::Space& space, Real dt) {
   compute_dilatation(space);
   share(particles_.real(attr_.theta));
   share(q_.data());
-  compute_forces(space);
+  compute_forces(space);  // and the damage (update_damage)
   contact_forces(space);
   bond_updates_ += bonds_.size();
-  update_damage(space);
   share(particles_.real(attr_.damage));
   split_meshes();
   compact_bonds(space);

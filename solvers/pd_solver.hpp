@@ -4,8 +4,8 @@
 // between particles that are not bonded, so fragments do not pass through each other.
 //
 // step() = kick_drift -> move_meshes -> apply_colliders -> compute_dilatation (with the plastic
-// return) -> compute_forces (with fracture) -> contact_forces -> update_damage -> split_meshes ->
-// compact_bonds -> kick. (move_meshes and split_meshes act on embedded tetrahedral meshes, Sec. 5.2.)
+// return) -> compute_forces (with fracture, and the damage of update_damage in the same pass) ->
+// contact_forces -> split_meshes -> compact_bonds -> kick. (move_meshes and split_meshes act on embedded tetrahedral meshes, Sec. 5.2.)
 #pragma once
 
 #include <cstdint>
@@ -173,7 +173,7 @@ class PdSolver {
   void kick_drift(const exec::Space& space, Real dt);
   void apply_colliders(const exec::Space& space, Real t);
   void compute_dilatation(const exec::Space& space);
-  void compute_forces(const exec::Space& space);
+  void compute_forces(const exec::Space& space);  // also the damage (update_damage's work)
   void contact_forces(const exec::Space& space);
   void update_damage(const exec::Space& space);
   void move_meshes(Real dt);
