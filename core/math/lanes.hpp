@@ -94,21 +94,33 @@ inline bool any_impl(const M& m) {
 // of errno), else one lane at a time.
 template <class T>
 inline V<T> sqrt_impl(const V<T>& x) {
+#if defined(__AVX512F__)
+  if constexpr (sizeof(V<T>) == 64) {
+    if constexpr (std::is_same_v<T, float>)
+      return reinterpret_cast<V<T>>(_mm512_sqrt_ps(reinterpret_cast<__m512>(x)));
+    else
+      return reinterpret_cast<V<T>>(_mm512_sqrt_pd(reinterpret_cast<__m512d>(x)));
+  }
+#endif
 #if defined(__AVX__)
-  if constexpr (std::is_same_v<T, float>)
-    return reinterpret_cast<V<T>>(_mm256_sqrt_ps(reinterpret_cast<__m256>(x)));
-  else
-    return reinterpret_cast<V<T>>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(x)));
-#elif defined(__SSE2__)
-  if constexpr (std::is_same_v<T, float>)
-    return reinterpret_cast<V<T>>(_mm_sqrt_ps(reinterpret_cast<__m128>(x)));
-  else
-    return reinterpret_cast<V<T>>(_mm_sqrt_pd(reinterpret_cast<__m128d>(x)));
-#else
+  if constexpr (sizeof(V<T>) == 32) {
+    if constexpr (std::is_same_v<T, float>)
+      return reinterpret_cast<V<T>>(_mm256_sqrt_ps(reinterpret_cast<__m256>(x)));
+    else
+      return reinterpret_cast<V<T>>(_mm256_sqrt_pd(reinterpret_cast<__m256d>(x)));
+  }
+#endif
+#if defined(__SSE2__)
+  if constexpr (sizeof(V<T>) == 16) {
+    if constexpr (std::is_same_v<T, float>)
+      return reinterpret_cast<V<T>>(_mm_sqrt_ps(reinterpret_cast<__m128>(x)));
+    else
+      return reinterpret_cast<V<T>>(_mm_sqrt_pd(reinterpret_cast<__m128d>(x)));
+  }
+#endif
   V<T> r{};
   for (int l = 0; l < kN<T>; ++l) r[l] = std::sqrt(x[l]);
   return r;
-#endif
 }
 }  // namespace detail
 
