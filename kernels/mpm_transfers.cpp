@@ -525,22 +525,6 @@ void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGri
   dispatch<P2GBlocks>(prm.order, prm.transfer, space, p, g, prm, bins, nbins, take);
 }
 
-int block_part_nodes(int order, int t) {
-  return ((t >> 2) & 1 ? order : kLeafDim) * ((t >> 1) & 1 ? order : kLeafDim) *
-         (t & 1 ? order : kLeafDim);
-}
-
-void copy_block_part(const Real* block, int order, int ch, int t, Real* out) {
-  const int B = kLeafDim + order, tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
-  const int ni = tx ? order : kLeafDim, nj = ty ? order : kLeafDim, nk = tz ? order : kLeafDim;
-  for (int i = 0; i < ni; ++i)
-    for (int j = 0; j < nj; ++j)
-      for (int k = 0; k < nk; ++k, out += ch) {
-        const int at = (((tx * kLeafDim + i) * B + ty * kLeafDim + j) * B + tz * kLeafDim + k) * ch;
-        std::memcpy(out, block + at, std::size_t(ch) * sizeof(Real));
-      }
-}
-
 void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out) {
   exec::parallel_for(space, "aul.positions_clear", exec::Index(g.nactive), [&](exec::Index i) {
     std::memset(out + std::size_t(g.active_leaves[i]) * kLeafNodes * 4, 0,
@@ -631,8 +615,28 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
 }
 
 extern const MpmKernelTable mpm_kernels;
-const MpmKernelTable mpm_kernels = {
-    &grid_clear, &p2g, &clear_node4, &p2g_positions, &grid_update, &grid_apply_colliders, &g2p};
+const MpmKernelTable mpm_kernels = {&grid_clear,    &p2g,         &clear_node4,
+                                    &p2g_positions, &grid_update, &grid_apply_colliders,
+                                    &g2p,           &p2g_blocks};
 
 }  // namespace AMALGAM_ISA
+
+// Layout helpers of distributed P2G: plain copies, the same on every instruction set (one copy,
+// outside the per-ISA namespace).
+int block_part_nodes(int order, int t) {
+  return ((t >> 2) & 1 ? order : kLeafDim) * ((t >> 1) & 1 ? order : kLeafDim) *
+         (t & 1 ? order : kLeafDim);
+}
+
+void copy_block_part(const Real* block, int order, int ch, int t, Real* out) {
+  const int B = kLeafDim + order, tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
+  const int ni = tx ? order : kLeafDim, nj = ty ? order : kLeafDim, nk = tz ? order : kLeafDim;
+  for (int i = 0; i < ni; ++i)
+    for (int j = 0; j < nj; ++j)
+      for (int k = 0; k < nk; ++k, out += ch) {
+        const int at = (((tx * kLeafDim + i) * B + ty * kLeafDim + j) * B + tz * kLeafDim + k) * ch;
+        std::memcpy(out, block + at, std::size_t(ch) * sizeof(Real));
+      }
+}
+
 }  // namespace amalgam

@@ -159,6 +159,9 @@ struct MpmKernelTable {
   Grid grid_update;
   Grid grid_apply_colliders;
   Particles g2p;
+  void (*p2g_blocks)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
+                     const MpmStepParams&, const std::uint32_t*, std::size_t,
+                     const std::function<void(std::size_t, const Real*, int)>&);
 };
 
 }  // namespace amalgam

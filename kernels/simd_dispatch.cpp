@@ -45,5 +45,10 @@ void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& 
          const MpmStepParams& prm) {
   mpm().g2p(space, p, g, prm);
 }
+void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
+                const std::function<void(std::size_t, const Real*, int)>& take) {
+  mpm().p2g_blocks(space, p, g, prm, bins, nbins, take);
+}
 
 }  // namespace amalgam
