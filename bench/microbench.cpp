@@ -11,6 +11,7 @@
 #include <memory>
 #include <random>
 
+#include "core/exec/simd.hpp"
 #include "core/materials/material.hpp"
 #include "core/math/svd3.hpp"
 #include "solvers/bench_scene.hpp"
@@ -585,4 +586,12 @@ BENCHMARK(BM_PdBrokenStep)->Apply([](benchmark::internal::Benchmark* b) { broken
 BENCHMARK(BM_PdCompact)->Apply([](benchmark::internal::Benchmark* b) { broken_args(b, false); });
 BENCHMARK(BM_PdContactList)->Apply(backend_args);
 
-BENCHMARK_MAIN();
+// BENCHMARK_MAIN with the SIMD path of the transfer kernels in the context (AMALGAM_SIMD forces one).
+int main(int argc, char** argv) {
+  benchmark::Initialize(&argc, argv);
+  if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
+  benchmark::AddCustomContext("simd_path", amalgam::exec::simd_description());
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}
