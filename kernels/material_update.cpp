@@ -3,10 +3,15 @@
 #include <algorithm>
 #include <cmath>
 
+#include "core/exec/simd.hpp"
 #include "core/math/lanes.hpp"
 #include "core/math/svd3.hpp"
 
 namespace amalgam {
+
+// The kernels, once per instruction set (core/exec/simd.hpp): the return mappings' SVDs take
+// 4, 8 or 16 particles per vector (baseline, AVX2, AVX-512).
+namespace AMALGAM_ISA {
 
 void update_material_state(const exec::Space& space, const MpmParticleView& p,
                            const MaterialUpdateParams& prm) {
@@ -70,4 +75,8 @@ void collide_particles(const exec::Space& space, const MpmParticleView& p,
   });
 }
 
+extern const MaterialKernelTable material_kernels;
+const MaterialKernelTable material_kernels = {&update_material_state, &collide_particles};
+
+}  // namespace AMALGAM_ISA
 }  // namespace amalgam

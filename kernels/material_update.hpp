@@ -43,4 +43,12 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
 void collide_particles(const exec::Space& space, const MpmParticleView& p,
                        const Collider* colliders, int n, Real time);
 
+// The kernels above for one instruction set (core/exec/simd.hpp; kernels/simd_dispatch.cpp
+// calls the table of exec::simd_path()).
+struct MaterialKernelTable {
+  void (*update_material_state)(const exec::Space&, const MpmParticleView&,
+                                const MaterialUpdateParams&);
+  void (*collide_particles)(const exec::Space&, const MpmParticleView&, const Collider*, int, Real);
+};
+
 }  // namespace amalgam

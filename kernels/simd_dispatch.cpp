@@ -2,11 +2,13 @@
 // (core/exec/simd.hpp; kernels/CMakeLists.txt, amalgam_simd_variants): each call runs the
 // variant of exec::simd_path().
 #include "core/exec/simd.hpp"
+#include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"
 
 namespace amalgam {
 
 AMALGAM_SIMD_DECLARE(MpmKernelTable, mpm_kernels)
+AMALGAM_SIMD_DECLARE(MaterialKernelTable, material_kernels)
 
 namespace {
 const MpmKernelTable& mpm() {
@@ -49,6 +51,17 @@ void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGri
                 const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
                 const std::function<void(std::size_t, const Real*, int)>& take) {
   mpm().p2g_blocks(space, p, g, prm, bins, nbins, take);
+}
+
+// The material update's SVDs run a vector of particles at a time: the path's width. The particle
+// collisions are scalar: the baseline's code.
+void update_material_state(const exec::Space& space, const MpmParticleView& p,
+                           const MaterialUpdateParams& prm) {
+  AMALGAM_SIMD_PICK(material_kernels).update_material_state(space, p, prm);
+}
+void collide_particles(const exec::Space& space, const MpmParticleView& p,
+                       const Collider* colliders, int n, Real time) {
+  isa_baseline::material_kernels.collide_particles(space, p, colliders, n, time);
 }
 
 }  // namespace amalgam
