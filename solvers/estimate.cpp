@@ -97,8 +97,9 @@ void estimate_mpm(const SceneSpec& s, RunEstimate& e) {
     throw InputError("/objects: the initial velocities trip the stability guard at once (" +
                      std::string(err.what()) + ")");
   }
-  const double particle_bytes = double(probe.particles().bytes_per_particle()) * 1.5 +
-                                double(MpmSolver::binning_bytes_per_particle());  // + snapshot
+  const double particle_bytes = double(probe.particles().bytes_per_particle() +
+                                       probe.particles().state_bytes_per_particle()) +  // snapshot
+                                double(MpmSolver::binning_bytes_per_particle());
   e.bytes += e.particles * particle_bytes + e.grid_leaves * double(probe.grid().bytes_per_leaf());
 }
 
@@ -127,7 +128,8 @@ void estimate_pd(const SceneSpec& s, RunEstimate& e) {
   // Per bond: neighbour, reverse index, 8 Reals, intact and lane flags; the frame-start snapshot
   // keeps plastic, plastic_r and intact.
   const double bond_bytes = 4 + 8 + 8 * sizeof(Real) + 2 + (2 * sizeof(Real) + 1);
-  e.bytes += e.particles * (double(probe.particles().bytes_per_particle()) * 1.5 + 8) +
+  e.bytes += e.particles * (double(probe.particles().bytes_per_particle() +
+                                  probe.particles().state_bytes_per_particle()) + 8) +
              e.bonds * bond_bytes;
   for (std::size_t k = 0; k < s.objects.size(); ++k) {
     const double speed = double(fastest_initial_velocity(s.objects[k]).norm());

@@ -165,10 +165,9 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
     perm_.swap(perm_tmp_);
   }
 
-  // Bins: runs of equal keys.
-  flags_.resize(size_t(n));
+  // Bins: runs of equal keys (their numbers in keys_tmp_, free once the sort is done).
   const std::uint32_t* keys = keys_.data();
-  std::uint32_t* flags = flags_.data();
+  std::uint32_t* flags = keys_tmp_.data();
   const std::uint32_t nbins = exec::parallel_scan<std::uint32_t>(
       space, "bin.find_runs", n,
       [=](exec::Index i) { return (i == 0 || keys[i] != keys[i - 1]) ? 1u : 0u; }, flags);

@@ -23,8 +23,9 @@ struct BinTable {
 
 class ParticleBinning {
  public:
-  // keys, keys_tmp, perm, perm_tmp, flags: five 32-bit words per particle.
-  static constexpr std::size_t kScratchBytesPerParticle = 5 * sizeof(std::uint32_t);
+  // keys, keys_tmp, perm, perm_tmp: four 32-bit words per particle (the bins' run flags reuse
+  // keys_tmp once the sort is done).
+  static constexpr std::size_t kScratchBytesPerParticle = 4 * sizeof(std::uint32_t);
   // `order` is the B-spline order (1, 2 or 3) whose stencil base defines the key.
   // Sorts `ps` in place by leaf key (attribute `x_id` holds positions), fills `bins`.
   // With `id_id` (an int32 attribute of unique particle ids), the particles of a bin are ordered
@@ -37,7 +38,7 @@ class ParticleBinning {
                     int order, BinTable& bins, ParticleSet::Id id_id = -1);
 
  private:
-  std::vector<std::uint32_t> keys_, keys_tmp_, perm_, perm_tmp_, flags_;
+  std::vector<std::uint32_t> keys_, keys_tmp_, perm_, perm_tmp_;
   std::vector<std::uint32_t> hist_;
 };
 

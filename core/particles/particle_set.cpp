@@ -20,9 +20,8 @@ ParticleSet::Id ParticleSet::add(const std::string& name, AttrType type, int wid
   if (find(name) >= 0)
     throw std::invalid_argument("particle attribute '" + name + "' already exists");
   if (width < 1) throw std::invalid_argument("particle attribute '" + name + "' needs width >= 1");
-  Attr a{name, type, width, {}, {}};
+  Attr a{name, type, width, {}};
   a.front.assign(n_ * size_t(a.words()), 0u);
-  a.back.assign(n_ * size_t(a.words()), 0u);
   attrs_.push_back(std::move(a));
   return Id(attrs_.size() - 1);
 }
@@ -40,10 +39,8 @@ ParticleSet::Id ParticleSet::id(const std::string& name) const {
 }
 
 void ParticleSet::resize(std::size_t n) {
-  for (auto& a : attrs_) {
-    a.front.resize(n * size_t(a.words()), 0u);
-    a.back.resize(n * size_t(a.words()), 0u);
-  }
+  for (auto& a : attrs_) a.front.resize(n * size_t(a.words()), 0u);
+  for (auto& s : spares_) s.second.resize(n * size_t(s.first));
   n_ = n;
 }
 
@@ -60,10 +57,32 @@ void ParticleSet::restore(const Snapshot& s) {
   for (size_t a = 0; a < attrs_.size(); ++a) attrs_[a].front = s.words[a];
 }
 
-std::size_t ParticleSet::bytes_per_particle() const {
+std::size_t ParticleSet::state_bytes_per_particle() const {
   size_t b = 0;
-  for (const auto& a : attrs_) b += 2 * 4 * size_t(a.words());
+  for (const auto& a : attrs_) b += 4 * size_t(a.words());
   return b;
+}
+
+std::size_t ParticleSet::bytes_per_particle() const {
+  // One spare per distinct width (those a permute creates; counted before the first permute too).
+  std::vector<int> widths;
+  for (const auto& a : attrs_)
+    if (std::find(widths.begin(), widths.end(), a.words()) == widths.end())
+      widths.push_back(a.words());
+  size_t b = state_bytes_per_particle();
+  for (int w : widths) b += 4 * size_t(w);
+  return b;
+}
+
+std::vector<std::uint32_t>& ParticleSet::spare(int words, std::size_t n) {
+  auto it = std::find_if(spares_.begin(), spares_.end(),
+                         [words](const auto& s) { return s.first == words; });
+  if (it == spares_.end()) {
+    spares_.emplace_back(words, std::vector<std::uint32_t>());
+    it = spares_.end() - 1;
+  }
+  if (it->second.size() < n * size_t(words)) it->second.resize(n * size_t(words));
+  return it->second;
 }
 
 namespace {
@@ -93,8 +112,9 @@ void ParticleSet::compact(const exec::Space& space, const std::uint32_t* index, 
 void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, std::size_t n) {
   for (auto& a : attrs_) {
     const int w = a.words();
+    std::vector<std::uint32_t>& back = spare(w, n_);
     const std::uint32_t* src = a.front.data();
-    std::uint32_t* dst = a.back.data();
+    std::uint32_t* dst = back.data();
     switch (w) {  // the widths of scalars, Vec3 and Mat3 in float and double
       case 1:
         gather_records<1>(space, n, perm, src, dst);
@@ -121,7 +141,7 @@ void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, st
           for (int k = 0; k < w; ++k) d[k] = s[k];
         });
     }
-    a.front.swap(a.back);
+    a.front.swap(back);  // sizes equal: both hold n_ particles of w words
   }
 }
 
