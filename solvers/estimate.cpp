@@ -129,7 +129,8 @@ void estimate_pd(const SceneSpec& s, RunEstimate& e) {
   // keeps plastic, plastic_r and intact.
   const double bond_bytes = 4 + 8 + 8 * sizeof(Real) + 2 + (2 * sizeof(Real) + 1);
   e.bytes += e.particles * (double(probe.particles().bytes_per_particle() +
-                                  probe.particles().state_bytes_per_particle()) + 8) +
+                                   probe.particles().state_bytes_per_particle()) +
+                            8) +
              e.bonds * bond_bytes;
   for (std::size_t k = 0; k < s.objects.size(); ++k) {
     const double speed = double(fastest_initial_velocity(s.objects[k]).norm());

@@ -14,6 +14,8 @@ namespace {
 constexpr int kDigitBits = 11;
 constexpr std::uint32_t kRadix = 1u << kDigitBits;
 constexpr exec::Index kSortChunks = 64;  // fixed: the permutation must not depend on threads
+// Runs of ascending ids a bin's id order merges (more: the bin is sorted instead).
+constexpr int kMaxRuns = 64;
 
 struct LeafBox {
   int lo[3] = {INT_MAX, INT_MAX, INT_MAX};
@@ -191,8 +193,24 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
     const std::int32_t* ids = ps.int32(id_id);
     std::uint32_t* perm = perm_.data();
     exec::parallel_for(space, "bin.order_by_id", exec::Index(nbins), [=](exec::Index b) {
-      std::sort(perm + start[b], perm + start[b + 1],
-                [ids](std::uint32_t a, std::uint32_t c) { return ids[a] < ids[c]; });
+      const auto by_id = [ids](std::uint32_t a, std::uint32_t c) { return ids[a] < ids[c]; };
+      // The stable radix sort leaves a bin as the particles of each previous bin in their previous
+      // order: a few runs ascending by id (one when no particle arrived). Merge the runs pairwise.
+      std::uint32_t* run[kMaxRuns + 1];
+      int runs = 0;
+      std::uint32_t *p = perm + start[b], *e = perm + start[b + 1];
+      run[runs++] = p;
+      for (std::uint32_t* q = p + 1; q < e && runs <= kMaxRuns; ++q)
+        if (by_id(*q, *(q - 1))) run[runs++] = q;
+      if (runs == 1) return;
+      if (runs > kMaxRuns) {
+        std::sort(p, e, by_id);
+        return;
+      }
+      run[runs] = e;
+      for (int width = 1; width < runs; width *= 2)
+        for (int r = 0; r + width < runs; r += 2 * width)
+          std::inplace_merge(run[r], run[r + width], run[std::min(r + 2 * width, runs)], by_id);
     });
   }
   ps.permute(space, perm_.data());

@@ -255,3 +255,41 @@ TEST(ParticleSet, PermuteThroughSparesKeepsEveryAttribute) {
     for (int k = 0; k < 9; ++k) ASSERT_EQ(ps.real(m)[i * 9 + std::size_t(k)], value(p, 3, k));
   }
 }
+
+// With ids, a bin's particles are in id order whatever order they came in: after a sort, random
+// moves (a bin then holds runs of ascending ids from several previous bins, which the sort
+// merges) and a shuffle (many runs: sorted outright), every bin holds its particles by id.
+TEST(Binning, BinsAreInIdOrderAfterMovesAndShuffles) {
+  const Real dx = Real(1.0 / 64);
+  ParticleSet ps = random_particles(40000, 5);
+  const auto x = ps.id("x"), id = ps.id("id");
+  std::mt19937 rng(9);
+  std::uniform_real_distribution<double> step(-2.5 * double(dx), 2.5 * double(dx));
+  ParticleBinning binning;
+  BinTable bins;
+  exec::Space s(test::parallel_backend(), 2);
+  for (int round = 0; round < 4; ++round) {
+    if (round == 3) {  // shuffled storage order
+      std::vector<std::uint32_t> perm(ps.size());
+      for (std::size_t i = 0; i < perm.size(); ++i) perm[i] = std::uint32_t(i);
+      std::shuffle(perm.begin(), perm.end(), rng);
+      ps.permute(s, perm.data());
+    }
+    binning.sort_and_bin(s, ps, x, dx, 2, bins, id);
+    std::map<std::tuple<int, int, int>, std::vector<int>> expect;
+    for (size_t i = 0; i < ps.size(); ++i) {
+      Vec3i l;
+      for (int a = 0; a < 3; ++a) l[a] = BSpline<2>::base(ps.vec3(x)[i][a] * (Real(1) / dx)) >> 3;
+      expect[{l[0], l[1], l[2]}].push_back(ps.int32(id)[i]);
+    }
+    ASSERT_EQ(bins.count(), expect.size());
+    for (size_t b = 0; b < bins.count(); ++b) {
+      std::vector<int> want = expect.at({bins.leaf[b][0], bins.leaf[b][1], bins.leaf[b][2]});
+      std::sort(want.begin(), want.end());
+      ASSERT_EQ(bins.start[b + 1] - bins.start[b], want.size());
+      for (size_t k = 0; k < want.size(); ++k) ASSERT_EQ(ps.int32(id)[bins.start[b] + k], want[k]);
+    }
+    for (size_t i = 0; i < ps.size(); ++i)  // then move every particle a little
+      for (int a = 0; a < 3; ++a) ps.vec3(x)[i][a] += Real(step(rng));
+  }
+}
