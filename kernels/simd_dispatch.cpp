@@ -54,7 +54,7 @@ void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGri
 }
 
 // The material update's SVDs run a vector of particles at a time: the path's width. The particle
-// collisions are scalar: the baseline's code.
+// collisions run the baseline's code: only their half-space test is a loop across particles.
 void update_material_state(const exec::Space& space, const MpmParticleView& p,
                            const MaterialUpdateParams& prm) {
   AMALGAM_SIMD_PICK(material_kernels).update_material_state(space, p, prm);
