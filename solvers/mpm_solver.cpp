@@ -239,12 +239,16 @@ MpmStepParams MpmSolver::step_params(Real dt) const {
 
 void MpmSolver::sort_particles(const exec::Space& space) {
   if (ranks_) return sort_distributed(space);
-  // Plain MPM: particles in (leaf, id) order, independent of their previous order, so that the
-  // ranks of a distributed run, each sorting the particles of its own leaves, put every bin's
-  // particles in the single process's order (the P2G sums of a node then add the same values in
-  // the same order; docs/architecture.md, "Distributed runs"). A-ULMPM keeps its stable order.
-  binning_.sort_and_bin(space, particles_, aul_ ? aul_->attributes().X_s : attr_.x, settings_.dx,
-                        settings_.order, bins_, aul_ ? -1 : attr_.id);
+  // Particles in (leaf, id) order, independent of their previous order, so that the ranks of a
+  // distributed run, each sorting the particles of its own leaves, put every bin's particles in
+  // the single process's order (the P2G sums of a node then add the same values in the same
+  // order; docs/architecture.md, "Distributed runs"). A-ULMPM bins at the reference positions.
+  binning_.sort_and_bin(space, particles_, bin_position(), settings_.dx, settings_.order, bins_,
+                        attr_.id);
+}
+
+ParticleSet::Id MpmSolver::bin_position() const {
+  return aul_ ? aul_->attributes().X_s : attr_.x;
 }
 
 void MpmSolver::update_grid(const exec::Space& space) {

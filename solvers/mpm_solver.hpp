@@ -221,6 +221,12 @@ class MpmSolver {
   std::shared_ptr<Ranks> ranks_;
   std::uint64_t state_version_ = 0;
   Vec3i particle_leaf(const Vec3& x) const;  // the leaf of the particle's bin
+  ParticleSet::Id bin_position() const;      // where particles are binned: x, A-ULMPM's X^s
+  // Distributed A-ULMPM contact: the active leaves this rank owns, the owner of any leaf, and
+  // the owners' node rows (m, v; PIC/FLIP's dv) copied into the ghosts again.
+  const std::vector<std::int32_t>& owned_leaf_list() const;
+  int leaf_owner(const Vec3i& leaf) const;
+  void exchange_ghost_rows(const exec::Space& space);
   void refuse_distributed() const;
   void migrate(const exec::Space& space);
   void repartition();
