@@ -18,6 +18,7 @@
 // checkpoints are computed on rank 0 from the particles gathered in the single process's order
 // (gather_particles), so every file is bitwise that of one process.
 #include <algorithm>
+#include <array>
 #include <climits>
 #include <cstdlib>
 #include <cstring>
@@ -28,6 +29,7 @@
 #include "core/dist/comm.hpp"
 #include "core/dist/halo.hpp"
 #include "core/errors.hpp"
+#include "core/geometry/level_set_collider.hpp"
 #include "core/math/bspline.hpp"
 #include "solvers/mpm_solver.hpp"
 
@@ -139,8 +141,22 @@ void MpmSolver::refuse_distributed() const {
         "colliders or contact between objects are");
   if (enriched_) refuse("particle domains (simulation.domains) are");
   if (sleep_) refuse("sleeping (simulation.sleep) is");
-  for (const Collider& c : colliders_)
-    if (c.field) refuse("mesh and level-set colliders are");
+}
+
+// Every rank builds the field colliders around the blocks of all ranks' particles: the region
+// one process builds, so every query (owned nodes, local particles) finds its voxels built.
+void MpmSolver::prepare_colliders_distributed(const exec::Space& space, Real t) {
+  bool any = false;
+  for (const Collider& c : colliders_) any |= bool(c.field);
+  if (!any) return;
+  using Key = std::array<std::int64_t, 3>;
+  const std::vector<Key> mine =
+      collider_blocks(particles_.vec3(attr_.x), particles_.size(), settings_.dx);
+  std::vector<Key> all =
+      dist::from_bytes<Key>(dist::Comm::world().allgather(dist::as_bytes(mine), nullptr));
+  std::sort(all.begin(), all.end());
+  all.erase(std::unique(all.begin(), all.end()), all.end());
+  prepare_collider_blocks(colliders_, all, settings_.dx, t, space);
 }
 
 void MpmSolver::distribute(const exec::Space& space) {
@@ -523,6 +539,33 @@ void MpmSolver::gather_particles(ParticleSet& out) const {
       src += wa * 4;
     }
   }
+}
+
+void MpmSolver::gather_grid(SparseGrid& out) const {
+  const dist::Comm& comm = dist::Comm::world();
+  const std::size_t row = std::size_t(kLeafNodes) * 4;
+  std::vector<std::int32_t> coords;
+  std::vector<Real> rows;
+  const auto& lc = grid_.leaf_coords();
+  for (const std::int32_t li : ranks_->owned_active) {
+    const Vec3i& l = lc[std::size_t(li)];
+    coords.insert(coords.end(), {l[0], l[1], l[2]});
+    const Real* a = grid_.node4(0) + std::size_t(li) * row;
+    rows.insert(rows.end(), a, a + row);
+  }
+  const std::vector<std::int32_t> all_coords =
+      dist::from_bytes<std::int32_t>(comm.gather(dist::as_bytes(coords), nullptr));
+  const std::vector<Real> all_rows =
+      dist::from_bytes<Real>(comm.gather(dist::as_bytes(rows), nullptr));
+  out.set_node4_channels(1);
+  if (!comm.root()) return;
+  std::vector<Vec3i> leaves;
+  for (std::size_t i = 0; i + 2 < all_coords.size(); i += 3)
+    leaves.push_back(Vec3i(all_coords[i], all_coords[i + 1], all_coords[i + 2]));
+  out.update_topology(exec::Space(), BinTable{}, &leaves);
+  for (std::size_t i = 0; i < leaves.size(); ++i)
+    std::memcpy(out.node4(0) + std::size_t(out.find_leaf(leaves[i] * kLeafDim)) * row,
+                all_rows.data() + i * row, row * sizeof(Real));
 }
 
 // Emitted particles [first, size) were added on every rank: each keeps those in its own leaves.

@@ -165,6 +165,16 @@ std::vector<Column> state_columns(const MpmDiagnostics& d) {
 }
 }  // namespace
 
+const SparseGrid* MpmSimulation::grid() const {
+  if (!s_.distributed()) return &s_.grid();
+  if (!gathered_grid_ || gathered_grid_version_ != s_.state_version()) {
+    gathered_grid_ = std::make_unique<SparseGrid>();
+    s_.gather_grid(*gathered_grid_);
+    gathered_grid_version_ = s_.state_version();
+  }
+  return gathered_grid_.get();
+}
+
 const ParticleSet& MpmSimulation::all_particles() const {
   if (!s_.distributed()) return s_.particles();
   if (gathered_version_ != s_.state_version()) {

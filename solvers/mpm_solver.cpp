@@ -332,8 +332,11 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
   }
   // Field colliders (meshes, level sets) built around the material for this substep's end time,
   // where every kernel queries them (core/geometry/level_set_collider.hpp).
-  prepare_colliders(colliders_, particles_.vec3(attr_.x), particles_.size(), settings_.dx,
-                    Real(time_) + dt, space);
+  if (ranks_)
+    prepare_colliders_distributed(space, Real(time_) + dt);
+  else
+    prepare_colliders(colliders_, particles_.vec3(attr_.x), particles_.size(), settings_.dx,
+                      Real(time_) + dt, space);
   if (enriched_) {
     enriched_->step(space, *this, dt);  // particle domains: their own substep (Algorithm 1)
   } else {

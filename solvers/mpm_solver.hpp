@@ -194,6 +194,9 @@ class MpmSolver {
   // Collective: every rank's particles on rank 0 in the single process's order (`out` holds
   // them there, no particle elsewhere): for frames, diagnostics and checkpoints.
   void gather_particles(ParticleSet& out) const;
+  // Collective: the node rows (m, v) of every rank's owned active leaves into `out` on rank 0 (a
+  // fresh grid: those leaves active, nothing elsewhere), for grid volumes.
+  void gather_grid(SparseGrid& out) const;
   // Changes whenever the particles may have changed (a substep, a restore, distribute).
   std::uint64_t state_version() const { return state_version_; }
   // Collective: ranks, repartitions, imbalance and halo of the last substep, for the run summary.
@@ -227,6 +230,8 @@ class MpmSolver {
   const std::vector<std::int32_t>& owned_leaf_list() const;
   int leaf_owner(const Vec3i& leaf) const;
   void exchange_ghost_rows(const exec::Space& space);
+  // Field colliders built around every rank's particles (collective), as on one process.
+  void prepare_colliders_distributed(const exec::Space& space, Real t);
   void refuse_distributed() const;
   void migrate(const exec::Space& space);
   void repartition();
