@@ -140,7 +140,6 @@ void MpmSolver::refuse_distributed() const {
         "A-ULMPM objects with PIC/FLIP transfers (simulation.transfer \"pic\" or \"flip\") and "
         "colliders or contact between objects are");
   if (enriched_) refuse("particle domains (simulation.domains) are");
-  if (sleep_) refuse("sleeping (simulation.sleep) is");
 }
 
 // Every rank builds the field colliders around the blocks of all ranks' particles: the region
@@ -399,6 +398,9 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
                            [&](std::uint64_t k) { return rk.owner(key_leaf(k)); });
   rk.halo_leaves = ghost_keys.size();
   rk.halo_parts = rk.exports.size();
+  if (sleep_)
+    sleep_->decide(space, particles_, attr_, bins_, settings_.dx, time_, colliders_at(Real(time_)),
+                   int(colliders_.size()), emitters_, true);
 }
 
 void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) {
@@ -463,6 +465,7 @@ void MpmSolver::update_grid_velocities_distributed(const exec::Space& space, Rea
   g.active_leaves = rk.owned_active.data();
   g.nactive = rk.owned_active.size();
   grid_update(space, g, step_params(dt));
+  if (sleep_) sleep_->pin_nodes(space, grid_, bins_, grid_.node4(0));  // own leaves: owned
   exchange_ghost_rows(space);
 }
 

@@ -226,7 +226,7 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
        {"enriched_corners", double(dc.last_enriched_corners), true},
        {"emitted", double(s_.source_counters().emitted - frame_sources_.emitted), true},
        {"killed", double(s_.source_counters().killed - frame_sources_.killed), true},
-       {"sleeping", double(s_.sleep() ? s_.sleep()->sleeping(s_.particles()) : 0), true}});
+       {"sleeping", double(s_.sleep() ? s_.sleep()->sleeping(all_particles()) : 0), true}});
   if (s_.settings().implicit) {
     char cg[64];
     std::snprintf(cg, sizeof cg, "CG %.1f it/step",
