@@ -87,6 +87,9 @@ class FrameWriter {
 
   void write(int f) {
     PointFields p = point_fields();  // collective when distributed (von Mises stress)
+    // Grid volumes: collective when distributed (every rank's owned leaves gathered to rank 0).
+    // The grid exists once a substep ran.
+    const SparseGrid* grid = scene_.output.grid_volumes && f > 0 ? sim_.grid() : nullptr;
     if (!writes_files()) return;
     const auto t0 = std::chrono::steady_clock::now();
     auto s = std::make_shared<Snapshot>(std::move(p));
@@ -98,8 +101,7 @@ class FrameWriter {
         s->preview_scalar = *sim_.point_fields({attr}, space_).find(attr);
     }
     const OutputSpec& out = scene_.output;
-    if (out.grid_volumes && f > 0 && sim_.grid())  // the grid exists once a substep ran
-      s->grid = std::make_unique<GridNodes>(grid_nodes(*sim_.grid(), sim_.point_voxel_size()));
+    if (grid) s->grid = std::make_unique<GridNodes>(grid_nodes(*grid, sim_.point_voxel_size()));
     s->has_mesh = (out.surface_obj || out.surface_ply) && sim_.surface(s->mesh);
     waited_ += seconds_since(t0);  // the copy is the simulation's share of asynchronous output
     const auto t1 = std::chrono::steady_clock::now();

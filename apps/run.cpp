@@ -145,12 +145,7 @@ int run_command(const std::vector<std::string>& args) {
     rs.quiet = o.flag("--quiet") || !dist::Comm::world().root();  // rank 0 speaks for a job
     // Distributed runs (issue 28): peridynamics splits its bonds across the ranks
     // (solvers/pd_distributed.cpp), explicit MPM its leaves and particles
-    // (solvers/mpm_distributed.cpp); what is not distributed yet is refused by begin_run, and
-    // here the grid volumes, whose nodes each rank holds only in part.
-    if (dist::Comm::world().size() > 1 && scene.method == Method::Mpm && scene.output.grid_volumes)
-      throw InputError(scene.file +
-                       ": /output/grid_volumes: MPM grid volumes are not written by several MPI "
-                       "ranks yet (issue 28): run one rank, or leave them out");
+    // (solvers/mpm_distributed.cpp); what is not distributed yet is refused by begin_run.
     rs.preview = o.flag("--preview");
     rs.sync_output = o.flag("--sync-output");
     rs.checkpoint_every = scene.output.checkpoint_every;

@@ -246,16 +246,17 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
 }
 
 // Distributed P2G: the blocks of the listed bins, each handed to `take` (on the exec threads).
-template <int Order, Transfer T>
+// L, P as p2g_impl: the Lagrangian mode (A-ULMPM) and its fused node positions (8 lanes).
+template <int Order, Transfer T, bool L = false, bool P = false>
 void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                      const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
                      const std::function<void(std::size_t, const Real*, int)>& take) {
-  constexpr int CH = channels_of(T);
+  constexpr int CH = P ? 8 : channels_of(T);
   exec::parallel_for(
       space, "mpm.p2g_exports", exec::Index(nbins),
       [&](exec::Index k) {
         Block<Order, CH> blk;
-        scatter_bin<Order, T, false, false>(blk, bins[k], p, g, prm);
+        scatter_bin<Order, T, L, P>(blk, bins[k], p, g, prm);
         take(std::size_t(k), blk.data, CH);
       },
       1);
@@ -515,7 +516,13 @@ struct P2GBlocks {
   static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g,
                   const MpmStepParams& prm, const std::uint32_t* bins, std::size_t n,
                   const std::function<void(std::size_t, const Real*, int)>& take) {
-    p2g_blocks_impl<O, T>(s, p, g, prm, bins, n, take);
+    if constexpr (T != Transfer::PicFlip) {
+      if (p.X_ref && g.q_out) return p2g_blocks_impl<O, T, true, true>(s, p, g, prm, bins, n, take);
+    }
+    if (p.X_ref)
+      p2g_blocks_impl<O, T, true>(s, p, g, prm, bins, n, take);
+    else
+      p2g_blocks_impl<O, T>(s, p, g, prm, bins, n, take);
   }
 };
 

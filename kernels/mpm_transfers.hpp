@@ -123,7 +123,8 @@ void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepPar
 void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
          const MpmStepParams& prm);
 // Distributed P2G: the P2G block of each listed bin, handed to take(k, block, ch) for bins[k]
-// (called on the exec threads, one bin at a time each; explicit Eulerian transfers only).
+// (called on the exec threads, one bin at a time each; explicit transfers, Eulerian or
+// Lagrangian (p.X_ref), with g.q_out: the fused node positions in lanes 4..7 as in p2g).
 void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                 const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
                 const std::function<void(std::size_t, const Real*, int)>& take);

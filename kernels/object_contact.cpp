@@ -164,6 +164,7 @@ std::size_t contact_gather(const exec::Space& space, const ContactPointView& pts
         });
         const Vec3i origin = global.bin_leaf[b] * kLeafDim;
         for (std::uint32_t p = global.bin_start[b]; p < global.bin_start[b + 1]; ++p) {
+          if (pts.leaf[p] < 0) continue;  // distributed: another rank's reference node
           const Stencil<2> st = Stencil<2>::at(pts.x[p], inv_dx);
           const Vec3i l = st.base - origin;
           const Real k = Real(pts.object[p]);

@@ -51,7 +51,7 @@ struct ContactPointView {
   Vec3* v;               // v_i
   Real* m;               // m_i
   std::int32_t* object;  // k
-  std::int32_t* leaf;    // reference leaf of the node
+  std::int32_t* leaf;    // reference leaf of the node (-1: another rank's, distributed)
   std::int32_t* offset;  // offset of the node in its leaf
   std::size_t n;
 };
@@ -91,6 +91,7 @@ void contact_scatter(const exec::Space& space, const ContactPointView& pts,
                      const MpmGridView& global, const ObjectContactParams& prm);
 // Gather and velocity correction written back into ref.a (and ref.b's v_new - v_old for
 // PIC/FLIP when ref.b is set). Returns the number of reference nodes whose velocity changed.
+// Points with leaf < 0 (other ranks' nodes in a distributed run) are scattered, not corrected.
 std::size_t contact_gather(const exec::Space& space, const ContactPointView& pts,
                            const MpmGridView& global, const MpmGridView& ref,
                            const ObjectContactParams& prm);

@@ -3,6 +3,7 @@
 #include <array>
 #include <cmath>
 
+#include "core/dist/comm.hpp"
 #include "core/errors.hpp"
 
 namespace amalgam {
@@ -39,7 +40,8 @@ int ConfigurationMaps::add_object(const ConfigurationPolicy& policy, std::size_t
 }
 
 bool ConfigurationMaps::decide(const exec::Space& space, const ParticleSet& ps,
-                               const ConfigurationAttributes& a, std::vector<std::uint8_t>& reset) {
+                               const ConfigurationAttributes& a, std::vector<std::uint8_t>& reset,
+                               bool distributed) {
   const int nobj = object_count();
   reset.assign(size_t(nobj), 0);
   bool adaptive = false, any = false;
@@ -54,7 +56,7 @@ bool ConfigurationMaps::decide(const exec::Space& space, const ParticleSet& ps,
   const Mat3* Fs = ps.mat3(a.F_s);
   const std::int32_t* obj = ps.int32(a.object);
   // eq. 33: dJ_p = |J_p^{s(n+1)} - J_p^{ss}|, J^{ss} = 1.
-  const Counts marked = exec::parallel_reduce(
+  Counts marked = exec::parallel_reduce(
       space, "aul.criterion", exec::Index(ps.size()), Counts{},
       [=](exec::Index i, Counts& acc) {
         const Real dJ = std::abs(Fs[i].determinant() - Real(1));
@@ -64,6 +66,13 @@ bool ConfigurationMaps::decide(const exec::Space& space, const ParticleSet& ps,
         for (size_t k = 0; k < x.size(); ++k) x[k] += y[k];
         return x;
       });
+  if (distributed) {  // every rank's counts (integers: the sum is exact in any order)
+    const dist::Comm& comm = dist::Comm::world();
+    const std::vector<std::uint64_t> all = dist::from_bytes<std::uint64_t>(comm.allgather(
+        dist::as_bytes(std::vector<std::uint64_t>(marked.begin(), marked.end())), nullptr));
+    marked = Counts{};
+    for (size_t i = 0; i < all.size(); ++i) marked[i % marked.size()] += all[i];
+  }
   for (int k = 0; k < nobj; ++k) {
     const ConfigurationPolicy& p = policy_[size_t(k)];
     if (p.update != ConfigurationUpdate::Adaptive || count_[size_t(k)] == 0) continue;

@@ -65,9 +65,10 @@ class ConfigurationMaps {
   Vec3 lane_offset(int k, Real dx) const { return Vec3(Real(k) * Real(kLaneCells) * dx, 0, 0); }
 
   // eq. 33 per object on the particles' F_s: fills `reset` (one flag per object) and returns
-  // whether any object resets. Counts marked particles in a deterministic reduction.
+  // whether any object resets. Counts marked particles in a deterministic reduction; distributed
+  // (collective): over every rank's particles, so every rank takes the same decisions.
   bool decide(const exec::Space& space, const ParticleSet& ps, const ConfigurationAttributes& a,
-              std::vector<std::uint8_t>& reset);
+              std::vector<std::uint8_t>& reset, bool distributed = false);
   // Resets the configurations of the flagged objects (x, F and C are read from the MPM attributes).
   void reset(const exec::Space& space, ParticleSet& ps, const ConfigurationAttributes& a,
              ParticleSet::Id x, ParticleSet::Id F, ParticleSet::Id C, Real dx,

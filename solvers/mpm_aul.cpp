@@ -38,7 +38,7 @@ bool MpmAul::contact_active() const {
 void MpmAul::update_configurations(const exec::Space& space, MpmSolver& mpm) {
   const auto t0 = std::chrono::steady_clock::now();
   ParticleSet& ps = mpm.particles_;
-  const bool any = maps_.decide(space, ps, cattr_, reset_flags_);
+  const bool any = maps_.decide(space, ps, cattr_, reset_flags_, mpm.distributed());
   const auto t1 = std::chrono::steady_clock::now();
   if (any)
     maps_.reset(space, ps, cattr_, mpm.attr_.x, mpm.attr_.F, mpm.attr_.C, mpm.settings_.dx,
@@ -48,8 +48,16 @@ void MpmAul::update_configurations(const exec::Space& space, MpmSolver& mpm) {
     mpm.update_grid(space);
     // Which object owns each reference leaf (for the contact), and the check that no two
     // objects share reference nodes (an object that left its lane), with or without contact.
-    if (maps_.object_count() > 1)
-      contact_.map_leaves(space, mpm.grid_, mpm.bins_, ps.int32(cattr_.object));
+    // Distributed: over the leaves this rank owns (solvers/mpm_distributed.cpp).
+    if (maps_.object_count() > 1) {
+      ContactRanks ranks;
+      if (mpm.distributed()) {
+        ranks.owned = &mpm.owned_leaf_list();
+        ranks.owner = [&mpm](const Vec3i& l) { return mpm.leaf_owner(l); };
+      }
+      contact_.map_leaves(space, mpm.grid_, mpm.bins_, ps.int32(cattr_.object),
+                          mpm.distributed() ? &ranks : nullptr);
+    }
     bins_valid_ = true;
   }
   using seconds = std::chrono::duration<double>;
@@ -62,6 +70,7 @@ void MpmAul::couple_objects(const exec::Space& space, MpmSolver& mpm, Real dt) {
   const auto t0 = std::chrono::steady_clock::now();
   contact_nodes_ += contact_.apply(space, mpm.grid_view(), mpm.grid_.node4(mpm.channels_.positions),
                                    contact_settings_, mpm.settings_.dx, dt);
+  if (mpm.distributed()) mpm.exchange_ghost_rows(space);  // G2P reads the corrected ghosts
   contact_seconds_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 

@@ -18,6 +18,7 @@
 // checkpoints are computed on rank 0 from the particles gathered in the single process's order
 // (gather_particles), so every file is bitwise that of one process.
 #include <algorithm>
+#include <array>
 #include <climits>
 #include <cstdlib>
 #include <cstring>
@@ -28,6 +29,7 @@
 #include "core/dist/comm.hpp"
 #include "core/dist/halo.hpp"
 #include "core/errors.hpp"
+#include "core/geometry/level_set_collider.hpp"
 #include "core/math/bspline.hpp"
 #include "solvers/mpm_solver.hpp"
 
@@ -131,11 +133,29 @@ void MpmSolver::refuse_distributed() const {
                      " not distributed yet (issue 28); run one rank, with --threads for the cores");
   };
   if (implicit_) refuse("implicit integration (simulation.implicit) is");
-  if (aul_) refuse("A-ULMPM configuration maps (objects' \"configuration\") are");
+  // A-ULMPM's PIC/FLIP node positions come from their own pass (p2g_positions), whose ghost sums
+  // are not exchanged; MLS and APIC fuse them into the P2G block, which is.
+  if (aul_ && settings_.transfer == Transfer::PicFlip && channels_.positions >= 0)
+    refuse(
+        "A-ULMPM objects with PIC/FLIP transfers (simulation.transfer \"pic\" or \"flip\") and "
+        "colliders or contact between objects are");
   if (enriched_) refuse("particle domains (simulation.domains) are");
-  if (sleep_) refuse("sleeping (simulation.sleep) is");
-  for (const Collider& c : colliders_)
-    if (c.field) refuse("mesh and level-set colliders are");
+}
+
+// Every rank builds the field colliders around the blocks of all ranks' particles: the region
+// one process builds, so every query (owned nodes, local particles) finds its voxels built.
+void MpmSolver::prepare_colliders_distributed(const exec::Space& space, Real t) {
+  bool any = false;
+  for (const Collider& c : colliders_) any |= bool(c.field);
+  if (!any) return;
+  using Key = std::array<std::int64_t, 3>;
+  const std::vector<Key> mine =
+      collider_blocks(particles_.vec3(attr_.x), particles_.size(), settings_.dx);
+  std::vector<Key> all =
+      dist::from_bytes<Key>(dist::Comm::world().allgather(dist::as_bytes(mine), nullptr));
+  std::sort(all.begin(), all.end());
+  all.erase(std::unique(all.begin(), all.end()), all.end());
+  prepare_collider_blocks(colliders_, all, settings_.dx, t, space);
 }
 
 void MpmSolver::distribute(const exec::Space& space) {
@@ -148,7 +168,7 @@ void MpmSolver::distribute(const exec::Space& space) {
   // Every rank holds every particle (set-up and checkpoints are read whole): the leaves and
   // their particle counts, each rank handing Zoltan a slice of them.
   const std::size_t n = particles_.size();
-  const Vec3* x = particles_.vec3(attr_.x);
+  const Vec3* x = particles_.vec3(bin_position());
   std::vector<std::uint64_t> key(n);
   for (std::size_t p = 0; p < n; ++p) {
     if (!x[p].allFinite())
@@ -196,7 +216,7 @@ void MpmSolver::migrate(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   Ranks& rk = *ranks_;
   const std::size_t n = particles_.size();
-  const Vec3* x = particles_.vec3(attr_.x);
+  const Vec3* x = particles_.vec3(bin_position());
   std::int64_t bad = -1;
   std::vector<int> dest(n);
   // The particles are in leaf order from the last sort: most share the previous one's leaf.
@@ -259,7 +279,7 @@ void MpmSolver::repartition() {
   // This rank's leaves (every particle of a leaf is on its owner after migration) and counts.
   std::unordered_map<std::uint64_t, float> count;
   std::vector<std::uint64_t> keys;
-  const Vec3* x = particles_.vec3(attr_.x);
+  const Vec3* x = particles_.vec3(bin_position());
   for (std::size_t p = 0; p < particles_.size(); ++p) {
     const std::uint64_t k = leaf_key(particle_leaf(x[p]));
     if (count[k]++ == 0) keys.push_back(k);
@@ -306,7 +326,8 @@ void MpmSolver::sort_distributed(const exec::Space& space) {
     const std::int64_t now = std::int64_t(particles_.size());
     rk.balanced = double(comm.max(now)) / mean;
   }
-  binning_.sort_and_bin(space, particles_, attr_.x, settings_.dx, settings_.order, bins_, attr_.id);
+  binning_.sort_and_bin(space, particles_, bin_position(), settings_.dx, settings_.order, bins_,
+                        attr_.id);
   rk.sorted = true;
   rk.presort.clear();
 }
@@ -317,7 +338,7 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   Ranks& rk = *ranks_;
   const int R = comm.size(), me = comm.rank(), order = settings_.order;
-  const int ch = settings_.transfer == Transfer::PicFlip ? 8 : 4;
+  const int ch = settings_.transfer == Transfer::PicFlip || fused_positions() ? 8 : 4;
   exec::ScopedRegion region(space.profiler(), "dist.plan");
   rk.export_bins.clear();
   rk.export_start.assign(1, 0);
@@ -377,6 +398,9 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
                            [&](std::uint64_t k) { return rk.owner(key_leaf(k)); });
   rk.halo_leaves = ghost_keys.size();
   rk.halo_parts = rk.exports.size();
+  if (sleep_)
+    sleep_->decide(space, particles_, attr_, bins_, settings_.dx, time_, colliders_at(Real(time_)),
+                   int(colliders_.size()), emitters_, true);
 }
 
 void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) {
@@ -386,6 +410,10 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
   MpmGridView g = grid_view();
   const MpmStepParams prm = step_params(dt);
   grid_clear(space, g, prm);
+  if (fused_positions()) {  // A-ULMPM: (m, m q) in lanes 4..7 of the blocks, as on one process
+    g.q_out = grid_.node4(channels_.positions);
+    clear_node4(space, g, g.q_out);
+  }
   // The parts of the blocks that other ranks' leaves receive, scattered first.
   std::vector<std::vector<char>> send(static_cast<std::size_t>(R));
   for (int q = 0; q < R; ++q)
@@ -404,7 +432,7 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
     rk.received = comm.alltoall(send);
   }
   // The received parts by colour of the block they come from (the bin leaf = leaf - t).
-  const int ch = settings_.transfer == Transfer::PicFlip ? 8 : 4;
+  const int ch = settings_.transfer == Transfer::PicFlip || fused_positions() ? 8 : 4;
   std::vector<P2GImport> by_rank;
   std::array<std::uint32_t, 9> count{};
   std::vector<std::size_t> at(std::size_t(R), 0);
@@ -433,15 +461,27 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
 
 void MpmSolver::update_grid_velocities_distributed(const exec::Space& space, Real dt) {
   Ranks& rk = *ranks_;
-  MpmGridView g = grid_view();
+  MpmGridView g = grid_view_with_positions();  // A-ULMPM: colliders at the nodes' q_i
   g.active_leaves = rk.owned_active.data();
   g.nactive = rk.owned_active.size();
   grid_update(space, g, step_params(dt));
-  // Owners' node rows (m, v) (and PIC/FLIP's (-, dv)) into the ghosts G2P reads.
+  if (sleep_) sleep_->pin_nodes(space, grid_, bins_, grid_.node4(0));  // own leaves: owned
+  exchange_ghost_rows(space);
+}
+
+// Owners' node rows (m, v) (and PIC/FLIP's (-, dv)) into the ghosts G2P reads.
+void MpmSolver::exchange_ghost_rows(const exec::Space& space) {
   exec::ScopedRegion region(space.profiler(), "dist.halo");
   const std::size_t bytes = std::size_t(kLeafNodes) * 4 * sizeof(Real);
-  rk.halo.exchange(grid_.node4(0), bytes);
-  if (channels_.second >= 0) rk.halo.exchange(grid_.node4(channels_.second), bytes);
+  ranks_->halo.exchange(grid_.node4(0), bytes);
+  if (channels_.second >= 0) ranks_->halo.exchange(grid_.node4(channels_.second), bytes);
+}
+
+const std::vector<std::int32_t>& MpmSolver::owned_leaf_list() const {
+  return ranks_->owned_active;
+}
+int MpmSolver::leaf_owner(const Vec3i& leaf) const {
+  return ranks_->owner(leaf);
 }
 
 void MpmSolver::gather_particles(ParticleSet& out) const {
@@ -504,10 +544,37 @@ void MpmSolver::gather_particles(ParticleSet& out) const {
   }
 }
 
+void MpmSolver::gather_grid(SparseGrid& out) const {
+  const dist::Comm& comm = dist::Comm::world();
+  const std::size_t row = std::size_t(kLeafNodes) * 4;
+  std::vector<std::int32_t> coords;
+  std::vector<Real> rows;
+  const auto& lc = grid_.leaf_coords();
+  for (const std::int32_t li : ranks_->owned_active) {
+    const Vec3i& l = lc[std::size_t(li)];
+    coords.insert(coords.end(), {l[0], l[1], l[2]});
+    const Real* a = grid_.node4(0) + std::size_t(li) * row;
+    rows.insert(rows.end(), a, a + row);
+  }
+  const std::vector<std::int32_t> all_coords =
+      dist::from_bytes<std::int32_t>(comm.gather(dist::as_bytes(coords), nullptr));
+  const std::vector<Real> all_rows =
+      dist::from_bytes<Real>(comm.gather(dist::as_bytes(rows), nullptr));
+  out.set_node4_channels(1);
+  if (!comm.root()) return;
+  std::vector<Vec3i> leaves;
+  for (std::size_t i = 0; i + 2 < all_coords.size(); i += 3)
+    leaves.push_back(Vec3i(all_coords[i], all_coords[i + 1], all_coords[i + 2]));
+  out.update_topology(exec::Space(), BinTable{}, &leaves);
+  for (std::size_t i = 0; i < leaves.size(); ++i)
+    std::memcpy(out.node4(0) + std::size_t(out.find_leaf(leaves[i] * kLeafDim)) * row,
+                all_rows.data() + i * row, row * sizeof(Real));
+}
+
 // Emitted particles [first, size) were added on every rank: each keeps those in its own leaves.
 void MpmSolver::keep_owned_emitted(const exec::Space& space, std::size_t first) {
   const int me = dist::Comm::world().rank();
-  const Vec3* x = particles_.vec3(attr_.x);
+  const Vec3* x = particles_.vec3(bin_position());
   std::vector<std::uint32_t> keep(first);
   for (std::size_t p = 0; p < first; ++p) keep[p] = std::uint32_t(p);
   for (std::size_t p = first; p < particles_.size(); ++p)

@@ -165,6 +165,16 @@ std::vector<Column> state_columns(const MpmDiagnostics& d) {
 }
 }  // namespace
 
+const SparseGrid* MpmSimulation::grid() const {
+  if (!s_.distributed()) return &s_.grid();
+  if (!gathered_grid_ || gathered_grid_version_ != s_.state_version()) {
+    gathered_grid_ = std::make_unique<SparseGrid>();
+    s_.gather_grid(*gathered_grid_);
+    gathered_grid_version_ = s_.state_version();
+  }
+  return gathered_grid_.get();
+}
+
 const ParticleSet& MpmSimulation::all_particles() const {
   if (!s_.distributed()) return s_.particles();
   if (gathered_version_ != s_.state_version()) {
@@ -216,7 +226,7 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
        {"enriched_corners", double(dc.last_enriched_corners), true},
        {"emitted", double(s_.source_counters().emitted - frame_sources_.emitted), true},
        {"killed", double(s_.source_counters().killed - frame_sources_.killed), true},
-       {"sleeping", double(s_.sleep() ? s_.sleep()->sleeping(s_.particles()) : 0), true}});
+       {"sleeping", double(s_.sleep() ? s_.sleep()->sleeping(all_particles()) : 0), true}});
   if (s_.settings().implicit) {
     char cg[64];
     std::snprintf(cg, sizeof cg, "CG %.1f it/step",

@@ -4,6 +4,7 @@
 // retries, diagnostics columns, output fields, checkpoint sections.
 #pragma once
 
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -67,7 +68,8 @@ class MpmSimulation final : public Simulation {
   double point_voxel_size() const override { return double(s_.settings().dx); }
   bool surface(SurfaceMesh& out) const override;
   const char* surface_pattern() const override { return "frame_%04d_surface"; }
-  const SparseGrid* grid() const override { return &s_.grid(); }
+  // Distributed (collective): every rank's owned leaves gathered into a grid on rank 0.
+  const SparseGrid* grid() const override;
 
   // Distributed: rank 0's gathered copy of every rank's particles (what checkpoints write).
   const ParticleSet& particles() const override {
@@ -90,6 +92,8 @@ class MpmSimulation final : public Simulation {
   MpmSolver s_;
   mutable ParticleSet gathered_;
   mutable std::uint64_t gathered_version_ = ~std::uint64_t(0);
+  mutable std::unique_ptr<SparseGrid> gathered_grid_;
+  mutable std::uint64_t gathered_grid_version_ = ~std::uint64_t(0);
   MpmSolver::Snapshot snapshot_;
   std::vector<Vec3> rest_;  // rest positions by particle id (keep_rest_positions), or empty
   double frame_time_ = 0;

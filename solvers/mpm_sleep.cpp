@@ -4,6 +4,7 @@
 #include <cmath>
 #include <unordered_map>
 
+#include "core/dist/comm.hpp"
 #include "solvers/mpm_sources.hpp"
 
 namespace amalgam {
@@ -27,7 +28,7 @@ MpmSleep::MpmSleep(ParticleSet& ps, const SleepSettings& s) : s_(s) {
 
 void MpmSleep::decide(const exec::Space& space, ParticleSet& ps, const MpmAttributes& a,
                       const BinTable& bins, Real dx, double time, const Collider* colliders,
-                      int ncolliders, const std::vector<EmitterSpec>& emitters) {
+                      int ncolliders, const std::vector<EmitterSpec>& emitters, bool distributed) {
   const std::size_t nb = bins.count();
   const std::uint32_t* start = bins.start.data();
   const Real* rest = ps.real(rest_);
@@ -42,9 +43,16 @@ void MpmSleep::decide(const exec::Space& space, ParticleSet& ps, const MpmAttrib
   const double halo = s_.halo > 0 ? double(s_.halo) : 2.0 * double(dx);
   const double leaf = double(kLeafDim) * double(dx);
   const int reach = int(std::ceil(halo / leaf));
-  std::unordered_map<std::uint64_t, std::uint32_t> index;
-  index.reserve(nb * 2);
-  for (std::size_t b = 0; b < nb; ++b) index.emplace(leaf_key(bins.leaf[b]), std::uint32_t(b));
+  // Whether each bin (by leaf) has rested; distributed, the bins of every rank (a bin's
+  // neighbours within the halo may live on other ranks), so each rank decides as one process.
+  std::vector<std::uint64_t> keyed(nb);
+  for (std::size_t b = 0; b < nb; ++b) keyed[b] = (leaf_key(bins.leaf[b]) << 1) | rested[b];
+  if (distributed)
+    keyed = dist::from_bytes<std::uint64_t>(
+        dist::Comm::world().allgather(dist::as_bytes(keyed), nullptr));
+  std::unordered_map<std::uint64_t, std::uint8_t> index;
+  index.reserve(keyed.size() * 2);
+  for (const std::uint64_t k : keyed) index.emplace(k >> 1, std::uint8_t(k & 1));
   sleeps_.assign(nb, 0);
   for (std::size_t b = 0; b < nb; ++b) {
     if (!rested[b]) continue;
@@ -54,7 +62,7 @@ void MpmSleep::decide(const exec::Space& space, ParticleSet& ps, const MpmAttrib
       for (int j = -reach; j <= reach && ok; ++j)
         for (int k = -reach; k <= reach && ok; ++k) {
           const auto it = index.find(leaf_key(c + Vec3i(i, j, k)));
-          ok = it == index.end() || rested[it->second];
+          ok = it == index.end() || it->second;
         }
     // The bin's particles lie within the leaf's box (stencil bases) widened by two cells.
     const Vec3d lo = c.cast<double>() * leaf - Vec3d::Constant(2 * double(dx));

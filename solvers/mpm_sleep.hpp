@@ -11,7 +11,8 @@
 // A sleeping particle does not move at all (x, v, F unchanged). Decisions are per bin from the
 // particles' attributes only (serial neighbour lookups in bin order), so they are the same on every
 // backend and thread count, and `rest_time` and `asleep` are particle attributes: checkpoints and
-// frame retries carry them.
+// frame retries carry them. On several MPI ranks (collective) every rank learns which bins of
+// the others have rested, so the decisions are the single process's.
 #pragma once
 
 #include <cstdint>
@@ -41,7 +42,7 @@ class MpmSleep {
   MpmSleep(ParticleSet& ps, const SleepSettings& s);
   void decide(const exec::Space& space, ParticleSet& ps, const MpmAttributes& a,
               const BinTable& bins, Real dx, double time, const Collider* colliders, int ncolliders,
-              const std::vector<EmitterSpec>& emitters);
+              const std::vector<EmitterSpec>& emitters, bool distributed = false);
   const std::uint32_t* bin_end() const { return bin_end_.data(); }
   void pin_nodes(const exec::Space& space, const SparseGrid& grid, const BinTable& bins,
                  Real* node4) const;

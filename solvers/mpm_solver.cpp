@@ -239,12 +239,16 @@ MpmStepParams MpmSolver::step_params(Real dt) const {
 
 void MpmSolver::sort_particles(const exec::Space& space) {
   if (ranks_) return sort_distributed(space);
-  // Plain MPM: particles in (leaf, id) order, independent of their previous order, so that the
-  // ranks of a distributed run, each sorting the particles of its own leaves, put every bin's
-  // particles in the single process's order (the P2G sums of a node then add the same values in
-  // the same order; docs/architecture.md, "Distributed runs"). A-ULMPM keeps its stable order.
-  binning_.sort_and_bin(space, particles_, aul_ ? aul_->attributes().X_s : attr_.x, settings_.dx,
-                        settings_.order, bins_, aul_ ? -1 : attr_.id);
+  // Particles in (leaf, id) order, independent of their previous order, so that the ranks of a
+  // distributed run, each sorting the particles of its own leaves, put every bin's particles in
+  // the single process's order (the P2G sums of a node then add the same values in the same
+  // order; docs/architecture.md, "Distributed runs"). A-ULMPM bins at the reference positions.
+  binning_.sort_and_bin(space, particles_, bin_position(), settings_.dx, settings_.order, bins_,
+                        attr_.id);
+}
+
+ParticleSet::Id MpmSolver::bin_position() const {
+  return aul_ ? aul_->attributes().X_s : attr_.x;
 }
 
 void MpmSolver::update_grid(const exec::Space& space) {
@@ -328,8 +332,11 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
   }
   // Field colliders (meshes, level sets) built around the material for this substep's end time,
   // where every kernel queries them (core/geometry/level_set_collider.hpp).
-  prepare_colliders(colliders_, particles_.vec3(attr_.x), particles_.size(), settings_.dx,
-                    Real(time_) + dt, space);
+  if (ranks_)
+    prepare_colliders_distributed(space, Real(time_) + dt);
+  else
+    prepare_colliders(colliders_, particles_.vec3(attr_.x), particles_.size(), settings_.dx,
+                      Real(time_) + dt, space);
   if (enriched_) {
     enriched_->step(space, *this, dt);  // particle domains: their own substep (Algorithm 1)
   } else {

@@ -194,6 +194,9 @@ class MpmSolver {
   // Collective: every rank's particles on rank 0 in the single process's order (`out` holds
   // them there, no particle elsewhere): for frames, diagnostics and checkpoints.
   void gather_particles(ParticleSet& out) const;
+  // Collective: the node rows (m, v) of every rank's owned active leaves into `out` on rank 0 (a
+  // fresh grid: those leaves active, nothing elsewhere), for grid volumes.
+  void gather_grid(SparseGrid& out) const;
   // Changes whenever the particles may have changed (a substep, a restore, distribute).
   std::uint64_t state_version() const { return state_version_; }
   // Collective: ranks, repartitions, imbalance and halo of the last substep, for the run summary.
@@ -221,6 +224,14 @@ class MpmSolver {
   std::shared_ptr<Ranks> ranks_;
   std::uint64_t state_version_ = 0;
   Vec3i particle_leaf(const Vec3& x) const;  // the leaf of the particle's bin
+  ParticleSet::Id bin_position() const;      // where particles are binned: x, A-ULMPM's X^s
+  // Distributed A-ULMPM contact: the active leaves this rank owns, the owner of any leaf, and
+  // the owners' node rows (m, v; PIC/FLIP's dv) copied into the ghosts again.
+  const std::vector<std::int32_t>& owned_leaf_list() const;
+  int leaf_owner(const Vec3i& leaf) const;
+  void exchange_ghost_rows(const exec::Space& space);
+  // Field colliders built around every rank's particles (collective), as on one process.
+  void prepare_colliders_distributed(const exec::Space& space, Real t);
   void refuse_distributed() const;
   void migrate(const exec::Space& space);
   void repartition();

@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <vector>
 
 #include "core/exec/exec.hpp"
@@ -21,6 +22,16 @@ struct ObjectContactSettings {
   Real friction = 0;  // Coulomb coefficient between objects (separate)
 };
 
+// Distributed runs (solvers/mpm_distributed.cpp): the active reference leaves this rank owns and
+// the owner of any leaf. Each rank collects the contact points of its own leaves; every rank then
+// holds all of them in the single process's order (reference leaf, node) and scatters them onto
+// its own copy of the global grid, and corrects the nodes of its own leaves: bitwise the single
+// process on every rank count.
+struct ContactRanks {
+  const std::vector<std::int32_t>* owned = nullptr;
+  std::function<int(const Vec3i&)> owner;
+};
+
 class ObjectContact {
  public:
   ObjectContact();
@@ -28,11 +39,14 @@ class ObjectContact {
   // After the reference grid's topology changed: which object owns each reference leaf (from
   // the particles of the bins that reach it). Throws SimulationError when two objects reach the
   // same reference leaf (an object left its lane: ConfigurationMaps::kLaneCells).
+  // Distributed (`ranks` set; collective): the owners learn the objects of their leaves that
+  // other ranks' bins reach; apply then works on the owned leaves.
   void map_leaves(const exec::Space& space, const SparseGrid& ref, const BinTable& bins,
-                  const std::int32_t* particle_object);
+                  const std::int32_t* particle_object, const ContactRanks* ranks = nullptr);
   // Couples the reference-grid velocities (ref.a = (m, v) after the grid update or the implicit
   // solve; ref.b = v_new - v_old for PIC/FLIP, else null) of different objects. `q` holds the
-  // reference nodes' (m, m q^n). Returns the number of reference nodes whose velocity changed.
+  // reference nodes' (m, m q^n). Returns the number of reference nodes whose velocity changed
+  // (distributed: on all ranks; collective).
   std::size_t apply(const exec::Space& space, const MpmGridView& ref, const Real* q,
                     const ObjectContactSettings& settings, Real dx, Real dt);
 
@@ -41,6 +55,10 @@ class ObjectContact {
 
  private:
   ContactPointView point_view();
+  void reduce_boxes(ContactBoxes& boxes) const;         // distributed: every rank's boxes
+  std::uint32_t gather_points(const MpmGridView& ref);  // distributed: every rank's points
+  bool distributed_ = false;
+  std::size_t mapped_active_ = 0;  // the reference grid's active leaves at map_leaves
   std::vector<std::int32_t> leaf_object_;
   int objects_ = 0;  // 1 + the largest object index on the reference grid
   // The reference grid's active leaves by coordinate: the points' order (hence the global

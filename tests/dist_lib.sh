@@ -39,6 +39,17 @@ resumes() {
     same "$out/c$np-$np2" || return 1
   done
 }
+# refused NP SCENE DIR TEXT: SCENE on NP ranks stops with exit 3 and TEXT in its message, before
+# any frame is written into DIR.
+refused() {
+  local msg rc
+  msg=$(mpi "$1" run "$2" --out "$3" --quiet 2>&1)
+  rc=$?
+  [ $rc -eq 3 ] || { echo "$2 on $1 ranks exited $rc, expected 3: $msg"; return 1; }
+  echo "$msg" | grep -qF "$4" || { echo "unclear message: $msg"; return 1; }
+  ls "$3"/frame_* >/dev/null 2>&1 && { echo "$2 on $1 ranks wrote frames"; return 1; }
+  return 0
+}
 # interrupted NP SUBSTEP NP2: SIGINT at the SUBSTEP-th substep on NP ranks: every rank stops with
 # 130, one checkpoint, no half-written file; resumed on NP2 ranks, bitwise.
 interrupted() {

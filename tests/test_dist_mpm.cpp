@@ -14,12 +14,34 @@
 #include <vector>
 
 #include "core/dist/comm.hpp"
+#include "solvers/mpm_aul.hpp"
 #include "solvers/mpm_solver.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
 using namespace amalgam;
 
 namespace {
+
+// `count` random points in the box centre +- half.
+std::vector<Vec3> blob(std::mt19937& rng, const Vec3d& centre, const Vec3d& half, int count) {
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::vector<Vec3> x;
+  for (int i = 0; i < count; ++i) {
+    Vec3d p;
+    for (int a = 0; a < 3; ++a) p[a] = centre[a] + half[a] * u(rng);
+    x.push_back(p.cast<Real>());
+  }
+  return x;
+}
+
+// A frictional floor at y = 0.1.
+Collider floor() {
+  Collider c;
+  c.shape = ColliderShape::HalfSpace;
+  c.origin = Vec3(0, Real(0.1), 0);
+  c.friction = Real(0.3);
+  return c;
+}
 
 // Two materials (a jelly blob and a snow blob) flying at each other with random affine velocity
 // fields over a frictional floor, a sphere collider falling on them.
@@ -31,24 +53,18 @@ MpmSolver make_scene(Transfer t) {
   MaterialParams jelly{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
   const Lame ls = Lame::from_young_poisson(4e4, 0.2);
   MaterialParams snow{MaterialModel::Snow, ls.mu, ls.lambda, 400};
-  Collider floor;
-  floor.shape = ColliderShape::HalfSpace;
-  floor.origin = Vec3(0, Real(0.1), 0);
-  floor.friction = Real(0.3);
   Collider ball;
   ball.shape = ColliderShape::Sphere;
   ball.origin = Vec3(Real(0.6), Real(0.8), Real(0.4));
   ball.radius = Real(0.1);
   ball.velocity = Vec3(0, -4, 0);
   ball.boundary = BoundaryType::Slip;
-  MpmSolver solver(s, {jelly, snow}, {floor, ball});
+  MpmSolver solver(s, {jelly, snow}, {floor(), ball});
   std::mt19937 rng(7);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   for (int m = 0; m < 2; ++m) {
-    std::vector<Vec3> x;
-    for (int i = 0; i < 3000; ++i)
-      x.push_back(Vec3(Real(0.3 + 0.6 * m + 0.2 * u(rng)), Real(0.4 + 0.2 * u(rng)),
-                       Real(0.4 + 0.25 * u(rng))));
+    const std::vector<Vec3> x =
+        blob(rng, Vec3d(0.3 + 0.6 * m, 0.4, 0.4), Vec3d(0.2, 0.2, 0.25), 3000);
     solver.add_particles(x, Vec3(Real(m ? -3 : 3), -1, 0), Vec3(0, 0, 4),
                          Vec3(Real(0.3 + 0.6 * m), Real(0.4), Real(0.4)), m, Real(2e-5));
   }
@@ -75,6 +91,37 @@ void expect_each_id_once(const MpmSolver& d, std::size_t n) {
     ++seen[std::size_t(i)];
   }
   for (std::size_t i = 0; i < n; ++i) ASSERT_EQ(seen[i], 1) << "particle id " << i;
+}
+
+// `steps` substeps of both solvers at the same dt (the exact max over the ranks), every id on
+// one rank after each; `fewest`: the fewest particles this rank held.
+void step_both(const exec::Space& space, MpmSolver& ref, MpmSolver& d, int steps,
+               std::size_t* fewest) {
+  const std::size_t n = ref.particles().size();
+  for (int step = 0; step < steps; ++step) {
+    const Real dt = ref.stable_dt(space);
+    ASSERT_EQ(dt, d.stable_dt(space));
+    ref.step(space, dt);
+    d.step(space, dt);
+    expect_each_id_once(d, n);
+    *fewest = std::min(*fewest, d.particles().size());
+  }
+}
+
+// Collective: d's particles gathered on rank 0 are bitwise ref's (none on the other ranks).
+void expect_gathered_equal(const MpmSolver& d, const MpmSolver& ref) {
+  ParticleSet all;
+  d.gather_particles(all);
+  if (!dist::Comm::world().root()) {
+    EXPECT_EQ(all.size(), 0u);
+    return;
+  }
+  const ParticleSet& r = ref.particles();
+  ASSERT_EQ(all.size(), r.size());
+  for (int a = 0; a < r.attribute_count(); ++a) {
+    const std::size_t w = std::size_t(r.words_per_particle(a));
+    EXPECT_EQ(std::memcmp(all.words(a), r.words(a), r.size() * w * 4), 0) << r.name(a);
+  }
 }
 
 }  // namespace
@@ -134,31 +181,58 @@ TEST(DistMpm, MigrationAndRepartitionKeepEveryParticleOnceAndTheStateBitwise) {
   ::unsetenv("AMALGAM_TEST_REPARTITION_EVERY");
   expect_each_id_once(d, n);
   std::size_t fewest = n;
-  for (int step = 0; step < 40; ++step) {
-    const Real dt = ref.stable_dt(space);
-    ASSERT_EQ(dt, d.stable_dt(space));
-    ref.step(space, dt);
-    d.step(space, dt);
-    expect_each_id_once(d, n);
-    fewest = std::min(fewest, d.particles().size());
-  }
+  step_both(space, ref, d, 40, &fewest);
   if (comm.size() > 1) EXPECT_LT(fewest, n);            // the particles are split, not replicated
   const std::string summary = d.distributed_summary();  // collective
   if (comm.size() > 1) {
     EXPECT_NE(summary.find(" repartitions"), std::string::npos);
   }
-  ParticleSet all;
-  d.gather_particles(all);
-  if (!comm.root()) {
-    EXPECT_EQ(all.size(), 0u);
-    return;
+  expect_gathered_equal(d, ref);
+}
+
+namespace {
+// A-ULMPM: two jelly blobs with their own configuration maps (adaptive with a tight criterion,
+// and Eulerian) thrown at each other over a floor, contact between them (separate, friction).
+MpmSolver make_aul_scene() {
+  MpmSettings s;
+  s.dx = Real(0.04);
+  s.configuration_maps = true;
+  s.contact.mode = ObjectContactMode::Separate;
+  s.contact.friction = Real(0.3);
+  const Lame l = Lame::from_young_poisson(1e4, 0.3);
+  const MaterialParams jelly{MaterialModel::NeoHookean, l.mu, l.lambda, 1000};
+  MpmSolver solver(s, {jelly}, {floor()});
+  std::mt19937 rng(11);
+  for (int m = 0; m < 2; ++m) {
+    const std::vector<Vec3> x =
+        blob(rng, Vec3d(0.35 + 0.5 * m, 0.35, 0.4), Vec3d(0.15, 0.15, 0.2), 2500);
+    ConfigurationPolicy policy;
+    policy.update = m ? ConfigurationUpdate::Eulerian : ConfigurationUpdate::Adaptive;
+    policy.epsilon = Real(0.02);
+    policy.eta = Real(0.05);
+    solver.add_particles(x, Vec3(Real(m ? -3 : 3), -1, 0), Vec3(0, 0, 4),
+                         Vec3(Real(0.35 + 0.5 * m), Real(0.35), Real(0.4)), 0, Real(2e-5), 0,
+                         policy);
   }
-  const ParticleSet& r = ref.particles();
-  ASSERT_EQ(all.size(), r.size());
-  for (int a = 0; a < r.attribute_count(); ++a) {
-    const std::size_t w = std::size_t(r.words_per_particle(a));
-    EXPECT_EQ(std::memcmp(all.words(a), r.words(a), r.size() * w * 4), 0) << r.name(a);
-  }
+  return solver;
+}
+}  // namespace
+
+// Distributed A-ULMPM: the reset decisions, the Lagrangian P2G with the fused node positions and
+// the contact between the objects across ranks give the single process's particles bit for bit.
+TEST(DistMpm, AulConfigurationsAndContactBitwise) {
+  const exec::Space space(exec::Backend::Serial, 1);
+  MpmSolver ref = make_aul_scene(), d = make_aul_scene();
+  const std::size_t n = ref.particles().size();
+  d.distribute(space);
+  std::size_t fewest = n;
+  step_both(space, ref, d, 40, &fewest);
+  // The adaptive object reset, the objects touched, alike on every rank count.
+  EXPECT_GT(ref.aul()->maps().stats(0).updates, 0u);
+  EXPECT_EQ(d.aul()->maps().stats(0).updates, ref.aul()->maps().stats(0).updates);
+  EXPECT_GT(ref.aul()->contact_nodes(), 0u);
+  EXPECT_EQ(d.aul()->contact_nodes(), ref.aul()->contact_nodes());
+  expect_gathered_equal(d, ref);
 }
 
 namespace {

@@ -531,11 +531,7 @@ std::string check_level_set_file(const std::string& path, const std::string& gri
 
 namespace amalgam {
 
-void prepare_colliders(std::vector<Collider>& colliders, const Vec3* x, std::size_t n, Real dx,
-                       Real t, const exec::Space& space) {
-  bool any = false;
-  for (const Collider& c : colliders) any |= bool(c.field);
-  if (!any) return;
+std::vector<std::array<std::int64_t, 3>> collider_blocks(const Vec3* x, std::size_t n, Real dx) {
   const double b = 8.0 * double(dx);
   std::vector<std::array<std::int64_t, 3>> keys;
   std::array<std::int64_t, 3> last{};
@@ -546,6 +542,13 @@ void prepare_colliders(std::vector<Collider>& colliders, const Vec3* x, std::siz
   }
   std::sort(keys.begin(), keys.end());
   keys.erase(std::unique(keys.begin(), keys.end()), keys.end());
+  return keys;
+}
+
+void prepare_collider_blocks(std::vector<Collider>& colliders,
+                             const std::vector<std::array<std::int64_t, 3>>& keys, Real dx, Real t,
+                             const exec::Space& space) {
+  const double b = 8.0 * double(dx);
   std::vector<Box3> boxes;
   boxes.reserve(keys.size());
   const double halo = 4.0 * double(dx);
@@ -554,6 +557,14 @@ void prepare_colliders(std::vector<Collider>& colliders, const Vec3* x, std::siz
     boxes.push_back(Box3{lo - Vec3d::Constant(halo), lo + Vec3d::Constant(b + halo)});
   }
   for (Collider& c : colliders) c.prepare(boxes, t, space);
+}
+
+void prepare_colliders(std::vector<Collider>& colliders, const Vec3* x, std::size_t n, Real dx,
+                       Real t, const exec::Space& space) {
+  bool any = false;
+  for (const Collider& c : colliders) any |= bool(c.field);
+  if (!any) return;
+  prepare_collider_blocks(colliders, collider_blocks(x, n, dx), dx, t, space);
 }
 
 }  // namespace amalgam

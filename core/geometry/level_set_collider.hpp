@@ -7,6 +7,8 @@
 //    frames bracketing t (Houdini's "Animated (Deforming)" collider), loaded two at a time.
 #pragma once
 
+#include <array>
+#include <cstdint>
 #include <memory>
 #include <string>
 #include <vector>
@@ -46,5 +48,12 @@ namespace amalgam {
 // follows the material. Serial over the points; the blocks are computed in parallel.
 void prepare_colliders(std::vector<Collider>& colliders, const Vec3* x, std::size_t n, Real dx,
                        Real t, const exec::Space& space);
+// Its two halves: the 8 dx blocks holding a point (sorted, unique), and the colliders prepared
+// around given blocks (distributed MPM joins every rank's blocks in between, so each rank builds
+// the single process's region; every voxel is a pure function of the collider and its index).
+std::vector<std::array<std::int64_t, 3>> collider_blocks(const Vec3* x, std::size_t n, Real dx);
+void prepare_collider_blocks(std::vector<Collider>& colliders,
+                             const std::vector<std::array<std::int64_t, 3>>& keys, Real dx, Real t,
+                             const exec::Space& space);
 
 }  // namespace amalgam
