@@ -194,6 +194,9 @@ class MpmSolver {
   // Collective: every rank's particles on rank 0 in the single process's order (`out` holds
   // them there, no particle elsewhere): for frames, diagnostics and checkpoints.
   void gather_particles(ParticleSet& out) const;
+  // Two keys per local particle whose lexicographic order over every rank is the order
+  // gather_particles gives (one process: the index).
+  std::vector<std::uint64_t> order_keys() const;
   // Changes whenever the particles may have changed (a substep, a restore, distribute).
   std::uint64_t state_version() const { return state_version_; }
   // Collective: ranks, repartitions, imbalance and halo of the last substep, for the run summary.
