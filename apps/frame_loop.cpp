@@ -166,8 +166,8 @@ class FrameWriter {
                   "amalgam: output (%s%s): %d frames, %.1f MB in %.3f s of writing (%.1f MB/s); "
                   "simulation held %.3f s\n",
                   async_ ? "asynchronous" : "synchronous", parts_ ? ", a part per rank" : "",
-                  frames_, bytes_ * 1e-6, written_s_,
-                  bytes_ * 1e-6 / std::max(written_s_, 1e-9), async_ ? waited_ : written_s_);
+                  frames_, bytes_ * 1e-6, written_s_, bytes_ * 1e-6 / std::max(written_s_, 1e-9),
+                  async_ ? waited_ : written_s_);
     return line;
   }
 
@@ -365,7 +365,7 @@ class FrameWriter {
   // Written by the worker's thread, read after wait() (summary): the worker's mutex orders them.
   double bytes_ = 0, written_s_ = 0;
   int frames_ = 0, delay_ms_ = 0;
-  double waited_ = 0;              // the simulation thread's
+  double waited_ = 0;  // the simulation thread's
   // --parts ranks: the frame whose part is written or in flight and has no manifest yet (frame
   // -1: none), and its part's files (set by the worker, read after drain()).
   struct Pending {
@@ -536,9 +536,15 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     sim.prepare_checkpoint_part();
     const CheckpointPartRecord mine = write_checkpoint_part(
         rs.out_dir, ++generation, comm.rank(), sim, next_frame, scene.fingerprint, retries, space);
-    const std::vector<char> all = comm.gather(dist::as_bytes(std::vector<std::uint64_t>{
-                                                  mine.particles, mine.bytes, mine.checksum}),
-                                              nullptr);
+    // Fault injection (tests/dist_faults_test.sh): "RANK:GEN": MPI rank RANK kills itself once
+    // its part of checkpoint generation GEN is on disk, before the manifest names it.
+    if (const char* k = std::getenv("AMALGAM_TEST_KILL_IN_CHECKPOINT"))
+      if (std::atoi(k) == comm.rank() && std::strchr(k, ':') &&
+          std::strtoull(std::strchr(k, ':') + 1, nullptr, 10) == generation)
+        std::raise(SIGKILL);
+    const std::vector<char> all = comm.gather(
+        dist::as_bytes(std::vector<std::uint64_t>{mine.particles, mine.bytes, mine.checksum}),
+        nullptr);
     if (!comm.root()) return;
     const std::vector<std::uint64_t> v = dist::from_bytes<std::uint64_t>(all);
     std::vector<CheckpointPartRecord> parts(std::size_t(comm.size()));

@@ -308,7 +308,6 @@ std::string hex64(std::uint64_t v) {
   return s;
 }
 
-
 std::string dir_of(const std::string& path) {
   const std::size_t slash = path.find_last_of('/');
   return slash == std::string::npos ? "." : path.substr(0, slash);
@@ -318,8 +317,7 @@ std::string dir_of(const std::string& path) {
 
 std::string checkpoint_part_name(std::uint64_t generation, int rank) {
   char s[64];
-  std::snprintf(s, sizeof s, "checkpoint.g%06llu.r%03d.amck", (unsigned long long)generation,
-                rank);
+  std::snprintf(s, sizeof s, "checkpoint.g%06llu.r%03d.amck", (unsigned long long)generation, rank);
   return s;
 }
 
@@ -372,8 +370,9 @@ std::string join_checkpoint(const std::string& manifest_path) {
             read_input_file(path, "checkpoint part", avail > 0 ? avail : std::uint64_t(1) << 40));
         if (bytes.back().size() != size ||
             hex64(fnv1a64(bytes.back().data(), bytes.back().size())) != sum)
-          throw InputError(path + ": does not match its manifest (size or checksum): the part "
-                                  "is corrupt, truncated or from another checkpoint");
+          throw InputError(path +
+                           ": does not match its manifest (size or checksum): the part "
+                           "is corrupt, truncated or from another checkpoint");
         parts.push_back(parse_part(path, bytes.back()));
       } catch (const InputError& err) {
         throw InputError(err.what() + whose);
@@ -456,9 +455,9 @@ CheckpointPartRecord write_checkpoint_part(const std::string& dir, std::uint64_t
     kept.compact(space, part.rows.data(), part.rows.size());
     ps = &kept;
   }
-  std::vector<Section> sections = {{kOrderSection,
-                                    const_cast<char*>(reinterpret_cast<const char*>(part.order.data())),
-                                    part.order.size() * sizeof(std::uint64_t)}};
+  std::vector<Section> sections = {
+      {kOrderSection, const_cast<char*>(reinterpret_cast<const char*>(part.order.data())),
+       part.order.size() * sizeof(std::uint64_t)}};
   if (rank == 0)
     for (const Section& s : sim.checkpoint_sections()) sections.push_back(s);
   const std::string b = state_bytes(*ps, sim.time(), sim.step_count(), next_frame, retries,
@@ -495,8 +494,8 @@ void remove_stale_checkpoint_parts(const std::string& dir, std::uint64_t generat
     const std::string name = e.path().filename().string();
     unsigned long long g = 0;
     int r = 0;
-    if (std::sscanf(name.c_str(), "checkpoint.g%llu.r%d.amck", &g, &r) == 2 &&
-        name.size() > 5 && name.compare(name.size() - 5, 5, ".amck") == 0 && g != generation)
+    if (std::sscanf(name.c_str(), "checkpoint.g%llu.r%d.amck", &g, &r) == 2 && name.size() > 5 &&
+        name.compare(name.size() - 5, 5, ".amck") == 0 && g != generation)
       std::filesystem::remove(e.path(), ec);
   }
 }

@@ -80,8 +80,7 @@ PointsPart read_points_part(const std::string& path, const std::string& d) {
     throw InputError(path + ": points part is corrupt or truncated (checksum mismatch)");
   Cursor c(d, path);
   if (c.get<std::uint32_t>("version") != kPartVersion)
-    throw InputError(path + ": points part format version is not " +
-                     std::to_string(kPartVersion));
+    throw InputError(path + ": points part format version is not " + std::to_string(kPartVersion));
   if (c.get<std::uint32_t>("precision") != sizeof(Real))
     throw InputError(path + ": points part was written by a build of another precision");
   PointsPart p;
@@ -252,7 +251,8 @@ FrameManifest read_frame_manifest(const std::string& path) {
         const std::string c = at(f, "fnv1a64", fw).get<std::string>();
         char* end = nullptr;
         pf.checksum = std::strtoull(c.c_str(), &end, 16);
-        if (c.size() != 16 || *end) throw InputError(path + ": " + key + ": not a 64-bit hex value");
+        if (c.size() != 16 || *end)
+          throw InputError(path + ": " + key + ": not a 64-bit hex value");
         files.push_back(pf);
       }
       m.files.push_back(std::move(files));
@@ -311,8 +311,7 @@ std::vector<std::string> merge_frame(const std::string& dir, const FrameManifest
     }
     if (parts.back().n != m.particles[std::size_t(r)])
       throw InputError(path + what + ": holds " + std::to_string(parts.back().n) +
-                       " points, the manifest says " +
-                       std::to_string(m.particles[std::size_t(r)]));
+                       " points, the manifest says " + std::to_string(m.particles[std::size_t(r)]));
     const PointsPart& first = parts.front();
     bool same = parts.back().attributes.size() == first.attributes.size();
     for (std::size_t a = 0; same && a < first.attributes.size(); ++a)

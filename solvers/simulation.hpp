@@ -143,8 +143,8 @@ class Simulation {
   // (peridynamics today) names its owned rows.
   struct RankPart {
     bool all = true;
-    std::vector<std::uint32_t> rows;    // the kept rows when !all, increasing
-    std::vector<std::uint64_t> order;   // 2 per kept row
+    std::vector<std::uint32_t> rows;   // the kept rows when !all, increasing
+    std::vector<std::uint64_t> order;  // 2 per kept row
   };
   virtual RankPart my_part() const {
     RankPart r;
