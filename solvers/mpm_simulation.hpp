@@ -95,7 +95,7 @@ class MpmSimulation final : public Simulation {
  private:
   // Every particle, in the single process's order: the solver's own on one process; distributed,
   // gathered to rank 0 (empty elsewhere) once per state. Collective when distributed. The one
-  // place a distributed run joins its particles (per-rank output would replace it).
+  // place a distributed run joins its particles (`--parts ranks` output does without it).
   const ParticleSet& all_particles() const;
   MpmSolver s_;
   mutable ParticleSet gathered_;
