@@ -17,6 +17,7 @@ int info_command(const std::vector<std::string>& args);
 int bench_command(const std::vector<std::string>& args);
 int plot_command(const std::vector<std::string>& args);
 int surface_command(const std::vector<std::string>& args);
+int merge_command(const std::vector<std::string>& args);
 
 // Shared option parsing: "--key value" pairs and flags; throws std::invalid_argument.
 struct Options {

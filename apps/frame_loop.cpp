@@ -7,6 +7,7 @@
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -18,6 +19,7 @@
 #include "core/exec/background.hpp"
 #include "io/checkpoint.hpp"
 #include "io/files.hpp"
+#include "io/parts.hpp"
 #include "io/preview.hpp"
 #include "io/surfacing.hpp"
 #include "io/vdb_points.hpp"
@@ -75,7 +77,8 @@ class FrameWriter {
         splat_(preview_radius(scene)),
         floor_y_(preview_floor(scene)),
         spacing_(particle_spacing(scene)),
-        async_(!rs.sync_output && writes_files()),
+        parts_(rs.rank_parts),
+        async_(!rs.sync_output && (writes_files() || parts_)),
         // The writer's OpenVDB work runs on its own thread alone (an arena of one), beside the
         // simulation's --threads; synchronous output uses the simulation's space, as it waits.
         writer_space_(async_ ? exec::Space(exec::Backend::Serial, 1) : space),
@@ -86,33 +89,46 @@ class FrameWriter {
   }
 
   void write(int f) {
-    PointFields p = point_fields();  // collective when distributed (von Mises stress)
+    commit();  // --parts ranks: frame f - 1's manifest, once every rank's part is on disk
+    // The whole frame's points (gathered to rank 0 on a distributed MPM run): for the point files
+    // of a single-file run, and for what is computed from every point (previews, surfacing).
+    const bool whole = !parts_ || rs_.preview || scene_.output.surfacing.enabled;
+    PointFields p = whole ? point_fields() : PointFields();  // collective when distributed
     // Grid volumes: collective when distributed (every rank's owned leaves gathered to rank 0).
     // The grid exists once a substep ran.
     const SparseGrid* grid = scene_.output.grid_volumes && f > 0 ? sim_.grid() : nullptr;
-    if (!writes_files()) return;
+    std::shared_ptr<PartSnapshot> part;
+    if (parts_) part = part_snapshot();
+    if (!writes_files() && !parts_) return;
     const auto t0 = std::chrono::steady_clock::now();
-    auto s = std::make_shared<Snapshot>(std::move(p));
-    if (rs_.preview) {
-      const char* attr = preview_attribute(scene_.preview.color_by);
-      if (const std::vector<float>* a = attr ? s->points.fields.find(attr) : nullptr)
-        s->preview_scalar = *a;
-      else if (attr && has_attribute(attr))  // the preview's attribute when frames do not carry it
-        s->preview_scalar = *sim_.point_fields({attr}, space_).find(attr);
+    std::shared_ptr<Snapshot> s;
+    if (writes_files()) {
+      s = std::make_shared<Snapshot>(std::move(p));
+      if (rs_.preview) {
+        const char* attr = preview_attribute(scene_.preview.color_by);
+        if (const std::vector<float>* a = attr ? s->points.fields.find(attr) : nullptr)
+          s->preview_scalar = *a;
+        else if (attr && has_attribute(attr))  // the preview's attribute when frames lack it
+          s->preview_scalar = *sim_.point_fields({attr}, space_).find(attr);
+      }
+      const OutputSpec& out = scene_.output;
+      if (grid) s->grid = std::make_unique<GridNodes>(grid_nodes(*grid, sim_.point_voxel_size()));
+      s->has_mesh = (out.surface_obj || out.surface_ply) && sim_.surface(s->mesh);
     }
-    const OutputSpec& out = scene_.output;
-    if (grid) s->grid = std::make_unique<GridNodes>(grid_nodes(*grid, sim_.point_voxel_size()));
-    s->has_mesh = (out.surface_obj || out.surface_ply) && sim_.surface(s->mesh);
+    if (parts_) pending_ = {f, sim_.time()};
     waited_ += seconds_since(t0);  // the copy is the simulation's share of asynchronous output
     const auto t1 = std::chrono::steady_clock::now();
-    worker_.submit([this, f, s] { write_snapshot(f, *s); });
+    worker_.submit([this, f, s, part] {
+      if (s) write_snapshot(f, *s);
+      if (part) write_part(f, *part);
+    });
     waited_ += seconds_since(t1);
   }
-  // Waits for the frame in flight; rethrows its write error.
+  // Waits for the frame in flight; rethrows its write error. --parts ranks: collective, and the
+  // frame's manifest is written (rank 0) once every rank's part is on disk.
   void wait() {
-    const auto t0 = std::chrono::steady_clock::now();
-    worker_.wait();
-    waited_ += seconds_since(t0);
+    drain();
+    commit();
   }
   // The point files (PLY, VDB points, as the output asks) at `base` + extension, OpenVDB under
   // `space`'s thread limit; returns their paths.
@@ -139,14 +155,21 @@ class FrameWriter {
   }
   // "amalgam: output: ..." for the end of a run: bytes, the writer's seconds and rate, and the
   // seconds the simulation spent on output (copying and waiting; with synchronous output, all).
-  std::string summary() const {
+  std::string summary() {
+    if (parts_) {  // every rank wrote: the bytes summed, the slowest rank's seconds
+      const dist::Comm& comm = dist::Comm::world();
+      bytes_ = double(comm.sum(std::uint64_t(bytes_)));
+      written_s_ = comm.max(written_s_);
+      waited_ = comm.max(waited_);
+    }
     if (!writes_files() || frames_ == 0) return "";
     char line[320];
     std::snprintf(line, sizeof line,
-                  "amalgam: output (%s): %d frames, %.1f MB in %.3f s of writing (%.1f MB/s); "
+                  "amalgam: output (%s%s): %d frames, %.1f MB in %.3f s of writing (%.1f MB/s); "
                   "simulation held %.3f s\n",
-                  async_ ? "asynchronous" : "synchronous", frames_, bytes_ * 1e-6, written_s_,
-                  bytes_ * 1e-6 / std::max(written_s_, 1e-9), async_ ? waited_ : written_s_);
+                  async_ ? "asynchronous" : "synchronous", parts_ ? ", a part per rank" : "",
+                  frames_, bytes_ * 1e-6, written_s_, bytes_ * 1e-6 / std::max(written_s_, 1e-9),
+                  async_ ? waited_ : written_s_);
     return line;
   }
 
@@ -159,6 +182,123 @@ class FrameWriter {
     bool has_mesh = false;
     SurfaceMesh mesh;
   };
+
+  // --parts ranks: this rank's points (Simulation::my_part) and their order keys.
+  struct PartSnapshot {
+    explicit PartSnapshot(PointFields p) : points(std::move(p)) {}
+    PointSnapshot points;
+    std::vector<std::uint64_t> order;
+  };
+  std::shared_ptr<PartSnapshot> part_snapshot() {
+    PointFields p = sim_.my_point_fields(scene_.output.attributes, space_);
+    p.material_names = scene_.material_names;
+    Simulation::RankPart rp = sim_.my_part();
+    std::shared_ptr<PartSnapshot> s;
+    if (rp.all) {
+      s = std::make_shared<PartSnapshot>(std::move(p));
+    } else {  // the owned rows of a set every rank holds whole
+      std::vector<Vec3> x, v;
+      std::vector<std::int32_t> material, id;
+      PointFields q;
+      q.n = rp.rows.size();
+      q.material_names = p.material_names;
+      for (const PointAttribute& a : p.attributes) q.attributes.push_back({a.name, a.type, {}, {}});
+      for (std::uint32_t i : rp.rows) {
+        x.push_back(p.x[i]), v.push_back(p.v[i]);
+        material.push_back(p.material[i]), id.push_back(p.id[i]);
+        for (std::size_t k = 0; k < p.attributes.size(); ++k) {
+          const PointAttribute& a = p.attributes[k];
+          const std::size_t w = std::size_t(a.width());
+          if (a.type == PointAttribute::Type::Int)
+            q.attributes[k].i.push_back(a.i[i]);
+          else
+            q.attributes[k].f.insert(q.attributes[k].f.end(), a.f.begin() + std::ptrdiff_t(w * i),
+                                     a.f.begin() + std::ptrdiff_t(w * i + w));
+        }
+      }
+      q.x = x.data(), q.v = v.data(), q.material = material.data(), q.id = id.data();
+      s = std::make_shared<PartSnapshot>(std::move(q));  // copies x, v, material, id
+    }
+    s->order = std::move(rp.order);
+    return s;
+  }
+  // This rank's part of frame f: its point files and the exact points (.pts) merge joins.
+  void write_part(int f, const PartSnapshot& s) {
+    if (delay_ms_ > 0 && !writes_files()) ::usleep(useconds_t(delay_ms_) * 1000);
+    const auto t0 = std::chrono::steady_clock::now();
+    char base[64];
+    std::snprintf(base, sizeof base, "frame_%04d.r%03d.", f, dist::Comm::world().rank());
+    const PointFields& p = s.points.fields;
+    std::vector<std::string> names;
+    if (scene_.output.ply) {
+      names.push_back(std::string(base) + "ply");
+      write_ply_points(rs_.out_dir + "/" + names.back(), p);
+    }
+    if (scene_.output.vdb_points) {
+      names.push_back(std::string(base) + "vdb");
+      write_vdb_points(rs_.out_dir + "/" + names.back(), p, sim_.point_voxel_size(),
+                       scene_.output.vdb_precision, writer_space_);
+    }
+    names.push_back(std::string(base) + "pts");
+    write_points_part(rs_.out_dir + "/" + names.back(), p, s.order);
+    pending_files_.clear();
+    for (const std::string& n : names) {
+      pending_files_.push_back(part_file_record(rs_.out_dir, n));
+      bytes_ += double(pending_files_.back().bytes);
+    }
+    pending_particles_ = p.n;
+    written_s_ += seconds_since(t0);
+    if (!writes_files()) ++frames_;
+  }
+  void drain() {
+    const auto t0 = std::chrono::steady_clock::now();
+    worker_.wait();
+    waited_ += seconds_since(t0);
+  }
+  // --parts ranks, collective: the pending frame's part lists gathered to rank 0, which writes
+  // the manifest (the frame's commit point) and removes parts a run on more ranks left there.
+  void commit() {
+    if (!parts_) return;
+    drain();
+    if (pending_.frame < 0) return;
+    const dist::Comm& comm = dist::Comm::world();
+    const std::string mine = encode_part_files(pending_particles_, pending_files_);
+    std::vector<std::size_t> sizes;
+    const std::vector<char> all = comm.gather(std::vector<char>(mine.begin(), mine.end()), &sizes);
+    const int f = pending_.frame;
+    if (comm.root()) {
+      FrameManifest m;
+      m.frame = f;
+      m.time = pending_.time;
+      m.ranks = comm.size();
+      m.voxel_size = sim_.point_voxel_size();
+      m.vdb_precision = scene_.output.vdb_precision;
+      m.ply = scene_.output.ply;
+      m.vdb = scene_.output.vdb_points;
+      m.material_names = scene_.material_names;
+      std::size_t at = 0;
+      for (int r = 0; r < comm.size(); ++r) {
+        std::uint64_t n = 0;
+        std::vector<PartFile> files;
+        decode_part_files(std::string(all.data() + at, sizes[std::size_t(r)]), n, files);
+        at += sizes[std::size_t(r)];
+        m.particles.push_back(n);
+        m.files.push_back(std::move(files));
+      }
+      write_frame_manifest(rs_.out_dir, m);
+      for (int r = comm.size();; ++r) {  // parts of an earlier run on more ranks
+        bool any = false;
+        for (const char* ext : {"ply", "vdb", "pts"}) {
+          char name[64];
+          std::snprintf(name, sizeof name, "/frame_%04d.r%03d.%s", f, r, ext);
+          std::error_code ec;
+          any = std::filesystem::remove(rs_.out_dir + name, ec) || any;
+        }
+        if (!any) break;
+      }
+    }
+    pending_ = {};
+  }
 
   // Frame f's files from its snapshot (on the worker's thread when asynchronous).
   void write_snapshot(int f, const Snapshot& s) {
@@ -175,9 +315,10 @@ class FrameWriter {
                               splat_, scene_.preview.width, scene_.preview.height,
                               scene_.preview.color_by, floor_y_));
     }
-    for (std::string& path :
-         write_points(numbered(rs_.out_dir, "frame_%04d", f, ""), p, writer_space_))
-      paths.push_back(std::move(path));
+    if (!parts_)  // --parts ranks: every rank writes its own part (write_part)
+      for (std::string& path :
+           write_points(numbered(rs_.out_dir, "frame_%04d", f, ""), p, writer_space_))
+        paths.push_back(std::move(path));
     if (out.surfacing.enabled) {  // surfacing_NNNN.vdb (+ .obj / .ply): io/surfacing.hpp
       std::string base = numbered(rs_.out_dir, "surfacing_%04d", f, "");
       base.pop_back();  // the "." before the (empty) extension
@@ -201,6 +342,8 @@ class FrameWriter {
       }
     }
     std::error_code ec;
+    if (!parts_)  // a manifest left by an earlier run with --parts ranks no longer applies
+      std::filesystem::remove(rs_.out_dir + "/" + frame_manifest_name(f), ec);
     for (const std::string& path : paths) {
       const std::uintmax_t b = std::filesystem::file_size(path, ec);
       if (!ec) bytes_ += double(b);
@@ -218,12 +361,21 @@ class FrameWriter {
   const exec::Space& space_;
   const Camera camera_;
   const double splat_, floor_y_, spacing_;
+  const bool parts_;  // --parts ranks
   const bool async_;
   const exec::Space writer_space_;
   // Written by the worker's thread, read after wait() (summary): the worker's mutex orders them.
   double bytes_ = 0, written_s_ = 0;
   int frames_ = 0, delay_ms_ = 0;
-  double waited_ = 0;              // the simulation thread's
+  double waited_ = 0;  // the simulation thread's
+  // --parts ranks: the frame whose part is written or in flight and has no manifest yet (frame
+  // -1: none), and its part's files (set by the worker, read after drain()).
+  struct Pending {
+    int frame = -1;
+    double time = 0;
+  } pending_;
+  std::uint64_t pending_particles_ = 0;
+  std::vector<PartFile> pending_files_;
   exec::BackgroundWorker worker_;  // last: destroyed (joined) first
 };
 
@@ -365,10 +517,61 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   SubstepLog steps_log(sim, scene, rs);
   SampleWriter samples(sim, scene, rs, space, frames);
 
+  // Checkpoints: one file written by rank 0 from the gathered state, or (--parts ranks) a part per
+  // rank and rank 0's manifest after every part is on disk (io/checkpoint.hpp). Collective.
+  std::uint64_t generation = 0;  // of the parts: one more than any part already in out_dir
+  if (rs.rank_parts) {
+    std::vector<std::uint64_t> g = {comm.root() ? last_checkpoint_generation(rs.out_dir) : 0};
+    std::vector<char> b = dist::as_bytes(g);
+    comm.broadcast(b);
+    generation = dist::from_bytes<std::uint64_t>(b).at(0);
+  }
+  auto checkpoint = [&](int next_frame, int retries) {
+    if (!rs.rank_parts) {
+      sim.prepare_checkpoint();
+      if (writes_files()) {
+        write_checkpoint(checkpoint_path, sim, next_frame, scene.fingerprint, retries);
+        remove_stale_checkpoint_parts(rs.out_dir, 0);  // parts of an earlier --parts ranks run
+      }
+      return;
+    }
+    sim.prepare_checkpoint_part();
+    const CheckpointPartRecord mine = write_checkpoint_part(
+        rs.out_dir, ++generation, comm.rank(), sim, next_frame, scene.fingerprint, retries, space);
+    // Fault injection (tests/dist_faults_test.sh): "RANK:GEN": MPI rank RANK kills itself once
+    // its part of checkpoint generation GEN is on disk, before the manifest names it.
+    if (const char* k = std::getenv("AMALGAM_TEST_KILL_IN_CHECKPOINT"))
+      if (std::atoi(k) == comm.rank() && std::strchr(k, ':') &&
+          std::strtoull(std::strchr(k, ':') + 1, nullptr, 10) == generation)
+        std::raise(SIGKILL);
+    const std::vector<char> all = comm.gather(
+        dist::as_bytes(std::vector<std::uint64_t>{mine.particles, mine.bytes, mine.checksum}),
+        nullptr);
+    if (!comm.root()) return;
+    const std::vector<std::uint64_t> v = dist::from_bytes<std::uint64_t>(all);
+    std::vector<CheckpointPartRecord> parts(std::size_t(comm.size()));
+    for (std::size_t r = 0; r < parts.size(); ++r)
+      parts[r] = {checkpoint_part_name(generation, int(r)), v[3 * r], v[3 * r + 1], v[3 * r + 2]};
+    write_checkpoint_manifest(checkpoint_path, generation, parts);  // the commit point
+    remove_stale_checkpoint_parts(rs.out_dir, generation);
+  };
+
   // Fault injection for the interrupt tests (tests/interrupt_points_test.sh): act as if SIGINT
   // arrived during the N-th substep this process takes (retried substeps count too).
   const char* inject = std::getenv("AMALGAM_TEST_SIGINT_AT_SUBSTEP");
   const long long sigint_at = inject ? std::atoll(inject) : 0;
+  // Fault injection for tests/dist_faults_test.sh: "RANK:N[:kill]": at its N-th substep, MPI rank
+  // RANK stops answering (sleeps; the others' --comm-timeout ends the job) or, with ":kill",
+  // kills itself with SIGKILL (the launcher ends the job).
+  int stall_rank = -1;
+  long long stall_at = 0;
+  bool stall_kill = false;
+  if (const char* s = std::getenv("AMALGAM_TEST_STALL_RANK")) {
+    stall_rank = std::atoi(s);
+    const char* c = std::strchr(s, ':');
+    stall_at = c ? std::atoll(c + 1) : 0;
+    stall_kill = std::strstr(s, ":kill") != nullptr;
+  }
   long long advanced = 0;
   const Real cfl0 = sim.cfl();
   const std::vector<std::string> profile_names = sim.profile_columns();
@@ -403,9 +606,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
             steps_log.discard();
             samples.discard();
             frames.wait();  // the frame in flight is on disk before the checkpoint claims it
-            sim.prepare_checkpoint();
-            if (writes_files())
-              write_checkpoint(checkpoint_path, sim, f, scene.fingerprint, attempt);
+            checkpoint(f, attempt);
             if (tty && !rs.quiet) std::cout << "\n";
             if (comm.root())
               std::cerr << "amalgam: " << (sig == SIGINT ? "SIGINT" : "SIGTERM")
@@ -426,6 +627,10 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
           dt = Real(remaining / std::max(1.0, n_left));
           sim.advance(space, dt);
           if (++advanced == sigint_at) g_signal = SIGINT;
+          if (advanced == stall_at && comm.rank() == stall_rank) {
+            if (stall_kill) std::raise(SIGKILL);
+            for (;;) ::sleep(1);
+          }
           ++substeps;
           steps_log.add(f, dt);
           samples.after_substep(f, dt);
@@ -487,8 +692,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     }
     if ((rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames) {
       frames.wait();  // frames up to f are on disk before the checkpoint claims them
-      sim.prepare_checkpoint();
-      if (writes_files()) write_checkpoint(checkpoint_path, sim, f + 1, scene.fingerprint);
+      checkpoint(f + 1, 0);
     }
     if (!rs.quiet) {
       const int done = f - rs.first_frame + 1;

@@ -24,6 +24,7 @@ struct RunSettings {
   int max_retries = 3;
   bool quiet = false, preview = false;
   bool sync_output = false;  // --sync-output: frames written on the simulation's thread
+  bool rank_parts = false;   // --parts ranks: every rank writes its part of frames/checkpoints
 };
 
 // Runs frames first_frame..scene.frames of `sim`; returns the exit code (0, or 128 + signal).

@@ -51,6 +51,8 @@ int dispatch(int argc, char** argv) {
       "  plot RUN_DIR     draw a run's diagnostics.csv to diagnostics.png (plot --help)\n"
       "  surface RUN_DIR  surface a run's frames into level set, density and mesh files "
       "(surface --help)\n"
+      "  merge RUN_DIR    join the per-rank parts of an MPI run (run --parts ranks) into the\n"
+      "                   files one process writes (merge --help)\n"
       "  info             version, backends, precision, SIMD path, dependency versions\n"
       "every command takes --simd baseline|avx2|avx512|auto (default: $AMALGAM_SIMD, else auto,\n"
       "the widest vector path this CPU runs); results are bitwise the same on every path\n";
@@ -92,6 +94,7 @@ int dispatch(int argc, char** argv) {
   if (cmd == "info") return info_command(args);
   if (cmd == "plot") return plot_command(args);
   if (cmd == "surface") return surface_command(args);
+  if (cmd == "merge") return merge_command(args);
   if (cmd == "--help" || cmd == "-h" || cmd == "help") {
     std::cout << usage;
     return kOk;

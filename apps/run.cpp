@@ -33,6 +33,7 @@ const char* kRunHelp =
     "DIR]\n"
     "                  [--frames N] [--checkpoint-every N] [--resume CHECKPOINT] [--retries N]\n"
     "                  [--preview] [--quiet] [--force] [--sync-output]\n"
+    "                  [--parts single|ranks] [--comm-timeout SECONDS]\n"
     "Simulates SCENE and writes DIR/frame_NNNN.ply and DIR/frame_NNNN.vdb (VDB points) with\n"
     "position, velocity, id and the scene's output.attributes per particle (VDB points compact\n"
     "unless output.vdb_points is \"full\"),\n"
@@ -48,6 +49,12 @@ const char* kRunHelp =
     "Frames are written by a background thread while the next frame simulates (one frame in\n"
     "flight; its OpenVDB work on that one thread); --sync-output writes them on the simulation's\n"
     "threads instead, which wait (the files are the same bytes).\n"
+    "--parts ranks (MPI runs): each rank writes its own part of every frame\n"
+    "(frame_NNNN.rRRR.ply/.vdb/.pts) and of every checkpoint, and rank 0 a manifest last\n"
+    "(frame_NNNN.manifest.json, checkpoint.amck); `amalgam merge DIR` joins them into the files\n"
+    "one process writes. Default single: rank 0 gathers the particles and writes one file.\n"
+    "--comm-timeout SECONDS (default 600): a rank that waits longer for the others in one MPI\n"
+    "exchange names it and the ranks it did not hear from, and ends the job (exit 1).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
     "uninterrupted run (frames may be raised to extend it).\n"
     "Defaults: --backend openmp (threads: plain std::threads, for ThreadSanitizer runs), --threads "
@@ -121,7 +128,7 @@ int run_command(const std::vector<std::string>& args) {
   try {
     o = parse_options(args,
                       {"--backend", "--threads", "--out", "--frames", "--checkpoint-every",
-                       "--resume", "--retries"},
+                       "--resume", "--retries", "--comm-timeout", "--parts"},
                       {"--quiet", "--help", "--preview", "--force", "--sync-output"});
     if (o.flag("--help")) {
       std::cout << kRunHelp;
@@ -146,6 +153,13 @@ int run_command(const std::vector<std::string>& args) {
     // Distributed runs (issue 28): peridynamics splits its bonds across the ranks
     // (solvers/pd_distributed.cpp), explicit MPM its leaves and particles
     // (solvers/mpm_distributed.cpp); what is not distributed yet is refused by begin_run.
+    if (const auto* t = o.get("--comm-timeout"))
+      dist::Comm::world().set_timeout(double(parse_int("--comm-timeout", *t, 1, 1000000000)));
+    if (const auto* p = o.get("--parts")) {
+      if (*p != "single" && *p != "ranks")
+        throw std::invalid_argument("--parts: expected single or ranks, got '" + *p + "'");
+      rs.rank_parts = *p == "ranks";
+    }
     rs.preview = o.flag("--preview");
     rs.sync_output = o.flag("--sync-output");
     rs.checkpoint_every = scene.output.checkpoint_every;

@@ -1,7 +1,11 @@
 #include "io/checkpoint.hpp"
 
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
+#include <filesystem>
+#include <nlohmann/json.hpp>
 #include <fstream>
 #include <functional>
 #include <sstream>
@@ -19,8 +23,11 @@ constexpr char kMagic[] = "AMALGAM-CKPT\n";
 constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
 // 4: MPM positions' and F's low parts (x_lo, F_lo); 5: peridynamic positions' low parts (x_lo);
 // 6: the particle count may differ from the scene's initial one (MPM emitters and kill regions,
-// whose state follows in section sources.state)
-constexpr std::uint32_t kVersion = 6;
+// whose state follows in section sources.state); 7: per-rank checkpoints (a manifest naming one
+// part per rank, each a version-7 file of the rank's particles with their order keys in section
+// dist.order; a single file is laid out as version 6)
+constexpr std::uint32_t kVersion = 7;
+constexpr char kOrderSection[] = "dist.order";
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -58,9 +65,9 @@ class Reader {
 };
 using Section = StateSection;
 
-void write_state(const std::string& path, const ParticleSet& ps, double time, std::uint64_t steps,
-                 int next_frame, int retries, std::uint64_t scene_fingerprint,
-                 const std::vector<Section>& sections) {
+std::string state_bytes(const ParticleSet& ps, double time, std::uint64_t steps, int next_frame,
+                        int retries, std::uint64_t scene_fingerprint,
+                        const std::vector<Section>& sections) {
   std::string b;
   std::size_t total = 128;
   for (int a = 0; a < ps.attribute_count(); ++a)
@@ -95,19 +102,15 @@ void write_state(const std::string& path, const ParticleSet& ps, double time, st
     b.append(sec.data, sec.bytes);
   }
   put(b, fnv1a64(b.data(), b.size()));
-  write_file_atomic(path, b);
+  return b;
 }
 
 // Reads into ps (same attribute layout) and the sections (same names and sizes, in order).
 // `max_particles`: the most particles the run can hold when its count varies (emitters, kill
 // regions), else 0 (the checkpoint must hold exactly ps.size()).
-CheckpointState read_state(const std::string& path, ParticleSet& ps,
+CheckpointState read_state(const std::string& path, const std::string& d, ParticleSet& ps,
                            std::uint64_t scene_fingerprint, const std::vector<Section>& sections,
                            std::size_t max_particles) {
-  // Never more than the memory there is (a hostile size would end in bad_alloc).
-  const std::uint64_t avail = available_memory_bytes();
-  const std::string d =
-      read_input_file(path, "checkpoint", avail > 0 ? avail : std::uint64_t(1) << 40);
   if (d.size() < kMagicLen || std::memcmp(d.data(), kMagic, kMagicLen) != 0)
     throw InputError(path + ": not an Amalgam checkpoint (bad magic)");
   if (d.size() < kMagicLen + 8) throw InputError(path + ": checkpoint is truncated (no checksum)");
@@ -223,18 +226,312 @@ CheckpointState read_state(const std::string& path, ParticleSet& ps,
   return st;
 }
 
+// A part of a per-rank checkpoint, parsed (pointers into its bytes).
+struct ParsedPart {
+  std::uint32_t version = 0, real_size = 0;
+  std::uint64_t fingerprint = 0, steps = 0, n = 0;
+  double time = 0;
+  std::int32_t frame = 0, retries = 0;
+  struct Attr {
+    std::string name;
+    std::uint32_t type = 0, width = 0, words = 0;
+    const char* data = nullptr;
+  };
+  struct Sec {
+    std::string name;
+    std::uint64_t bytes = 0;
+    const char* data = nullptr;
+  };
+  std::vector<Attr> attrs;
+  std::vector<Sec> secs;
+};
+
+ParsedPart parse_part(const std::string& path, const std::string& d) {
+  if (d.size() < kMagicLen + 8 || std::memcmp(d.data(), kMagic, kMagicLen) != 0)
+    throw InputError(path + ": not an Amalgam checkpoint (bad magic)");
+  std::uint64_t stored = 0;
+  std::memcpy(&stored, d.data() + d.size() - 8, 8);
+  if (fnv1a64(d.data(), d.size() - 8) != stored)
+    throw InputError(path + ": checkpoint is corrupt or truncated (checksum mismatch)");
+  Reader r(d, path);
+  r.take(kMagicLen, "magic");
+  ParsedPart p;
+  p.version = r.get<std::uint32_t>("version");
+  if (p.version != kVersion)
+    throw InputError(path + ": checkpoint part of format version " + std::to_string(p.version) +
+                     ", expected " + std::to_string(kVersion));
+  p.real_size = r.get<std::uint32_t>("precision");
+  p.fingerprint = r.get<std::uint64_t>("scene fingerprint");
+  p.time = r.get<double>("time");
+  p.steps = r.get<std::uint64_t>("step count");
+  p.frame = r.get<std::int32_t>("frame");
+  p.retries = r.get<std::int32_t>("retries");
+  p.n = r.get<std::uint64_t>("particle count");
+  if (p.n > d.size()) throw InputError(path + ": checkpoint field 'particle count' is corrupt");
+  const auto nattr = r.get<std::uint32_t>("attribute count");
+  if (nattr > 256) throw InputError(path + ": checkpoint attribute count is corrupt");
+  for (std::uint32_t i = 0; i < nattr; ++i) {
+    ParsedPart::Attr a;
+    const auto len = r.get<std::uint32_t>("attribute name length");
+    if (len > 256) throw InputError(path + ": checkpoint attribute name too long (corrupt file)");
+    a.name.assign(r.take(len, "attribute name"), len);
+    a.type = r.get<std::uint32_t>("attribute type");
+    a.width = r.get<std::uint32_t>("attribute width");
+    a.words = r.get<std::uint32_t>("attribute words");
+    if (a.words > 64) throw InputError(path + ": checkpoint attribute words are corrupt");
+    a.data = r.take(std::size_t(p.n) * 4 * a.words, "attribute data");
+    p.attrs.push_back(a);
+  }
+  const auto nsec = r.get<std::uint32_t>("section count");
+  if (nsec > 4096) throw InputError(path + ": checkpoint section count is corrupt");
+  for (std::uint32_t i = 0; i < nsec; ++i) {
+    ParsedPart::Sec sec;
+    const auto len = r.get<std::uint32_t>("section name length");
+    if (len > 256) throw InputError(path + ": checkpoint section name too long (corrupt file)");
+    sec.name.assign(r.take(len, "section name"), len);
+    sec.bytes = r.get<std::uint64_t>("section size");
+    if (sec.bytes > d.size()) throw InputError(path + ": checkpoint section size is corrupt");
+    sec.data = r.take(std::size_t(sec.bytes), "section data");
+    p.secs.push_back(sec);
+  }
+  if (r.pos() != d.size() - 8)
+    throw InputError(path + ": checkpoint has trailing bytes (corrupt file)");
+  if (p.secs.empty() || p.secs[0].name != kOrderSection || p.secs[0].bytes != 16 * p.n)
+    throw InputError(path + ": checkpoint part has no section " + kOrderSection +
+                     " of 16 bytes per particle");
+  return p;
+}
+
+std::string hex64(std::uint64_t v) {
+  char s[20];
+  std::snprintf(s, sizeof s, "%016llx", (unsigned long long)v);
+  return s;
+}
+
+std::string dir_of(const std::string& path) {
+  const std::size_t slash = path.find_last_of('/');
+  return slash == std::string::npos ? "." : path.substr(0, slash);
+}
+
 }  // namespace
+
+std::string checkpoint_part_name(std::uint64_t generation, int rank) {
+  char s[64];
+  std::snprintf(s, sizeof s, "checkpoint.g%06llu.r%03d.amck", (unsigned long long)generation, rank);
+  return s;
+}
+
+bool is_checkpoint_manifest(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  char c = 0;
+  return in.get(c) && c == '{';
+}
+
+std::string join_checkpoint(const std::string& manifest_path) {
+  const std::string text = read_input_file(manifest_path, "checkpoint manifest", 1 << 26);
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(text);
+  } catch (const nlohmann::json::exception& e) {
+    throw InputError(manifest_path + ": checkpoint manifest is not valid JSON: " + e.what());
+  }
+  const std::string dir = dir_of(manifest_path);
+  std::vector<std::string> bytes;
+  std::vector<ParsedPart> parts;
+  std::string key;
+  try {
+    auto at = [&](const nlohmann::json& o, const std::string& where, const char* k) {
+      key = where + "/" + k;
+      return o.at(k);
+    };
+    if (at(j, "", "format").get<std::string>() != "amalgam-checkpoint-parts" ||
+        at(j, "", "version").get<int>() != 1)
+      throw InputError(manifest_path + ": " + key + ": not an Amalgam checkpoint manifest");
+    const int ranks = at(j, "", "ranks").get<int>();
+    const nlohmann::json& list = at(j, "", "parts");
+    if (ranks < 1 || ranks > 1 << 20 || !list.is_array() || list.size() != std::size_t(ranks))
+      throw InputError(manifest_path + ": /parts: expected one part per rank (" +
+                       std::to_string(ranks) + ")");
+    for (int r = 0; r < ranks; ++r) {
+      const std::string w = "/parts/" + std::to_string(r);
+      const nlohmann::json& e = list[std::size_t(r)];
+      const std::string file = at(e, w, "file").get<std::string>();
+      if (file.empty() || file.find('/') != std::string::npos || file[0] == '.')
+        throw InputError(manifest_path + ": " + key + ": '" + file +
+                         "' is not a file name in the checkpoint's directory");
+      const std::uint64_t size = at(e, w, "bytes").get<std::uint64_t>();
+      const std::string sum = at(e, w, "fnv1a64").get<std::string>();
+      const std::string path = dir + "/" + file;
+      const std::string whose = " (checkpoint part of rank " + std::to_string(r) + " of " +
+                                std::to_string(ranks) + ", listed in " + manifest_path + ")";
+      try {
+        const std::uint64_t avail = available_memory_bytes();
+        bytes.push_back(
+            read_input_file(path, "checkpoint part", avail > 0 ? avail : std::uint64_t(1) << 40));
+        if (bytes.back().size() != size ||
+            hex64(fnv1a64(bytes.back().data(), bytes.back().size())) != sum)
+          throw InputError(path +
+                           ": does not match its manifest (size or checksum): the part "
+                           "is corrupt, truncated or from another checkpoint");
+        parts.push_back(parse_part(path, bytes.back()));
+      } catch (const InputError& err) {
+        throw InputError(err.what() + whose);
+      }
+      const ParsedPart& p = parts.back();
+      const ParsedPart& p0 = parts.front();
+      bool same = p.real_size == p0.real_size && p.fingerprint == p0.fingerprint &&
+                  p.time == p0.time && p.steps == p0.steps && p.frame == p0.frame &&
+                  p.retries == p0.retries && p.attrs.size() == p0.attrs.size();
+      for (std::size_t a = 0; same && a < p.attrs.size(); ++a)
+        same = p.attrs[a].name == p0.attrs[a].name && p.attrs[a].type == p0.attrs[a].type &&
+               p.attrs[a].width == p0.attrs[a].width && p.attrs[a].words == p0.attrs[a].words;
+      if (!same || (r > 0 && p.secs.size() != 1))
+        throw InputError(path + ": its header, attributes or sections do not match rank 0's part" +
+                         whose);
+      if (at(e, w, "particles").get<std::uint64_t>() != p.n)
+        throw InputError(path + ": holds " + std::to_string(p.n) +
+                         " particles, the manifest says otherwise" + whose);
+    }
+  } catch (const nlohmann::json::exception& e) {
+    throw InputError(manifest_path + ": " + key + ": missing or of the wrong type (" + e.what() +
+                     ")");
+  }
+  // The single process's order: every particle by its two keys.
+  struct Row {
+    std::uint64_t k0, k1;
+    std::uint32_t part, index;
+    bool operator<(const Row& o) const { return k0 != o.k0 ? k0 < o.k0 : k1 < o.k1; }
+  };
+  std::vector<Row> rows;
+  for (std::size_t r = 0; r < parts.size(); ++r)
+    for (std::uint64_t i = 0; i < parts[r].n; ++i) {
+      std::uint64_t k[2];
+      std::memcpy(k, parts[r].secs[0].data + 16 * i, 16);
+      rows.push_back({k[0], k[1], std::uint32_t(r), std::uint32_t(i)});
+    }
+  std::sort(rows.begin(), rows.end());
+  const ParsedPart& p0 = parts.front();
+  std::string b;
+  b.append(kMagic, kMagicLen);
+  put(b, kVersion);
+  put(b, p0.real_size);
+  put(b, p0.fingerprint);
+  put(b, p0.time);
+  put(b, p0.steps);
+  put(b, p0.frame);
+  put(b, p0.retries);
+  put(b, std::uint64_t(rows.size()));
+  put(b, std::uint32_t(p0.attrs.size()));
+  for (std::size_t a = 0; a < p0.attrs.size(); ++a) {
+    put(b, std::uint32_t(p0.attrs[a].name.size()));
+    b.append(p0.attrs[a].name);
+    put(b, p0.attrs[a].type);
+    put(b, p0.attrs[a].width);
+    put(b, p0.attrs[a].words);
+    const std::size_t w = 4 * std::size_t(p0.attrs[a].words);
+    for (const Row& row : rows) b.append(parts[row.part].attrs[a].data + w * row.index, w);
+  }
+  put(b, std::uint32_t(p0.secs.size() - 1));
+  for (std::size_t k = 1; k < p0.secs.size(); ++k) {
+    put(b, std::uint32_t(p0.secs[k].name.size()));
+    b.append(p0.secs[k].name);
+    put(b, p0.secs[k].bytes);
+    b.append(p0.secs[k].data, std::size_t(p0.secs[k].bytes));
+  }
+  put(b, fnv1a64(b.data(), b.size()));
+  return b;
+}
+
+CheckpointPartRecord write_checkpoint_part(const std::string& dir, std::uint64_t generation,
+                                           int rank, Simulation& sim, int next_frame,
+                                           std::uint64_t scene_fingerprint, int retries,
+                                           const exec::Space& space) {
+  const Simulation::RankPart part = sim.my_part();
+  const ParticleSet& all = sim.my_particles();
+  ParticleSet kept;
+  const ParticleSet* ps = &all;
+  if (!part.all) {
+    kept = all;
+    kept.compact(space, part.rows.data(), part.rows.size());
+    ps = &kept;
+  }
+  std::vector<Section> sections = {
+      {kOrderSection, const_cast<char*>(reinterpret_cast<const char*>(part.order.data())),
+       part.order.size() * sizeof(std::uint64_t)}};
+  if (rank == 0)
+    for (const Section& s : sim.checkpoint_sections()) sections.push_back(s);
+  const std::string b = state_bytes(*ps, sim.time(), sim.step_count(), next_frame, retries,
+                                    scene_fingerprint, sections);
+  CheckpointPartRecord rec;
+  rec.file = checkpoint_part_name(generation, rank);
+  rec.particles = ps->size();
+  rec.bytes = b.size();
+  rec.checksum = fnv1a64(b.data(), b.size());
+  write_file_atomic(dir + "/" + rec.file, b);
+  return rec;
+}
+
+void write_checkpoint_manifest(const std::string& path, std::uint64_t generation,
+                               const std::vector<CheckpointPartRecord>& parts) {
+  nlohmann::json j;
+  j["format"] = "amalgam-checkpoint-parts";
+  j["version"] = 1;
+  j["generation"] = generation;
+  j["ranks"] = parts.size();
+  j["parts"] = nlohmann::json::array();
+  for (std::size_t r = 0; r < parts.size(); ++r)
+    j["parts"].push_back({{"rank", r},
+                          {"file", parts[r].file},
+                          {"particles", parts[r].particles},
+                          {"bytes", parts[r].bytes},
+                          {"fnv1a64", hex64(parts[r].checksum)}});
+  write_file_atomic(path, j.dump(1) + "\n");
+}
+
+void remove_stale_checkpoint_parts(const std::string& dir, std::uint64_t generation) {
+  std::error_code ec;
+  for (const auto& e : std::filesystem::directory_iterator(dir, ec)) {
+    const std::string name = e.path().filename().string();
+    unsigned long long g = 0;
+    int r = 0;
+    if (std::sscanf(name.c_str(), "checkpoint.g%llu.r%d.amck", &g, &r) == 2 && name.size() > 5 &&
+        name.compare(name.size() - 5, 5, ".amck") == 0 && g != generation)
+      std::filesystem::remove(e.path(), ec);
+  }
+}
+
+std::uint64_t last_checkpoint_generation(const std::string& dir) {
+  std::uint64_t last = 0;
+  std::error_code ec;
+  for (const auto& e : std::filesystem::directory_iterator(dir, ec)) {
+    unsigned long long g = 0;
+    int r = 0;
+    if (std::sscanf(e.path().filename().string().c_str(), "checkpoint.g%llu.r%d", &g, &r) == 2)
+      last = std::max<std::uint64_t>(last, g);
+  }
+  return last;
+}
 
 void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
                       std::uint64_t scene_fingerprint, int retries) {
-  write_state(path, sim.particles(), sim.time(), sim.step_count(), next_frame, retries,
-              scene_fingerprint, sim.checkpoint_sections());
+  write_file_atomic(path, state_bytes(sim.particles(), sim.time(), sim.step_count(), next_frame,
+                                      retries, scene_fingerprint, sim.checkpoint_sections()));
 }
 
 CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
                                 std::uint64_t scene_fingerprint) {
+  // A per-rank checkpoint's manifest: its parts joined into the single file one process writes
+  // (every rank reads every part; the run's begin_run then keeps each rank's own particles).
+  std::string d;
+  if (is_checkpoint_manifest(path)) {
+    d = join_checkpoint(path);
+  } else {
+    // Never more than the memory there is (a hostile size would end in bad_alloc).
+    const std::uint64_t avail = available_memory_bytes();
+    d = read_input_file(path, "checkpoint", avail > 0 ? avail : std::uint64_t(1) << 40);
+  }
   const CheckpointState st =
-      read_state(path, sim.particles(), scene_fingerprint, sim.restore_sections(),
+      read_state(path, d, sim.particles(), scene_fingerprint, sim.restore_sections(),
                  sim.variable_particle_count() ? sim.max_particle_count() : 0);
   try {
     sim.restored(st.time, st.steps);

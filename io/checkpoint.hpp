@@ -21,6 +21,7 @@
 
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "core/hash.hpp"
 #include "solvers/simulation.hpp"
@@ -42,5 +43,36 @@ void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
 // InputError naming the file.
 CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
                                 std::uint64_t scene_fingerprint);
+
+// Per-rank checkpoints (issue 28, `amalgam run --parts ranks`; docs/reliability.md). Every rank
+// writes its part, checkpoint.gGGGGGG.rRRR.amck: a version-7 checkpoint of its own particles
+// (Simulation::my_part) whose first section, dist.order, holds their order keys; rank 0's part
+// also holds the method's sections (counters, bonds, ...). Rank 0 then writes the manifest
+// (JSON, at the checkpoint's usual path, atomic rename): the commit point. Parts carry a
+// generation number, so a crash while a checkpoint is written leaves the previous generation,
+// which the old manifest names, whole. read_checkpoint reads a manifest by joining its parts
+// (join_checkpoint) into the bytes the single process writes, in the single process's order: a
+// resume on any rank count is bitwise the uninterrupted run. Every part is checked against the
+// manifest (size, checksum) and against rank 0's part; a failure names the file and the rank.
+struct CheckpointPartRecord {
+  std::string file;  // name in the checkpoint's directory
+  std::uint64_t particles = 0, bytes = 0, checksum = 0;
+};
+CheckpointPartRecord write_checkpoint_part(const std::string& dir, std::uint64_t generation,
+                                           int rank, Simulation& sim, int next_frame,
+                                           std::uint64_t scene_fingerprint, int retries,
+                                           const exec::Space& space);
+void write_checkpoint_manifest(const std::string& path, std::uint64_t generation,
+                               const std::vector<CheckpointPartRecord>& parts);
+// checkpoint.gGGGGGG.rRRR.amck
+std::string checkpoint_part_name(std::uint64_t generation, int rank);
+// Removes checkpoint.g*.r*.amck parts of other generations than `generation` from `dir`.
+void remove_stale_checkpoint_parts(const std::string& dir, std::uint64_t generation);
+// The highest generation of the parts in `dir` (0: none).
+std::uint64_t last_checkpoint_generation(const std::string& dir);
+// Whether `path` is a manifest (JSON) rather than a single-file checkpoint.
+bool is_checkpoint_manifest(const std::string& path);
+// A manifest's parts joined into a single-file checkpoint's bytes (InputError naming file, rank).
+std::string join_checkpoint(const std::string& manifest_path);
 
 }  // namespace amalgam

@@ -484,17 +484,16 @@ int MpmSolver::leaf_owner(const Vec3i& leaf) const {
   return ranks_->owner(leaf);
 }
 
-void MpmSolver::gather_particles(ParticleSet& out) const {
-  if (!ranks_) {
-    out = particles_;
-    return;
-  }
-  const dist::Comm& comm = dist::Comm::world();
-  const Ranks& rk = *ranks_;
+std::vector<std::uint64_t> MpmSolver::order_keys() const {
   const std::size_t n = particles_.size();
+  std::vector<std::uint64_t> order(2 * n);
+  if (!ranks_) {
+    for (std::size_t p = 0; p < n; ++p) order[2 * p] = p, order[2 * p + 1] = 0;
+    return order;
+  }
+  const Ranks& rk = *ranks_;
   // Each particle's place in the single process's order: (bin leaf, id) once sorted, the
   // one-process index before.
-  std::vector<std::uint64_t> order(2 * n);
   const std::int32_t* id = particles_.int32(attr_.id);
   if (rk.sorted) {
     for (std::size_t b = 0; b < bins_.count(); ++b)
@@ -506,6 +505,17 @@ void MpmSolver::gather_particles(ParticleSet& out) const {
   } else {
     for (std::size_t p = 0; p < n; ++p) order[2 * p] = rk.presort[p], order[2 * p + 1] = 0;
   }
+  return order;
+}
+
+void MpmSolver::gather_particles(ParticleSet& out) const {
+  if (!ranks_) {
+    out = particles_;
+    return;
+  }
+  const dist::Comm& comm = dist::Comm::world();
+  const std::size_t n = particles_.size();
+  const std::vector<std::uint64_t> order = order_keys();
   const int na = particles_.attribute_count();
   std::size_t words = 0;
   for (int a = 0; a < na; ++a) words += std::size_t(particles_.words_per_particle(a));

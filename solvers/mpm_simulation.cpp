@@ -184,6 +184,12 @@ const ParticleSet& MpmSimulation::all_particles() const {
   return gathered_;
 }
 
+Simulation::RankPart MpmSimulation::my_part() const {
+  RankPart r;
+  r.order = s_.order_keys();
+  return r;
+}
+
 std::vector<Column> MpmSimulation::sample(const exec::Space& space) const {
   return state_columns(mpm_diagnostics(space, all_particles(), s_.attributes(), s_.materials()));
 }

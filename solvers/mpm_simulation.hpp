@@ -84,10 +84,20 @@ class MpmSimulation final : public Simulation {
   }
   void restored(double time, std::uint64_t steps) override;
 
+  // Per-rank output: a rank's own particles, keyed by their place in the single process's order.
+  RankPart my_part() const override;
+  const ParticleSet& my_particles() const override { return s_.particles(); }
+  PointFields my_point_fields(const std::vector<std::string>& names,
+                              const exec::Space& space) override {
+    return mpm_point_fields(s_.particles(), s_.attributes(), s_.materials(), names, space,
+                            rest_.empty() ? nullptr : &rest_);
+  }
+  void prepare_checkpoint_part() override {}
+
  private:
   // Every particle, in the single process's order: the solver's own on one process; distributed,
   // gathered to rank 0 (empty elsewhere) once per state. Collective when distributed. The one
-  // place a distributed run joins its particles (per-rank output would replace it).
+  // place a distributed run joins its particles (`--parts ranks` output does without it).
   const ParticleSet& all_particles() const;
   MpmSolver s_;
   mutable ParticleSet gathered_;

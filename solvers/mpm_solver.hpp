@@ -197,6 +197,9 @@ class MpmSolver {
   // Collective: the node rows (m, v) of every rank's owned active leaves into `out` on rank 0 (a
   // fresh grid: those leaves active, nothing elsewhere), for grid volumes.
   void gather_grid(SparseGrid& out) const;
+  // Two keys per local particle whose lexicographic order over every rank is the order
+  // gather_particles gives (one process: the index).
+  std::vector<std::uint64_t> order_keys() const;
   // Changes whenever the particles may have changed (a substep, a restore, distribute).
   std::uint64_t state_version() const { return state_version_; }
   // Collective: ranks, repartitions, imbalance and halo of the last substep, for the run summary.

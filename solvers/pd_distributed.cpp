@@ -118,4 +118,9 @@ void PdSolver::gather_bonds(std::vector<std::uint64_t>& offsets,
   }
 }
 
+// Per-rank output (issue 28, helper distio): the owned particles are the rank's part.
+const std::vector<std::uint8_t>* PdSolver::owned_mask() const {
+  return ranks_ ? &ranks_->owned : nullptr;
+}
+
 }  // namespace amalgam

@@ -195,6 +195,19 @@ std::vector<StateSection> PdSimulation::restore_sections() {
   return out;
 }
 
+Simulation::RankPart PdSimulation::my_part() const {
+  const std::vector<std::uint8_t>* owned = s_.owned_mask();
+  if (!owned) return Simulation::my_part();
+  RankPart r;
+  r.all = false;
+  for (std::size_t i = 0; i < owned->size(); ++i)
+    if ((*owned)[i]) {
+      r.rows.push_back(std::uint32_t(i));
+      r.order.insert(r.order.end(), {std::uint64_t(i), 0});
+    }
+  return r;
+}
+
 void PdSimulation::restored(double time, std::uint64_t steps) {
   const ParticleSet& ps = s_.particles();
   check_finite_attributes(ps);

@@ -54,6 +54,8 @@ class PdSimulation final : public Simulation {
   std::vector<StateSection> checkpoint_sections() override;
   std::vector<StateSection> restore_sections() override;
   void restored(double time, std::uint64_t steps) override;
+  // Per-rank output (issue 28): every rank holds every particle and writes the ones it owns.
+  RankPart my_part() const override;
 
  private:
   PdSolver s_;

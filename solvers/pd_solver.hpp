@@ -206,6 +206,9 @@ class PdSolver {
                     std::vector<Real>& plastic, std::vector<std::uint8_t>& intact) const;
   // Rank-local counts made global (integer sums: exact).
   std::uint64_t global_sum(std::uint64_t v) const;
+  // Per-rank output (issue 28, helper distio): per particle, 1 on the rank that owns it; null on
+  // one process (every particle its own).
+  const std::vector<std::uint8_t>* owned_mask() const;
 
  private:
   PdSettings settings_;

@@ -133,6 +133,33 @@ class Simulation {
   virtual std::size_t max_particle_count() const { return particles().size(); }
   virtual bool variable_particle_count() const { return false; }
   virtual void restored(double time, std::uint64_t steps) = 0;
+
+  // --- Per-rank output (issue 28, `amalgam run --parts ranks`; apps/frame_loop.cpp, io/parts.hpp).
+  // This rank's part of the particles: the rows of my_particles() / my_point_fields() it owns
+  // (`all`: every row) and, per kept row, two order keys whose lexicographic order over every
+  // rank's parts is the single process's particle order, so joined parts are bitwise one
+  // process's files. One process: every row, keyed by its index. A method whose ranks hold only
+  // their own particles (distributed MPM) returns them whole; one whose ranks hold every particle
+  // (peridynamics today) names its owned rows.
+  struct RankPart {
+    bool all = true;
+    std::vector<std::uint32_t> rows;   // the kept rows when !all, increasing
+    std::vector<std::uint64_t> order;  // 2 per kept row
+  };
+  virtual RankPart my_part() const {
+    RankPart r;
+    r.order.resize(2 * particles().size());
+    for (std::size_t i = 0; i < particles().size(); ++i) r.order[2 * i] = i, r.order[2 * i + 1] = 0;
+    return r;
+  }
+  virtual const ParticleSet& my_particles() const { return particles(); }
+  virtual PointFields my_point_fields(const std::vector<std::string>& names,
+                                      const exec::Space& space) {
+    return point_fields(names, space);
+  }
+  // Collective, before checkpoint_sections when every rank writes its own part: what rank 0's part
+  // needs beyond its particles (peridynamics: the bond rows gathered; MPM: nothing).
+  virtual void prepare_checkpoint_part() { prepare_checkpoint(); }
 };
 
 }  // namespace amalgam

@@ -62,3 +62,30 @@ interrupted() {
     { echo "resume after the interrupt failed"; return 1; }
   same "$out/int"
 }
+# Per-rank output (`run --parts ranks`): every rank writes its part of each frame and checkpoint,
+# rank 0 the manifests; `amalgam merge` joins them into the single process's files.
+# parts_match NP...: runs on each NP with per-rank parts, merged: bitwise the single process's
+# files (the checkpoint included: the joined parts are its bytes).
+parts_match() {
+  for np in "$@"; do
+    mpi "$np" run "$scene" --threads 1 --parts ranks --out "$out/parts$np" --quiet || { echo "parts run on $np ranks failed"; return 1; }
+    ls "$out/parts$np"/frame_0001.r000.pts "$out/parts$np"/frame_0001.manifest.json >/dev/null || { echo "no parts or manifest on $np ranks"; return 1; }
+    "$amalgam" merge "$out/parts$np" >/dev/null || { echo "merge of $np ranks failed"; return 1; }
+    same "$out/parts$np" || return 1
+  done
+}
+# parts_resumes NP FRAMES NP2...: a per-rank checkpoint after FRAMES frames on NP ranks (0: one
+# process), resumed with per-rank parts on each NP2, merged: bitwise.
+parts_resumes() {
+  local np=$1 frames=$2
+  shift 2
+  mpi "$np" run "$scene" --threads 1 --parts ranks --frames "$frames" --out "$out/pc$np" --quiet || { echo "$np-rank parts run failed"; return 1; }
+  head -c 1 "$out/pc$np/checkpoint.amck" | grep -q '{' || { echo "no checkpoint manifest on $np ranks"; return 1; }
+  for np2 in "$@"; do
+    rm -rf "$out/pc$np-$np2" && cp -r "$out/pc$np" "$out/pc$np-$np2"
+    mpi "$np2" run "$scene" --threads 1 --parts ranks --out "$out/pc$np-$np2" --resume "$out/pc$np-$np2/checkpoint.amck" --quiet ||
+      { echo "parts resume of $np ranks on $np2 failed"; return 1; }
+    "$amalgam" merge "$out/pc$np-$np2" >/dev/null || { echo "merge after the resume $np -> $np2 failed"; return 1; }
+    same "$out/pc$np-$np2" || { echo "(resume $np -> $np2 ranks with parts)"; return 1; }
+  done
+}

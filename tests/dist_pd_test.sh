@@ -13,4 +13,8 @@ reference 'frame_*.ply' 'frame_*.vdb' samples.csv 'samples/*' || exit 1
 ranks_match || exit 1
 resumes 3 3 2 0 || exit 1  # checkpoint on 3 ranks after frame 3, resumed on 2 and on 1
 interrupted 4 150 3 || exit 1  # inside frame 4, on 4 ranks; resumed on 3
-echo "distributed peridynamics: $(echo "$files" | wc -l) files bitwise identical on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1 ranks and after an interrupt on 4"
+parts_match 2 3 || exit 1        # per-rank parts (owned particles), merged
+parts_resumes 3 3 2 0 || exit 1  # per-rank checkpoint of 3 ranks resumed on 2 and 1
+parts_resumes 0 3 4 || exit 1    # of one process (one part) resumed on 4 ranks
+parts_resumes 2 3 3 || exit 1    # of 2 ranks resumed on 3
+echo "distributed peridynamics: $(echo "$files" | wc -l) files bitwise identical on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1 ranks and after an interrupt on 4; per-rank parts merged bitwise on 2 and 3 ranks and resumed 3->2, 3->1, 1->4, 2->3"

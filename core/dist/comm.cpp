@@ -1,7 +1,12 @@
 #include "core/dist/comm.hpp"
 
+#include <unistd.h>
+
 #include <algorithm>
+#include <chrono>
 #include <cstdlib>
+#include <iostream>
+#include <sstream>
 #include <stdexcept>
 
 #ifdef AMALGAM_HAVE_MPI
@@ -40,6 +45,55 @@ std::vector<int> displacements(const std::vector<int>& c) {
     if (s > 2147483647LL) throw std::runtime_error("MPI: an exchange over 2 GB");
   }
   return d;
+}
+// Waits for MPI requests against the rank's time-out (Comm::timeout): non-blocking operations
+// polled with MPI_Testall, yielding the core after the first millisecond (ranks may share cores).
+// `peer[k]`: the rank request k waits for (-1: a collective, whose missing ranks MPI does not
+// name). On a time-out the rank says what it waited for and ends the job (exit 1): a peer that was
+// killed or is stuck elsewhere must not leave the others waiting for ever.
+void wait_all(std::vector<MPI_Request>& req, const std::vector<int>& peer, const char* what) {
+  if (req.empty()) return;
+  const Comm& comm = Comm::world();
+  const auto t0 = std::chrono::steady_clock::now();
+  for (long long polls = 0;; ++polls) {
+    int done = 0;
+    check(MPI_Testall(int(req.size()), req.data(), &done, MPI_STATUSES_IGNORE), what);
+    if (done) return;
+    const double waited =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (waited > comm.timeout()) {
+      std::ostringstream m;
+      m << "amalgam: error: MPI rank " << comm.rank() << " of " << comm.size() << ": no answer in "
+        << what << " within " << comm.timeout() << " s (--comm-timeout): ";
+      std::vector<int> missing;
+      bool collective = false;
+      for (std::size_t k = 0; k < req.size(); ++k) {
+        int ok = 1;
+        if (req[k] != MPI_REQUEST_NULL) check(MPI_Test(&req[k], &ok, MPI_STATUS_IGNORE), what);
+        if (!ok && peer[k] < 0) collective = true;
+        if (!ok && peer[k] >= 0 &&
+            std::find(missing.begin(), missing.end(), peer[k]) == missing.end())
+          missing.push_back(peer[k]);
+      }
+      if (!missing.empty()) {
+        m << "did not hear from rank" << (missing.size() > 1 ? "s" : "");
+        for (std::size_t k = 0; k < missing.size(); ++k) m << (k ? ", " : " ") << missing[k];
+      } else if (collective) {
+        m << "not every rank joined this collective (MPI does not say which; a rank that was "
+             "killed or is stuck elsewhere)";
+      }
+      m << "; ending every rank\n";
+      std::cerr << m.str();
+      std::cerr.flush();
+      MPI_Abort(MPI_COMM_WORLD, 1);
+      std::exit(1);
+    }
+    if (polls > 1000 && waited > 1e-3) ::usleep(50);
+  }
+}
+void wait_one(MPI_Request r, const char* what) {
+  std::vector<MPI_Request> req{r};
+  wait_all(req, {-1}, what);
 }
 // Whether a launcher (mpirun, mpiexec, srun) started this process: only then is MPI initialised,
 // so a plain `amalgam run` never pays for (or depends on) MPI's start-up, and OpenMPI's singleton
@@ -84,25 +138,33 @@ void Comm::attach() {
 double Comm::max(double v) const {
   if (size_ == 1) return v;
   double r = v;
-  check(MPI_Allreduce(&v, &r, 1, MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD), "MPI_Allreduce");
+  MPI_Request q;
+  check(MPI_Iallreduce(&v, &r, 1, MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD, &q), "MPI_Iallreduce");
+  wait_one(q, "MPI_Iallreduce (max)");
   return r;
 }
 double Comm::min(double v) const {
   if (size_ == 1) return v;
   double r = v;
-  check(MPI_Allreduce(&v, &r, 1, MPI_DOUBLE, MPI_MIN, MPI_COMM_WORLD), "MPI_Allreduce");
+  MPI_Request q;
+  check(MPI_Iallreduce(&v, &r, 1, MPI_DOUBLE, MPI_MIN, MPI_COMM_WORLD, &q), "MPI_Iallreduce");
+  wait_one(q, "MPI_Iallreduce (min)");
   return r;
 }
 std::uint64_t Comm::sum(std::uint64_t v) const {
   if (size_ == 1) return v;
   std::uint64_t r = v;
-  check(MPI_Allreduce(&v, &r, 1, MPI_UINT64_T, MPI_SUM, MPI_COMM_WORLD), "MPI_Allreduce");
+  MPI_Request q;
+  check(MPI_Iallreduce(&v, &r, 1, MPI_UINT64_T, MPI_SUM, MPI_COMM_WORLD, &q), "MPI_Iallreduce");
+  wait_one(q, "MPI_Iallreduce (sum)");
   return r;
 }
 std::int64_t Comm::max(std::int64_t v) const {
   if (size_ == 1) return v;
   std::int64_t r = v;
-  check(MPI_Allreduce(&v, &r, 1, MPI_INT64_T, MPI_MAX, MPI_COMM_WORLD), "MPI_Allreduce");
+  MPI_Request q;
+  check(MPI_Iallreduce(&v, &r, 1, MPI_INT64_T, MPI_MAX, MPI_COMM_WORLD, &q), "MPI_Iallreduce");
+  wait_one(q, "MPI_Iallreduce (max)");
   return r;
 }
 
@@ -114,13 +176,16 @@ std::vector<char> Comm::allgather(const std::vector<char>& mine,
   }
   const std::vector<int> one = to_int_counts({mine.size()});
   std::vector<int> counts(static_cast<std::size_t>(size_), 0);
-  check(MPI_Allgather(&one[0], 1, MPI_INT, counts.data(), 1, MPI_INT, MPI_COMM_WORLD),
-        "MPI_Allgather");
+  MPI_Request q;
+  check(MPI_Iallgather(&one[0], 1, MPI_INT, counts.data(), 1, MPI_INT, MPI_COMM_WORLD, &q),
+        "MPI_Iallgather");
+  wait_one(q, "MPI_Iallgather (sizes)");
   const std::vector<int> displ = displacements(counts);
   std::vector<char> all(std::size_t(displ.back()) + std::size_t(counts.back()));
-  check(MPI_Allgatherv(mine.data(), one[0], MPI_BYTE, all.data(), counts.data(), displ.data(),
-                       MPI_BYTE, MPI_COMM_WORLD),
-        "MPI_Allgatherv");
+  check(MPI_Iallgatherv(mine.data(), one[0], MPI_BYTE, all.data(), counts.data(), displ.data(),
+                        MPI_BYTE, MPI_COMM_WORLD, &q),
+        "MPI_Iallgatherv");
+  wait_one(q, "MPI_Iallgatherv");
   if (sizes) sizes->assign(counts.begin(), counts.end());
   return all;
 }
@@ -133,56 +198,97 @@ std::vector<char> Comm::gather(const std::vector<char>& mine,
   }
   const std::vector<int> one = to_int_counts({mine.size()});
   std::vector<int> counts(static_cast<std::size_t>(size_), 0);
-  check(MPI_Gather(&one[0], 1, MPI_INT, counts.data(), 1, MPI_INT, 0, MPI_COMM_WORLD),
-        "MPI_Gather");
+  MPI_Request q;
+  check(MPI_Igather(&one[0], 1, MPI_INT, counts.data(), 1, MPI_INT, 0, MPI_COMM_WORLD, &q),
+        "MPI_Igather");
+  wait_one(q, "MPI_Igather (sizes)");
   std::vector<char> all;
   std::vector<int> displ(static_cast<std::size_t>(size_), 0);
   if (rank_ == 0) {
     displ = displacements(counts);
     all.resize(std::size_t(displ.back()) + std::size_t(counts.back()));
   }
-  check(MPI_Gatherv(mine.data(), one[0], MPI_BYTE, all.data(), counts.data(), displ.data(),
-                    MPI_BYTE, 0, MPI_COMM_WORLD),
-        "MPI_Gatherv");
+  check(MPI_Igatherv(mine.data(), one[0], MPI_BYTE, all.data(), counts.data(), displ.data(),
+                     MPI_BYTE, 0, MPI_COMM_WORLD, &q),
+        "MPI_Igatherv");
+  wait_one(q, "MPI_Igatherv");
   if (sizes) sizes->assign(counts.begin(), counts.end());
   return all;
 }
 
 std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char>>& send) const {
   if (size_ == 1) return send;
-  std::vector<std::size_t> n(static_cast<std::size_t>(size_));
-  for (int r = 0; r < size_; ++r) n[std::size_t(r)] = send[std::size_t(r)].size();
-  const std::vector<int> scount = to_int_counts(n), sdispl = displacements(scount);
-  std::vector<int> rcount(static_cast<std::size_t>(size_), 0);
-  check(MPI_Alltoall(scount.data(), 1, MPI_INT, rcount.data(), 1, MPI_INT, MPI_COMM_WORLD),
-        "MPI_Alltoall");
-  const std::vector<int> rdispl = displacements(rcount);
-  std::vector<char> sbuf(std::size_t(sdispl.back()) + std::size_t(scount.back()));
-  for (int r = 0; r < size_; ++r)
-    std::copy(send[std::size_t(r)].begin(), send[std::size_t(r)].end(),
-              sbuf.begin() + sdispl[std::size_t(r)]);
-  std::vector<char> rbuf(std::size_t(rdispl.back()) + std::size_t(rcount.back()));
-  check(MPI_Alltoallv(sbuf.data(), scount.data(), sdispl.data(), MPI_BYTE, rbuf.data(),
-                      rcount.data(), rdispl.data(), MPI_BYTE, MPI_COMM_WORLD),
-        "MPI_Alltoallv");
-  std::vector<std::vector<char>> recv(static_cast<std::size_t>(size_));
-  for (int r = 0; r < size_; ++r)
-    recv[std::size_t(r)].assign(rbuf.begin() + rdispl[std::size_t(r)],
-                                rbuf.begin() + rdispl[std::size_t(r)] + rcount[std::size_t(r)]);
+  // Point to point (sizes, then bytes), so a time-out can name the peers that did not answer.
+  // Messages between two ranks stay in order (MPI's non-overtaking rule), and every rank makes
+  // the same sequence of calls, so tags need not count.
+  constexpr int kSizeTag = 28001, kDataTag = 28002;
+  const std::size_t R = std::size_t(size_), me = std::size_t(rank_);
+  std::vector<std::uint64_t> out_n(R), in_n(R, 0);
+  std::vector<MPI_Request> req;
+  std::vector<int> peer;
+  for (std::size_t r = 0; r < R; ++r) {
+    out_n[r] = send[r].size();
+    if (out_n[r] > std::uint64_t(2147483647)) throw std::runtime_error("MPI: a message over 2 GB");
+    if (r == me) continue;
+    req.emplace_back();
+    peer.push_back(int(r));
+    check(MPI_Irecv(&in_n[r], 1, MPI_UINT64_T, int(r), kSizeTag, MPI_COMM_WORLD, &req.back()),
+          "MPI_Irecv");
+  }
+  for (std::size_t r = 0; r < R; ++r) {
+    if (r == me) continue;
+    req.emplace_back();
+    peer.push_back(int(r));
+    check(MPI_Isend(&out_n[r], 1, MPI_UINT64_T, int(r), kSizeTag, MPI_COMM_WORLD, &req.back()),
+          "MPI_Isend");
+  }
+  wait_all(req, peer, "the all-to-all exchange (sizes)");
+  std::vector<std::vector<char>> recv(R);
+  req.clear();
+  peer.clear();
+  for (std::size_t r = 0; r < R; ++r) {
+    if (r == me) {
+      recv[r] = send[r];
+      continue;
+    }
+    if (in_n[r] > std::uint64_t(2147483647)) throw std::runtime_error("MPI: a message over 2 GB");
+    recv[r].resize(std::size_t(in_n[r]));
+    if (in_n[r] == 0) continue;
+    req.emplace_back();
+    peer.push_back(int(r));
+    check(MPI_Irecv(recv[r].data(), int(in_n[r]), MPI_BYTE, int(r), kDataTag, MPI_COMM_WORLD,
+                    &req.back()),
+          "MPI_Irecv");
+  }
+  for (std::size_t r = 0; r < R; ++r) {
+    if (r == me || out_n[r] == 0) continue;
+    req.emplace_back();
+    peer.push_back(int(r));
+    check(MPI_Isend(send[r].data(), int(out_n[r]), MPI_BYTE, int(r), kDataTag, MPI_COMM_WORLD,
+                    &req.back()),
+          "MPI_Isend");
+  }
+  wait_all(req, peer, "the all-to-all exchange (bytes)");
   return recv;
 }
 
 void Comm::broadcast(std::vector<char>& bytes) const {
   if (size_ == 1) return;
   std::uint64_t n = bytes.size();
-  check(MPI_Bcast(&n, 1, MPI_UINT64_T, 0, MPI_COMM_WORLD), "MPI_Bcast");
+  MPI_Request q;
+  check(MPI_Ibcast(&n, 1, MPI_UINT64_T, 0, MPI_COMM_WORLD, &q), "MPI_Ibcast");
+  wait_one(q, "MPI_Ibcast (size)");
   if (n > 2147483647ULL) throw std::runtime_error("MPI: a broadcast over 2 GB");
   bytes.resize(std::size_t(n));
-  check(MPI_Bcast(bytes.data(), int(n), MPI_BYTE, 0, MPI_COMM_WORLD), "MPI_Bcast");
+  check(MPI_Ibcast(bytes.data(), int(n), MPI_BYTE, 0, MPI_COMM_WORLD, &q), "MPI_Ibcast");
+  wait_one(q, "MPI_Ibcast");
 }
 
 void Comm::barrier() const {
-  if (size_ > 1) check(MPI_Barrier(MPI_COMM_WORLD), "MPI_Barrier");
+  if (size_ == 1) return;
+  MPI_Request q;
+  check(MPI_Ibarrier(MPI_COMM_WORLD, &q), "MPI_Ibarrier");
+  wait_one(q, "MPI_Ibarrier");
 }
 
 void Comm::abort(int code) const {

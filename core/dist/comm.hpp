@@ -35,6 +35,13 @@ class Comm {
   int size() const { return size_; }
   bool root() const { return rank_ == 0; }
 
+  // The longest a rank waits in one collective for the others (seconds; `amalgam run
+  // --comm-timeout`, default 600). A rank that waits longer prints which collective and which
+  // peers it did not hear from (where MPI can tell: the all-to-all exchanges are point-to-point)
+  // and ends the job with exit code 1, so a dead or stuck peer never leaves the others hanging.
+  void set_timeout(double seconds) { timeout_ = seconds; }
+  double timeout() const { return timeout_; }
+
   double max(double v) const;
   double min(double v) const;
   std::uint64_t sum(std::uint64_t v) const;
@@ -57,6 +64,7 @@ class Comm {
   Comm();
   void attach();  // reads the rank and size once MPI is initialised
   int rank_ = 0, size_ = 1;
+  double timeout_ = 600;
 };
 
 // Typed helpers over the byte collectives.
