@@ -185,8 +185,8 @@ void PdSolver::distribute(const exec::Space& space) {
   }
   if (settings_.contact) {
     const double reach = 1.01 * double(contact_distance() + (settings_.contact_skin > 0
-                                                                  ? settings_.contact_skin
-                                                                  : Real(0.5) * settings_.spacing));
+                                                                 ? settings_.contact_skin
+                                                                 : Real(0.5) * settings_.spacing));
     for (std::size_t i = 0; i < n; ++i) {
       bool in = true;
       for (int a = 0; a < 3; ++a)
@@ -518,16 +518,16 @@ void PdSolver::relocal(const exec::Space& space, bool repartition) {
   const std::vector<double> boxes = dist::from_bytes<double>(
       comm.allgather(dist::as_bytes(std::vector<double>(box, box + 6)), nullptr));
   const double reach =
-      settings_.contact
-          ? 1.01 * double(contact_distance() + (settings_.contact_skin > 0
-                                                    ? settings_.contact_skin
-                                                    : Real(0.5) * settings_.spacing))
-          : -1;
+      settings_.contact ? 1.01 * double(contact_distance() + (settings_.contact_skin > 0
+                                                                  ? settings_.contact_skin
+                                                                  : Real(0.5) * settings_.spacing))
+                        : -1;
   const double hb = 1.001 * double(settings_.horizon) + 0.2 * double(settings_.spacing);
   auto in_box = [&](const Vec3& p, std::size_t r) {
     bool in = reach >= 0;
     for (int a = 0; a < 3; ++a)
-      in &= double(p[a]) >= boxes[6 * r + a] - reach && double(p[a]) <= boxes[6 * r + 3 + a] + reach;
+      in &=
+          double(p[a]) >= boxes[6 * r + a] - reach && double(p[a]) <= boxes[6 * r + 3 + a] + reach;
     return in;
   };
   std::vector<std::vector<char>> push(R);
@@ -580,6 +580,36 @@ void PdSolver::relocal(const exec::Space& space, bool repartition) {
   }
   dist_stats_.comm_seconds +=
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+PdSolver::CrossRank PdSolver::cross_rank() const {
+  CrossRank c;
+  if (!ranks_) return c;
+  const Ranks& rk = *ranks_;
+  const Vec3* x = particles_.vec3(attr_.x);
+  const Real d = contact_distance();
+  const bool list = settings_.contact && contact_list_.offsets.size() == particles_.size() + 1;
+  for (std::uint32_t i : rk.own) {
+    const std::uint64_t k0 = bonds_.offsets[i], k1 = bonds_.offsets[i + 1];
+    for (std::uint64_t k = k0; k < k1; ++k)
+      c.broken += !bonds_.intact[k] && !rk.owned[bonds_.neighbor[k]];
+    if (!list) continue;
+    for (std::uint64_t m = contact_list_.offsets[i]; m < contact_list_.offsets[i + 1]; ++m) {
+      const std::uint32_t j = contact_list_.neighbor[m];
+      if (rk.owned[j]) continue;
+      const Real r2 = (x[j] - x[i]).squaredNorm();
+      Real dij = d;  // pd_contact_forces's rule
+      const std::uint32_t* row = bonds_.neighbor.data();
+      const std::uint32_t* b = std::lower_bound(row + k0, row + k1, j);
+      if (b != row + k1 && *b == j) {
+        const std::uint64_t k = std::uint64_t(b - row);
+        if (bonds_.intact[k]) continue;
+        dij = pd_broken_pair_distance(bonds_.length[k], d);
+      }
+      c.contacts += r2 < dij * dij && r2 > 0;
+    }
+  }
+  return c;
 }
 
 std::uint64_t PdSolver::global_sum(std::uint64_t v) const {
@@ -686,8 +716,8 @@ void PdSolver::gather_bonds(std::vector<std::uint64_t>& offsets,
   const std::vector<std::uint64_t> rl = dist::from_bytes<std::uint64_t>(all_rows);
   std::vector<std::uint64_t> len(n, 0), from(n, 0);
   std::uint64_t at = 0;  // each row's first bond in the gathered arrays
-  for (std::size_t k = 0; k + 1 < rl.size(); k += 2) len[rl[k]] = rl[k + 1], from[rl[k]] = at,
-                                                    at += rl[k + 1];
+  for (std::size_t k = 0; k + 1 < rl.size(); k += 2)
+    len[rl[k]] = rl[k + 1], from[rl[k]] = at, at += rl[k + 1];
   offsets.assign(n + 1, 0);
   for (std::size_t i = 0; i < n; ++i) offsets[i + 1] = offsets[i] + len[i];
   neighbor.resize(offsets[n]);

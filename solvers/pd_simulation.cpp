@@ -1,5 +1,6 @@
 #include "solvers/pd_simulation.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <sstream>
@@ -48,6 +49,11 @@ std::vector<Column> PdSimulation::sample(const exec::Space& space) const {
 
 FrameReport PdSimulation::end_frame(const exec::Space& space, long long) {
   const PdDiagnostics d = s_.diagnostics_of(space, all_particles());
+  if (s_.distributed()) {
+    const PdSolver::CrossRank c = s_.cross_rank();
+    cross_broken_ = std::max(cross_broken_, s_.global_sum(c.broken));
+    cross_contacts_ = std::max(cross_contacts_, s_.global_sum(c.contacts));
+  }
   FrameReport r;
   r.kinetic = d.kinetic;
   r.max_speed = d.max_speed;
@@ -82,7 +88,9 @@ std::string PdSimulation::run_summary(double) const {
        << " ghosts; " << st.reghosts << " re-ghosts, " << st.repartitions
        << " repartitions, imbalance " << st.imbalance << "; last step's halo " << st.step_bytes
        << " bytes in " << st.step_messages << " messages; " << st.comm_seconds
-       << " s in exchanges\n";
+       << " s in exchanges; at most " << cross_broken_
+       << " directed bonds broken between ranks and " << cross_contacts_
+       << " contacts with another rank's particles at a frame's end\n";
   }
   return os.str();
 }
@@ -121,7 +129,8 @@ PointFields PdSimulation::point_fields(const std::vector<std::string>& names,
       out.i.assign(p.material, p.material + p.n);
     } else if (name == "vonmises") {
       s_.compute_stress(space, stress_);  // sigma_i = 1/2 sum_j f_ij (x) xi_ij V_j
-      if (s_.distributed()) stress_ = dist::from_bytes<Mat3>(s_.gather_owned(stress_.data(), sizeof(Mat3)));
+      if (s_.distributed())
+        stress_ = dist::from_bytes<Mat3>(s_.gather_owned(stress_.data(), sizeof(Mat3)));
       out.f.resize(p.n);
       for (std::size_t i = 0; i < p.n; ++i) out.f[i] = von_mises(stress_[i]);
     } else {

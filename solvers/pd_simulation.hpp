@@ -68,6 +68,9 @@ class PdSimulation final : public Simulation {
   mutable ParticleSet gathered_;
   mutable std::uint64_t gathered_version_ = ~std::uint64_t(0);
   std::vector<Mat3> stress_;  // output scratch (vonmises)
+  // Distributed: the most broken bonds between ranks and contacts between ranks seen at a frame's
+  // end (run summary).
+  std::uint64_t cross_broken_ = 0, cross_contacts_ = 0;
   PdSolver::Snapshot snapshot_;
   std::string description_;
   // What restore_sections reads into, applied by restored(); on a distributed run also what

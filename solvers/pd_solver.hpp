@@ -229,13 +229,20 @@ class PdSolver {
   std::uint64_t global_sum(std::uint64_t v) const;
   // Distributed counters (this rank): ghost traffic of the last step, time in the exchanges.
   struct DistStats {
-    std::uint64_t owned = 0, ghosts = 0;   // local particles now
+    std::uint64_t owned = 0, ghosts = 0;  // local particles now
     std::uint64_t reghosts = 0, repartitions = 0;
-    double imbalance = 1;                   // max / mean bond work per rank, at the last cut
+    double imbalance = 1;  // max / mean bond work per rank, at the last cut
     std::uint64_t step_bytes = 0, step_messages = 0;  // halo traffic sent in the last step
-    double comm_seconds = 0;                // in the halo exchanges and re-ghosting, summed
+    double comm_seconds = 0;  // in the halo exchanges and re-ghosting, summed
   };
   const DistStats& dist_stats() const { return dist_stats_; }
+  // This rank's own rows' broken bonds to ghosts, and its own particles in contact (closer than
+  // the contact distance, no intact bond) with ghosts now: what shows that fracture and contact
+  // cross rank boundaries (tests). Local: no communication; zeros on one process.
+  struct CrossRank {
+    std::uint64_t broken = 0, contacts = 0;
+  };
+  CrossRank cross_rank() const;
   // Increments with every change of the state (a step, a restore): caches of gathered output.
   std::uint64_t state_version() const { return version_; }
   std::uint64_t compactions() const { return compactions_; }
