@@ -53,6 +53,9 @@ struct PdSolver::Ranks {
   std::vector<int> owner;           // per local particle
   std::vector<std::uint32_t> own;   // the own particles' local indices, increasing
   dist::HaloPlan halo;
+  // Plastic materials: the far ends' plastic extensions of the bonds whose far end is a ghost
+  // (plastic_r), from the rank that owns that row; bond (i, j) known by the id i N + j.
+  dist::HaloPlan bond_halo;
   std::uint64_t n_global = 0;
   std::uint64_t last_cut_step = 0;
 };
@@ -139,11 +142,6 @@ void PdSolver::distribute(const exec::Space& space) {
     throw InputError(
         "peridynamics on several MPI ranks: embedded tet_mesh crack surfaces are not distributed "
         "yet (issue 28); run one rank");
-  for (const PdMaterial& m : materials_)
-    if (m.psi0 < std::numeric_limits<Real>::infinity())
-      throw InputError(
-          "peridynamics on several MPI ranks: plastic materials (a yield stress) are not "
-          "distributed yet (issue 28); run one rank");
   // Every rank holds the whole state here (each set the scene up alike): it passes Zoltan a slice
   // of the particles, weighted by their bond rows, and then takes its own particles and their
   // ghosts from the whole state.
@@ -307,6 +305,33 @@ void PdSolver::assemble_local(const exec::Space& space, std::vector<LocalEntry>&
     if (missing[i])
       throw std::logic_error("distributed peridynamics: rank " + std::to_string(comm.rank()) +
                              " lacks a bond neighbour of particle " + std::to_string(gid[i]));
+  // Reverse bonds within this rank's rows (pd_dilatation writes their plastic_r); the others'
+  // come through the bond halo.
+  const bool plastic = params().plastic;
+  std::vector<std::uint64_t> bond_own_ids, bond_ghost_ids;
+  std::vector<std::uint32_t> bond_own_slots, bond_ghost_slots;
+  std::vector<int> bond_ghost_owner;
+  const std::uint64_t N = ranks->n_global;
+  for (std::size_t i = 0; i < n && plastic; ++i)
+    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+      const std::uint32_t j = bd.neighbor[k];
+      bond_own_ids.push_back(gid[i] * N + gid[j]), bond_own_slots.push_back(std::uint32_t(k));
+      if (entries[j].row) {
+        const auto b = bd.neighbor.begin();
+        const auto it = std::lower_bound(b + std::ptrdiff_t(off[j]), b + std::ptrdiff_t(off[j + 1]),
+                                         std::uint32_t(i));
+        if (it != b + std::ptrdiff_t(off[j + 1]) && *it == i) bd.reverse[k] = std::uint64_t(it - b);
+      } else {
+        bond_ghost_ids.push_back(gid[j] * N + gid[i]);
+        bond_ghost_slots.push_back(std::uint32_t(nb + k));
+        bond_ghost_owner.push_back(entries[j].owner);
+      }
+    }
+  if (nb * 2 > std::uint64_t(UINT32_MAX))
+    throw std::runtime_error("distributed peridynamics: over 2^31 bonds on one rank");
+  std::size_t bat = 0;
+  ranks->bond_halo = dist::HaloPlan(bond_own_ids, bond_own_slots, bond_ghost_ids, bond_ghost_slots,
+                                    [&](std::uint64_t) { return bond_ghost_owner[bat++]; });
   // The ghost plan: own ids and slots; ghosts with their owners.
   std::vector<std::uint64_t> own_ids, ghost_ids;
   std::vector<std::uint32_t> own_slots, ghost_slots;
@@ -395,6 +420,22 @@ void PdSolver::exchange_positions(const exec::Space& space) {
   const auto t0 = std::chrono::steady_clock::now();
   share(particles_.vec3(attr_.x));
   share(particles_.vec3(attr_.x_lo));
+  dist_stats_.comm_seconds +=
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void PdSolver::share_plastic() {
+  if (!ranks_ || !params().plastic) return;
+  const auto t0 = std::chrono::steady_clock::now();
+  const std::size_t nb = bonds_.size();
+  // Slots 0..nb-1: this rank's bonds' plastic extensions (sent); nb + k: bond k's far end's.
+  std::vector<Real> both(2 * nb);
+  std::copy(bonds_.plastic.begin(), bonds_.plastic.end(), both.begin());
+  ranks_->bond_halo.exchange(both.data());
+  for (std::uint64_t k = 0; k < nb; ++k)
+    if (bonds_.reverse[k] == kNoReverse) bonds_.plastic_r[k] = both[nb + k];
+  dist_stats_.step_bytes += ranks_->bond_halo.sent() * sizeof(Real);
+  dist_stats_.step_messages += ranks_->bond_halo.messages();
   dist_stats_.comm_seconds +=
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -691,6 +732,11 @@ void PdSolver::gather_particles(ParticleSet& out) const {
 void PdSolver::gather_bonds(std::vector<std::uint64_t>& offsets,
                             std::vector<std::uint32_t>& neighbor, std::vector<Real>& plastic,
                             std::vector<std::uint8_t>& intact) const {
+  if (!ranks_) {
+    offsets = bonds_.offsets, neighbor = bonds_.neighbor, plastic = bonds_.plastic;
+    intact = bonds_.intact;
+    return;
+  }
   const dist::Comm& comm = dist::Comm::world();
   // This rank's rows: (global id, length) pairs, then their bonds (neighbour ids, state).
   std::vector<std::uint64_t> rows;

@@ -522,6 +522,7 @@ void PdSolver::step(const exec::Space& space, Real dt) {
   compute_dilatation(space);
   share(particles_.real(attr_.theta));  // what the force pass reads of its ghosts
   share(q_.data());
+  share_plastic();        // plastic: the far ends' returns of bonds to ghosts
   compute_forces(space);  // and the damage (update_damage)
   contact_forces(space);
   bond_updates_ += ranks_ ? global_stored_ : bonds_.size();

@@ -206,8 +206,8 @@ class PdSolver {
   // own particles referring to local indices. Each step copies the owners' positions, dilatation
   // and damage into the ghosts point to point; the contact list's rebuild re-ghosts (and, when the
   // bond work is imbalanced or forced, repartitions with migration). Bitwise the single process
-  // on every rank count. One rank: nothing changes. Refused (InputError) with embedded tet meshes
-  // or plastic materials, which are not distributed yet.
+  // on every rank count. One rank: nothing changes. Refused (InputError) with embedded tet meshes,
+  // which are not distributed yet.
   void distribute(const exec::Space& space);
   bool distributed() const { return ranks_ != nullptr; }
   // Collective: the bond rows of all ranks in the global layout, on rank 0 (others: empty).
@@ -298,6 +298,8 @@ class PdSolver {
   void exchange_positions(const exec::Space& space);
   void build_contact_list(const exec::Space& space);
   void select_drives();
+  // Distributed plastic materials: the far ends' plastic extensions of bonds to ghosts.
+  void share_plastic();
   // Owners' values of a per-particle array into the ghosts (no-op on one process).
   void share_bytes(void* data, std::size_t bytes) const;
   template <class T>

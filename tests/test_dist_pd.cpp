@@ -23,14 +23,19 @@ constexpr double kLc = 0.01;
 
 // Two brittle blocks flying at each other (they touch, break and bounce) over n x n/2 x n/2
 // lattices, with contact and fracture.
-PdSolver make_scene(int n, const exec::Space& space) {
+PdSolver make_scene(int n, const exec::Space& space, bool plastic = false) {
   PdSettings s;
   s.spacing = Real(kLc);
   s.horizon = Real(3.01 * kLc);
   s.gravity = Vec3::Zero();
+  s.compact_fraction = 0;  // the bond layouts stay comparable (compaction changes no bit)
   PdMaterial m;
   m.bulk = Real(1e6), m.shear = Real(6e5), m.density = 1000;
   m.critical_stretch = Real(0.01);
+  if (plastic) {  // yields well before it breaks
+    m.psi0 = pd_psi0_from_yield_stress(Real(2e4), s.horizon);
+    m.critical_stretch = Real(0.05);
+  }
   PdSolver solver(s, {m});
   for (int b = 0; b < 2; ++b) {
     std::vector<Vec3> x;
@@ -129,9 +134,11 @@ TEST(DistPd, MemoryPerRankScales) {
   EXPECT_EQ(comm.sum(std::uint64_t(own)), n);
 }
 
-TEST(DistPd, GatheredStateIsTheSingleProcessBitwise) {
+class DistPdBitwise : public ::testing::TestWithParam<bool> {};
+
+TEST_P(DistPdBitwise, GatheredStateIsTheSingleProcessBitwise) {
   const exec::Space space;
-  PdSolver ref = make_scene(16, space);
+  PdSolver ref = make_scene(16, space, GetParam());
   PdSolver s = ref;
   s.distribute(space);
   for (int k = 0; k < 40; ++k) {
@@ -141,6 +148,22 @@ TEST(DistPd, GatheredStateIsTheSingleProcessBitwise) {
     s.step(space, dt);
   }
   EXPECT_LT(ref.diagnostics(space).intact, ref.diagnostics(space).bonds);  // bonds broke
+  if (GetParam()) {  // plastic: bonds yielded, and their state is the single process's
+    std::size_t yielded = 0;
+    for (Real e : ref.bonds().plastic) yielded += e != 0;
+    EXPECT_GT(yielded, 0u);
+    std::vector<std::uint64_t> off;
+    std::vector<std::uint32_t> nb;
+    std::vector<Real> pl;
+    std::vector<std::uint8_t> in;
+    s.gather_bonds(off, nb, pl, in);
+    if (dist::Comm::world().root()) {
+      EXPECT_EQ(off, ref.bonds().offsets);
+      EXPECT_EQ(nb, ref.bonds().neighbor);
+      EXPECT_EQ(std::memcmp(pl.data(), ref.bonds().plastic.data(), pl.size() * sizeof(Real)), 0);
+      EXPECT_EQ(in, ref.bonds().intact);
+    }
+  }
   ParticleSet all;
   s.gather_particles(all);
   if (!dist::Comm::world().root()) {
@@ -154,6 +177,8 @@ TEST(DistPd, GatheredStateIsTheSingleProcessBitwise) {
     EXPECT_EQ(std::memcmp(all.words(a), r.words(a), r.size() * w * 4), 0) << r.name(a);
   }
 }
+
+INSTANTIATE_TEST_SUITE_P(ElasticAndPlastic, DistPdBitwise, ::testing::Bool());
 
 namespace {
 // Non-root ranks print their failures only, with the rank.
