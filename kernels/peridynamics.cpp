@@ -778,7 +778,8 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
           if (B.ep_new[m] !=
               bonds.plastic[k]) {  // yielded: row j's force pass reads it from plastic_r
             bonds.plastic[k] = B.ep_new[m];
-            bonds.plastic_r[bonds.reverse[k]] = B.ep_new[m];
+            // (kNoReverse: row j is another rank's, which receives it by its bond halo)
+            if (bonds.reverse[k] != kNoReverse) bonds.plastic_r[bonds.reverse[k]] = B.ep_new[m];
           }
           Q += B.t[m];
         }

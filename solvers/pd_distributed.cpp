@@ -1,9 +1,40 @@
-// Peridynamics across MPI ranks (issue 28): PdSolver::distribute and what it needs. A first
-// step of the spatial decomposition the issue asks for: the bonds (the memory and the work, ~120
-// per particle) are split by Zoltan's RCB, each rank computing the rows of the particles it owns;
-// the per-particle state stays whole on every rank, the owners' values copied to the others after
-// each pass (core/dist/halo.hpp), so every pass reads exactly the bits a single process reads.
-// Later steps keep only a halo of ghosts within the horizon and contact distance.
+// Peridynamics across MPI ranks (issue 28, item 3): PdSolver::distribute and what it needs.
+//
+// Ownership. Zoltan's RCB cuts the particles' reference positions (each moved by less than a
+// tenth of the spacing by a hash of its id, so no lattice plane sits on a cut), weighted by their
+// bond rows, and the cuts are kept (dist::RcbCuts): the owner of a particle is the cut box of its
+// point, known to every rank without communication.
+//
+// Local particles. A rank holds its own particles and ghosts: the bond neighbours of its rows
+// (reference configuration: the ranks whose cut boxes meet the horizon box of a particle,
+// Zoltan_LB_Box_Assign, receive it and keep it when one of their rows names it) and the
+// particles within contact reach (current configuration: within distance + skin of the bounding
+// box of the rank's own particles). Local particles are ordered by global id, so a row's
+// neighbours, renumbered to local indices, stay sorted; rows are copied whole (every per-bond
+// array, lanes included), so a row sums the same terms in the same lanes in the same order as on
+// one process: bitwise.
+//
+// Per step (PdSolver::step): the owners' positions into the ghosts before the dilatation, the
+// dilatation and consistent term before the force pass, the damage after it (the next force
+// pass's critical stretch); point to point between the ranks that share ghosts (HaloPlan). Bond
+// breaking is decided in both rows from bitwise-identical inputs (eta and e of the bond, each
+// end's critical stretch), so it stays symmetric across ranks and the damage is the same.
+//
+// Contact and re-ghosting. When some particle has moved more than skin / 2 since the contact list
+// was built (an exact maximum over the ranks), the ghosts are chosen anew from the current
+// positions and the list is rebuilt. The contact force of a particle sums the pairs closer than
+// the contact distance in neighbour order, which any valid Verlet list gives alike, so the
+// rebuild's timing changes no bit.
+//
+// Repartition. At a re-ghost, when the bond and contact work per rank is imbalanced (max / mean
+// above 1.25, at most every 16 steps) or AMALGAM_TEST_REPARTITION_EVERY=N says so (every N
+// steps), the cuts are made anew and the particles migrate with their bond rows.
+//
+// Output. gather_particles / gather_owned join the own particles on rank 0 in global id order
+// (frames, samples, checkpoints; gather_bonds for the checkpoint's bond rows).
+#include <algorithm>
+#include <chrono>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <string>
@@ -16,18 +47,92 @@
 namespace amalgam {
 
 struct PdSolver::Ranks {
-  std::vector<int> owner;           // per particle
-  std::vector<std::uint8_t> owned;  // per particle: 1 on its owner
-  dist::HaloPlan halo;              // every particle this rank does not own is a ghost
+  dist::RcbCuts cuts;
+  std::vector<std::uint64_t> gid;   // per local particle, increasing
+  std::vector<std::uint8_t> owned;  // per local particle: 1 on its owner
+  std::vector<int> owner;           // per local particle
+  std::vector<std::uint32_t> own;   // the own particles' local indices, increasing
+  dist::HaloPlan halo;
+  // Plastic materials: the far ends' plastic extensions of the bonds whose far end is a ghost
+  // (plastic_r), from the rank that owns that row; bond (i, j) known by the id i N + j.
+  dist::HaloPlan bond_halo;
+  std::uint64_t n_global = 0;
+  std::uint64_t last_cut_step = 0;
 };
 
-void PdSolver::share_bytes(void* data, std::size_t bytes) const {
-  ranks_->halo.exchange(data, bytes);
+namespace {
+
+constexpr double kImbalance = 1.25;
+constexpr std::uint64_t kRepartitionGap = 16;
+
+// The point a particle is owned by: its reference position moved by less than 0.1 spacing along
+// each axis by a hash of its id (splitmix64), so that lattice planes do not lie on cuts.
+void own_point(const Vec3& x0, std::uint64_t id, Real spacing, double* p) {
+  std::uint64_t h = id + 0x9e3779b97f4a7c15ULL;
+  h = (h ^ (h >> 30)) * 0xbf58476d1ce4e5b9ULL;
+  h = (h ^ (h >> 27)) * 0x94d049bb133111ebULL;
+  h ^= h >> 31;
+  for (int a = 0; a < 3; ++a) {
+    const double f = double((h >> (20 * a)) & 0xfffff) / double(1 << 20) - 0.5;  // [-0.5, 0.5)
+    p[a] = double(x0[a]) + 0.2 * double(spacing) * f;
+  }
 }
 
-std::uint64_t PdSolver::global_sum(std::uint64_t v) const {
-  return ranks_ ? dist::Comm::world().sum(v) : v;
+}  // namespace
+
+// A bond as it migrates: the neighbour by global id, every per-bond array's value.
+struct PdSolver::BondRec {
+  std::uint64_t nb;
+  Real L, omega, shear, vol, plastic, omega_r, shear_r, plastic_r;
+  std::uint8_t intact, lane;
+};
+
+// One local particle as the rebuild sees it: its id, owner, record (particle attributes,
+// constants, q) and, for an own particle, its row.
+struct PdSolver::LocalEntry {
+  std::uint64_t gid;
+  int owner;
+  const char* rec;
+  const BondRec* row;  // null: a ghost
+  std::uint32_t len;
+  std::uint8_t dense;
+};
+
+namespace {
+template <class T>
+void put(std::vector<char>& b, const T& v) {
+  const char* p = reinterpret_cast<const char*>(&v);
+  b.insert(b.end(), p, p + sizeof(T));
 }
+template <class T>
+T get(const char*& p) {
+  T v;
+  std::memcpy(&v, p, sizeof(T));
+  p += sizeof(T);
+  return v;
+}
+
+}  // namespace
+
+// --- Particle records: every attribute's words, the constants m, a, b, kappa, bonds0, fitted,
+// and q.
+namespace {
+struct RecordLayout {
+  std::vector<std::size_t> attr_offset;  // bytes into the record, per attribute
+  std::size_t constants = 0, bytes = 0;
+};
+RecordLayout record_layout(const ParticleSet& ps) {
+  RecordLayout L;
+  std::size_t o = 0;
+  for (int a = 0; a < ps.attribute_count(); ++a) {
+    L.attr_offset.push_back(o);
+    o += std::size_t(ps.words_per_particle(a)) * 4;
+  }
+  L.constants = o;
+  L.bytes = o + 5 * sizeof(Real) + sizeof(std::int32_t) + 1;
+  return L;
+}
+}  // namespace
 
 void PdSolver::distribute(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
@@ -37,90 +142,641 @@ void PdSolver::distribute(const exec::Space& space) {
     throw InputError(
         "peridynamics on several MPI ranks: embedded tet_mesh crack surfaces are not distributed "
         "yet (issue 28); run one rank");
-  for (const PdMaterial& m : materials_)
-    if (m.psi0 < std::numeric_limits<Real>::infinity())
-      throw InputError(
-          "peridynamics on several MPI ranks: plastic materials (a yield stress) are not "
-          "distributed yet (issue 28); run one rank");
+  // Every rank holds the whole state here (each set the scene up alike): it passes Zoltan a slice
+  // of the particles, weighted by their bond rows, and then takes its own particles and their
+  // ghosts from the whole state.
   const std::size_t n = particles_.size();
   const std::uint64_t r = std::uint64_t(comm.rank()), R = std::uint64_t(comm.size());
-  // Each rank hands Zoltan a contiguous slice of the particles, weighted by their bonds (the
-  // work of their rows).
   const std::uint64_t b = n * r / R, e = n * (r + 1) / R;
   const Vec3* x0 = particles_.vec3(attr_.x0);
+  const Vec3* x = particles_.vec3(attr_.x);
   std::vector<std::uint64_t> ids;
   std::vector<double> xyz;
   std::vector<float> w;
   for (std::uint64_t i = b; i < e; ++i) {
+    double p[3];
+    own_point(x0[i], i, settings_.spacing, p);
     ids.push_back(i);
-    for (int a = 0; a < 3; ++a) xyz.push_back(double(x0[i][a]));
+    xyz.insert(xyz.end(), p, p + 3);
     w.push_back(float(1 + bonds_.offsets[i + 1] - bonds_.offsets[i]));
   }
-  const std::vector<int> mine = dist::partition_rcb(ids, xyz, w);
   auto ranks = std::make_shared<Ranks>();
-  ranks->owner = dist::from_bytes<int>(comm.allgather(dist::as_bytes(mine), nullptr));
-  if (ranks->owner.size() != n) throw std::runtime_error("distribute: owners of the wrong count");
-  ranks->owned.assign(n, 0);
-  std::vector<std::uint64_t> own_ids, ghost_ids;
-  std::vector<std::uint32_t> own_slots, ghost_slots;
+  ranks->cuts = dist::RcbCuts::partition(ids, xyz, w);
+  ranks->n_global = n;
+  std::vector<int> owner(n);
   for (std::size_t i = 0; i < n; ++i) {
-    const bool o = ranks->owner[i] == comm.rank();
-    ranks->owned[i] = o;
-    (o ? own_ids : ghost_ids).push_back(i);
-    (o ? own_slots : ghost_slots).push_back(std::uint32_t(i));
+    double p[3];
+    own_point(x0[i], i, settings_.spacing, p);
+    owner[i] = ranks->cuts.owner(p);
   }
-  const std::vector<int>& owner = ranks->owner;
-  ranks->halo = dist::HaloPlan(own_ids, own_slots, ghost_ids, ghost_slots,
-                               [&](std::uint64_t id) { return owner[id]; });
-  pd_keep_rows(space, bonds_, ranks->owned);
+  // Ghosts: the bond neighbours of the own rows, and the particles within contact reach of the
+  // own particles' bounding box.
+  std::vector<std::uint8_t> keep(n, 0);
+  double lo[3] = {1e300, 1e300, 1e300}, hi[3] = {-1e300, -1e300, -1e300};
+  for (std::size_t i = 0; i < n; ++i) {
+    if (owner[i] != comm.rank()) continue;
+    keep[i] = 1;
+    for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k)
+      keep[bonds_.neighbor[k]] = 1;
+    for (int a = 0; a < 3; ++a)
+      lo[a] = std::min(lo[a], double(x[i][a])), hi[a] = std::max(hi[a], double(x[i][a]));
+  }
+  if (settings_.contact) {
+    const double reach = 1.01 * double(contact_distance() + (settings_.contact_skin > 0
+                                                                 ? settings_.contact_skin
+                                                                 : Real(0.5) * settings_.spacing));
+    for (std::size_t i = 0; i < n; ++i) {
+      bool in = true;
+      for (int a = 0; a < 3; ++a)
+        in &= double(x[i][a]) >= lo[a] - reach && double(x[i][a]) <= hi[a] + reach;
+      keep[i] |= in;
+    }
+  }
+  // Records of the kept particles from the whole state, then the local state from them.
+  const RecordLayout L = record_layout(particles_);
+  std::vector<char> recs;
+  std::vector<BondRec> rows;
+  std::vector<LocalEntry> entries;
+  std::vector<std::size_t> rec_at, row_at;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!keep[i]) continue;
+    rec_at.push_back(recs.size());
+    for (int a = 0; a < particles_.attribute_count(); ++a) {
+      const std::size_t wa = std::size_t(particles_.words_per_particle(a));
+      const char* src = reinterpret_cast<const char*>(particles_.words(a) + i * wa);
+      recs.insert(recs.end(), src, src + wa * 4);
+    }
+    put(recs, constants_.m[i]), put(recs, constants_.a[i]), put(recs, constants_.b[i]);
+    put(recs, constants_.kappa[i]), put(recs, q_[i]), put(recs, constants_.bonds0[i]);
+    put(recs, constants_.fitted.empty() ? std::uint8_t(0) : constants_.fitted[i]);
+    row_at.push_back(rows.size());
+    const bool own = owner[i] == comm.rank();
+    if (own)
+      for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k) {
+        BondRec br{};
+        br.nb = bonds_.neighbor[k];
+        br.L = bonds_.length[k], br.omega = bonds_.omega[k], br.shear = bonds_.shear_omega[k];
+        br.vol = bonds_.volume[k], br.plastic = bonds_.plastic[k];
+        br.omega_r = bonds_.omega_r[k], br.shear_r = bonds_.shear_omega_r[k];
+        br.plastic_r = bonds_.plastic_r[k];
+        br.intact = bonds_.intact[k], br.lane = bonds_.lane[k];
+        rows.push_back(br);
+      }
+    entries.push_back({i, owner[i], nullptr, nullptr,
+                       own ? std::uint32_t(bonds_.offsets[i + 1] - bonds_.offsets[i]) : 0,
+                       own ? bonds_.dense[i] : std::uint8_t(1)});
+  }
+  for (std::size_t k = 0; k < entries.size(); ++k) {
+    entries[k].rec = recs.data() + rec_at[k];
+    entries[k].row = entries[k].owner == comm.rank() ? rows.data() + row_at[k] : nullptr;
+  }
+  (void)L;
   // Compaction changes no result (broken bonds add exact zeros in their lanes) but rebuilds the
   // reverse indices, which need the other ranks' rows: off when distributed.
   settings_.compact_fraction = 0;
+  assemble_local(space, entries, ranks);
+  build_contact_list(space);
+}
+
+// The local state from its entries (sorted here by global id): particles, constants, the rows
+// renumbered to local indices, the ghost plan, the drives.
+void PdSolver::assemble_local(const exec::Space& space, std::vector<LocalEntry>& entries,
+                              std::shared_ptr<Ranks> ranks) {
+  const dist::Comm& comm = dist::Comm::world();
+  std::sort(entries.begin(), entries.end(),
+            [](const LocalEntry& a, const LocalEntry& b) { return a.gid < b.gid; });
+  const std::size_t n = entries.size();
+  const RecordLayout L = record_layout(particles_);
+  ParticleSet ps;
+  for (int a = 0; a < particles_.attribute_count(); ++a)
+    ps.add(particles_.name(a), particles_.type(a), particles_.width(a));
+  ps.resize(n);
+  PdConstants c;
+  c.m.resize(n), c.a.resize(n), c.b.resize(n), c.kappa.resize(n), c.bonds0.resize(n);
+  c.fitted.resize(n);
+  q_.assign(n, Real(0));
+  ranks->gid.resize(n), ranks->owned.assign(n, 0), ranks->owner.resize(n), ranks->own.clear();
+  std::vector<std::uint64_t> off(n + 1, 0);
+  for (std::size_t i = 0; i < n; ++i) {
+    const LocalEntry& e = entries[i];
+    for (int a = 0; a < ps.attribute_count(); ++a) {
+      const std::size_t wa = std::size_t(ps.words_per_particle(a));
+      std::memcpy(ps.words(a) + i * wa, e.rec + L.attr_offset[std::size_t(a)], wa * 4);
+    }
+    const char* p = e.rec + L.constants;
+    c.m[i] = get<Real>(p), c.a[i] = get<Real>(p), c.b[i] = get<Real>(p);
+    c.kappa[i] = get<Real>(p), q_[i] = get<Real>(p), c.bonds0[i] = get<std::int32_t>(p);
+    c.fitted[i] = get<std::uint8_t>(p);
+    ranks->gid[i] = e.gid;
+    ranks->owner[i] = e.owner;
+    if (e.row) ranks->owned[i] = 1, ranks->own.push_back(std::uint32_t(i));
+    off[i + 1] = off[i] + (e.row ? e.len : 0);
+  }
+  PdBonds bd;
+  const std::uint64_t nb = off[n];
+  bd.offsets = off;
+  bd.neighbor.resize(nb), bd.reverse.assign(nb, kNoReverse), bd.length.resize(nb);
+  bd.omega.resize(nb), bd.shear_omega.resize(nb), bd.volume.resize(nb), bd.plastic.resize(nb);
+  bd.intact.resize(nb), bd.omega_r.resize(nb), bd.shear_omega_r.resize(nb);
+  bd.plastic_r.resize(nb), bd.lane.resize(nb), bd.dense.resize(n);
+  const std::vector<std::uint64_t>& gid = ranks->gid;
+  std::vector<int> missing(n, 0);
+  exec::parallel_for(space, "pd.dist_rows", exec::Index(n), [&](exec::Index ii) {
+    const std::size_t i = std::size_t(ii);
+    const LocalEntry& e = entries[i];
+    bd.dense[i] = e.row ? e.dense : 1;
+    if (!e.row) return;
+    for (std::uint32_t m = 0; m < e.len; ++m) {
+      const BondRec& br = e.row[m];
+      const std::uint64_t k = off[i] + m;
+      const auto it = std::lower_bound(gid.begin(), gid.end(), br.nb);
+      if (it == gid.end() || *it != br.nb) {
+        missing[i] = 1;
+        continue;
+      }
+      bd.neighbor[k] = std::uint32_t(it - gid.begin());
+      bd.length[k] = br.L, bd.omega[k] = br.omega, bd.shear_omega[k] = br.shear;
+      bd.volume[k] = br.vol, bd.plastic[k] = br.plastic, bd.omega_r[k] = br.omega_r;
+      bd.shear_omega_r[k] = br.shear_r, bd.plastic_r[k] = br.plastic_r;
+      bd.intact[k] = br.intact, bd.lane[k] = br.lane;
+    }
+  });
+  for (std::size_t i = 0; i < n; ++i)
+    if (missing[i])
+      throw std::logic_error("distributed peridynamics: rank " + std::to_string(comm.rank()) +
+                             " lacks a bond neighbour of particle " + std::to_string(gid[i]));
+  // Reverse bonds within this rank's rows (pd_dilatation writes their plastic_r); the others'
+  // come through the bond halo.
+  const bool plastic = params().plastic;
+  std::vector<std::uint64_t> bond_own_ids, bond_ghost_ids;
+  std::vector<std::uint32_t> bond_own_slots, bond_ghost_slots;
+  std::vector<int> bond_ghost_owner;
+  const std::uint64_t N = ranks->n_global;
+  for (std::size_t i = 0; i < n && plastic; ++i)
+    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+      const std::uint32_t j = bd.neighbor[k];
+      bond_own_ids.push_back(gid[i] * N + gid[j]), bond_own_slots.push_back(std::uint32_t(k));
+      if (entries[j].row) {
+        const auto b = bd.neighbor.begin();
+        const auto it = std::lower_bound(b + std::ptrdiff_t(off[j]), b + std::ptrdiff_t(off[j + 1]),
+                                         std::uint32_t(i));
+        if (it != b + std::ptrdiff_t(off[j + 1]) && *it == i) bd.reverse[k] = std::uint64_t(it - b);
+      } else {
+        bond_ghost_ids.push_back(gid[j] * N + gid[i]);
+        bond_ghost_slots.push_back(std::uint32_t(nb + k));
+        bond_ghost_owner.push_back(entries[j].owner);
+      }
+    }
+  if (nb * 2 > std::uint64_t(UINT32_MAX))
+    throw std::runtime_error("distributed peridynamics: over 2^31 bonds on one rank");
+  std::size_t bat = 0;
+  ranks->bond_halo = dist::HaloPlan(bond_own_ids, bond_own_slots, bond_ghost_ids, bond_ghost_slots,
+                                    [&](std::uint64_t) { return bond_ghost_owner[bat++]; });
+  // The ghost plan: own ids and slots; ghosts with their owners.
+  std::vector<std::uint64_t> own_ids, ghost_ids;
+  std::vector<std::uint32_t> own_slots, ghost_slots;
+  std::vector<int> ghost_owner;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (ranks->owned[i]) {
+      own_ids.push_back(gid[i]), own_slots.push_back(std::uint32_t(i));
+    } else {
+      ghost_ids.push_back(gid[i]), ghost_slots.push_back(std::uint32_t(i));
+      ghost_owner.push_back(ranks->owner[i]);
+    }
+  }
+  std::size_t at = 0;  // the owner_of calls come in ghost order
+  ranks->halo = dist::HaloPlan(own_ids, own_slots, ghost_ids, ghost_slots,
+                               [&](std::uint64_t) { return ghost_owner[at++]; });
+  particles_ = std::move(ps);
+  constants_ = std::move(c);
+  bonds_ = std::move(bd);
+  force_.assign(n, Vec3::Zero());
   ranks_ = std::move(ranks);
+  global_stored_ = dist::Comm::world().sum(std::uint64_t(bonds_.size()));
+  dist_stats_.owned = own_ids.size();
+  dist_stats_.ghosts = ghost_ids.size();
+  select_drives();
+  ++version_;
+}
+
+void PdSolver::select_drives() {
+  const Vec3* x0 = particles_.vec3(attr_.x0);
+  for (Drive& d : drives_) {
+    d.particles.clear();
+    for (std::size_t i = 0; i < particles_.size(); ++i)
+      if ((x0[i].array() >= d.lo.array()).all() && (x0[i].array() <= d.hi.array()).all())
+        d.particles.push_back(std::uint32_t(i));
+  }
+}
+
+void PdSolver::build_contact_list(const exec::Space& space) {
+  if (!settings_.contact) return;
+  const Real skin =
+      settings_.contact_skin > 0 ? settings_.contact_skin : Real(0.5) * settings_.spacing;
+  pd_build_contact_list(space, particles_.vec3(attr_.x), particles_.size(),
+                        contact_distance() + skin, contact_list_);
+  ++contact_builds_;
+}
+
+void PdSolver::exchange_positions(const exec::Space& space) {
+  const dist::Comm& comm = dist::Comm::world();
+  const Ranks& rk = *ranks_;
+  bool rebuild = false;
+  if (settings_.contact) {
+    // Every rank's largest displacement since the list was built, as an exact maximum.
+    Real mine = 0;
+    const bool fresh = contact_list_.x_built.size() != particles_.size();
+    if (!fresh) {
+      const Vec3* x = particles_.vec3(attr_.x);
+      for (std::uint32_t i : rk.own)
+        mine = std::max(mine, (x[i] - contact_list_.x_built[i]).norm());
+    }
+    const Real skin =
+        settings_.contact_skin > 0 ? settings_.contact_skin : Real(0.5) * settings_.spacing;
+    rebuild = comm.max(fresh ? 1e300 : double(mine)) > double(skin / 2);
+  }
+  bool repartition = false;
+  static const long long forced = [] {
+    const char* e = std::getenv("AMALGAM_TEST_REPARTITION_EVERY");
+    return e ? std::atoll(e) : 0LL;
+  }();
+  if (forced > 0) {
+    repartition = steps_ % std::uint64_t(forced) == std::uint64_t(forced) - 1;
+  } else if (rebuild && steps_ >= rk.last_cut_step + kRepartitionGap) {
+    // Work per rank: the own rows' bonds and contact candidates.
+    std::uint64_t work = bonds_.size() + rk.own.size();
+    if (settings_.contact && contact_list_.offsets.size() == particles_.size() + 1)
+      for (std::uint32_t i : rk.own)
+        work += contact_list_.offsets[i + 1] - contact_list_.offsets[i];
+    const double mx = double(comm.max(std::int64_t(work)));
+    const double mean = double(comm.sum(work)) / double(comm.size());
+    repartition = mean > 0 && mx / mean > kImbalance && mx / mean > 1.1 * dist_stats_.imbalance;
+  }
+  if (rebuild || repartition) {
+    relocal(space, repartition);
+    build_contact_list(space);
+    return;
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  share(particles_.vec3(attr_.x));
+  share(particles_.vec3(attr_.x_lo));
+  dist_stats_.comm_seconds +=
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void PdSolver::share_plastic() {
+  if (!ranks_ || !params().plastic) return;
+  const auto t0 = std::chrono::steady_clock::now();
+  const std::size_t nb = bonds_.size();
+  // Slots 0..nb-1: this rank's bonds' plastic extensions (sent); nb + k: bond k's far end's.
+  std::vector<Real> both(2 * nb);
+  std::copy(bonds_.plastic.begin(), bonds_.plastic.end(), both.begin());
+  ranks_->bond_halo.exchange(both.data());
+  for (std::uint64_t k = 0; k < nb; ++k)
+    if (bonds_.reverse[k] == kNoReverse) bonds_.plastic_r[k] = both[nb + k];
+  dist_stats_.step_bytes += ranks_->bond_halo.sent() * sizeof(Real);
+  dist_stats_.step_messages += ranks_->bond_halo.messages();
+  dist_stats_.comm_seconds +=
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void PdSolver::share_bytes(void* data, std::size_t bytes) const {
+  const auto t0 = std::chrono::steady_clock::now();
+  ranks_->halo.exchange(data, bytes);
+  DistStats& st = dist_stats_;  // mutable: counters only
+  st.step_bytes += ranks_->halo.sent() * bytes;
+  st.step_messages += ranks_->halo.messages();
+  st.comm_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+void PdSolver::relocal(const exec::Space& space, bool repartition) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const dist::Comm& comm = dist::Comm::world();
+  const Ranks& old = *ranks_;
+  const RecordLayout L = record_layout(particles_);
+  const Vec3* x0 = particles_.vec3(attr_.x0);
+  const Vec3* x = particles_.vec3(attr_.x);
+  const std::size_t R = std::size_t(comm.size());
+  auto ranks = std::make_shared<Ranks>();
+  ranks->n_global = old.n_global;
+  ranks->last_cut_step = old.last_cut_step;
+  // 1. The cuts: kept, or made anew from the own particles (weighted by their rows).
+  if (repartition) {
+    std::vector<std::uint64_t> ids;
+    std::vector<double> xyz;
+    std::vector<float> w;
+    for (std::uint32_t i : old.own) {
+      double p[3];
+      own_point(x0[i], old.gid[i], settings_.spacing, p);
+      ids.push_back(old.gid[i]);
+      xyz.insert(xyz.end(), p, p + 3);
+      w.push_back(float(1 + bonds_.offsets[i + 1] - bonds_.offsets[i]));
+    }
+    ranks->cuts = dist::RcbCuts::partition(ids, xyz, w);
+    ranks->last_cut_step = steps_;
+    ++dist_stats_.repartitions;
+  } else {
+    ranks->cuts = old.cuts;
+  }
+  // 2. Own particles to their (new) owners with their rows: gid, record, row length, dense,
+  // bonds (neighbours by global id).
+  auto pack_record = [&](std::vector<char>& b, std::uint32_t i) {
+    for (int a = 0; a < particles_.attribute_count(); ++a) {
+      const std::size_t wa = std::size_t(particles_.words_per_particle(a));
+      const char* src = reinterpret_cast<const char*>(particles_.words(a) + i * wa);
+      b.insert(b.end(), src, src + wa * 4);
+    }
+    put(b, constants_.m[i]), put(b, constants_.a[i]), put(b, constants_.b[i]);
+    put(b, constants_.kappa[i]), put(b, q_[i]), put(b, constants_.bonds0[i]);
+    put(b, constants_.fitted[i]);
+  };
+  std::vector<std::vector<char>> mig(R);
+  for (std::uint32_t i : old.own) {
+    int to = comm.rank();
+    if (repartition) {
+      double p[3];
+      own_point(x0[i], old.gid[i], settings_.spacing, p);
+      to = ranks->cuts.owner(p);
+    }
+    std::vector<char>& b = mig[std::size_t(to)];
+    put(b, old.gid[i]);
+    pack_record(b, i);
+    put(b, std::uint32_t(bonds_.offsets[i + 1] - bonds_.offsets[i]));
+    put(b, bonds_.dense[i]);
+    for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k) {
+      BondRec br{};
+      br.nb = old.gid[bonds_.neighbor[k]];
+      br.L = bonds_.length[k], br.omega = bonds_.omega[k], br.shear = bonds_.shear_omega[k];
+      br.vol = bonds_.volume[k], br.plastic = bonds_.plastic[k];
+      br.omega_r = bonds_.omega_r[k], br.shear_r = bonds_.shear_omega_r[k];
+      br.plastic_r = bonds_.plastic_r[k];
+      br.intact = bonds_.intact[k], br.lane = bonds_.lane[k];
+      put(b, br);
+    }
+  }
+  std::vector<std::vector<char>> got;
+  if (repartition) {
+    got = comm.alltoall(mig);
+  } else {
+    got.assign(R, {});
+    got[std::size_t(comm.rank())] = std::move(mig[std::size_t(comm.rank())]);
+  }
+  // Parse: entries of the own particles (records and rows stay in `got`; rows copied aligned).
+  std::vector<LocalEntry> entries;
+  std::vector<std::vector<BondRec>> rows;
+  for (std::size_t r = 0; r < R; ++r) {
+    const char* p = got[r].data();
+    const char* end = p + got[r].size();
+    while (p < end) {
+      LocalEntry e{};
+      e.gid = get<std::uint64_t>(p);
+      e.owner = comm.rank();
+      e.rec = p;
+      p += L.bytes;
+      e.len = get<std::uint32_t>(p);
+      e.dense = get<std::uint8_t>(p);
+      rows.emplace_back(e.len);
+      if (e.len) std::memcpy(rows.back().data(), p, e.len * sizeof(BondRec));
+      p += e.len * sizeof(BondRec);
+      entries.push_back(e);
+    }
+  }
+  for (std::size_t k = 0; k < entries.size(); ++k) entries[k].row = rows[k].data();
+  // 3. Ghosts pushed by their owners: to the ranks whose cut boxes meet the particle's horizon
+  // box (reference configuration), and to those whose own particles' bounding box, widened by
+  // the contact reach, holds it (current configuration).
+  auto rec_vec3 = [&](const char* rec, ParticleSet::Id a) {
+    Vec3 v;
+    std::memcpy(v.data(), rec + L.attr_offset[std::size_t(a)], sizeof(Vec3));
+    return v;
+  };
+  double box[6] = {1e300, 1e300, 1e300, -1e300, -1e300, -1e300};
+  for (const LocalEntry& e : entries) {
+    const Vec3 xe = rec_vec3(e.rec, attr_.x);
+    for (int a = 0; a < 3; ++a)
+      box[a] = std::min(box[a], double(xe[a])), box[3 + a] = std::max(box[3 + a], double(xe[a]));
+  }
+  const std::vector<double> boxes = dist::from_bytes<double>(
+      comm.allgather(dist::as_bytes(std::vector<double>(box, box + 6)), nullptr));
+  const double reach =
+      settings_.contact ? 1.01 * double(contact_distance() + (settings_.contact_skin > 0
+                                                                  ? settings_.contact_skin
+                                                                  : Real(0.5) * settings_.spacing))
+                        : -1;
+  const double hb = 1.001 * double(settings_.horizon) + 0.2 * double(settings_.spacing);
+  auto in_box = [&](const Vec3& p, std::size_t r) {
+    bool in = reach >= 0;
+    for (int a = 0; a < 3; ++a)
+      in &=
+          double(p[a]) >= boxes[6 * r + a] - reach && double(p[a]) <= boxes[6 * r + 3 + a] + reach;
+    return in;
+  };
+  std::vector<std::vector<char>> push(R);
+  std::vector<int> to;
+  for (const LocalEntry& e : entries) {
+    double pt[3], lo[3], hi[3];
+    own_point(rec_vec3(e.rec, attr_.x0), e.gid, settings_.spacing, pt);
+    for (int a = 0; a < 3; ++a) lo[a] = pt[a] - hb, hi[a] = pt[a] + hb;
+    to = ranks->cuts.ranks_in_box(lo, hi);
+    const Vec3 xe = rec_vec3(e.rec, attr_.x);
+    for (std::size_t r = 0; r < R; ++r)
+      if (in_box(xe, r)) to.push_back(int(r));
+    std::sort(to.begin(), to.end());
+    to.erase(std::unique(to.begin(), to.end()), to.end());
+    for (int r : to) {
+      if (r == comm.rank()) continue;
+      put(push[std::size_t(r)], e.gid);
+      push[std::size_t(r)].insert(push[std::size_t(r)].end(), e.rec, e.rec + L.bytes);
+    }
+  }
+  const std::vector<std::vector<char>> ghosts = comm.alltoall(push);
+  // Keep the ghosts a row names or within contact reach of this rank's own particles.
+  std::vector<std::uint64_t> named;
+  for (const auto& row : rows)
+    for (const BondRec& br : row) named.push_back(br.nb);
+  std::sort(named.begin(), named.end());
+  named.erase(std::unique(named.begin(), named.end()), named.end());
+  for (std::size_t r = 0; r < R; ++r) {
+    const char* p = ghosts[r].data();
+    const char* end = p + ghosts[r].size();
+    while (p < end) {
+      LocalEntry e{};
+      e.gid = get<std::uint64_t>(p);
+      e.owner = int(r);
+      e.rec = p;
+      e.dense = 1;
+      p += L.bytes;
+      if (std::binary_search(named.begin(), named.end(), e.gid) ||
+          in_box(rec_vec3(e.rec, attr_.x), std::size_t(comm.rank())))
+        entries.push_back(e);
+    }
+  }
+  assemble_local(space, entries, ranks);
+  ++dist_stats_.reghosts;
+  // Bond work balance after this cut, for the next decision.
+  if (repartition || dist_stats_.reghosts == 1) {
+    const std::uint64_t work = bonds_.size() + ranks_->own.size();
+    const double mean = double(comm.sum(work)) / double(comm.size());
+    dist_stats_.imbalance = mean > 0 ? double(comm.max(std::int64_t(work))) / mean : 1.0;
+  }
+  dist_stats_.comm_seconds +=
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+}
+
+PdSolver::CrossRank PdSolver::cross_rank() const {
+  CrossRank c;
+  if (!ranks_) return c;
+  const Ranks& rk = *ranks_;
+  const Vec3* x = particles_.vec3(attr_.x);
+  const Real d = contact_distance();
+  const bool list = settings_.contact && contact_list_.offsets.size() == particles_.size() + 1;
+  for (std::uint32_t i : rk.own) {
+    const std::uint64_t k0 = bonds_.offsets[i], k1 = bonds_.offsets[i + 1];
+    for (std::uint64_t k = k0; k < k1; ++k)
+      c.broken += !bonds_.intact[k] && !rk.owned[bonds_.neighbor[k]];
+    if (!list) continue;
+    for (std::uint64_t m = contact_list_.offsets[i]; m < contact_list_.offsets[i + 1]; ++m) {
+      const std::uint32_t j = contact_list_.neighbor[m];
+      if (rk.owned[j]) continue;
+      const Real r2 = (x[j] - x[i]).squaredNorm();
+      Real dij = d;  // pd_contact_forces's rule
+      const std::uint32_t* row = bonds_.neighbor.data();
+      const std::uint32_t* b = std::lower_bound(row + k0, row + k1, j);
+      if (b != row + k1 && *b == j) {
+        const std::uint64_t k = std::uint64_t(b - row);
+        if (bonds_.intact[k]) continue;
+        dij = pd_broken_pair_distance(bonds_.length[k], d);
+      }
+      c.contacts += r2 < dij * dij && r2 > 0;
+    }
+  }
+  return c;
+}
+
+std::uint64_t PdSolver::global_sum(std::uint64_t v) const {
+  return ranks_ ? dist::Comm::world().sum(v) : v;
+}
+
+std::vector<std::uint32_t> PdSolver::owned_local() const {
+  if (ranks_) return ranks_->own;
+  std::vector<std::uint32_t> all(particles_.size());
+  for (std::size_t i = 0; i < all.size(); ++i) all[i] = std::uint32_t(i);
+  return all;
+}
+
+std::vector<std::uint64_t> PdSolver::global_ids() const {
+  if (ranks_) return ranks_->gid;
+  std::vector<std::uint64_t> all(particles_.size());
+  for (std::size_t i = 0; i < all.size(); ++i) all[i] = i;
+  return all;
+}
+
+std::size_t PdSolver::global_particle_count() const {
+  return ranks_ ? std::size_t(ranks_->n_global) : particles_.size();
+}
+
+std::vector<char> PdSolver::gather_owned(const void* data, std::size_t bytes) const {
+  const char* base = static_cast<const char*>(data);
+  if (!ranks_) return std::vector<char>(base, base + particles_.size() * bytes);
+  const dist::Comm& comm = dist::Comm::world();
+  std::vector<char> mine;
+  for (std::uint32_t i : ranks_->own) {
+    put(mine, ranks_->gid[i]);
+    mine.insert(mine.end(), base + std::size_t(i) * bytes, base + (std::size_t(i) + 1) * bytes);
+  }
+  const std::vector<char> all = comm.gather(mine, nullptr);
+  if (!comm.root()) return {};
+  const std::size_t stride = sizeof(std::uint64_t) + bytes, n = all.size() / stride;
+  if (n != ranks_->n_global) throw std::logic_error("gather_owned: particles lost or repeated");
+  std::vector<char> out(n * bytes);
+  std::vector<std::uint8_t> seen(n, 0);
+  for (std::size_t k = 0; k < n; ++k) {
+    std::uint64_t g;
+    std::memcpy(&g, all.data() + k * stride, sizeof g);
+    if (g >= n || seen[g]) throw std::logic_error("gather_owned: particles lost or repeated");
+    seen[g] = 1;
+    std::memcpy(out.data() + g * bytes, all.data() + k * stride + sizeof g, bytes);
+  }
+  return out;
+}
+
+void PdSolver::gather_particles(ParticleSet& out) const {
+  if (!ranks_) {
+    out = particles_;
+    return;
+  }
+  const RecordLayout L = record_layout(particles_);
+  const std::size_t words = L.constants;  // the attributes' bytes of a record
+  std::vector<char> rec(particles_.size() * words);
+  for (std::size_t i = 0; i < particles_.size(); ++i)
+    for (int a = 0; a < particles_.attribute_count(); ++a) {
+      const std::size_t wa = std::size_t(particles_.words_per_particle(a));
+      std::memcpy(rec.data() + i * words + L.attr_offset[std::size_t(a)],
+                  particles_.words(a) + i * wa, wa * 4);
+    }
+  const std::vector<char> all = gather_owned(rec.data(), words);
+  out = ParticleSet();
+  for (int a = 0; a < particles_.attribute_count(); ++a)
+    out.add(particles_.name(a), particles_.type(a), particles_.width(a));
+  if (!dist::Comm::world().root()) return;
+  const std::size_t n = all.size() / std::max<std::size_t>(1, words);
+  out.resize(n);
+  for (std::size_t i = 0; i < n; ++i)
+    for (int a = 0; a < out.attribute_count(); ++a) {
+      const std::size_t wa = std::size_t(out.words_per_particle(a));
+      std::memcpy(out.words(a) + i * wa, all.data() + i * words + L.attr_offset[std::size_t(a)],
+                  wa * 4);
+    }
 }
 
 void PdSolver::gather_bonds(std::vector<std::uint64_t>& offsets,
                             std::vector<std::uint32_t>& neighbor, std::vector<Real>& plastic,
                             std::vector<std::uint8_t>& intact) const {
+  if (!ranks_) {
+    offsets = bonds_.offsets, neighbor = bonds_.neighbor, plastic = bonds_.plastic;
+    intact = bonds_.intact;
+    return;
+  }
   const dist::Comm& comm = dist::Comm::world();
-  const std::size_t n = particles_.size();
-  // This rank's rows in order: (row, length) pairs, then their bonds.
+  // This rank's rows: (global id, length) pairs, then their bonds (neighbour ids, state).
   std::vector<std::uint64_t> rows;
-  for (std::size_t i = 0; i < n; ++i)
-    if (ranks_->owned[i]) rows.insert(rows.end(), {i, bonds_.offsets[i + 1] - bonds_.offsets[i]});
-  std::vector<std::size_t> row_bytes, nb_bytes, pl_bytes, in_bytes;
+  std::vector<std::uint32_t> nb;
+  for (std::uint32_t i : ranks_->own) {
+    rows.insert(rows.end(), {ranks_->gid[i], bonds_.offsets[i + 1] - bonds_.offsets[i]});
+    for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k)
+      nb.push_back(std::uint32_t(ranks_->gid[bonds_.neighbor[k]]));
+  }
+  std::vector<Real> pl;
+  std::vector<std::uint8_t> in;
+  for (std::uint32_t i : ranks_->own)
+    for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k)
+      pl.push_back(bonds_.plastic[k]), in.push_back(bonds_.intact[k]);
+  std::vector<std::size_t> row_bytes;
   const std::vector<char> all_rows = comm.gather(dist::as_bytes(rows), &row_bytes);
-  const std::vector<char> all_nb = comm.gather(dist::as_bytes(bonds_.neighbor), &nb_bytes);
-  const std::vector<char> all_pl = comm.gather(dist::as_bytes(bonds_.plastic), &pl_bytes);
-  const std::vector<char> all_in = comm.gather(dist::as_bytes(bonds_.intact), &in_bytes);
+  const std::vector<char> all_nb = comm.gather(dist::as_bytes(nb), nullptr);
+  const std::vector<char> all_pl = comm.gather(dist::as_bytes(pl), nullptr);
+  const std::vector<char> all_in = comm.gather(dist::as_bytes(in), nullptr);
   offsets.clear(), neighbor.clear(), plastic.clear(), intact.clear();
   if (!comm.root()) return;
+  const std::size_t n = ranks_->n_global;
   const std::vector<std::uint64_t> rl = dist::from_bytes<std::uint64_t>(all_rows);
-  std::vector<std::uint64_t> len(n, 0);
-  for (std::size_t k = 0; k + 1 < rl.size(); k += 2) len[rl[k]] = rl[k + 1];
+  std::vector<std::uint64_t> len(n, 0), from(n, 0);
+  std::uint64_t at = 0;  // each row's first bond in the gathered arrays
+  for (std::size_t k = 0; k + 1 < rl.size(); k += 2)
+    len[rl[k]] = rl[k + 1], from[rl[k]] = at, at += rl[k + 1];
   offsets.assign(n + 1, 0);
   for (std::size_t i = 0; i < n; ++i) offsets[i + 1] = offsets[i] + len[i];
   neighbor.resize(offsets[n]);
   plastic.resize(offsets[n]);
   intact.resize(offsets[n]);
-  // Rank by rank: its rows in increasing order, their bonds in the same order.
-  std::size_t row_at = 0, nb_at = 0, pl_at = 0, in_at = 0;
-  for (int q = 0; q < comm.size(); ++q) {
-    const std::size_t nrows = row_bytes[std::size_t(q)] / (2 * sizeof(std::uint64_t));
-    for (std::size_t k = 0; k < nrows; ++k, row_at += 2) {
-      const std::uint64_t i = rl[row_at], m = rl[row_at + 1];
-      if (m == 0) continue;
-      std::memcpy(neighbor.data() + offsets[i], all_nb.data() + nb_at, m * sizeof(std::uint32_t));
-      std::memcpy(plastic.data() + offsets[i], all_pl.data() + pl_at, m * sizeof(Real));
-      std::memcpy(intact.data() + offsets[i], all_in.data() + in_at, m);
-      nb_at += m * sizeof(std::uint32_t), pl_at += m * sizeof(Real), in_at += m;
-    }
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!len[i]) continue;
+    std::memcpy(neighbor.data() + offsets[i], all_nb.data() + from[i] * sizeof(std::uint32_t),
+                len[i] * sizeof(std::uint32_t));
+    std::memcpy(plastic.data() + offsets[i], all_pl.data() + from[i] * sizeof(Real),
+                len[i] * sizeof(Real));
+    std::memcpy(intact.data() + offsets[i], all_in.data() + from[i], len[i]);
   }
-}
-
-// Per-rank output (issue 28, helper distio): the owned particles are the rank's part.
-const std::vector<std::uint8_t>* PdSolver::owned_mask() const {
-  return ranks_ ? &ranks_->owned : nullptr;
 }
 
 }  // namespace amalgam

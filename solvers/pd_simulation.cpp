@@ -1,10 +1,12 @@
 #include "solvers/pd_simulation.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <sstream>
 #include <stdexcept>
 
+#include "core/dist/comm.hpp"
 #include "core/errors.hpp"
 
 namespace amalgam {
@@ -32,18 +34,32 @@ std::vector<Column> state_columns(const PdDiagnostics& d) {
 }
 }  // namespace
 
+const ParticleSet& PdSimulation::all_particles() const {
+  if (!s_.distributed()) return s_.particles();
+  if (gathered_version_ != s_.state_version()) {
+    s_.gather_particles(gathered_);
+    gathered_version_ = s_.state_version();
+  }
+  return gathered_;
+}
+
 std::vector<Column> PdSimulation::sample(const exec::Space& space) const {
-  return state_columns(s_.diagnostics(space));
+  return state_columns(s_.diagnostics_of(space, all_particles()));
 }
 
 FrameReport PdSimulation::end_frame(const exec::Space& space, long long) {
-  const PdDiagnostics d = s_.diagnostics(space);
+  const PdDiagnostics d = s_.diagnostics_of(space, all_particles());
+  if (s_.distributed()) {
+    const PdSolver::CrossRank c = s_.cross_rank();
+    cross_broken_ = std::max(cross_broken_, s_.global_sum(c.broken));
+    cross_contacts_ = std::max(cross_contacts_, s_.global_sum(c.contacts));
+  }
   FrameReport r;
   r.kinetic = d.kinetic;
   r.max_speed = d.max_speed;
   r.columns = state_columns(d);
   r.columns.insert(r.columns.end(), {{"stored_bonds", double(d.stored), true},
-                                     {"particles", double(s_.particles().size()), true}});
+                                     {"particles", double(s_.global_particle_count()), true}});
   char line[64];
   std::snprintf(line, sizeof line, "broken %.2f%%",
                 100.0 * double(d.bonds - d.intact) / double(std::max<std::uint64_t>(1, d.bonds)));
@@ -64,8 +80,18 @@ int PdSimulation::profile_column(const std::string& l) const {
 
 std::string PdSimulation::run_summary(double) const {
   std::ostringstream os;
-  os << "amalgam: bonds: " << s_.bonds().size() << " directed bonds stored at the end, "
-     << s_.diagnostics(exec::Space()).compactions << " compactions\n";
+  os << "amalgam: bonds: " << s_.global_sum(s_.bonds().size())
+     << " directed bonds stored at the end, " << s_.compactions() << " compactions\n";
+  if (s_.distributed()) {  // this rank's (rank 0's) figures
+    const PdSolver::DistStats& st = s_.dist_stats();
+    os << "amalgam: distributed: rank 0 holds " << st.owned << " own particles and " << st.ghosts
+       << " ghosts; " << st.reghosts << " re-ghosts, " << st.repartitions
+       << " repartitions, imbalance " << st.imbalance << "; last step's halo " << st.step_bytes
+       << " bytes in " << st.step_messages << " messages; " << st.comm_seconds
+       << " s in exchanges; at most " << cross_broken_
+       << " directed bonds broken between ranks and " << cross_contacts_
+       << " contacts with another rank's particles at a frame's end\n";
+  }
   return os.str();
 }
 
@@ -80,8 +106,21 @@ float von_mises(const Mat3& sigma) {
 
 PointFields PdSimulation::point_fields(const std::vector<std::string>& names,
                                        const exec::Space& space) {
+  return fields_of(all_particles(), names, space, s_.distributed());  // collective when distributed
+}
+
+// Per-rank output: this rank's local particles (own and ghosts; my_part names the own rows).
+PointFields PdSimulation::my_point_fields(const std::vector<std::string>& names,
+                                          const exec::Space& space) {
+  if (!s_.distributed()) return point_fields(names, space);
+  return fields_of(s_.particles(), names, space, false);
+}
+
+// The point fields of `ps`: the solver's local particles, or (gathered) every rank's own ones on
+// rank 0, whose per-particle stresses are then gathered too.
+PointFields PdSimulation::fields_of(const ParticleSet& ps, const std::vector<std::string>& names,
+                                    const exec::Space& space, bool gathered) {
   using T = PointAttribute::Type;
-  const ParticleSet& ps = s_.particles();
   const PdAttributes& a = s_.attributes();
   PointFields p;
   p.n = ps.size();
@@ -103,6 +142,8 @@ PointFields PdSimulation::point_fields(const std::vector<std::string>& names,
       out.i.assign(p.material, p.material + p.n);
     } else if (name == "vonmises") {
       s_.compute_stress(space, stress_);  // sigma_i = 1/2 sum_j f_ij (x) xi_ij V_j
+      if (gathered)
+        stress_ = dist::from_bytes<Mat3>(s_.gather_owned(stress_.data(), sizeof(Mat3)));
       out.f.resize(p.n);
       for (std::size_t i = 0; i < p.n; ++i) out.f[i] = von_mises(stress_[i]);
     } else {
@@ -162,7 +203,9 @@ std::function<char*(std::uint64_t)> resize_into(std::vector<T>& v, const char* n
 // The bond layout (rows may have been compacted) and the per-bond state, then the embedded
 // meshes; the per-bond constants are rebuilt from the reference positions on restore.
 void PdSimulation::prepare_checkpoint() {
-  if (s_.distributed()) s_.gather_bonds(offsets_, neighbor_, plastic_, intact_);
+  if (!s_.distributed()) return;
+  (void)all_particles();
+  s_.gather_bonds(offsets_, neighbor_, plastic_, intact_);
 }
 
 std::vector<StateSection> PdSimulation::checkpoint_sections() {
@@ -195,16 +238,15 @@ std::vector<StateSection> PdSimulation::restore_sections() {
   return out;
 }
 
+// Distributed: the own particles among the local ones, keyed by global id (the single process's
+// order: one process holds the particles by global id).
 Simulation::RankPart PdSimulation::my_part() const {
-  const std::vector<std::uint8_t>* owned = s_.owned_mask();
-  if (!owned) return Simulation::my_part();
+  if (!s_.distributed()) return Simulation::my_part();
   RankPart r;
   r.all = false;
-  for (std::size_t i = 0; i < owned->size(); ++i)
-    if ((*owned)[i]) {
-      r.rows.push_back(std::uint32_t(i));
-      r.order.insert(r.order.end(), {std::uint64_t(i), 0});
-    }
+  r.rows = s_.owned_local();
+  const std::vector<std::uint64_t> gid = s_.global_ids();
+  for (std::uint32_t i : r.rows) r.order.insert(r.order.end(), {gid[i], 0});
   return r;
 }
 

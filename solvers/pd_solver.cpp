@@ -7,6 +7,7 @@
 #include <stdexcept>
 #include <utility>
 
+#include "core/dist/comm.hpp"
 #include "core/geometry/level_set_collider.hpp"
 #include "core/errors.hpp"
 
@@ -97,7 +98,7 @@ void PdSolver::prescribe_velocity(const Vec3& lo, const Vec3& hi,
                                   std::shared_ptr<const VectorField> velocity) {
   const Vec3* x0 = particles_.vec3(attr_.x0);
   std::int32_t* fixed = particles_.int32(attr_.fixed);
-  Drive d{std::move(velocity), {}};
+  Drive d{std::move(velocity), {}, lo, hi};
   for (std::size_t i = 0; i < particles_.size(); ++i)
     if ((x0[i].array() >= lo.array()).all() && (x0[i].array() <= hi.array()).all()) {
       fixed[i] = 1;
@@ -298,12 +299,18 @@ Real PdSolver::stable_dt(const exec::Space& space) const {
   const Vec3* v = particles_.vec3(attr_.v);
   const Vec3* x = particles_.vec3(attr_.x);
   const Real limit = settings_.max_speed;
+  // Distributed: this rank's own particles (ghosts are some other rank's), the maximum reduced
+  // exactly over the ranks.
+  const std::vector<std::uint32_t> own = ranks_ ? owned_local() : std::vector<std::uint32_t>();
+  const std::uint32_t* ol = own.data();
+  const bool all = !ranks_;
   const Check c = exec::parallel_reduce(
-      space, "pd.cfl_check", exec::Index(particles_.size()), Check{},
-      [=](exec::Index i, Check& acc) {
+      space, "pd.cfl_check", exec::Index(all ? particles_.size() : own.size()), Check{},
+      [=](exec::Index k, Check& acc) {
+        const exec::Index i = all ? k : exec::Index(ol[k]);
         const Real s = v[i].norm();
         const int what = !std::isfinite(s) ? 1 : !x[i].allFinite() ? 2 : s > limit ? 3 : 0;
-        if (what && acc.bad < 0) acc.bad = i, acc.what = what;
+        if (what && (acc.bad < 0 || i < acc.bad)) acc.bad = i, acc.what = what;
         acc.vmax = std::max(acc.vmax, s);
       },
       [](Check a, const Check& b) {
@@ -325,8 +332,9 @@ Real PdSolver::stable_dt(const exec::Space& space) const {
     os << "; the simulation blew up (reduce cfl or max_dt, or check the material stiffness)";
     throw SimulationError(os.str());
   }
+  const Real vmax = ranks_ ? Real(dist::Comm::world().max(double(c.vmax))) : c.vmax;  // exact
   Real dt = std::min(settings_.max_dt, settings_.cfl * crit_dt_);
-  if (c.vmax > 0) dt = std::min(dt, settings_.cfl * settings_.spacing / c.vmax);
+  if (vmax > 0) dt = std::min(dt, settings_.cfl * settings_.spacing / vmax);
   return dt;
 }
 
@@ -390,8 +398,9 @@ void PdSolver::contact_forces(const exec::Space& space) {
   const Real skin =
       settings_.contact_skin > 0 ? settings_.contact_skin : Real(0.5) * settings_.spacing;
   const Vec3* x = particles_.vec3(attr_.x);
-  if (contact_list_.x_built.size() != particles_.size() ||
-      pd_max_displacement(space, x, contact_list_) > skin / 2) {
+  // Distributed: exchange_positions decided (by a maximum over every rank) and rebuilt.
+  if (!ranks_ && (contact_list_.x_built.size() != particles_.size() ||
+                  pd_max_displacement(space, x, contact_list_) > skin / 2)) {
     pd_build_contact_list(space, x, particles_.size(), d + skin, contact_list_);
     ++contact_builds_;
   }
@@ -452,6 +461,12 @@ void PdSolver::save(Snapshot& s) {
   s.intact_count = intact_, s.meshes_intact = meshes_intact_, s.kept_broken = kept_broken_;
   s.compactions = compactions_, s.bond_updates = bond_updates_;
   s.time = time_, s.steps = steps_;
+  s.ranks = ranks_;
+  if (ranks_) {  // the local layout changes when re-ghosting: keep it whole
+    s.layout = bonds_;
+    s.layout_saved = true;
+    s.constants = constants_;
+  }
   armed_.p = &s;
 }
 
@@ -466,6 +481,14 @@ void PdSolver::restore(Snapshot& s) {
   compactions_ = s.compactions, bond_updates_ = s.bond_updates;
   time_ = s.time, steps_ = s.steps;
   contact_list_ = PdContactList();  // positions changed: rebuilt at the next contact pass
+  if (s.ranks) {
+    ranks_ = s.ranks;
+    constants_ = s.constants;
+    force_.assign(particles_.size(), Vec3::Zero());
+    q_.assign(particles_.size(), Real(0));
+    select_drives();
+  }
+  ++version_;
 }
 
 void PdSolver::kick(const exec::Space& space, Real dt) {
@@ -494,44 +517,51 @@ void PdSolver::step(const exec::Space& space, Real dt) {
   kick_drift(space, dt);
   move_meshes(dt);  // with the half-step velocities that moved the particles
   apply_colliders(space, Real(time_ + double(dt)));
-  share(particles_.vec3(attr_.x));  // distributed: the owners' positions everywhere
-  share(particles_.vec3(attr_.x_lo));
+  if (ranks_) dist_stats_.step_bytes = dist_stats_.step_messages = 0;
+  if (ranks_) exchange_positions(space);  // the owners' positions in the ghosts
   compute_dilatation(space);
-  share(particles_.real(attr_.theta));
+  share(particles_.real(attr_.theta));  // what the force pass reads of its ghosts
   share(q_.data());
+  share_plastic();        // plastic: the far ends' returns of bonds to ghosts
   compute_forces(space);  // and the damage (update_damage)
   contact_forces(space);
-  bond_updates_ += bonds_.size();
-  share(particles_.real(attr_.damage));
+  bond_updates_ += ranks_ ? global_stored_ : bonds_.size();
+  share(particles_.real(attr_.damage));  // the next force pass's critical stretch of ghosts
   split_meshes();
   compact_bonds(space);
   drive_velocities(space, time_ + double(dt));
-  kick(space, dt);
-  share(particles_.vec3(attr_.v));
-  share(particles_.vec3(attr_.acc));
+  kick(space, dt);  // ghosts' velocities are never read: not exchanged
   time_ += double(dt);
   ++steps_;
+  ++version_;
 }
 
 void PdSolver::compute_stress(const exec::Space& space, std::vector<Mat3>& stress) {
   stress.resize(particles_.size());
   std::vector<Vec3> f(particles_.size());
   pd_forces(space, view(), bonds_, params(), false, f.data(), stress.data(), &scratch_);
-  share(stress.data());  // distributed: each rank computed its own rows
+  // distributed: the own rows' stresses (gather_owned joins them for output)
 }
 
 PdDiagnostics PdSolver::diagnostics(const exec::Space& space) const {
+  if (!ranks_) return diagnostics_of(space, particles_);
+  ParticleSet all;
+  gather_particles(all);
+  return diagnostics_of(space, all);
+}
+
+PdDiagnostics PdSolver::diagnostics_of(const exec::Space& space, const ParticleSet& ps) const {
   struct Acc {
     double ke = 0, vmax = 0, dmax = 0;
     Vec3d p = Vec3d::Zero();
   };
-  const Vec3* v = particles_.vec3(attr_.v);
-  const Real* vol = particles_.real(attr_.volume);
-  const Real* dmg = particles_.real(attr_.damage);
-  const std::int32_t* mat = particles_.int32(attr_.material);
+  const Vec3* v = ps.vec3(attr_.v);
+  const Real* vol = ps.real(attr_.volume);
+  const Real* dmg = ps.real(attr_.damage);
+  const std::int32_t* mat = ps.int32(attr_.material);
   const PdMaterial* mats = materials_.data();
   const Acc r = exec::parallel_reduce(
-      space, "pd.diagnostics", exec::Index(particles_.size()), Acc{},
+      space, "pd.diagnostics", exec::Index(ps.size()), Acc{},
       [=](exec::Index i, Acc& a) {
         const double m = double(mats[mat[i]].density) * double(vol[i]);
         const Vec3d vi = v[i].cast<double>();

@@ -74,6 +74,10 @@ struct PdDiagnostics {
 };
 
 class PdSolver {
+  struct Ranks;  // distributed: the local particles' ids and owners, the ghost plan
+  struct BondRec;
+  struct LocalEntry;
+
  public:
   PdSolver(const PdSettings& settings, std::vector<PdMaterial> materials,
            std::vector<Collider> colliders = {});
@@ -139,6 +143,9 @@ class PdSolver {
                   bond_updates = 0;
     double time = 0;
     std::uint64_t steps = 0;
+    // Distributed: the local layout (particles, constants, ghost plan) of the frame start.
+    std::shared_ptr<const Ranks> ranks;
+    PdConstants constants;
   };
   void save(Snapshot& s);
   void restore(Snapshot& s);
@@ -192,23 +199,56 @@ class PdSolver {
                      const std::vector<std::uint8_t>& intact);
 
   // Distributed runs (issue 28; solvers/pd_distributed.cpp). Collective: every rank calls it
-  // with the same solver (set up alike on every rank). Zoltan's RCB splits the particles by
-  // reference position, weighted by bonds; each rank keeps the bond rows of the particles it owns
-  // and computes only those rows; after each pass the owners' per-particle results (positions,
-  // dilatation, damage, velocities) are copied to the other ranks bit for bit, so every rank holds
-  // the whole particle state exactly as a single process has it: frames, diagnostics and the
-  // time step are the same on every rank count. One rank: nothing changes. Refused (InputError)
-  // with embedded tet meshes or plastic materials, which are not distributed yet.
+  // with the same solver (set up alike on every rank, with the whole state). Zoltan's RCB splits
+  // the particles by reference position, weighted by bonds, and keeps its cuts; afterwards each
+  // rank holds only its own particles and their ghosts (the bond neighbours of its rows and the
+  // particles within contact reach), in the order of their global ids, with the CSR rows of its
+  // own particles referring to local indices. Each step copies the owners' positions, dilatation
+  // and damage into the ghosts point to point; the contact list's rebuild re-ghosts (and, when the
+  // bond work is imbalanced or forced, repartitions with migration). Bitwise the single process
+  // on every rank count. One rank: nothing changes. Refused (InputError) with embedded tet meshes,
+  // which are not distributed yet.
   void distribute(const exec::Space& space);
   bool distributed() const { return ranks_ != nullptr; }
   // Collective: the bond rows of all ranks in the global layout, on rank 0 (others: empty).
   void gather_bonds(std::vector<std::uint64_t>& offsets, std::vector<std::uint32_t>& neighbor,
                     std::vector<Real>& plastic, std::vector<std::uint8_t>& intact) const;
+  // Output accessors (distributed; one process: the solver's own particles):
+  //  gather_particles: collective; every rank's own particles on rank 0 in the single process's
+  //    order (global id), every attribute; empty on the other ranks.
+  //  gather_owned: collective; per-particle records (`bytes` each, indexed by local index) of the
+  //    own particles, on rank 0 in global id order.
+  //  owned_local / global_ids: this rank's own particles (local indices) and every local
+  //    particle's global id (per-rank output writes these).
+  void gather_particles(ParticleSet& out) const;
+  std::vector<char> gather_owned(const void* data, std::size_t bytes) const;
+  std::vector<std::uint32_t> owned_local() const;
+  std::vector<std::uint64_t> global_ids() const;
+  std::size_t global_particle_count() const;
   // Rank-local counts made global (integer sums: exact).
   std::uint64_t global_sum(std::uint64_t v) const;
-  // Per-rank output (issue 28, helper distio): per particle, 1 on the rank that owns it; null on
-  // one process (every particle its own).
-  const std::vector<std::uint8_t>* owned_mask() const;
+  // Distributed counters (this rank): ghost traffic of the last step, time in the exchanges.
+  struct DistStats {
+    std::uint64_t owned = 0, ghosts = 0;  // local particles now
+    std::uint64_t reghosts = 0, repartitions = 0;
+    double imbalance = 1;  // max / mean bond work per rank, at the last cut
+    std::uint64_t step_bytes = 0, step_messages = 0;  // halo traffic sent in the last step
+    double comm_seconds = 0;  // in the halo exchanges and re-ghosting, summed
+  };
+  const DistStats& dist_stats() const { return dist_stats_; }
+  // This rank's own rows' broken bonds to ghosts, and its own particles in contact (closer than
+  // the contact distance, no intact bond) with ghosts now: what shows that fracture and contact
+  // cross rank boundaries (tests). Local: no communication; zeros on one process.
+  struct CrossRank {
+    std::uint64_t broken = 0, contacts = 0;
+  };
+  CrossRank cross_rank() const;
+  // Increments with every change of the state (a step, a restore): caches of gathered output.
+  std::uint64_t state_version() const { return version_; }
+  std::uint64_t compactions() const { return compactions_; }
+  // Diagnostics of a given particle set (rank 0's gathered particles when distributed) with this
+  // solver's bond counters. Collective when distributed.
+  PdDiagnostics diagnostics_of(const exec::Space& space, const ParticleSet& all) const;
 
  private:
   PdSettings settings_;
@@ -239,13 +279,28 @@ class PdSolver {
   struct Drive {
     std::shared_ptr<const VectorField> v;
     std::vector<std::uint32_t> particles;
+    Vec3 lo, hi;  // the box (reference positions): a distributed run re-selects its particles
   };
   std::vector<Drive> drives_;
   void drive_velocities(const exec::Space& space, double t);
   // Distributed: which particles this rank owns and the plan copying owners' values to the rest.
-  struct Ranks;
   std::shared_ptr<const Ranks> ranks_;
-  // Owners' values of a per-particle array to every other rank (no-op on one process).
+  mutable DistStats dist_stats_;
+  std::uint64_t version_ = 0;
+  std::uint64_t global_stored_ = 0;  // distributed: stored bonds summed over the ranks
+  // The local particles rebuilt (re-ghosting, with migration when repartitioning): see
+  // pd_distributed.cpp. Then the contact list is rebuilt.
+  void relocal(const exec::Space& space, bool repartition);
+  void assemble_local(const exec::Space& space, std::vector<LocalEntry>& entries,
+                      std::shared_ptr<Ranks> ranks);
+  // Distributed: the ghosts' positions before the bond passes (or a re-ghost when the contact
+  // list is rebuilt or a repartition is due).
+  void exchange_positions(const exec::Space& space);
+  void build_contact_list(const exec::Space& space);
+  void select_drives();
+  // Distributed plastic materials: the far ends' plastic extensions of bonds to ghosts.
+  void share_plastic();
+  // Owners' values of a per-particle array into the ghosts (no-op on one process).
   void share_bytes(void* data, std::size_t bytes) const;
   template <class T>
   void share(T* data) const {

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Distributed peridynamics (issue 28): the frames, samples and point files of a fracturing scene
 # run on 1, 2, 3 and 4 MPI ranks (and 2 ranks x 2 threads) are bitwise those of the single
-# process; a run checkpointed on 3 ranks resumes on 2 and on 1 and ends bitwise as the
+# process (also with a repartition forced every 7 steps; bonds break and fragments touch across
+# the ranks' cuts, asserted from the run summary); a run checkpointed on 3 ranks resumes on 2 and on 1 and ends bitwise as the
 # uninterrupted run; an interrupt under mpirun stops every rank with exit 130 and a checkpoint
 # that resumes bitwise. (Distributed MPM: dist_mpm_test.sh.)
 # Usage: dist_pd_test.sh AMALGAM MPIEXEC SCENE OUTDIR
@@ -11,6 +12,17 @@ source "$(dirname "$0")/dist_lib.sh"
 reference 'frame_*.ply' 'frame_*.vdb' samples.csv 'samples/*' || exit 1
 [ "$(echo "$files" | wc -l)" -ge 14 ] || { echo "too few files in the reference run: $files"; exit 1; }
 ranks_match || exit 1
+# Forced repartitions (particles migrate with their rows every 7 steps) on 3 ranks, bitwise; its
+# summary must show bonds broken between ranks, contacts across ranks and the repartitions.
+AMALGAM_TEST_REPARTITION_EVERY=7 mpi 3 run "$scene" --threads 1 --out "$out/rep" >"$out/rep.log" 2>&1 ||
+  { echo "run with forced repartitions failed"; tail "$out/rep.log"; exit 1; }
+same "$out/rep" || exit 1
+line=$(grep "amalgam: distributed:" "$out/rep.log")
+echo "$line"
+num() { echo "$line" | sed -n "s/.* \([0-9][0-9]*\) $1.*/\1/p"; }
+[ "$(num 'repartitions')" -gt 5 ] 2>/dev/null || { echo "too few repartitions"; exit 1; }
+[ "$(num 'directed bonds broken between ranks')" -gt 0 ] 2>/dev/null || { echo "no bond broke between ranks"; exit 1; }
+[ "$(num "contacts with another rank")" -gt 0 ] 2>/dev/null || { echo "no contact across ranks"; exit 1; }
 resumes 3 3 2 0 || exit 1  # checkpoint on 3 ranks after frame 3, resumed on 2 and on 1
 interrupted 4 150 3 || exit 1  # inside frame 4, on 4 ranks; resumed on 3
 parts_match 2 3 || exit 1        # per-rank parts (owned particles), merged

@@ -272,6 +272,34 @@ std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char
   return recv;
 }
 
+std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char>>& send,
+                                              const std::vector<std::size_t>& recv_bytes) const {
+  if (size_ == 1) return send;
+  std::vector<std::vector<char>> recv(static_cast<std::size_t>(size_));
+  std::vector<MPI_Request> req;
+  const std::vector<int> rc = to_int_counts(recv_bytes);
+  std::vector<std::size_t> sn(send.size());
+  for (std::size_t r = 0; r < send.size(); ++r) sn[r] = send[r].size();
+  const std::vector<int> sc = to_int_counts(sn);
+  for (int r = 0; r < size_; ++r) {
+    if (rc[std::size_t(r)] == 0) continue;
+    recv[std::size_t(r)].resize(recv_bytes[std::size_t(r)]);
+    req.emplace_back();
+    check(MPI_Irecv(recv[std::size_t(r)].data(), rc[std::size_t(r)], MPI_BYTE, r, 28,
+                    MPI_COMM_WORLD, &req.back()),
+          "MPI_Irecv");
+  }
+  for (int r = 0; r < size_; ++r) {
+    if (sc[std::size_t(r)] == 0) continue;
+    req.emplace_back();
+    check(MPI_Isend(send[std::size_t(r)].data(), sc[std::size_t(r)], MPI_BYTE, r, 28,
+                    MPI_COMM_WORLD, &req.back()),
+          "MPI_Isend");
+  }
+  check(MPI_Waitall(int(req.size()), req.data(), MPI_STATUSES_IGNORE), "MPI_Waitall");
+  return recv;
+}
+
 void Comm::broadcast(std::vector<char>& bytes) const {
   if (size_ == 1) return;
   std::uint64_t n = bytes.size();
@@ -413,6 +441,17 @@ int RcbCuts::owner(const double* p) const {
   return proc;
 }
 
+std::vector<int> RcbCuts::ranks_in_box(const double* lo, const double* hi) const {
+  if (!zz_) return {0};
+  std::vector<int> procs(std::size_t(Comm::world().size()));
+  int n = 0;
+  if (Zoltan_LB_Box_Assign(static_cast<Zoltan_Struct*>(zz_.get()), lo[0], lo[1], lo[2], hi[0],
+                           hi[1], hi[2], procs.data(), &n) != ZOLTAN_OK)
+    throw std::runtime_error("Zoltan_LB_Box_Assign failed");
+  procs.resize(std::size_t(n));
+  return procs;
+}
+
 #else  // no MPI: one rank
 
 bool mpi_built() {
@@ -447,6 +486,10 @@ std::vector<char> Comm::gather(const std::vector<char>& mine,
 std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char>>& send) const {
   return send;
 }
+std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char>>& send,
+                                              const std::vector<std::size_t>&) const {
+  return send;
+}
 void Comm::broadcast(std::vector<char>&) const {}
 void Comm::barrier() const {}
 void Comm::abort(int code) const {
@@ -462,6 +505,9 @@ RcbCuts RcbCuts::partition(const std::vector<std::uint64_t>&, const std::vector<
 }
 int RcbCuts::owner(const double*) const {
   return 0;
+}
+std::vector<int> RcbCuts::ranks_in_box(const double*, const double*) const {
+  return {0};
 }
 
 #endif

@@ -52,6 +52,11 @@ class Comm {
   std::vector<char> gather(const std::vector<char>& mine, std::vector<std::size_t>* sizes) const;
   // send[r]: the bytes for rank r (size() entries); returns recv[r]: the bytes from rank r.
   std::vector<std::vector<char>> alltoall(const std::vector<std::vector<char>>& send) const;
+  // Point to point (MPI_Isend/MPI_Irecv, no collective): send[r] goes to rank r when not empty;
+  // recv_bytes[r] bytes are received from rank r when not zero (both sides know the pattern, as a
+  // HaloPlan does). Returns recv[r]. Only the ranks that exchange bytes take part.
+  std::vector<std::vector<char>> exchange(const std::vector<std::vector<char>>& send,
+                                          const std::vector<std::size_t>& recv_bytes) const;
   // Root's bytes on every rank.
   void broadcast(std::vector<char>& bytes) const;
   void barrier() const;
@@ -100,6 +105,9 @@ class RcbCuts {
   static RcbCuts partition(const std::vector<std::uint64_t>& ids, const std::vector<double>& xyz,
                            const std::vector<float>& weight, double imbalance_tolerance = 1.05);
   int owner(const double* p) const;  // local: no communication
+  // The ranks whose cut regions meet the box [lo, hi] (Zoltan_LB_Box_Assign), local. Default:
+  // rank 0.
+  std::vector<int> ranks_in_box(const double* lo, const double* hi) const;
 
  private:
   std::shared_ptr<void> zz_;  // the Zoltan_Struct holding the cuts

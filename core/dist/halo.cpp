@@ -41,7 +41,11 @@ void HaloPlan::exchange(void* data, std::size_t bytes) const {
     for (std::size_t k = 0; k < send_[r].size(); ++k)
       std::memcpy(out[r].data() + k * bytes, base + std::size_t(send_[r][k]) * bytes, bytes);
   }
-  const std::vector<std::vector<char>> in = comm.alltoall(out);
+  // Point to point: only the ranks that share ghosts exchange messages (both sides know the
+  // sizes from the plan).
+  std::vector<std::size_t> expect(recv_.size());
+  for (std::size_t r = 0; r < recv_.size(); ++r) expect[r] = recv_[r].size() * bytes;
+  const std::vector<std::vector<char>> in = comm.exchange(out, expect);
   for (std::size_t r = 0; r < recv_.size(); ++r) {
     if (in[r].size() != recv_[r].size() * bytes)
       throw std::runtime_error("halo: rank " + std::to_string(r) + " sent " +
@@ -50,6 +54,13 @@ void HaloPlan::exchange(void* data, std::size_t bytes) const {
     for (std::size_t k = 0; k < recv_[r].size(); ++k)
       std::memcpy(base + std::size_t(recv_[r][k]) * bytes, in[r].data() + k * bytes, bytes);
   }
+}
+
+std::size_t HaloPlan::messages() const {
+  std::size_t n = 0;
+  for (std::size_t r = 0; r < send_.size(); ++r)
+    n += !send_[r].empty() && int(r) != Comm::world().rank();
+  return n;
 }
 
 std::size_t HaloPlan::sent() const {

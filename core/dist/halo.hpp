@@ -27,7 +27,8 @@ class HaloPlan {
            const std::vector<std::uint32_t>& ghost_slots, OwnerOf owner_of);
 
   // Copies the owners' values of `data` (an array of records of `bytes` bytes, indexed by local
-  // slot) into this rank's ghost slots. Collective.
+  // slot) into this rank's ghost slots. Point to point between the ranks that share ghosts
+  // (Comm::exchange); every rank calls it.
   void exchange(void* data, std::size_t bytes) const;
   template <class T>
   void exchange(T* data) const {
@@ -35,7 +36,8 @@ class HaloPlan {
   }
 
   std::size_t ghosts() const { return recv_slots_total_; }
-  std::size_t sent() const;  // records this rank sends per exchange
+  std::size_t sent() const;      // records this rank sends per exchange
+  std::size_t messages() const;  // messages this rank sends per exchange (its neighbour ranks)
 
  private:
   void build(const std::vector<std::uint64_t>& owned_ids,
