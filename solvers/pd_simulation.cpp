@@ -142,8 +142,7 @@ PointFields PdSimulation::fields_of(const ParticleSet& ps, const std::vector<std
       out.i.assign(p.material, p.material + p.n);
     } else if (name == "vonmises") {
       s_.compute_stress(space, stress_);  // sigma_i = 1/2 sum_j f_ij (x) xi_ij V_j
-      if (gathered)
-        stress_ = dist::from_bytes<Mat3>(s_.gather_owned(stress_.data(), sizeof(Mat3)));
+      if (gathered) stress_ = dist::from_bytes<Mat3>(s_.gather_owned(stress_.data(), sizeof(Mat3)));
       out.f.resize(p.n);
       for (std::size_t i = 0; i < p.n; ++i) out.f[i] = von_mises(stress_[i]);
     } else {
