@@ -38,7 +38,7 @@ resumable() {
 AMALGAM_TEST_STALL_RANK=1:180 ends stall 60 "$mpiexec" --oversubscribe -np 3 "$amalgam" run "$scene" --threads 1 \
   --parts ranks --checkpoint-every 1 --comm-timeout 3 --out "$out/stall" --quiet || exit 1
 [ $rc -eq 1 ] || { echo "stalled rank: exit $rc, expected 1"; cat "$out/stall.err"; exit 1; }
-grep -q "amalgam: error: MPI rank [02] of 3: no answer in .* within 3 s (--comm-timeout)" "$out/stall.err" ||
+grep -q "amalgam: error: MPI rank [02] of 3: no answer in .* within 3 s (--comm-timeout): .*did not hear from rank 1\b" "$out/stall.err" ||
   { echo "stalled rank: no time-out message"; cat "$out/stall.err"; exit 1; }
 stall_secs=$secs
 resumable "$out/stall" 2 || exit 1
@@ -68,9 +68,21 @@ rm "$out/bad2/$part2"
 ends missing 60 "$mpiexec" --oversubscribe -np 2 "$amalgam" run "$scene" --threads 1 --parts ranks --out "$out/bad2" --resume "$out/bad2/checkpoint.amck" --quiet || exit 1
 [ $rc -eq 3 ] || { echo "missing part: exit $rc, expected 3"; exit 1; }
 grep -q "$part2.*(checkpoint part of rank 2 of 3" "$out/missing.err" || { echo "missing part: unclear message"; cat "$out/missing.err"; exit 1; }
+# merge: a frame without its manifest is skipped with a note; a corrupt frame part is refused
+# naming the file and the rank (exit 3).
+rm -rf "$out/bad3" && cp -r "$out/bad" "$out/bad3" && rm "$out/bad3/frame_0002.manifest.json"
+msg=$("$amalgam" merge "$out/bad3" 2>&1) || { echo "merge with an incomplete frame failed: $msg"; exit 1; }
+echo "$msg" | grep -q "frame 2 has parts but no manifest (incomplete" || { echo "merge: no note of the incomplete frame: $msg"; exit 1; }
+[ -f "$out/bad3/frame_0001.vdb" ] && [ ! -f "$out/bad3/frame_0002.vdb" ] || { echo "merge joined the wrong frames"; exit 1; }
+printf '\x55' | dd of="$out/bad3/frame_0001.r002.pts" bs=1 seek=100 conv=notrunc status=none
+msg=$("$amalgam" merge "$out/bad3" 2>&1)
+rc=$?
+[ $rc -eq 3 ] || { echo "merge of a corrupt part: exit $rc, expected 3"; exit 1; }
+echo "$msg" | grep -q "frame_0001.r002.pts (part of rank 2): does not match the manifest" ||
+  { echo "merge of a corrupt part: unclear message: $msg"; exit 1; }
 # A blow-up on one rank names the particle and its rank.
 mpi 3 run "$retry" --threads 1 --retries 0 --out "$out/blow" --quiet 2>"$out/blow.err"
 rc=$?
 [ $rc -eq 1 ] || { echo "blow-up: exit $rc, expected 1"; exit 1; }
 grep -q "particle id [0-9]* (rank [0-2])" "$out/blow.err" || { echo "blow-up: rank not named"; cat "$out/blow.err"; exit 1; }
-echo "distributed faults: a stalled rank ended the job in $stall_secs s (--comm-timeout 3), a killed rank in $kill_secs s; both checkpoints resumed bitwise (3->2, 3->3); a rank killed inside a checkpoint left the previous one, resumed bitwise; corrupt and missing parts refused naming file and rank (exit 3); a blow-up names its rank"
+echo "distributed faults: a stalled rank ended the job in $stall_secs s (--comm-timeout 3), a killed rank in $kill_secs s; both checkpoints resumed bitwise (3->2, 3->3); a rank killed inside a checkpoint left the previous one, resumed bitwise; corrupt and missing parts refused naming file and rank (exit 3); merge skips an incomplete frame and refuses a corrupt part; a blow-up names its rank"

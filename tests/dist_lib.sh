@@ -89,3 +89,15 @@ parts_resumes() {
     same "$out/pc$np-$np2" || { echo "(resume $np -> $np2 ranks with parts)"; return 1; }
   done
 }
+# parts_interrupted NP SUBSTEP NP2: SIGINT at the SUBSTEP-th substep on NP ranks with per-rank
+# parts: exit 130 and a checkpoint manifest; resumed on NP2 ranks and merged, bitwise.
+parts_interrupted() {
+  AMALGAM_TEST_SIGINT_AT_SUBSTEP=$2 mpi "$1" run "$scene" --threads 1 --parts ranks --out "$out/pint" --quiet 2>/dev/null
+  local rc=$?
+  [ $rc -eq 130 ] || { echo "interrupted parts run on $1 ranks exited $rc, expected 130"; return 1; }
+  head -c 1 "$out/pint/checkpoint.amck" | grep -q '{' || { echo "no checkpoint manifest after the interrupt"; return 1; }
+  mpi "$3" run "$scene" --threads 1 --parts ranks --out "$out/pint" --resume "$out/pint/checkpoint.amck" --quiet ||
+    { echo "resume of the interrupted parts run failed"; return 1; }
+  "$amalgam" merge "$out/pint" >/dev/null || { echo "merge after the interrupt failed"; return 1; }
+  same "$out/pint"
+}

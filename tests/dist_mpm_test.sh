@@ -25,6 +25,7 @@ parts_match 2 3 || exit 1     # per-rank parts, merged (frames and checkpoint)
 parts_resumes 3 2 2 0 || exit 1  # per-rank checkpoint of 3 ranks resumed on 2 and 1
 parts_resumes 0 3 4 || exit 1    # of one process (one part) resumed on 4 ranks
 parts_resumes 2 2 3 || exit 1    # of 2 ranks resumed on 3
+parts_interrupted 3 150 2 || exit 1  # SIGINT inside frame 3 on 3 ranks; resumed on 2
 all=$(echo "$files" | wc -l)
 # Emitters and a kill region: every rank emits alike and keeps what lands in its leaves; the
 # kill counts are summed over the ranks.
@@ -47,4 +48,4 @@ cmp -s "$out/retry1/checkpoint.amck" "$out/retry3/checkpoint.amck" ||
 # Implicit MPM is not distributed yet: a clear refusal naming it (exit 3), no frame written.
 refused 2 "$implicit" "$out/imp" "implicit integration (simulation.implicit) is not distributed yet" ||
   exit 1
-echo "distributed MPM: $all files bitwise identical on 1-4 ranks, 2x2 threads, with repartitions, resumed 3->2, 3->1 and 1->4 ranks and after an interrupt on 4; per-rank parts (--parts ranks) merged bitwise on 2 and 3 ranks and resumed 3->2, 3->1, 1->4, 2->3; with emitters and a kill region $(echo "$files" | wc -l) files on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1"
+echo "distributed MPM: $all files bitwise identical on 1-4 ranks, 2x2 threads, with repartitions, resumed 3->2, 3->1 and 1->4 ranks and after an interrupt on 4; per-rank parts (--parts ranks) merged bitwise on 2 and 3 ranks and resumed 3->2, 3->1, 1->4, 2->3 and after an interrupt 3->2; with emitters and a kill region $(echo "$files" | wc -l) files on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1"

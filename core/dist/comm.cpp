@@ -51,6 +51,46 @@ std::vector<int> displacements(const std::vector<int>& c) {
 // `peer[k]`: the rank request k waits for (-1: a collective, whose missing ranks MPI does not
 // name). On a time-out the rank says what it waited for and ends the job (exit 1): a peer that was
 // killed or is stuck elsewhere must not leave the others waiting for ever.
+// After a collective's time-out: which ranks are alive in Comm's waits. Every rank that timed
+// out tells every other one so (point to point), then listens for a grace period (half the
+// time-out, 1 to 30 s): the ranks not heard from are the ones stuck elsewhere or dead. The ranks
+// waiting in one collective time out within the time they entered it apart.
+std::vector<int> silent_ranks(double timeout) {
+  constexpr int kAliveTag = 28099;
+  const Comm& comm = Comm::world();
+  const int R = comm.size(), me = comm.rank();
+  static int token = 0;
+  token = me;
+  std::vector<MPI_Request> sends;
+  for (int q = 0; q < R; ++q)
+    if (q != me) {
+      sends.emplace_back();
+      MPI_Isend(&token, 1, MPI_INT, q, kAliveTag, MPI_COMM_WORLD, &sends.back());
+    }
+  std::vector<char> heard(std::size_t(R), 0);
+  heard[std::size_t(me)] = 1;
+  int count = 1;
+  const double grace = std::min(30.0, std::max(1.0, 0.5 * timeout));
+  const auto t0 = std::chrono::steady_clock::now();
+  while (count < R &&
+         std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() < grace) {
+    int flag = 0;
+    MPI_Status st;
+    MPI_Iprobe(MPI_ANY_SOURCE, kAliveTag, MPI_COMM_WORLD, &flag, &st);
+    if (!flag) {
+      ::usleep(1000);
+      continue;
+    }
+    int v = 0;
+    MPI_Recv(&v, 1, MPI_INT, st.MPI_SOURCE, kAliveTag, MPI_COMM_WORLD, MPI_STATUS_IGNORE);
+    if (!heard[std::size_t(st.MPI_SOURCE)]) heard[std::size_t(st.MPI_SOURCE)] = 1, ++count;
+  }
+  std::vector<int> silent;
+  for (int q = 0; q < R; ++q)
+    if (!heard[std::size_t(q)]) silent.push_back(q);
+  return silent;
+}
+
 void wait_all(std::vector<MPI_Request>& req, const std::vector<int>& peer, const char* what) {
   if (req.empty()) return;
   const Comm& comm = Comm::world();
@@ -79,8 +119,15 @@ void wait_all(std::vector<MPI_Request>& req, const std::vector<int>& peer, const
         m << "did not hear from rank" << (missing.size() > 1 ? "s" : "");
         for (std::size_t k = 0; k < missing.size(); ++k) m << (k ? ", " : " ") << missing[k];
       } else if (collective) {
-        m << "not every rank joined this collective (MPI does not say which; a rank that was "
-             "killed or is stuck elsewhere)";
+        const std::vector<int> silent = silent_ranks(comm.timeout());
+        if (silent.empty()) {
+          m << "not every rank joined this collective, yet every rank answered afterwards";
+        } else {
+          m << "not every rank joined this collective; did not hear from rank"
+            << (silent.size() > 1 ? "s" : "");
+          for (std::size_t k = 0; k < silent.size(); ++k) m << (k ? ", " : " ") << silent[k];
+          m << " (killed, or stuck outside Amalgam's exchanges)";
+        }
       }
       m << "; ending every rank\n";
       std::cerr << m.str();

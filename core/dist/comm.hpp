@@ -37,8 +37,8 @@ class Comm {
 
   // The longest a rank waits in one collective for the others (seconds; `amalgam run
   // --comm-timeout`, default 600). A rank that waits longer prints which collective and which
-  // peers it did not hear from (where MPI can tell: the all-to-all exchanges are point-to-point)
-  // and ends the job with exit code 1, so a dead or stuck peer never leaves the others hanging.
+  // peers it did not hear from and ends the job with exit code 1, so a dead or stuck peer never
+  // leaves the others hanging.
   void set_timeout(double seconds) { timeout_ = seconds; }
   double timeout() const { return timeout_; }
 
