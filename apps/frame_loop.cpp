@@ -495,6 +495,34 @@ std::vector<double> profile_seconds(const Simulation& sim, const exec::Profiler&
   return s;
 }
 
+// Collective: what the job's communication cost each rank over the run (set-up included), per
+// substep, as the mean and the most over the ranks (dist::Comm::traffic); empty on one rank.
+std::string communication_summary(double wall, long long substeps) {
+  const dist::Comm& comm = dist::Comm::world();
+  if (comm.size() == 1) return "";
+  const dist::Comm::Traffic t = comm.traffic();
+  const std::vector<double> mine = {double(t.bytes), double(t.messages), double(t.calls),
+                                    t.seconds};
+  const std::vector<double> all =
+      dist::from_bytes<double>(comm.allgather(dist::as_bytes(mine), nullptr));
+  const std::size_t R = std::size_t(comm.size());
+  double mean[4] = {0, 0, 0, 0}, most[4] = {0, 0, 0, 0};
+  for (std::size_t r = 0; r < R; ++r)
+    for (std::size_t k = 0; k < 4; ++k) {
+      mean[k] += all[4 * r + k] / double(R);
+      most[k] = std::max(most[k], all[4 * r + k]);
+    }
+  const double n = double(std::max(1LL, substeps));
+  char line[400];
+  std::snprintf(line, sizeof line,
+                "amalgam: communication per rank and substep (mean / most of %zu ranks): %.1f / "
+                "%.1f kB sent in %.1f / %.1f messages, %.1f / %.1f calls; in exchanges %.3g / "
+                "%.3g s of %.3g s (%.1f %% / %.1f %%, waiting for slower ranks included)\n",
+                R, mean[0] / n * 1e-3, most[0] / n * 1e-3, mean[1] / n, most[1] / n, mean[2] / n,
+                most[2] / n, mean[3], most[3], wall, 100 * mean[3] / wall, 100 * most[3] / wall);
+  return line;
+}
+
 }  // namespace
 
 int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space,
@@ -714,7 +742,8 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   }
   frames.wait();
   const double wall = seconds_since(t_start);
-  const std::string summary = sim.run_summary(wall) + frames.summary();  // collective
+  const std::string summary = sim.run_summary(wall) + frames.summary() +
+                              communication_summary(wall, total_substeps);  // collective
   if (!rs.quiet) {
     if (tty) std::cout << "\n";
     std::cout << "amalgam: done: " << scene.frames - rs.first_frame + 1 << " frames, "

@@ -134,6 +134,30 @@ RecordLayout record_layout(const ParticleSet& ps) {
 }
 }  // namespace
 
+// Particle i's record (every attribute's words, the constants, q) appended to b.
+void PdSolver::pack_record(std::vector<char>& b, std::size_t i) const {
+  for (int a = 0; a < particles_.attribute_count(); ++a) {
+    const std::size_t wa = std::size_t(particles_.words_per_particle(a));
+    const char* src = reinterpret_cast<const char*>(particles_.words(a) + i * wa);
+    b.insert(b.end(), src, src + wa * 4);
+  }
+  put(b, constants_.m[i]), put(b, constants_.a[i]), put(b, constants_.b[i]);
+  put(b, constants_.kappa[i]), put(b, q_[i]), put(b, constants_.bonds0[i]);
+  put(b, constants_.fitted[i]);
+}
+
+// Bond k with its neighbour named by global id.
+PdSolver::BondRec PdSolver::bond_record(std::uint64_t k, std::uint64_t neighbour_gid) const {
+  BondRec br{};
+  br.nb = neighbour_gid;
+  br.L = bonds_.length[k], br.omega = bonds_.omega[k], br.shear = bonds_.shear_omega[k];
+  br.vol = bonds_.volume[k], br.plastic = bonds_.plastic[k];
+  br.omega_r = bonds_.omega_r[k], br.shear_r = bonds_.shear_omega_r[k];
+  br.plastic_r = bonds_.plastic_r[k];
+  br.intact = bonds_.intact[k], br.lane = bonds_.lane[k];
+  return br;
+}
+
 void PdSolver::distribute(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   if (comm.size() == 1 || ranks_) return;
@@ -193,7 +217,7 @@ void PdSolver::distribute(const exec::Space& space) {
     }
   }
   // Records of the kept particles from the whole state, then the local state from them.
-  const RecordLayout L = record_layout(particles_);
+  if (constants_.fitted.empty()) constants_.fitted.assign(n, 0);
   std::vector<char> recs;
   std::vector<BondRec> rows;
   std::vector<LocalEntry> entries;
@@ -201,27 +225,12 @@ void PdSolver::distribute(const exec::Space& space) {
   for (std::size_t i = 0; i < n; ++i) {
     if (!keep[i]) continue;
     rec_at.push_back(recs.size());
-    for (int a = 0; a < particles_.attribute_count(); ++a) {
-      const std::size_t wa = std::size_t(particles_.words_per_particle(a));
-      const char* src = reinterpret_cast<const char*>(particles_.words(a) + i * wa);
-      recs.insert(recs.end(), src, src + wa * 4);
-    }
-    put(recs, constants_.m[i]), put(recs, constants_.a[i]), put(recs, constants_.b[i]);
-    put(recs, constants_.kappa[i]), put(recs, q_[i]), put(recs, constants_.bonds0[i]);
-    put(recs, constants_.fitted.empty() ? std::uint8_t(0) : constants_.fitted[i]);
+    pack_record(recs, i);
     row_at.push_back(rows.size());
     const bool own = owner[i] == comm.rank();
     if (own)
-      for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k) {
-        BondRec br{};
-        br.nb = bonds_.neighbor[k];
-        br.L = bonds_.length[k], br.omega = bonds_.omega[k], br.shear = bonds_.shear_omega[k];
-        br.vol = bonds_.volume[k], br.plastic = bonds_.plastic[k];
-        br.omega_r = bonds_.omega_r[k], br.shear_r = bonds_.shear_omega_r[k];
-        br.plastic_r = bonds_.plastic_r[k];
-        br.intact = bonds_.intact[k], br.lane = bonds_.lane[k];
-        rows.push_back(br);
-      }
+      for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k)
+        rows.push_back(bond_record(k, bonds_.neighbor[k]));
     entries.push_back({i, owner[i], nullptr, nullptr,
                        own ? std::uint32_t(bonds_.offsets[i + 1] - bonds_.offsets[i]) : 0,
                        own ? bonds_.dense[i] : std::uint8_t(1)});
@@ -230,7 +239,6 @@ void PdSolver::distribute(const exec::Space& space) {
     entries[k].rec = recs.data() + rec_at[k];
     entries[k].row = entries[k].owner == comm.rank() ? rows.data() + row_at[k] : nullptr;
   }
-  (void)L;
   // Compaction changes no result (broken bonds add exact zeros in their lanes) but rebuilds the
   // reverse indices, which need the other ranks' rows: off when distributed.
   settings_.compact_fraction = 0;
@@ -480,16 +488,6 @@ void PdSolver::relocal(const exec::Space& space, bool repartition) {
   }
   // 2. Own particles to their (new) owners with their rows: gid, record, row length, dense,
   // bonds (neighbours by global id).
-  auto pack_record = [&](std::vector<char>& b, std::uint32_t i) {
-    for (int a = 0; a < particles_.attribute_count(); ++a) {
-      const std::size_t wa = std::size_t(particles_.words_per_particle(a));
-      const char* src = reinterpret_cast<const char*>(particles_.words(a) + i * wa);
-      b.insert(b.end(), src, src + wa * 4);
-    }
-    put(b, constants_.m[i]), put(b, constants_.a[i]), put(b, constants_.b[i]);
-    put(b, constants_.kappa[i]), put(b, q_[i]), put(b, constants_.bonds0[i]);
-    put(b, constants_.fitted[i]);
-  };
   std::vector<std::vector<char>> mig(R);
   for (std::uint32_t i : old.own) {
     int to = comm.rank();
@@ -503,16 +501,8 @@ void PdSolver::relocal(const exec::Space& space, bool repartition) {
     pack_record(b, i);
     put(b, std::uint32_t(bonds_.offsets[i + 1] - bonds_.offsets[i]));
     put(b, bonds_.dense[i]);
-    for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k) {
-      BondRec br{};
-      br.nb = old.gid[bonds_.neighbor[k]];
-      br.L = bonds_.length[k], br.omega = bonds_.omega[k], br.shear = bonds_.shear_omega[k];
-      br.vol = bonds_.volume[k], br.plastic = bonds_.plastic[k];
-      br.omega_r = bonds_.omega_r[k], br.shear_r = bonds_.shear_omega_r[k];
-      br.plastic_r = bonds_.plastic_r[k];
-      br.intact = bonds_.intact[k], br.lane = bonds_.lane[k];
-      put(b, br);
-    }
+    for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k)
+      put(b, bond_record(k, old.gid[bonds_.neighbor[k]]));
   }
   std::vector<std::vector<char>> got;
   if (repartition) {

@@ -318,19 +318,39 @@ Real PdSolver::stable_dt(const exec::Space& space) const {
         a.vmax = std::max(a.vmax, b.vmax);
         return a;
       });
-  if (c.bad >= 0) {
-    std::ostringstream os;
-    os << "step " << steps_ << " (t = " << time_ << " s): particle " << c.bad << " (id "
-       << particles_.int32(attr_.id)[c.bad] << ") ";
-    if (c.what == 1)
-      os << "has a non-finite velocity (" << v[c.bad].transpose() << ")";
-    else if (c.what == 2)
-      os << "has a non-finite position";
-    else
-      os << "moves at " << v[c.bad].norm()
-         << " m/s, above the stability limit max_speed = " << limit << " m/s";
-    os << "; the simulation blew up (reduce cfl or max_dt, or check the material stiffness)";
-    throw SimulationError(os.str());
+  // Distributed: the guard's verdict is reduced (a flag), and every rank throws the message of
+  // the first rank that found a bad particle (so every rank retries the frame alike).
+  const dist::Comm& comm = dist::Comm::world();
+  const bool many = ranks_ && comm.size() > 1;
+  const bool any_bad = many ? comm.max(std::int64_t(c.bad >= 0)) > 0 : c.bad >= 0;
+  if (any_bad) {
+    std::string msg;
+    if (c.bad >= 0) {
+      std::ostringstream os;
+      os << "step " << steps_ << " (t = " << time_ << " s): particle " << c.bad << " (id "
+         << particles_.int32(attr_.id)[c.bad]
+         << (many ? ", rank " + std::to_string(comm.rank()) : "") << ") ";
+      if (c.what == 1)
+        os << "has a non-finite velocity (" << v[c.bad].transpose() << ")";
+      else if (c.what == 2)
+        os << "has a non-finite position";
+      else
+        os << "moves at " << v[c.bad].norm()
+           << " m/s, above the stability limit max_speed = " << limit << " m/s";
+      os << "; the simulation blew up (reduce cfl or max_dt, or check the material stiffness)";
+      msg = os.str();
+    }
+    if (many) {
+      std::vector<std::size_t> sizes;
+      const std::vector<char> all =
+          comm.allgather(std::vector<char>(msg.begin(), msg.end()), &sizes);
+      std::size_t at = 0;
+      msg.clear();
+      for (std::size_t q = 0; q < sizes.size() && msg.empty(); at += sizes[q++])
+        if (sizes[q] > 0)
+          msg.assign(all.begin() + std::ptrdiff_t(at), all.begin() + std::ptrdiff_t(at + sizes[q]));
+    }
+    throw SimulationError(msg);
   }
   const Real vmax = ranks_ ? Real(dist::Comm::world().max(double(c.vmax))) : c.vmax;  // exact
   Real dt = std::min(settings_.max_dt, settings_.cfl * crit_dt_);

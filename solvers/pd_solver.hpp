@@ -298,6 +298,8 @@ class PdSolver {
   void exchange_positions(const exec::Space& space);
   void build_contact_list(const exec::Space& space);
   void select_drives();
+  void pack_record(std::vector<char>& b, std::size_t i) const;
+  BondRec bond_record(std::uint64_t k, std::uint64_t neighbour_gid) const;
   // Distributed plastic materials: the far ends' plastic extensions of bonds to ghosts.
   void share_plastic();
   // Owners' values of a per-particle array into the ghosts (no-op on one process).

@@ -91,6 +91,24 @@ std::vector<int> silent_ranks(double timeout) {
   return silent;
 }
 
+// Counts one call into Comm (Comm::traffic): its bytes and messages now, its time when it returns.
+class Meter {
+ public:
+  Meter(Comm::Traffic& t, std::uint64_t bytes, std::uint64_t messages)
+      : t_(t), t0_(std::chrono::steady_clock::now()) {
+    t_.bytes += bytes, t_.messages += messages, ++t_.calls;
+  }
+  ~Meter() {
+    t_.seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0_).count();
+  }
+  Meter(const Meter&) = delete;
+  Meter& operator=(const Meter&) = delete;
+
+ private:
+  Comm::Traffic& t_;
+  std::chrono::steady_clock::time_point t0_;
+};
+
 void wait_all(std::vector<MPI_Request>& req, const std::vector<int>& peer, const char* what) {
   if (req.empty()) return;
   const Comm& comm = Comm::world();
@@ -184,6 +202,7 @@ void Comm::attach() {
 
 double Comm::max(double v) const {
   if (size_ == 1) return v;
+  const Meter meter(traffic_, sizeof v, 1);
   double r = v;
   MPI_Request q;
   check(MPI_Iallreduce(&v, &r, 1, MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD, &q), "MPI_Iallreduce");
@@ -192,6 +211,7 @@ double Comm::max(double v) const {
 }
 double Comm::min(double v) const {
   if (size_ == 1) return v;
+  const Meter meter(traffic_, sizeof v, 1);
   double r = v;
   MPI_Request q;
   check(MPI_Iallreduce(&v, &r, 1, MPI_DOUBLE, MPI_MIN, MPI_COMM_WORLD, &q), "MPI_Iallreduce");
@@ -200,6 +220,7 @@ double Comm::min(double v) const {
 }
 std::uint64_t Comm::sum(std::uint64_t v) const {
   if (size_ == 1) return v;
+  const Meter meter(traffic_, sizeof v, 1);
   std::uint64_t r = v;
   MPI_Request q;
   check(MPI_Iallreduce(&v, &r, 1, MPI_UINT64_T, MPI_SUM, MPI_COMM_WORLD, &q), "MPI_Iallreduce");
@@ -208,6 +229,7 @@ std::uint64_t Comm::sum(std::uint64_t v) const {
 }
 std::int64_t Comm::max(std::int64_t v) const {
   if (size_ == 1) return v;
+  const Meter meter(traffic_, sizeof v, 1);
   std::int64_t r = v;
   MPI_Request q;
   check(MPI_Iallreduce(&v, &r, 1, MPI_INT64_T, MPI_MAX, MPI_COMM_WORLD, &q), "MPI_Iallreduce");
@@ -221,6 +243,7 @@ std::vector<char> Comm::allgather(const std::vector<char>& mine,
     if (sizes) *sizes = {mine.size()};
     return mine;
   }
+  const Meter meter(traffic_, mine.size() + sizeof(int), 2);
   const std::vector<int> one = to_int_counts({mine.size()});
   std::vector<int> counts(static_cast<std::size_t>(size_), 0);
   MPI_Request q;
@@ -243,6 +266,7 @@ std::vector<char> Comm::gather(const std::vector<char>& mine,
     if (sizes) *sizes = {mine.size()};
     return mine;
   }
+  const Meter meter(traffic_, rank_ == 0 ? 0 : mine.size() + sizeof(int), rank_ == 0 ? 0 : 2);
   const std::vector<int> one = to_int_counts({mine.size()});
   std::vector<int> counts(static_cast<std::size_t>(size_), 0);
   MPI_Request q;
@@ -270,6 +294,10 @@ std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char
   // the same sequence of calls, so tags need not count.
   constexpr int kSizeTag = 28001, kDataTag = 28002;
   const std::size_t R = std::size_t(size_), me = std::size_t(rank_);
+  std::uint64_t payload = 0, sends = R - 1;
+  for (std::size_t r = 0; r < R; ++r)
+    if (r != me && !send[r].empty()) payload += send[r].size(), ++sends;
+  const Meter meter(traffic_, payload + (R - 1) * sizeof(std::uint64_t), sends);
   std::vector<std::uint64_t> out_n(R), in_n(R, 0);
   std::vector<MPI_Request> req;
   std::vector<int> peer;
@@ -322,8 +350,13 @@ std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char
 std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char>>& send,
                                               const std::vector<std::size_t>& recv_bytes) const {
   if (size_ == 1) return send;
+  std::uint64_t payload = 0, sends = 0;
+  for (std::size_t r = 0; r < send.size(); ++r)
+    if (int(r) != rank_ && !send[r].empty()) payload += send[r].size(), ++sends;
+  const Meter meter(traffic_, payload, sends);
   std::vector<std::vector<char>> recv(static_cast<std::size_t>(size_));
   std::vector<MPI_Request> req;
+  std::vector<int> peer;
   const std::vector<int> rc = to_int_counts(recv_bytes);
   std::vector<std::size_t> sn(send.size());
   for (std::size_t r = 0; r < send.size(); ++r) sn[r] = send[r].size();
@@ -332,6 +365,7 @@ std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char
     if (rc[std::size_t(r)] == 0) continue;
     recv[std::size_t(r)].resize(recv_bytes[std::size_t(r)]);
     req.emplace_back();
+    peer.push_back(r);
     check(MPI_Irecv(recv[std::size_t(r)].data(), rc[std::size_t(r)], MPI_BYTE, r, 28,
                     MPI_COMM_WORLD, &req.back()),
           "MPI_Irecv");
@@ -339,16 +373,18 @@ std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char
   for (int r = 0; r < size_; ++r) {
     if (sc[std::size_t(r)] == 0) continue;
     req.emplace_back();
+    peer.push_back(r);
     check(MPI_Isend(send[std::size_t(r)].data(), sc[std::size_t(r)], MPI_BYTE, r, 28,
                     MPI_COMM_WORLD, &req.back()),
           "MPI_Isend");
   }
-  check(MPI_Waitall(int(req.size()), req.data(), MPI_STATUSES_IGNORE), "MPI_Waitall");
+  wait_all(req, peer, "the halo exchange");
   return recv;
 }
 
 void Comm::broadcast(std::vector<char>& bytes) const {
   if (size_ == 1) return;
+  const Meter meter(traffic_, rank_ == 0 ? bytes.size() + 8 : 0, rank_ == 0 ? 2 : 0);
   std::uint64_t n = bytes.size();
   MPI_Request q;
   check(MPI_Ibcast(&n, 1, MPI_UINT64_T, 0, MPI_COMM_WORLD, &q), "MPI_Ibcast");
@@ -361,6 +397,7 @@ void Comm::broadcast(std::vector<char>& bytes) const {
 
 void Comm::barrier() const {
   if (size_ == 1) return;
+  const Meter meter(traffic_, 0, 1);
   MPI_Request q;
   check(MPI_Ibarrier(MPI_COMM_WORLD, &q), "MPI_Ibarrier");
   wait_one(q, "MPI_Ibarrier");

@@ -42,6 +42,16 @@ class Comm {
   void set_timeout(double seconds) { timeout_ = seconds; }
   double timeout() const { return timeout_; }
 
+  // What this rank's communication cost since the process started: the bytes it sent to other
+  // ranks (payloads and the sizes that announce them), its messages (each point-to-point send to
+  // another rank; a reduction, gather or broadcast counts one), its calls into Comm, and the wall
+  // time spent inside them, waiting for slower ranks included. One rank: all zero.
+  struct Traffic {
+    std::uint64_t bytes = 0, messages = 0, calls = 0;
+    double seconds = 0;
+  };
+  Traffic traffic() const { return traffic_; }
+
   double max(double v) const;
   double min(double v) const;
   std::uint64_t sum(std::uint64_t v) const;
@@ -70,6 +80,7 @@ class Comm {
   void attach();  // reads the rank and size once MPI is initialised
   int rank_ = 0, size_ = 1;
   double timeout_ = 600;
+  mutable Traffic traffic_;
 };
 
 // Typed helpers over the byte collectives.
