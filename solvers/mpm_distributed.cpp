@@ -217,18 +217,26 @@ void MpmSolver::migrate(const exec::Space& space) {
   Ranks& rk = *ranks_;
   const std::size_t n = particles_.size();
   const Vec3* x = particles_.vec3(bin_position());
-  std::int64_t bad = -1;
+  // Each particle's leaf in parallel (with the first bad position), then the owners serially:
+  // the particles are in leaf order from the last sort, so most share the previous one's leaf.
+  std::vector<Vec3i> leaf(n);
+  Vec3i* lf = leaf.data();
+  const Real dx = settings_.dx;
+  const std::int64_t bad = exec::parallel_reduce(
+      space, "dist.migrate_leaves", exec::Index(n), std::int64_t(-1),
+      [=](exec::Index p, std::int64_t& first) {
+        if (!x[p].allFinite() || x[p].cwiseAbs().maxCoeff() / dx > Real(1 << 28)) {
+          if (first < 0) first = p;
+          return;
+        }
+        lf[p] = particle_leaf(x[p]);
+      },
+      [](std::int64_t a, std::int64_t b) { return a < 0 ? b : (b < 0 ? a : std::min(a, b)); });
   std::vector<int> dest(n);
-  // The particles are in leaf order from the last sort: most share the previous one's leaf.
   Vec3i last(INT_MIN, 0, 0);
   int last_owner = 0;
   for (std::size_t p = 0; p < n && bad < 0; ++p) {
-    if (!x[p].allFinite() || x[p].cwiseAbs().maxCoeff() / settings_.dx > Real(1 << 28)) {
-      bad = std::int64_t(p);
-      continue;
-    }
-    const Vec3i l = particle_leaf(x[p]);
-    if (l != last) last = l, last_owner = rk.owner(l);
+    if (lf[p] != last) last = lf[p], last_owner = rk.owner(lf[p]);
     dest[p] = last_owner;
   }
   if (comm.max(std::int64_t(bad >= 0)) > 0)
@@ -243,13 +251,10 @@ void MpmSolver::migrate(const exec::Space& space) {
   std::size_t words = 0;
   for (int a = 0; a < na; ++a) words += std::size_t(particles_.words_per_particle(a));
   std::vector<std::vector<char>> send(static_cast<std::size_t>(comm.size()));
-  std::vector<std::uint32_t> keep;
-  keep.reserve(n);
+  std::size_t leaving = 0;
   for (std::size_t p = 0; p < n; ++p) {
-    if (dest[p] == comm.rank()) {
-      keep.push_back(std::uint32_t(p));
-      continue;
-    }
+    if (dest[p] == comm.rank()) continue;
+    ++leaving;
     std::vector<char>& out = send[std::size_t(dest[p])];
     for (int a = 0; a < na; ++a) {
       const std::size_t wa = std::size_t(particles_.words_per_particle(a));
@@ -258,7 +263,22 @@ void MpmSolver::migrate(const exec::Space& space) {
     }
   }
   const std::vector<std::vector<char>> in = comm.alltoall(send);
-  if (keep.size() != n) particles_.compact(space, keep.data(), keep.size());
+  // The leavers' slots are filled from the end (a few copies, not a gather of every particle):
+  // the order changes, but the sort that follows puts the particles in (leaf, id) order, which
+  // does not depend on the order they come in.
+  if (leaving > 0) {
+    std::size_t m = n;
+    for (std::size_t p = n; p-- > 0;) {
+      if (dest[p] == comm.rank()) continue;
+      --m;
+      if (p != m)
+        for (int a = 0; a < na; ++a) {
+          const std::size_t wa = std::size_t(particles_.words_per_particle(a));
+          std::memcpy(particles_.words(a) + p * wa, particles_.words(a) + m * wa, wa * 4);
+        }
+    }
+    particles_.resize(m);
+  }
   std::size_t arriving = 0;
   for (const auto& b : in) arriving += b.size() / (words * 4);
   if (arriving == 0) return;
