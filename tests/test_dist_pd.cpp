@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "core/dist/comm.hpp"
+#include "dist_test_util.hpp"
 #include "solvers/pd_solver.hpp"
 
 using namespace amalgam;
@@ -166,30 +167,10 @@ TEST_P(DistPdBitwise, GatheredStateIsTheSingleProcessBitwise) {
   }
   ParticleSet all;
   s.gather_particles(all);
-  if (!dist::Comm::world().root()) {
-    EXPECT_EQ(all.size(), 0u);
-    return;
-  }
-  const ParticleSet& r = ref.particles();
-  ASSERT_EQ(all.size(), r.size());
-  for (int a = 0; a < r.attribute_count(); ++a) {
-    const std::size_t w = std::size_t(r.words_per_particle(a));
-    EXPECT_EQ(std::memcmp(all.words(a), r.words(a), r.size() * w * 4), 0) << r.name(a);
-  }
+  test::expect_gathered_bitwise(all, ref.particles());
 }
 
 INSTANTIATE_TEST_SUITE_P(ElasticAndPlastic, DistPdBitwise, ::testing::Bool());
-
-namespace {
-// Non-root ranks print their failures only, with the rank.
-class FailurePrinter : public ::testing::EmptyTestEventListener {
-  void OnTestPartResult(const ::testing::TestPartResult& r) override {
-    if (r.failed())
-      std::fprintf(stderr, "rank %d: %s:%d: %s\n", dist::Comm::world().rank(),
-                   r.file_name() ? r.file_name() : "?", r.line_number(), r.summary());
-  }
-};
-}  // namespace
 
 int main(int argc, char** argv) {
   setenv("AMALGAM_TEST_REPARTITION_EVERY", "3", 1);  // before the first step reads it
@@ -198,7 +179,7 @@ int main(int argc, char** argv) {
   if (!dist::Comm::world().root()) {
     auto& listeners = ::testing::UnitTest::GetInstance()->listeners();
     delete listeners.Release(listeners.default_result_printer());
-    listeners.Append(new FailurePrinter);
+    listeners.Append(new test::RankFailurePrinter);
   }
   const int rc = RUN_ALL_TESTS();
   return dist::Comm::world().max(std::int64_t(rc)) != 0 ? 1 : 0;
