@@ -255,6 +255,13 @@ ParsedPart parse_part(const std::string& path, const std::string& d) {
     throw InputError(path + ": checkpoint is corrupt or truncated (checksum mismatch)");
   Reader r(d, path);
   r.take(kMagicLen, "magic");
+  // A length-prefixed name of at most 256 bytes.
+  auto read_name = [&](const std::string& what) {
+    const auto len = r.get<std::uint32_t>((what + " name length").c_str());
+    if (len > 256)
+      throw InputError(path + ": checkpoint " + what + " name too long (corrupt file)");
+    return std::string(r.take(len, (what + " name").c_str()), len);
+  };
   ParsedPart p;
   p.version = r.get<std::uint32_t>("version");
   if (p.version != kVersion)
@@ -272,9 +279,7 @@ ParsedPart parse_part(const std::string& path, const std::string& d) {
   if (nattr > 256) throw InputError(path + ": checkpoint attribute count is corrupt");
   for (std::uint32_t i = 0; i < nattr; ++i) {
     ParsedPart::Attr a;
-    const auto len = r.get<std::uint32_t>("attribute name length");
-    if (len > 256) throw InputError(path + ": checkpoint attribute name too long (corrupt file)");
-    a.name.assign(r.take(len, "attribute name"), len);
+    a.name = read_name("attribute");
     a.type = r.get<std::uint32_t>("attribute type");
     a.width = r.get<std::uint32_t>("attribute width");
     a.words = r.get<std::uint32_t>("attribute words");
@@ -286,9 +291,7 @@ ParsedPart parse_part(const std::string& path, const std::string& d) {
   if (nsec > 4096) throw InputError(path + ": checkpoint section count is corrupt");
   for (std::uint32_t i = 0; i < nsec; ++i) {
     ParsedPart::Sec sec;
-    const auto len = r.get<std::uint32_t>("section name length");
-    if (len > 256) throw InputError(path + ": checkpoint section name too long (corrupt file)");
-    sec.name.assign(r.take(len, "section name"), len);
+    sec.name = read_name("section");
     sec.bytes = r.get<std::uint64_t>("section size");
     if (sec.bytes > d.size()) throw InputError(path + ": checkpoint section size is corrupt");
     sec.data = r.take(std::size_t(sec.bytes), "section data");

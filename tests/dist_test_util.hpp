@@ -34,4 +34,18 @@ class RankFailurePrinter : public ::testing::EmptyTestEventListener {
   }
 };
 
+// The main of a distributed gtest: MPI for the process's lifetime, failures of the non-root
+// ranks printed with their rank, and the job fails when any rank's tests fail.
+inline int run_tests_on_every_rank(int argc, char** argv) {
+  dist::Session session(&argc, &argv);
+  ::testing::InitGoogleTest(&argc, argv);
+  if (!dist::Comm::world().root()) {
+    auto& listeners = ::testing::UnitTest::GetInstance()->listeners();
+    delete listeners.Release(listeners.default_result_printer());
+    listeners.Append(new RankFailurePrinter);
+  }
+  const int rc = RUN_ALL_TESTS();
+  return dist::Comm::world().max(std::int64_t(rc)) != 0 ? 1 : 0;
+}
+
 }  // namespace amalgam::test

@@ -174,13 +174,5 @@ INSTANTIATE_TEST_SUITE_P(ElasticAndPlastic, DistPdBitwise, ::testing::Bool());
 
 int main(int argc, char** argv) {
   setenv("AMALGAM_TEST_REPARTITION_EVERY", "3", 1);  // before the first step reads it
-  dist::Session session(&argc, &argv);
-  ::testing::InitGoogleTest(&argc, argv);
-  if (!dist::Comm::world().root()) {
-    auto& listeners = ::testing::UnitTest::GetInstance()->listeners();
-    delete listeners.Release(listeners.default_result_printer());
-    listeners.Append(new test::RankFailurePrinter);
-  }
-  const int rc = RUN_ALL_TESTS();
-  return dist::Comm::world().max(std::int64_t(rc)) != 0 ? 1 : 0;
+  return test::run_tests_on_every_rank(argc, argv);
 }
