@@ -24,10 +24,11 @@ struct GridBlock {
   static int at(int i, int j, int k) { return ((i * B + j) * B + k) * CH; }
   void clear() { std::memset(data, 0, sizeof(data)); }
 
-  // Calls fn(block node pointer, leaf index, offset in leaf) for every node of the block, leaf
-  // by leaf (t = 0..7: +x, +y, +z neighbours by bit), z fastest.
-  template <class Fn>
-  void for_each_node(const std::array<std::int32_t, 8>& nbr8, Fn&& fn) {
+  // Calls fn(block node pointer, leaf index, offset in leaf) for every node of the block at
+  // `data` (this block's or a copy of one), leaf by leaf (t = 0..7: +x, +y, +z neighbours by
+  // bit), z fastest.
+  template <class P, class Fn>
+  static void visit(P* data, const std::array<std::int32_t, 8>& nbr8, Fn&& fn) {
     for (int t = 0; t < 8; ++t) {
       const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
       const std::size_t leaf = std::size_t(nbr8[size_t(t)]);
@@ -39,6 +40,10 @@ struct GridBlock {
             fn(data + at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k), leaf,
                leaf_offset(i, j, k));
     }
+  }
+  template <class Fn>
+  void for_each_node(const std::array<std::int32_t, 8>& nbr8, Fn&& fn) {
+    visit(data, nbr8, fn);
   }
   // 4-lane node vectors [leaf][512][4] (the implicit solver's layout): block <- grid (CH == 4).
   void gather4(const std::array<std::int32_t, 8>& nbr8, const Real* grid) {

@@ -230,16 +230,21 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
         space, "mpm.p2g", exec::Index(c1 - c0),
         [&](exec::Index ci) {
           const std::uint32_t b = g.colour_bins[c0 + std::uint32_t(ci)];
-          Blk blk;
-          scatter_bin<Order, T, L, P>(blk, b, p, g, prm);
           // Flush into the 8 target leaves; P: (m, m q) into q_out, PIC/FLIP: the force lanes into b
           // (their lane 0 is 0, so b's stays 0).
-          blk.for_each_node(g.nbr8[b], [&](const Real* s, std::size_t leaf, int off) {
+          auto flush = [&](const Real* s, std::size_t leaf, int off) {
             const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
             simd::store4(g.a + n, simd::load4(g.a + n) + simd::load4(s));
             if constexpr (CH == 8)
               simd::store4(second + n, simd::load4(second + n) + simd::load4(s + 4));
-          });
+          };
+          if (g.kept_slot && g.kept_slot[b] >= 0) {  // scattered by p2g_blocks already
+            Blk::visit(g.kept + std::size_t(g.kept_slot[b]) * Blk::kSize, g.nbr8[b], flush);
+            return;
+          }
+          Blk blk;
+          scatter_bin<Order, T, L, P>(blk, b, p, g, prm);
+          blk.for_each_node(g.nbr8[b], flush);
         },
         1);
   }
@@ -250,14 +255,16 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
 template <int Order, Transfer T, bool L = false, bool P = false>
 void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                      const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
-                     const std::function<void(std::size_t, const Real*, int)>& take) {
+                     Real* keep, const std::function<void(std::size_t, const Real*, int)>& take) {
   constexpr int CH = P ? 8 : channels_of(T);
+  using Blk = Block<Order, CH>;
   exec::parallel_for(
       space, "mpm.p2g_exports", exec::Index(nbins),
       [&](exec::Index k) {
-        Block<Order, CH> blk;
+        Blk blk;
         scatter_bin<Order, T, L, P>(blk, bins[k], p, g, prm);
         take(std::size_t(k), blk.data, CH);
+        std::memcpy(keep + std::size_t(k) * Blk::kSize, blk.data, sizeof(blk.data));
       },
       1);
 }
@@ -514,22 +521,23 @@ void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& 
 template <int O, Transfer T>
 struct P2GBlocks {
   static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g,
-                  const MpmStepParams& prm, const std::uint32_t* bins, std::size_t n,
+                  const MpmStepParams& prm, const std::uint32_t* bins, std::size_t n, Real* keep,
                   const std::function<void(std::size_t, const Real*, int)>& take) {
     if constexpr (T != Transfer::PicFlip) {
-      if (p.X_ref && g.q_out) return p2g_blocks_impl<O, T, true, true>(s, p, g, prm, bins, n, take);
+      if (p.X_ref && g.q_out)
+        return p2g_blocks_impl<O, T, true, true>(s, p, g, prm, bins, n, keep, take);
     }
     if (p.X_ref)
-      p2g_blocks_impl<O, T, true>(s, p, g, prm, bins, n, take);
+      p2g_blocks_impl<O, T, true>(s, p, g, prm, bins, n, keep, take);
     else
-      p2g_blocks_impl<O, T>(s, p, g, prm, bins, n, take);
+      p2g_blocks_impl<O, T>(s, p, g, prm, bins, n, keep, take);
   }
 };
 
 void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
-                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
+                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins, Real* keep,
                 const std::function<void(std::size_t, const Real*, int)>& take) {
-  dispatch<P2GBlocks>(prm.order, prm.transfer, space, p, g, prm, bins, nbins, take);
+  dispatch<P2GBlocks>(prm.order, prm.transfer, space, p, g, prm, bins, nbins, keep, take);
 }
 
 void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out) {
@@ -633,6 +641,11 @@ const MpmKernelTable mpm_kernels = {&grid_clear,    &p2g,         &clear_node4,
 int block_part_nodes(int order, int t) {
   return ((t >> 2) & 1 ? order : kLeafDim) * ((t >> 1) & 1 ? order : kLeafDim) *
          (t & 1 ? order : kLeafDim);
+}
+
+std::size_t p2g_block_reals(int order, int ch) {
+  const std::size_t B = std::size_t(kLeafDim + order);
+  return B * B * B * std::size_t(ch);
 }
 
 void copy_block_part(const Real* block, int order, int ch, int t, Real* out) {

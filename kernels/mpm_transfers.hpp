@@ -68,6 +68,8 @@ struct P2GImport {
 // Nodes of a bin block's part in its neighbour leaf t, and that part copied out of the block
 // (`block`: the (8 + order)^3 x ch block of p2g_blocks) in P2GImport's layout.
 int block_part_nodes(int order, int t);
+// Reals of a bin's P2G block ((8 + order)^3 nodes of ch lanes): p2g_blocks' `keep` stride.
+std::size_t p2g_block_reals(int order, int ch);
 void copy_block_part(const Real* block, int order, int ch, int t, Real* out);
 
 // What they use of the grid: channel sets and tables from SparseGrid + BinTable.
@@ -98,6 +100,10 @@ struct MpmGridView {
   // colour-c bins, so every node sums the same blocks in the same order as one process.
   const P2GImport* imports = nullptr;
   const std::uint32_t* import_colour_start = nullptr;  // 9 entries
+  // Distributed P2G: the blocks p2g_blocks kept. Bin b with kept_slot[b] >= 0 is not scattered
+  // again: block kept_slot[b] of `kept` (p2g_block_reals each) is flushed in its colour.
+  const std::int32_t* kept_slot = nullptr;
+  const Real* kept = nullptr;
 };
 
 class SparseGrid;
@@ -124,9 +130,10 @@ void p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& 
          const MpmStepParams& prm);
 // Distributed P2G: the P2G block of each listed bin, handed to take(k, block, ch) for bins[k]
 // (called on the exec threads, one bin at a time each; explicit transfers, Eulerian or
-// Lagrangian (p.X_ref), with g.q_out: the fused node positions in lanes 4..7 as in p2g).
+// Lagrangian (p.X_ref), with g.q_out: the fused node positions in lanes 4..7 as in p2g) and
+// stored at keep + k * p2g_block_reals(order, ch) for p2g's flush (g.kept).
 void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
-                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
+                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins, Real* keep,
                 const std::function<void(std::size_t, const Real*, int)>& take);
 // Zeroes the active leaves of a [leaf][512][4] array (g.q_out before a fused P2G).
 void clear_node4(const exec::Space& space, const MpmGridView& g, Real* out);
@@ -161,7 +168,7 @@ struct MpmKernelTable {
   Grid grid_apply_colliders;
   Particles g2p;
   void (*p2g_blocks)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
-                     const MpmStepParams&, const std::uint32_t*, std::size_t,
+                     const MpmStepParams&, const std::uint32_t*, std::size_t, Real*,
                      const std::function<void(std::size_t, const Real*, int)>&);
 };
 

@@ -48,9 +48,9 @@ void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& 
   mpm().g2p(space, p, g, prm);
 }
 void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
-                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
+                const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins, Real* keep,
                 const std::function<void(std::size_t, const Real*, int)>& take) {
-  mpm().p2g_blocks(space, p, g, prm, bins, nbins, take);
+  mpm().p2g_blocks(space, p, g, prm, bins, nbins, keep, take);
 }
 
 // The material update's SVDs run a vector of particles at a time: the path's width. The particle

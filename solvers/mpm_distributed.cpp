@@ -106,6 +106,10 @@ struct MpmSolver::Ranks {
   std::vector<std::vector<char>> received;
   std::vector<P2GImport> imports;
   std::array<std::uint32_t, 9> import_colour_start{};
+  // The export bins' P2G blocks, kept for the colour loop's flush (scattered once): per bin its
+  // slot in `kept` or -1.
+  std::vector<Real> kept;
+  std::vector<std::int32_t> kept_slot;
   std::vector<std::int32_t> owned_active;
   dist::HaloPlan halo;
   std::uint64_t halo_leaves = 0, halo_parts = 0;  // per substep, this rank (for the summary)
@@ -434,13 +438,20 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
     g.q_out = grid_.node4(channels_.positions);
     clear_node4(space, g, g.q_out);
   }
-  // The parts of the blocks that other ranks' leaves receive, scattered first.
+  // The blocks of the bins whose parts other ranks' leaves receive, scattered first: their parts
+  // sent, the blocks kept for the colour loop's flush.
+  const int ch = settings_.transfer == Transfer::PicFlip || fused_positions() ? 8 : 4;
   std::vector<std::vector<char>> send(static_cast<std::size_t>(R));
   for (int q = 0; q < R; ++q)
     send[std::size_t(q)].resize(rk.send_reals[std::size_t(q)] * sizeof(Real));
+  const std::size_t block_reals = p2g_block_reals(order, ch);
+  rk.kept.resize(rk.export_bins.size() * block_reals);
+  rk.kept_slot.assign(bins_.count(), -1);
+  for (std::size_t k = 0; k < rk.export_bins.size(); ++k)
+    rk.kept_slot[rk.export_bins[k]] = std::int32_t(k);
   const MpmParticleView pv = particle_view();
-  p2g_blocks(space, pv, g, prm, rk.export_bins.data(), rk.export_bins.size(),
-             [&](std::size_t k, const Real* block, int ch) {
+  p2g_blocks(space, pv, g, prm, rk.export_bins.data(), rk.export_bins.size(), rk.kept.data(),
+             [&](std::size_t k, const Real* block, int) {
                for (std::uint32_t e = rk.export_start[k]; e < rk.export_start[k + 1]; ++e) {
                  const Ranks::Export& x = rk.exports[e];
                  Real* out = reinterpret_cast<Real*>(send[std::size_t(x.rank)].data()) + x.offset;
@@ -452,7 +463,6 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
     rk.received = comm.alltoall(send);
   }
   // The received parts by colour of the block they come from (the bin leaf = leaf - t).
-  const int ch = settings_.transfer == Transfer::PicFlip || fused_positions() ? 8 : 4;
   std::vector<P2GImport> by_rank;
   std::array<std::uint32_t, 9> count{};
   std::vector<std::size_t> at(std::size_t(R), 0);
@@ -476,6 +486,8 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
     rk.imports[count[std::size_t(colour[i])]++] = by_rank[i];
   g.imports = rk.imports.data();
   g.import_colour_start = rk.import_colour_start.data();
+  g.kept_slot = rk.kept_slot.data();
+  g.kept = rk.kept.data();
   p2g(space, pv, g, prm);
 }
 
