@@ -54,6 +54,7 @@ void MpmAul::update_configurations(const exec::Space& space, MpmSolver& mpm) {
       if (mpm.distributed()) {
         ranks.owned = &mpm.owned_leaf_list();
         ranks.owner = [&mpm](const Vec3i& l) { return mpm.leaf_owner(l); };
+        ranks.peers = &mpm.exchange_peers();
       }
       contact_.map_leaves(space, mpm.grid_, mpm.bins_, ps.int32(cattr_.object),
                           mpm.distributed() ? &ranks : nullptr);

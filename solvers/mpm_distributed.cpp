@@ -38,6 +38,11 @@ namespace amalgam {
 namespace {
 constexpr double kImbalance = 1.25;  // max/mean particles per rank that triggers a repartition
 constexpr std::uint64_t kRepartitionGap = 16;  // substeps between repartitions at least
+// The exchange peers: the ranks whose cut boxes come within 1.5 leaves of this rank's (node
+// units, as the leaf centres). A leaf next to one of this rank's (its bins' +x/+y/+z neighbours,
+// a migrating particle's new leaf) has its centre within 1.25 leaves of an own leaf's centre
+// (leaf_centre moves centres by under a quarter leaf), so its owner is a peer.
+constexpr double kPeerMargin = 1.5 * kLeafDim;
 
 // A leaf coordinate as one 63-bit key whose order is the lexicographic (x, y, z) order of the
 // single process's bins (sparse_grid/binning.cpp).
@@ -83,6 +88,9 @@ Vec3i leaf_of_order(const Vec3& x, Real inv_dx) {
 struct MpmSolver::Ranks {
   dist::RcbCuts cuts;
   std::unordered_map<std::uint64_t, int> owner_cache;  // leaf key -> rank, for these cuts
+  std::vector<int> peers;                              // cuts.neighbours(kPeerMargin)
+  std::vector<Vec3i> migrate_leaf;  // migrate's scratch: each particle's leaf and rank
+  std::vector<int> migrate_dest;
   std::uint64_t last_partition = 0;                    // step of the last (re)partition
   std::uint64_t repartitions = 0;
   double balanced = 1;  // max/mean particles per rank right after the last partition
@@ -200,6 +208,7 @@ void MpmSolver::distribute(const exec::Space& space) {
     w.push_back(count[i]);
   }
   ranks->cuts = dist::RcbCuts::partition(ids, xyz, w);
+  ranks->peers = ranks->cuts.neighbours(kPeerMargin);
   ranks->last_partition = steps_;
   std::vector<std::uint32_t> keep;
   for (std::size_t p = 0; p < n; ++p)
@@ -215,7 +224,7 @@ void MpmSolver::distribute(const exec::Space& space) {
 }
 
 // Particles whose leaf another rank owns go to it: every attribute's words, particle by particle.
-void MpmSolver::migrate(const exec::Space& space) {
+void MpmSolver::migrate(const exec::Space& space, bool anywhere) {
   exec::ScopedRegion region(space.profiler(), "dist.migrate");
   const dist::Comm& comm = dist::Comm::world();
   Ranks& rk = *ranks_;
@@ -223,8 +232,8 @@ void MpmSolver::migrate(const exec::Space& space) {
   const Vec3* x = particles_.vec3(bin_position());
   // Each particle's leaf in parallel (with the first bad position), then the owners serially:
   // the particles are in leaf order from the last sort, so most share the previous one's leaf.
-  std::vector<Vec3i> leaf(n);
-  Vec3i* lf = leaf.data();
+  rk.migrate_leaf.resize(n);
+  Vec3i* lf = rk.migrate_leaf.data();
   const Real dx = settings_.dx;
   const std::int64_t bad = exec::parallel_reduce(
       space, "dist.migrate_leaves", exec::Index(n), std::int64_t(-1),
@@ -236,14 +245,21 @@ void MpmSolver::migrate(const exec::Space& space) {
         lf[p] = particle_leaf(x[p]);
       },
       [](std::int64_t a, std::int64_t b) { return a < 0 ? b : (b < 0 ? a : std::min(a, b)); });
-  std::vector<int> dest(n);
+  rk.migrate_dest.resize(n);
+  std::vector<int>& dest = rk.migrate_dest;
+  std::vector<char> is_peer(std::size_t(comm.size()), char(anywhere));
+  for (int q : rk.peers) is_peer[std::size_t(q)] = 1;
+  is_peer[std::size_t(comm.rank())] = 1;
   Vec3i last(INT_MIN, 0, 0);
   int last_owner = 0;
+  bool far = false;  // a particle for a rank that is not a peer (moved more than a leaf)
   for (std::size_t p = 0; p < n && bad < 0; ++p) {
-    if (lf[p] != last) last = lf[p], last_owner = rk.owner(lf[p]);
+    if (lf[p] != last) last = lf[p], last_owner = rk.owner(lf[p]), far |= !is_peer[last_owner];
     dest[p] = last_owner;
   }
-  if (comm.max(std::int64_t(bad >= 0)) > 0)
+  // One reduction for both: 2 a bad position somewhere, 1 a particle for a non-peer.
+  const std::int64_t status = comm.max(std::int64_t(bad >= 0 ? 2 : far ? 1 : 0));
+  if (status == 2)
     throw SimulationError(bad >= 0 ? "step " + std::to_string(steps_) + ": particle id " +
                                          std::to_string(particles_.int32(attr_.id)[bad]) +
                                          " (rank " + std::to_string(comm.rank()) +
@@ -266,7 +282,8 @@ void MpmSolver::migrate(const exec::Space& space) {
       out.insert(out.end(), src, src + wa * 4);
     }
   }
-  const std::vector<std::vector<char>> in = comm.alltoall(send);
+  const std::vector<std::vector<char>> in =
+      status == 1 || anywhere ? comm.alltoall(send) : comm.alltoall(send, rk.peers);
   // The leavers' slots are filled from the end (a few copies, not a gather of every particle):
   // the order changes, but the sort that follows puts the particles in (leaf, id) order, which
   // does not depend on the order they come in.
@@ -325,6 +342,7 @@ void MpmSolver::repartition() {
     w.push_back(count[keys[i]]);
   }
   rk.cuts = dist::RcbCuts::partition(ids, xyz, w);
+  rk.peers = rk.cuts.neighbours(kPeerMargin);
   rk.owner_cache.clear();
   rk.last_partition = steps_;
   ++rk.repartitions;
@@ -333,7 +351,7 @@ void MpmSolver::repartition() {
 void MpmSolver::sort_distributed(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   Ranks& rk = *ranks_;
-  migrate(space);
+  migrate(space, false);
   // Repartition when the work (particles) is unbalanced; results do not depend on the partition.
   const std::int64_t mine = std::int64_t(particles_.size());
   const double most = double(comm.max(mine)),
@@ -346,7 +364,7 @@ void MpmSolver::sort_distributed(const exec::Space& space) {
   if (forced || (imbalance > kImbalance && imbalance > 1.1 * rk.balanced &&
                  steps_ >= rk.last_partition + kRepartitionGap)) {
     repartition();
-    migrate(space);
+    migrate(space, true);
     const std::int64_t now = std::int64_t(particles_.size());
     rk.balanced = double(comm.max(now)) / mean;
   }
@@ -390,7 +408,7 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
   }
   std::vector<std::vector<char>> hb(static_cast<std::size_t>(R));
   for (int q = 0; q < R; ++q) hb[std::size_t(q)] = dist::as_bytes(heads[std::size_t(q)]);
-  const std::vector<std::vector<char>> in = comm.alltoall(hb);
+  const std::vector<std::vector<char>> in = comm.alltoall(hb, rk.peers);
   rk.import_leaf.clear(), rk.import_t.clear(), rk.import_rank.clear();
   for (int q = 0; q < R; ++q) {
     const std::vector<std::int32_t> h = dist::from_bytes<std::int32_t>(in[std::size_t(q)]);
@@ -418,8 +436,9 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
   std::vector<std::uint32_t> ghost_slots;
   for (std::uint64_t k : ghost_keys)
     ghost_slots.push_back(std::uint32_t(grid_.find_leaf(key_leaf(k) * kLeafDim)));
-  rk.halo = dist::HaloPlan(own_ids, own_slots, ghost_keys, ghost_slots,
-                           [&](std::uint64_t k) { return rk.owner(key_leaf(k)); });
+  rk.halo = dist::HaloPlan(
+      own_ids, own_slots, ghost_keys, ghost_slots,
+      [&](std::uint64_t k) { return rk.owner(key_leaf(k)); }, &rk.peers);
   rk.halo_leaves = ghost_keys.size();
   rk.halo_parts = rk.exports.size();
   if (sleep_)
@@ -459,8 +478,13 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
                }
              });
   {
+    // Both sides know the sizes from the plan's heads: point to point, no sizes round.
     exec::ScopedRegion region(space.profiler(), "dist.p2g_exchange");
-    rk.received = comm.alltoall(send);
+    std::vector<std::size_t> expect(std::size_t(R), 0);
+    for (std::size_t i = 0; i < rk.import_t.size(); ++i)
+      expect[std::size_t(rk.import_rank[i])] +=
+          std::size_t(block_part_nodes(order, rk.import_t[i]) * ch) * sizeof(Real);
+    rk.received = comm.exchange(send, expect);
   }
   // The received parts by colour of the block they come from (the bin leaf = leaf - t).
   std::vector<P2GImport> by_rank;
@@ -514,6 +538,9 @@ const std::vector<std::int32_t>& MpmSolver::owned_leaf_list() const {
 }
 int MpmSolver::leaf_owner(const Vec3i& leaf) const {
   return ranks_->owner(leaf);
+}
+const std::vector<int>& MpmSolver::exchange_peers() const {
+  return ranks_->peers;
 }
 
 std::vector<std::uint64_t> MpmSolver::order_keys() const {

@@ -232,11 +232,14 @@ class MpmSolver {
   // the owners' node rows (m, v; PIC/FLIP's dv) copied into the ghosts again.
   const std::vector<std::int32_t>& owned_leaf_list() const;
   int leaf_owner(const Vec3i& leaf) const;
+  // The ranks this rank exchanges with every substep (RcbCuts::neighbours of its cut box).
+  const std::vector<int>& exchange_peers() const;
   void exchange_ghost_rows(const exec::Space& space);
   // Field colliders built around every rank's particles (collective), as on one process.
   void prepare_colliders_distributed(const exec::Space& space, Real t);
   void refuse_distributed() const;
-  void migrate(const exec::Space& space);
+  // anywhere: after a repartition particles may go to any rank; otherwise only to the peers.
+  void migrate(const exec::Space& space, bool anywhere);
   void repartition();
   void sort_distributed(const exec::Space& space);
   void update_grid_distributed(const exec::Space& space);

@@ -87,7 +87,8 @@ void ObjectContact::map_leaves(const exec::Space& space, const SparseGrid& ref,
       }
     std::vector<std::vector<char>> bytes;
     for (const auto& v : send) bytes.push_back(dist::as_bytes(v));
-    for (const std::vector<char>& in : comm.alltoall(bytes)) {
+    for (const std::vector<char>& in :
+         ranks->peers ? comm.alltoall(bytes, *ranks->peers) : comm.alltoall(bytes)) {
       const std::vector<std::int32_t> h = dist::from_bytes<std::int32_t>(in);
       for (size_t i = 0; i + 3 < h.size(); i += 4) {
         const std::int32_t li = ref.find_leaf(Vec3i(h[i], h[i + 1], h[i + 2]) * kLeafDim);

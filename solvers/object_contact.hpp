@@ -30,6 +30,7 @@ struct ObjectContactSettings {
 struct ContactRanks {
   const std::vector<std::int32_t>* owned = nullptr;
   std::function<int(const Vec3i&)> owner;
+  const std::vector<int>* peers = nullptr;  // the owners of every leaf a bin reaches, and more
 };
 
 class ObjectContact {

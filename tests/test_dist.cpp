@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <cstring>
 #include <numeric>
+#include <stdexcept>
 #include <vector>
 
 #include "core/dist/comm.hpp"
@@ -139,6 +140,75 @@ TEST(Dist, GhostsReceiveTheirOwnersBits) {
     const Rec want_rec = value(local[k]);
     ASSERT_EQ(std::memcmp(&v[k], &want_rec, sizeof(Rec)), 0) << "item " << local[k];
   }
+}
+
+// RcbCuts::neighbours is symmetric and holds the owner of every point next to an owned one, and
+// the all-to-all among those peers delivers exactly what each peer sent (and refuses bytes for a
+// rank that is not a peer, before sending anything).
+TEST(Dist, NeighbourPeersAreSymmetricCompleteAndExchange) {
+  const Comm& c = Comm::world();
+  std::uint64_t b = 0, e = 0;
+  slice(b, e);
+  std::vector<std::uint64_t> ids;
+  std::vector<double> xyz;
+  for (std::uint64_t id = b; id < e; ++id) {
+    ids.push_back(id);
+    double p[3];
+    point(id, p);
+    xyz.insert(xyz.end(), p, p + 3);
+  }
+  const RcbCuts cuts = RcbCuts::partition(ids, xyz, {});
+  const std::vector<int> peers = cuts.neighbours(0.015);  // 1.5 lattice steps
+  if (c.size() == 1) EXPECT_TRUE(peers.empty());
+  std::vector<char> is_peer(std::size_t(c.size()), 0);
+  for (int r : peers) {
+    EXPECT_NE(r, c.rank());
+    is_peer[std::size_t(r)] = 1;
+  }
+  // Symmetric: every rank's list, on every rank.
+  std::vector<std::size_t> sizes;
+  const std::vector<int> all = from_bytes<int>(c.allgather(as_bytes(peers), &sizes));
+  std::size_t at = 0;
+  for (int q = 0; q < c.size(); ++q) {
+    const std::size_t n = sizes[std::size_t(q)] / sizeof(int);
+    for (std::size_t k = 0; k < n; ++k)
+      if (all[at + k] == c.rank()) EXPECT_TRUE(is_peer[std::size_t(q)]) << "rank " << q;
+    bool lists_me = false;
+    for (std::size_t k = 0; k < n; ++k) lists_me |= all[at + k] == c.rank();
+    if (is_peer[std::size_t(q)]) EXPECT_TRUE(lists_me) << "rank " << q;
+    at += n;
+  }
+  // Complete: the owner of every lattice point next to one this rank owns is a peer.
+  for (std::uint64_t id = 0; id < kCount; ++id) {
+    double p[3];
+    point(id, p);
+    if (cuts.owner(p) != c.rank()) continue;
+    for (int d = 0; d < 27; ++d) {
+      const double q[3] = {p[0] + 0.01 * (d % 3 - 1), p[1] + 0.01 * (d / 3 % 3 - 1),
+                           p[2] + 0.01 * (d / 9 - 1)};
+      const int o = cuts.owner(q);
+      EXPECT_TRUE(o == c.rank() || is_peer[std::size_t(o)]) << "owner " << o;
+    }
+  }
+  // The exchange: to each peer its rank and ours, repeated by the peer's number + 1.
+  std::vector<std::vector<char>> send(std::size_t(c.size()));
+  for (int r : peers)
+    send[std::size_t(r)] = as_bytes(std::vector<int>(std::size_t(r + 1), c.rank() * 100 + r));
+  const std::vector<std::vector<char>> got = c.alltoall(send, peers);
+  for (int q = 0; q < c.size(); ++q) {
+    if (q == c.rank()) continue;
+    const std::vector<int> v = from_bytes<int>(got[std::size_t(q)]);
+    if (is_peer[std::size_t(q)])
+      EXPECT_EQ(v, std::vector<int>(std::size_t(c.rank() + 1), q * 100 + c.rank()));
+    else
+      EXPECT_TRUE(v.empty());
+  }
+  for (int q = 0; q < c.size(); ++q)
+    if (q != c.rank() && !is_peer[std::size_t(q)]) {
+      std::vector<std::vector<char>> bad(std::size_t(c.size()));
+      bad[std::size_t(q)] = {'x'};
+      EXPECT_THROW(c.alltoall(bad, peers), std::logic_error);
+    }
 }
 
 TEST(Dist, CollectivesAreExact) {

@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cstdlib>
 #include <iostream>
@@ -288,58 +289,74 @@ std::vector<char> Comm::gather(const std::vector<char>& mine,
 }
 
 std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char>>& send) const {
+  std::vector<int> others;
+  for (int r = 0; r < size_; ++r)
+    if (r != rank_) others.push_back(r);
+  return alltoall(send, others);
+}
+
+std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char>>& send,
+                                              const std::vector<int>& peers) const {
   if (size_ == 1) return send;
   // Point to point (sizes, then bytes), so a time-out can name the peers that did not answer.
   // Messages between two ranks stay in order (MPI's non-overtaking rule), and every rank makes
   // the same sequence of calls, so tags need not count.
   constexpr int kSizeTag = 28001, kDataTag = 28002;
   const std::size_t R = std::size_t(size_), me = std::size_t(rank_);
-  std::uint64_t payload = 0, sends = R - 1;
-  for (std::size_t r = 0; r < R; ++r)
-    if (r != me && !send[r].empty()) payload += send[r].size(), ++sends;
-  const Meter meter(traffic_, payload + (R - 1) * sizeof(std::uint64_t), sends);
+  std::vector<char> is_peer(R, 0);
+  for (int r : peers) is_peer[std::size_t(r)] = 1;
+  std::uint64_t payload = 0, sends = peers.size();
+  for (std::size_t r = 0; r < R; ++r) {
+    if (r == me || send[r].empty()) continue;
+    if (!is_peer[r])
+      throw std::logic_error("MPI: rank " + std::to_string(rank_) + " has bytes for rank " +
+                             std::to_string(r) + ", which is not one of its exchange peers");
+    payload += send[r].size(), ++sends;
+  }
+  const Meter meter(traffic_, payload + peers.size() * sizeof(std::uint64_t), sends);
   std::vector<std::uint64_t> out_n(R), in_n(R, 0);
   std::vector<MPI_Request> req;
   std::vector<int> peer;
   for (std::size_t r = 0; r < R; ++r) {
     out_n[r] = send[r].size();
     if (out_n[r] > std::uint64_t(2147483647)) throw std::runtime_error("MPI: a message over 2 GB");
-    if (r == me) continue;
-    req.emplace_back();
-    peer.push_back(int(r));
-    check(MPI_Irecv(&in_n[r], 1, MPI_UINT64_T, int(r), kSizeTag, MPI_COMM_WORLD, &req.back()),
-          "MPI_Irecv");
   }
-  for (std::size_t r = 0; r < R; ++r) {
-    if (r == me) continue;
+  for (int r : peers) {
     req.emplace_back();
-    peer.push_back(int(r));
-    check(MPI_Isend(&out_n[r], 1, MPI_UINT64_T, int(r), kSizeTag, MPI_COMM_WORLD, &req.back()),
+    peer.push_back(r);
+    check(
+        MPI_Irecv(&in_n[std::size_t(r)], 1, MPI_UINT64_T, r, kSizeTag, MPI_COMM_WORLD, &req.back()),
+        "MPI_Irecv");
+  }
+  for (int r : peers) {
+    req.emplace_back();
+    peer.push_back(r);
+    check(MPI_Isend(&out_n[std::size_t(r)], 1, MPI_UINT64_T, r, kSizeTag, MPI_COMM_WORLD,
+                    &req.back()),
           "MPI_Isend");
   }
   wait_all(req, peer, "the all-to-all exchange (sizes)");
   std::vector<std::vector<char>> recv(R);
+  recv[me] = send[me];
   req.clear();
   peer.clear();
-  for (std::size_t r = 0; r < R; ++r) {
-    if (r == me) {
-      recv[r] = send[r];
-      continue;
-    }
-    if (in_n[r] > std::uint64_t(2147483647)) throw std::runtime_error("MPI: a message over 2 GB");
-    recv[r].resize(std::size_t(in_n[r]));
-    if (in_n[r] == 0) continue;
+  for (int r : peers) {
+    const std::size_t q = std::size_t(r);
+    if (in_n[q] > std::uint64_t(2147483647)) throw std::runtime_error("MPI: a message over 2 GB");
+    recv[q].resize(std::size_t(in_n[q]));
+    if (in_n[q] == 0) continue;
     req.emplace_back();
-    peer.push_back(int(r));
-    check(MPI_Irecv(recv[r].data(), int(in_n[r]), MPI_BYTE, int(r), kDataTag, MPI_COMM_WORLD,
-                    &req.back()),
-          "MPI_Irecv");
+    peer.push_back(r);
+    check(
+        MPI_Irecv(recv[q].data(), int(in_n[q]), MPI_BYTE, r, kDataTag, MPI_COMM_WORLD, &req.back()),
+        "MPI_Irecv");
   }
-  for (std::size_t r = 0; r < R; ++r) {
-    if (r == me || out_n[r] == 0) continue;
+  for (int r : peers) {
+    const std::size_t q = std::size_t(r);
+    if (out_n[q] == 0) continue;
     req.emplace_back();
-    peer.push_back(int(r));
-    check(MPI_Isend(send[r].data(), int(out_n[r]), MPI_BYTE, int(r), kDataTag, MPI_COMM_WORLD,
+    peer.push_back(r);
+    check(MPI_Isend(send[q].data(), int(out_n[q]), MPI_BYTE, r, kDataTag, MPI_COMM_WORLD,
                     &req.back()),
           "MPI_Isend");
   }
@@ -536,6 +553,31 @@ std::vector<int> RcbCuts::ranks_in_box(const double* lo, const double* hi) const
   return procs;
 }
 
+std::vector<int> RcbCuts::neighbours(double margin) const {
+  if (!zz_) return {};
+  Zoltan_Struct* zz = static_cast<Zoltan_Struct*>(zz_.get());
+  const int R = Comm::world().size(), me = Comm::world().rank();
+  std::vector<std::array<double, 6>> box(static_cast<std::size_t>(R));
+  for (int r = 0; r < R; ++r) {
+    int nd = 0;
+    double* b = box[std::size_t(r)].data();
+    if (Zoltan_RCB_Box(zz, r, &nd, &b[0], &b[1], &b[2], &b[3], &b[4], &b[5]) != ZOLTAN_OK)
+      throw std::runtime_error("Zoltan_RCB_Box failed for part " + std::to_string(r));
+  }
+  const std::array<double, 6>& m = box[std::size_t(me)];
+  std::vector<int> out;
+  for (int r = 0; r < R; ++r) {
+    if (r == me) continue;
+    const std::array<double, 6>& o = box[std::size_t(r)];
+    bool near = true;
+    for (int a = 0; a < 3; ++a)
+      near = near && o[std::size_t(a)] <= m[std::size_t(a) + 3] + margin &&
+             m[std::size_t(a)] <= o[std::size_t(a) + 3] + margin;
+    if (near) out.push_back(r);
+  }
+  return out;
+}
+
 #else  // no MPI: one rank
 
 bool mpi_built() {
@@ -570,6 +612,10 @@ std::vector<char> Comm::gather(const std::vector<char>& mine,
 std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char>>& send) const {
   return send;
 }
+std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char>>& send,
+                                              const std::vector<int>&) const {
+  return send;
+}
 std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char>>& send,
                                               const std::vector<std::size_t>&) const {
   return send;
@@ -592,6 +638,9 @@ int RcbCuts::owner(const double*) const {
 }
 std::vector<int> RcbCuts::ranks_in_box(const double*, const double*) const {
   return {0};
+}
+std::vector<int> RcbCuts::neighbours(double) const {
+  return {};
 }
 
 #endif

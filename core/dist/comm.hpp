@@ -62,6 +62,12 @@ class Comm {
   std::vector<char> gather(const std::vector<char>& mine, std::vector<std::size_t>* sizes) const;
   // send[r]: the bytes for rank r (size() entries); returns recv[r]: the bytes from rank r.
   std::vector<std::vector<char>> alltoall(const std::vector<std::vector<char>>& send) const;
+  // The same among `peers` only: sizes and bytes go to and come from those ranks, none from the
+  // others, so the cost is O(|peers|), not O(size()). `peers` must be symmetric over the ranks
+  // (r lists this rank exactly when this rank lists r; RcbCuts::neighbours) and send[r] empty
+  // for every other rank r (std::logic_error otherwise, before anything is sent).
+  std::vector<std::vector<char>> alltoall(const std::vector<std::vector<char>>& send,
+                                          const std::vector<int>& peers) const;
   // Point to point (MPI_Isend/MPI_Irecv, no collective): send[r] goes to rank r when not empty;
   // recv_bytes[r] bytes are received from rank r when not zero (both sides know the pattern, as a
   // HaloPlan does). Returns recv[r]. Only the ranks that exchange bytes take part.
@@ -119,6 +125,10 @@ class RcbCuts {
   // The ranks whose cut regions meet the box [lo, hi] (Zoltan_LB_Box_Assign), local. Default:
   // rank 0.
   std::vector<int> ranks_in_box(const double* lo, const double* hi) const;
+  // The other ranks whose cut regions come within `margin` of this rank's along every axis
+  // (Zoltan_RCB_Box of every part, local): symmetric by construction, every rank applies the
+  // same test to the same boxes. Sorted; empty on one rank.
+  std::vector<int> neighbours(double margin) const;
 
  private:
   std::shared_ptr<void> zz_;  // the Zoltan_Struct holding the cuts

@@ -9,11 +9,13 @@ namespace amalgam::dist {
 
 void HaloPlan::build(const std::vector<std::uint64_t>& owned_ids,
                      const std::vector<std::uint32_t>& owned_slots,
-                     const std::vector<std::vector<std::uint64_t>>& want_from) {
+                     const std::vector<std::vector<std::uint64_t>>& want_from,
+                     const std::vector<int>* peers) {
   const Comm& comm = Comm::world();
   std::vector<std::vector<char>> ask(want_from.size());
   for (std::size_t r = 0; r < want_from.size(); ++r) ask[r] = as_bytes(want_from[r]);
-  const std::vector<std::vector<char>> asked = comm.alltoall(ask);
+  const std::vector<std::vector<char>> asked =
+      peers ? comm.alltoall(ask, *peers) : comm.alltoall(ask);
   // This rank's owned ids, sorted, to find each requested id's slot.
   std::vector<std::pair<std::uint64_t, std::uint32_t>> mine(owned_ids.size());
   for (std::size_t k = 0; k < owned_ids.size(); ++k) mine[k] = {owned_ids[k], owned_slots[k]};

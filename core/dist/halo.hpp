@@ -19,12 +19,14 @@ class HaloPlan {
   HaloPlan() = default;
   // owned_ids: the global ids this rank owns, with their local slots; ghost_ids: the ids this
   // rank needs from others, with their local slots; owner_of(id) must know every ghost's owner.
-  // Collective: every rank calls it.
+  // Collective: every rank calls it. peers: when given, the requests go to those ranks only
+  // (Comm::alltoall among peers; every ghost's owner must be one of them).
   template <class OwnerOf>
   HaloPlan(const std::vector<std::uint64_t>& owned_ids,
            const std::vector<std::uint32_t>& owned_slots,
            const std::vector<std::uint64_t>& ghost_ids,
-           const std::vector<std::uint32_t>& ghost_slots, OwnerOf owner_of);
+           const std::vector<std::uint32_t>& ghost_slots, OwnerOf owner_of,
+           const std::vector<int>* peers = nullptr);
 
   // Copies the owners' values of `data` (an array of records of `bytes` bytes, indexed by local
   // slot) into this rank's ghost slots. Point to point between the ranks that share ghosts
@@ -42,7 +44,8 @@ class HaloPlan {
  private:
   void build(const std::vector<std::uint64_t>& owned_ids,
              const std::vector<std::uint32_t>& owned_slots,
-             const std::vector<std::vector<std::uint64_t>>& want_from);
+             const std::vector<std::vector<std::uint64_t>>& want_from,
+             const std::vector<int>* peers);
   // send_[r]: local slots whose values go to rank r, in the order rank r asked for them;
   // recv_[r]: local ghost slots filled from rank r, in the same order.
   std::vector<std::vector<std::uint32_t>> send_, recv_;
@@ -53,7 +56,8 @@ template <class OwnerOf>
 HaloPlan::HaloPlan(const std::vector<std::uint64_t>& owned_ids,
                    const std::vector<std::uint32_t>& owned_slots,
                    const std::vector<std::uint64_t>& ghost_ids,
-                   const std::vector<std::uint32_t>& ghost_slots, OwnerOf owner_of) {
+                   const std::vector<std::uint32_t>& ghost_slots, OwnerOf owner_of,
+                   const std::vector<int>* peers) {
   const Comm& comm = Comm::world();
   std::vector<std::vector<std::uint64_t>> want(std::size_t(comm.size()));
   recv_.assign(std::size_t(comm.size()), {});
@@ -63,7 +67,7 @@ HaloPlan::HaloPlan(const std::vector<std::uint64_t>& owned_ids,
     recv_[std::size_t(r)].push_back(ghost_slots[k]);
   }
   recv_slots_total_ = ghost_ids.size();
-  build(owned_ids, owned_slots, want);
+  build(owned_ids, owned_slots, want, peers);
 }
 
 }  // namespace amalgam::dist
