@@ -12,7 +12,8 @@
 //             to the owners; the colour loop then adds, per colour, the received parts before its
 //             own bins' flush: within a colour no two blocks meet, so every node of an owned leaf
 //             sums the same blocks in the same colour order as one process (docs/architecture.md).
-//   grid      update on owned leaves; the owners' node rows copied into the ghosts (HaloPlan).
+//   grid      update on owned leaves; the owners' node rows copied into the ghosts, only the nodes
+//             G2P reads (the parts of the ghost leaves this rank's blocks reach).
 //   G2P       unchanged: every leaf a local bin reads is owned or a ghost.
 // Reductions are exact (max of the CFL speeds and the guard's flag); diagnostics, frames and
 // checkpoints are computed on rank 0 from the particles gathered in the single process's order
@@ -27,7 +28,6 @@
 #include <unordered_map>
 
 #include "core/dist/comm.hpp"
-#include "core/dist/halo.hpp"
 #include "core/errors.hpp"
 #include "core/geometry/level_set_collider.hpp"
 #include "core/math/bspline.hpp"
@@ -77,6 +77,28 @@ Vec3i offset_of(int t) {
   return Vec3i((t >> 2) & 1, (t >> 1) & 1, t & 1);
 }
 
+// The nodes of a leaf that the parts in `mask` cover (bit t: the part of the block of the bin at
+// leaf - offset_of(t), as block_part_nodes: along an axis with t's bit set, the first `order`
+// nodes), in leaf offset order. G2P reads exactly these nodes of a ghost leaf.
+const std::vector<std::uint16_t>& part_nodes(int order, std::uint32_t mask) {
+  static const auto tables = [] {
+    std::array<std::array<std::vector<std::uint16_t>, 256>, 2> t;
+    for (int o = 2; o <= 3; ++o)
+      for (std::uint32_t m = 0; m < 256; ++m)
+        for (int i = 0; i < kLeafDim; ++i)
+          for (int j = 0; j < kLeafDim; ++j)
+            for (int k = 0; k < kLeafDim; ++k) {
+              bool in = false;
+              for (int q = 0; q < 8 && !in; ++q)
+                in = (m >> q & 1) && (!(q >> 2 & 1) || i < o) && (!(q >> 1 & 1) || j < o) &&
+                     (!(q & 1) || k < o);
+              if (in) t[std::size_t(o - 2)][m].push_back(std::uint16_t(leaf_offset(i, j, k)));
+            }
+    return t;
+  }();
+  return tables[std::size_t(order - 2)][mask & 255];
+}
+
 template <int Order>
 Vec3i leaf_of_order(const Vec3& x, Real inv_dx) {
   Vec3i l;
@@ -91,7 +113,7 @@ struct MpmSolver::Ranks {
   std::vector<int> peers;                              // cuts.neighbours(kPeerMargin)
   std::vector<Vec3i> migrate_leaf;  // migrate's scratch: each particle's leaf and rank
   std::vector<int> migrate_dest;
-  std::uint64_t last_partition = 0;                    // step of the last (re)partition
+  std::uint64_t last_partition = 0;  // step of the last (re)partition
   std::uint64_t repartitions = 0;
   double balanced = 1;  // max/mean particles per rank right after the last partition
   int force_every = 0;  // test hook: repartition every N substeps
@@ -119,7 +141,15 @@ struct MpmSolver::Ranks {
   std::vector<Real> kept;
   std::vector<std::int32_t> kept_slot;
   std::vector<std::int32_t> owned_active;
-  dist::HaloPlan halo;
+  // The ghost node rows, by peer rank: (local leaf slot, mask of the block parts t = 1..7 read
+  // there), sorted by leaf key on both sides: what this rank sends (its leaves others read) and
+  // receives (its ghost leaves). Both sides know them from the plan's heads.
+  struct RowPart {
+    std::uint32_t slot;
+    std::uint32_t mask;
+  };
+  std::vector<std::vector<RowPart>> rows_send, rows_recv;
+  std::vector<std::size_t> rows_send_nodes, rows_recv_nodes;  // per rank
   std::uint64_t halo_leaves = 0, halo_parts = 0;  // per substep, this rank (for the summary)
 
   int owner(const Vec3i& l) {
@@ -422,23 +452,47 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
   // Owned active leaves: the active ones that are no ghost.
   std::sort(ghost_keys.begin(), ghost_keys.end());
   ghost_keys.erase(std::unique(ghost_keys.begin(), ghost_keys.end()), ghost_keys.end());
-  std::vector<std::uint64_t> own_ids;
-  std::vector<std::uint32_t> own_slots;
   rk.owned_active.clear();
   const auto& coords = grid_.leaf_coords();
   for (std::int32_t li : grid_.active_leaves()) {
     const std::uint64_t k = leaf_key(coords[std::size_t(li)]);
     if (std::binary_search(ghost_keys.begin(), ghost_keys.end(), k)) continue;
     rk.owned_active.push_back(li);
-    own_ids.push_back(k);
-    own_slots.push_back(std::uint32_t(li));
   }
-  std::vector<std::uint32_t> ghost_slots;
-  for (std::uint64_t k : ghost_keys)
-    ghost_slots.push_back(std::uint32_t(grid_.find_leaf(key_leaf(k) * kLeafDim)));
-  rk.halo = dist::HaloPlan(
-      own_ids, own_slots, ghost_keys, ghost_slots,
-      [&](std::uint64_t k) { return rk.owner(key_leaf(k)); }, &rk.peers);
+  // The ghost rows' parts, on both sides from the heads: (leaf key, part bit) per rank, sorted,
+  // the bits of one leaf merged.
+  std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>> recv_parts(
+      static_cast<std::size_t>(R)),
+      send_parts(static_cast<std::size_t>(R));
+  for (std::size_t k = 0; k < rk.export_bins.size(); ++k)
+    for (std::uint32_t e = rk.export_start[k]; e < rk.export_start[k + 1]; ++e) {
+      const Ranks::Export& x = rk.exports[e];
+      recv_parts[std::size_t(x.rank)].push_back(
+          {leaf_key(bins_.leaf[rk.export_bins[k]] + offset_of(x.t)), 1u << x.t});
+    }
+  for (std::size_t i = 0; i < rk.import_leaf.size(); ++i)
+    send_parts[std::size_t(rk.import_rank[i])].push_back(
+        {leaf_key(rk.import_leaf[i]), 1u << rk.import_t[i]});
+  auto rows = [&](std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>>& parts,
+                  std::vector<std::vector<Ranks::RowPart>>& out, std::vector<std::size_t>& nodes) {
+    out.assign(std::size_t(R), {});
+    nodes.assign(std::size_t(R), 0);
+    for (int q = 0; q < R; ++q) {
+      auto& v = parts[std::size_t(q)];
+      std::sort(v.begin(), v.end());
+      for (std::size_t i = 0; i < v.size();) {
+        std::uint32_t mask = 0;
+        const std::uint64_t key = v[i].first;
+        for (; i < v.size() && v[i].first == key; ++i) mask |= v[i].second;
+        const std::int32_t slot = grid_.find_leaf(key_leaf(key) * kLeafDim);
+        if (slot < 0) throw std::logic_error("MPM halo: a ghost row's leaf is not in the grid");
+        out[std::size_t(q)].push_back({std::uint32_t(slot), mask});
+        nodes[std::size_t(q)] += part_nodes(order, mask).size();
+      }
+    }
+  };
+  rows(recv_parts, rk.rows_recv, rk.rows_recv_nodes);
+  rows(send_parts, rk.rows_send, rk.rows_send_nodes);
   rk.halo_leaves = ghost_keys.size();
   rk.halo_parts = rk.exports.size();
   if (sleep_)
@@ -525,12 +579,44 @@ void MpmSolver::update_grid_velocities_distributed(const exec::Space& space, Rea
   exchange_ghost_rows(space);
 }
 
-// Owners' node rows (m, v) (and PIC/FLIP's (-, dv)) into the ghosts G2P reads.
+// Owners' node rows (m, v) (and PIC/FLIP's (-, dv)) into the ghosts, the nodes G2P reads only
+// (the parts of the ghost leaves this rank's blocks reach), point to point: both sides know the
+// nodes from the plan. Bytes moved, never combined: a ghost node holds its owner's bits.
 void MpmSolver::exchange_ghost_rows(const exec::Space& space) {
   exec::ScopedRegion region(space.profiler(), "dist.halo");
-  const std::size_t bytes = std::size_t(kLeafNodes) * 4 * sizeof(Real);
-  ranks_->halo.exchange(grid_.node4(0), bytes);
-  if (channels_.second >= 0) ranks_->halo.exchange(grid_.node4(channels_.second), bytes);
+  const dist::Comm& comm = dist::Comm::world();
+  const Ranks& rk = *ranks_;
+  const std::size_t R = std::size_t(comm.size());
+  std::vector<Real*> channel{grid_.node4(0)};
+  if (channels_.second >= 0) channel.push_back(grid_.node4(channels_.second));
+  const std::size_t node_bytes = 4 * sizeof(Real) * channel.size();
+  std::vector<std::vector<char>> out(R);
+  std::vector<std::size_t> expect(R);
+  for (std::size_t q = 0; q < R; ++q) {
+    expect[q] = rk.rows_recv_nodes[q] * node_bytes;
+    out[q].resize(rk.rows_send_nodes[q] * node_bytes);
+    Real* o = reinterpret_cast<Real*>(out[q].data());
+    for (const Ranks::RowPart& r : rk.rows_send[q])
+      for (const Real* c : channel)
+        for (std::uint16_t n : part_nodes(settings_.order, r.mask)) {
+          std::memcpy(o, c + (std::size_t(r.slot) * kLeafNodes + n) * 4, 4 * sizeof(Real));
+          o += 4;
+        }
+  }
+  const std::vector<std::vector<char>> in = comm.exchange(out, expect);
+  for (std::size_t q = 0; q < R; ++q) {
+    if (in[q].size() != expect[q])
+      throw std::runtime_error("MPM halo: rank " + std::to_string(q) + " sent " +
+                               std::to_string(in[q].size()) + " bytes of node rows, expected " +
+                               std::to_string(expect[q]));
+    const Real* i = reinterpret_cast<const Real*>(in[q].data());
+    for (const Ranks::RowPart& r : rk.rows_recv[q])
+      for (Real* c : channel)
+        for (std::uint16_t n : part_nodes(settings_.order, r.mask)) {
+          std::memcpy(c + (std::size_t(r.slot) * kLeafNodes + n) * 4, i, 4 * sizeof(Real));
+          i += 4;
+        }
+  }
 }
 
 const std::vector<std::int32_t>& MpmSolver::owned_leaf_list() const {

@@ -135,22 +135,36 @@ TEST(DistMpm, HaloSumsEqualTheSingleProcessBitwise) {
         s->particle_to_grid(space, dt);
         s->update_grid_velocities(space, dt);
       }
-      // Every leaf this rank has (owned, or a ghost filled by its owner) holds the reference's
-      // node rows bit for bit: (m, v) and, PIC/FLIP, (-, dv).
+      // Every node this rank's bins read in G2P (in its own leaves, or in ghost leaves filled by
+      // their owners: the parts of the +x/+y/+z neighbour leaves the bins' blocks reach) holds
+      // the reference's node rows bit for bit: (m, v) and, PIC/FLIP, (-, dv).
       std::size_t compared = 0;
-      for (std::int32_t li : d.grid().active_leaves()) {
-        const Vec3i c = d.grid().leaf_coords()[std::size_t(li)];
-        const std::int32_t lr = ref.grid().find_leaf(c * kLeafDim);
-        ASSERT_GE(lr, 0);
-        for (int set = 0; set < ch.count; ++set) {
-          const std::size_t row = std::size_t(kLeafNodes) * 4;
-          ASSERT_EQ(std::memcmp(d.grid().node4(set) + std::size_t(li) * row,
-                                ref.grid().node4(set) + std::size_t(lr) * row, row * sizeof(Real)),
-                    0)
-              << "step " << step << ", leaf (" << c.transpose() << "), channel set " << set;
+      const int order = d.settings().order;
+      const BinTable& bins = d.bins();
+      for (std::size_t b = 0; b < bins.count(); ++b)
+        for (int t = 0; t < 8; ++t) {
+          const Vec3i c = bins.leaf[b] + Vec3i((t >> 2) & 1, (t >> 1) & 1, t & 1);
+          const std::int32_t li = d.grid().find_leaf(c * kLeafDim),
+                             lr = ref.grid().find_leaf(c * kLeafDim);
+          ASSERT_GE(li, 0);
+          ASSERT_GE(lr, 0);
+          const int ni = (t >> 2) & 1 ? order : kLeafDim, nj = (t >> 1) & 1 ? order : kLeafDim,
+                    nk = t & 1 ? order : kLeafDim;
+          for (int set = 0; set < ch.count; ++set)
+            for (int i = 0; i < ni; ++i)
+              for (int j = 0; j < nj; ++j)
+                for (int k = 0; k < nk; ++k) {
+                  const std::size_t o = std::size_t(leaf_offset(i, j, k)) * 4;
+                  ASSERT_EQ(
+                      std::memcmp(d.grid().node4(set) + std::size_t(li) * kLeafNodes * 4 + o,
+                                  ref.grid().node4(set) + std::size_t(lr) * kLeafNodes * 4 + o,
+                                  4 * sizeof(Real)),
+                      0)
+                      << "step " << step << ", leaf (" << c.transpose() << "), node " << i << " "
+                      << j << " " << k << ", channel set " << set;
+                }
+          ++compared;
         }
-        ++compared;
-      }
       EXPECT_GT(compared, 0u);
       for (MpmSolver* s : {&ref, &d}) {
         s->grid_to_particle(space, dt);
