@@ -766,11 +766,21 @@ std::string MpmSolver::distributed_summary() const {
   const std::int64_t mine = std::int64_t(particles_.size());
   const double most = double(comm.max(mine)),
                mean = double(comm.sum(std::uint64_t(mine))) / comm.size();
-  const std::uint64_t halo = comm.sum(ranks_->halo_leaves), parts = comm.sum(ranks_->halo_parts);
+  const Ranks& rk = *ranks_;
+  const std::uint64_t halo = comm.sum(rk.halo_leaves), parts = comm.sum(rk.halo_parts);
+  // The halo's bytes of the last substep, summed over the ranks: partial sums and node rows.
+  std::uint64_t sums = 0, rows = 0;
+  for (std::size_t q = 0; q < rk.send_reals.size(); ++q) sums += rk.send_reals[q] * sizeof(Real);
+  const std::uint64_t row_bytes = 4 * sizeof(Real) * (channels_.second >= 0 ? 2 : 1);
+  for (std::size_t q = 0; q < rk.rows_send_nodes.size(); ++q)
+    rows += rk.rows_send_nodes[q] * row_bytes;
+  sums = comm.sum(sums), rows = comm.sum(rows);
   return "amalgam: distributed MPM on " + std::to_string(comm.size()) +
-         " ranks: " + std::to_string(ranks_->repartitions) + " repartitions, particles max/mean " +
+         " ranks: " + std::to_string(rk.repartitions) + " repartitions, particles max/mean " +
          std::to_string(mean > 0 ? most / mean : 1.0) + "; last substep: " + std::to_string(halo) +
-         " ghost leaves, " + std::to_string(parts) + " partial blocks sent (all ranks)\n";
+         " ghost leaves, " + std::to_string(parts) + " partial blocks sent, halo " +
+         std::to_string(sums / 1000) + " kB of partial sums + " + std::to_string(rows / 1000) +
+         " kB of node rows (all ranks)\n";
 }
 
 }  // namespace amalgam
