@@ -8,11 +8,13 @@
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
+#include <cstring>
 #include <limits>
 #include <new>
 #include <type_traits>
 
 #include "core/exec/simd.hpp"
+#include "core/math/lanes.hpp"
 #include "kernels/peridynamics.hpp"
 
 #if defined(__SSE2__)
@@ -56,7 +58,7 @@ namespace detail {
   } while (0)
 template <int Q, bool LastRaw>
 inline int gather_records_sse(const char* base, std::size_t stride, const std::uint32_t* idx, int n,
-                              const Real (*sub)[4], Real* const (*out)[4], int m) {
+                              const Real (*sub)[4], Real* const (*out)[4], int m0, int m) {
   __m128 sv[Q];
   for (int q = 0; q < Q; ++q) sv[q] = _mm_loadu_ps(sub[q]);
   for (; m + 4 <= n; m += 4) {
@@ -71,8 +73,8 @@ inline int gather_records_sse(const char* base, std::size_t stride, const std::u
         d = _mm_sub_ps(d, sv[q]);
       }
       AMALGAM_PD_TRANSPOSE4(__m128, _mm_unpacklo_ps, _mm_unpackhi_ps, _mm_shuffle_ps);
-      _mm_storeu_ps(out[q][0] + m, a), _mm_storeu_ps(out[q][1] + m, b);
-      _mm_storeu_ps(out[q][2] + m, c), _mm_storeu_ps(out[q][3] + m, d);
+      _mm_storeu_ps(out[q][0] + m0 + m, a), _mm_storeu_ps(out[q][1] + m0 + m, b);
+      _mm_storeu_ps(out[q][2] + m0 + m, c), _mm_storeu_ps(out[q][3] + m0 + m, d);
     }
   }
   return m;
@@ -80,7 +82,7 @@ inline int gather_records_sse(const char* base, std::size_t stride, const std::u
 #if defined(__AVX__)
 template <int Q, bool LastRaw>
 inline int gather_records_avx(const char* base, std::size_t stride, const std::uint32_t* idx, int n,
-                              const Real (*sub)[4], Real* const (*out)[4], int m) {
+                              const Real (*sub)[4], Real* const (*out)[4], int m0, int m) {
   __m256 sv[Q];
   for (int q = 0; q < Q; ++q) sv[q] = _mm256_broadcast_ps(reinterpret_cast<const __m128*>(sub[q]));
   for (; m + 8 <= n; m += 8) {
@@ -98,8 +100,8 @@ inline int gather_records_avx(const char* base, std::size_t stride, const std::u
         d = _mm256_sub_ps(d, sv[q]);
       }
       AMALGAM_PD_TRANSPOSE4(__m256, _mm256_unpacklo_ps, _mm256_unpackhi_ps, _mm256_shuffle_ps);
-      _mm256_storeu_ps(out[q][0] + m, a), _mm256_storeu_ps(out[q][1] + m, b);
-      _mm256_storeu_ps(out[q][2] + m, c), _mm256_storeu_ps(out[q][3] + m, d);
+      _mm256_storeu_ps(out[q][0] + m0 + m, a), _mm256_storeu_ps(out[q][1] + m0 + m, b);
+      _mm256_storeu_ps(out[q][2] + m0 + m, c), _mm256_storeu_ps(out[q][3] + m0 + m, d);
     }
   }
   return m;
@@ -108,7 +110,8 @@ inline int gather_records_avx(const char* base, std::size_t stride, const std::u
 #if defined(__AVX512F__)
 template <int Q, bool LastRaw>
 inline int gather_records_avx512(const char* base, std::size_t stride, const std::uint32_t* idx,
-                                 int n, const Real (*sub)[4], Real* const (*out)[4], int m) {
+                                 int n, const Real (*sub)[4], Real* const (*out)[4], int m0,
+                                 int m) {
   __m512 sv[Q];
   for (int q = 0; q < Q; ++q) sv[q] = _mm512_broadcast_f32x4(_mm_loadu_ps(sub[q]));
   for (; m + 16 <= n; m += 16) {
@@ -128,8 +131,8 @@ inline int gather_records_avx512(const char* base, std::size_t stride, const std
         d = _mm512_sub_ps(d, sv[q]);
       }
       AMALGAM_PD_TRANSPOSE4(__m512, _mm512_unpacklo_ps, _mm512_unpackhi_ps, _mm512_shuffle_ps);
-      _mm512_storeu_ps(out[q][0] + m, a), _mm512_storeu_ps(out[q][1] + m, b);
-      _mm512_storeu_ps(out[q][2] + m, c), _mm512_storeu_ps(out[q][3] + m, d);
+      _mm512_storeu_ps(out[q][0] + m0 + m, a), _mm512_storeu_ps(out[q][1] + m0 + m, b);
+      _mm512_storeu_ps(out[q][2] + m0 + m, c), _mm512_storeu_ps(out[q][3] + m0 + m, d);
     }
   }
   return m;
@@ -139,26 +142,89 @@ inline int gather_records_avx512(const char* base, std::size_t stride, const std
 }  // namespace detail
 #endif
 
+// The block loops run over n_pad = padded(n) bonds, a multiple of kPad on every path, so that the
+// widest (16 lanes) has no scalar remainder. The pad bonds' neighbour is the particle itself: the
+// gathered eta and xi are exactly 0, so they are dead bonds (l2 = 0) whose terms are never summed
+// (the sums and write-backs stop at n).
+constexpr int kPad = 16;
+inline int padded(int n) {
+  return (n + kPad - 1) / kPad * kPad;
+}
+static_assert(kBlock % kPad == 0 && kDilBlock % kPad == 0, "padded blocks fit");
+
+// out[.][.][m] for m < n_pad (see padded): idx[m] for m < n, `self` after.
 template <int Q, bool LastRaw>
 void gather_records(const void* records, std::size_t stride, const std::uint32_t* idx, int n,
-                    const Real (*sub)[4], Real* const (*out)[4]) {
+                    int n_pad, std::uint32_t self, const Real (*sub)[4], Real* const (*out)[4]) {
   const char* base = static_cast<const char*>(records);
   int m = 0;
 #if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
+  auto groups = [&](const std::uint32_t* ix, int count, int m0) {
+    int g = 0;
 #if defined(__AVX512F__)
-  m = detail::gather_records_avx512<Q, LastRaw>(base, stride, idx, n, sub, out, m);
+    g = detail::gather_records_avx512<Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
 #endif
 #if defined(__AVX__)
-  m = detail::gather_records_avx<Q, LastRaw>(base, stride, idx, n, sub, out, m);
+    g = detail::gather_records_avx<Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
 #endif
-  m = detail::gather_records_sse<Q, LastRaw>(base, stride, idx, n, sub, out, m);
+    return detail::gather_records_sse<Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
+  };
+  m = groups(idx, n, 0);
+  if (m < n_pad) {  // the rest (a multiple of 4: m is, n_pad is) from a padded copy of idx
+    std::uint32_t tail[kPad + 4];
+    const int count = n_pad - m;
+    for (int k = 0; k < count; ++k) tail[k] = m + k < n ? idx[m + k] : self;
+    m += groups(tail, count, m);
+  }
 #endif
-  for (; m < n; ++m) {
-    const Real* r = reinterpret_cast<const Real*>(base + std::size_t(idx[m]) * stride);
+  for (; m < n_pad; ++m) {
+    const Real* r =
+        reinterpret_cast<const Real*>(base + std::size_t(m < n ? idx[m] : self) * stride);
     for (int q = 0; q < Q; ++q)
       for (int c = 0; c < 4; ++c)
         out[q][c][m] = (LastRaw && q == Q - 1) ? r[4 * q + c] : r[4 * q + c] - sub[q][c];
   }
+}
+
+// live[m] = intact[m] (0 or 1) as a Real, for m < n_pad: the block loops then hold no bytes, so
+// GCC vectorises them at one float vector per iteration (bytes made it take 64 lanes at once on
+// AVX-512, leaving up to 63 bonds of a row to a narrower loop and a scalar one).
+inline void live_lanes(const std::uint8_t* intact, int n_pad, Real* live) {
+  constexpr int kN = lanes::kN<Real>;
+  typedef std::uint8_t U8 __attribute__((vector_size(kN)));
+  typedef std::int32_t I32 __attribute__((vector_size(4 * kN)));
+  static_assert(kPad % kN == 0, "whole vectors");
+  for (int m = 0; m < n_pad; m += kN) {
+    U8 b;
+    std::memcpy(&b, intact + m, sizeof b);
+    const lanes::V<Real> v =
+        __builtin_convertvector(__builtin_convertvector(b, I32), lanes::V<Real>);
+    std::memcpy(live + m, &v, sizeof v);
+  }
+}
+
+// The block loops read the per-bond arrays in place up to the padded end of a block, which runs
+// into the next row; only the list's last block can run past the arrays' end, and it reads
+// padded copies instead (lengths and weights 1, intact 0: finite, dead).
+struct TailCopy {
+  static constexpr int kArrays = 8;
+  alignas(64) Real v[kArrays][kDilBlock];
+  alignas(64) std::uint8_t live[kDilBlock];
+  int used = 0;
+  const Real* copy(const Real* src, int n) {
+    Real* d = v[used++];
+    std::copy(src, src + n, d);
+    std::fill(d + n, d + padded(n), Real(1));
+    return d;
+  }
+  const std::uint8_t* copy(const std::uint8_t* src, int n) {
+    std::copy(src, src + n, live);
+    std::fill(live + n, live + padded(n), std::uint8_t(0));
+    return live;
+  }
+};
+inline bool past_end(const PdBonds& bonds, std::uint64_t kb, int n) {
+  return kb + std::uint64_t(padded(n)) > bonds.size();
 }
 
 // Lane sums (PdBonds::lane): acc[lane] += t[m] over a block of n terms, in bond order within each
@@ -205,6 +271,7 @@ struct DilBlock {
   alignas(64) Real ex[kDilBlock], ey[kDilBlock], ez[kDilBlock];     // u_j - u_i (eta - xi)
   alignas(64) Real xx[kDilBlock], xy[kDilBlock], xz[kDilBlock];     // xi = x0_j - x0_i
   alignas(64) Real pad[kDilBlock];                                  // the gathers' unused lane
+  alignas(64) Real live[kDilBlock];                                 // intact (live_lanes)
   alignas(64) Real e[kDilBlock], lambda[kDilBlock], ok[kDilBlock];  // geometry (0 for dead bonds)
   alignas(64) Real t[kDilBlock], w1[kDilBlock], w2[kDilBlock], w3[kDilBlock];  // terms of the sums
   alignas(64) Real ep_new[kDilBlock];                                          // plastic return
@@ -215,21 +282,24 @@ struct DilSlice {
 };
 
 void gather_dilatation(const PosRec* recs, const PdBonds& bonds, std::uint64_t kb, int n,
-                       const Real sub_y[4], const Real sub_x0[4], DilBlock& B) {
+                       std::uint32_t self, const Real sub_y[4], const Real sub_x0[4], DilBlock& B) {
   const Real sub[2][4] = {{sub_y[0], sub_y[1], sub_y[2], sub_y[3]},
                           {sub_x0[0], sub_x0[1], sub_x0[2], sub_x0[3]}};
   Real* const out[2][4] = {{B.ex, B.ey, B.ez, B.pad}, {B.xx, B.xy, B.xz, B.pad}};
-  gather_records<2, false>(recs, sizeof(PosRec), bonds.neighbor.data() + kb, n, sub, out);
+  gather_records<2, false>(recs, sizeof(PosRec), bonds.neighbor.data() + kb, n, padded(n), self,
+                           sub, out);
 }
 
 // e, Lambda (eqs. 3, 6) and the terms of theta (eq. 5) and of the consistent sums (see header):
 // w = shear_omega V d with d = kappa Lambda (paper) or L / 3 (LPS).
 template <bool Paper, bool Plastic, bool Lps>
 void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
-  for (int m = 0; m < n; ++m) {  // vectorised
+  const int n_pad = padded(n);
+  live_lanes(S.live, n_pad, B.live);
+  for (int m = 0; m < n_pad; ++m) {  // vectorised
     const Real ex = B.xx[m] + B.ex[m], ey = B.xy[m] + B.ey[m], ez = B.xz[m] + B.ez[m];  // eta
     const Real l2 = ex * ex + ey * ey + ez * ez;
-    const bool ok = (l2 > 0) & (S.live[m] != 0);  // coincident particles: no direction
+    const bool ok = (l2 > 0) & (B.live[m] != 0);  // coincident particles: no direction
     const Real l = std::sqrt(ok ? l2 : Real(1));
     const Real L = S.L[m];
     const Real live = ok ? Real(1) : Real(0);  // times 0, not a select (see force_block)
@@ -252,7 +322,7 @@ void dilatation_block(DilBlock& B, const DilSlice& S, int n, Real kappa) {
 template <bool Paper>
 void plastic_block(DilBlock& B, const DilSlice& S, int n, Real theta, Real kappa, Real stiff_i,
                    Real psi0, Real ac, Real cap_ratio) {
-  for (int m = 0; m < n; ++m) {  // vectorised
+  for (int m = 0, n_pad = padded(n); m < n_pad; ++m) {  // vectorised
     const Real e = B.e[m], lambda = B.lambda[m], L = S.L[m];
     const Real ed = Paper ? e - kappa * lambda * theta : e - theta * L / Real(3);  // eq. 8 / LPS
     const Real stiff = stiff_i * S.shear[m];                                       // 4 omega b
@@ -327,15 +397,22 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const Real kap = p.kappa[i];
       const bool one_block = k1 - k0 <= std::uint64_t(kDilBlock);
       DilBlock B;
-      auto slice = [&](std::uint64_t kb) {
-        return DilSlice{bonds.length.data() + kb,      bonds.omega.data() + kb,
-                        bonds.shear_omega.data() + kb, bonds.volume.data() + kb,
-                        bonds.plastic.data() + kb,     bonds.intact.data() + kb};
+      TailCopy tail;
+      auto slice = [&](std::uint64_t kb, int n) {
+        DilSlice S{bonds.length.data() + kb,      bonds.omega.data() + kb,
+                   bonds.shear_omega.data() + kb, bonds.volume.data() + kb,
+                   bonds.plastic.data() + kb,     bonds.intact.data() + kb};
+        if (past_end(bonds, kb, n)) {
+          tail.used = 0;
+          S = DilSlice{tail.copy(S.L, n),   tail.copy(S.omega, n), tail.copy(S.shear, n),
+                       tail.copy(S.vol, n), tail.copy(S.ep, n),    tail.copy(S.live, n)};
+        }
+        return S;
       };
       auto load = [&](std::uint64_t kb) {
         const int n = int(std::min<std::uint64_t>(kDilBlock, k1 - kb));
-        gather_dilatation(recs, bonds, kb, n, sub_y, sub_x0, B);
-        dilatation_block<Paper, Plastic, Lps>(B, slice(kb), n, kap);
+        gather_dilatation(recs, bonds, kb, n, std::uint32_t(i), sub_y, sub_x0, B);
+        dilatation_block<Paper, Plastic, Lps>(B, slice(kb, n), n, kap);
         return n;
       };
       const PdMaterial& mat = prm.materials[p.material[i]];
@@ -364,7 +441,7 @@ void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, co
       const Real ac = std::sqrt(Real(2) * mat.psi0);
       for (std::uint64_t kb = k0; kb < k1; kb += kDilBlock) {
         const int n = one_block ? int(k1 - k0) : load(kb);  // one block: still loaded
-        plastic_block<Paper>(B, slice(kb), n, theta, kap, Real(4) * p.b[i], mat.psi0, ac,
+        plastic_block<Paper>(B, slice(kb, n), n, theta, kap, Real(4) * p.b[i], mat.psi0, ac,
                              mat.plastic_cap);
         for (int m = 0; m < n; ++m) {
           const std::uint64_t k = kb + std::uint64_t(m);
@@ -398,7 +475,8 @@ struct ForceBlock {
   alignas(64) Real pad0[kBlock], pad1[kBlock];  // the gathers' unused lanes
   alignas(64) Real fx[kBlock], fy[kBlock],
       fz[kBlock];                           // out: pair force density (0 for dead bonds)
-  alignas(64) std::uint8_t broken[kBlock];  // out: eq. 18 holds (fracture)
+  alignas(64) Real live[kBlock];            // intact (live_lanes)
+  alignas(64) std::int32_t broken[kBlock];  // out: eq. 18 holds (fracture)
 };
 
 // Per particle i: the terms of A_ij that depend on i only.
@@ -423,11 +501,13 @@ struct BondSlice {
 template <bool Paper, bool Fracture, bool Plastic, bool Lps>
 void force_block(ForceBlock& B, const BondSlice& S, int n, const ForceRow& r, Real delta,
                  bool classical) {
-  for (int m = 0; m < n; ++m) {  // vectorised: no branches, no gathers
+  const int n_pad = padded(n);
+  live_lanes(S.live, n_pad, B.live);
+  for (int m = 0; m < n_pad; ++m) {  // vectorised: no branches, no gathers
     const Real epi = Plastic ? S.epi[m] : Real(0), epj = Plastic ? S.epj[m] : Real(0);
     const Real ex = B.xx[m] + B.ex[m], ey = B.xy[m] + B.ey[m], ez = B.xz[m] + B.ez[m];  // eta
     const Real l2 = ex * ex + ey * ey + ez * ez;
-    const bool ok = (l2 > 0) & (S.live[m] != 0);  // coincident particles: no direction, no force
+    const bool ok = (l2 > 0) & (B.live[m] != 0);  // coincident particles: no direction, no force
     const Real l = std::sqrt(ok ? l2 : Real(1));
     const Real L = S.L[m];
     const Real inv = Real(1) / (l * L);  // r = 1 / (l L): 1 / l = r L, Lambda = (eta . xi) r
@@ -504,18 +584,26 @@ void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const 
           alignas(32) Real ax[kSumLanes] = {}, ay[kSumLanes] = {}, az[kSumLanes] = {};
           Mat3 s = Mat3::Zero();
           ForceBlock B;
+          TailCopy tail;
           Real* const out[3][4] = {{B.ex, B.ey, B.ez, B.dil_j},
                                    {B.xx, B.xy, B.xz, B.b_j},
                                    {B.c_j, B.crit_j, B.pad0, B.pad1}};
           for (std::uint64_t kb = k0; kb < k1; kb += kBlock) {
             const int n = int(std::min<std::uint64_t>(kBlock, k1 - kb));
             const std::uint32_t* nb = bonds.neighbor.data() + kb;  // gather: eta, xi and j's terms
-            gather_records<3, true>(recs, sizeof(ForceRec), nb, n, sub, out);
-            const BondSlice S{bonds.length.data() + kb,        bonds.omega.data() + kb,
-                              bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
-                              bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
-                              bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
-                              bonds.intact.data() + kb};
+            gather_records<3, true>(recs, sizeof(ForceRec), nb, n, padded(n), std::uint32_t(i), sub,
+                                    out);
+            BondSlice S{bonds.length.data() + kb,        bonds.omega.data() + kb,
+                        bonds.shear_omega.data() + kb,   bonds.volume.data() + kb,
+                        bonds.plastic.data() + kb,       bonds.omega_r.data() + kb,
+                        bonds.shear_omega_r.data() + kb, bonds.plastic_r.data() + kb,
+                        bonds.intact.data() + kb};
+            if (past_end(bonds, kb, n)) {
+              tail.used = 0;
+              S = BondSlice{tail.copy(S.L, n),       tail.copy(S.omega, n), tail.copy(S.shear, n),
+                            tail.copy(S.vol, n),     tail.copy(S.epi, n),   tail.copy(S.omega_r, n),
+                            tail.copy(S.shear_r, n), tail.copy(S.epj, n),   tail.copy(S.live, n)};
+            }
             force_block<Paper, Fracture, Plastic, Lps>(B, S, n, ri, delta, classical);
             const std::uint8_t* lane = bonds.lane.data() + kb;
             lane_sum(B.fx, lane, dense, n, ax), lane_sum(B.fy, lane, dense, n, ay),
