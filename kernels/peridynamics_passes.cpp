@@ -48,104 +48,104 @@ static_assert(kBlock % kSumLanes == 0 && kDilBlock % kSumLanes == 0, "blocks sta
 // element-wise subtraction: bitwise the scalar loop's values on every path.
 #if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
 namespace detail {
-// The in-lane 4 x 4 transpose of _MM_TRANSPOSE4_PS, for 128-, 256- and 512-bit registers.
-#define AMALGAM_PD_TRANSPOSE4(V, unpacklo, unpackhi, shuffle)                                   \
-  do {                                                                                          \
-    const V t0 = unpacklo(a, b), t1 = unpacklo(c, d), t2 = unpackhi(a, b), t3 = unpackhi(c, d); \
-    a = shuffle(t0, t1, 0x44), b = shuffle(t0, t1, 0xee), c = shuffle(t2, t3, 0x44);            \
-    d = shuffle(t2, t3, 0xee);                                                                  \
-  } while (0)
-template <int Q, bool LastRaw>
-inline int gather_records_sse(const char* base, std::size_t stride, const std::uint32_t* idx, int n,
-                              const Real (*sub)[4], Real* const (*out)[4], int m0, int m) {
-  __m128 sv[Q];
-  for (int q = 0; q < Q; ++q) sv[q] = _mm_loadu_ps(sub[q]);
-  for (; m + 4 <= n; m += 4) {
-    const float* r[4];
-    for (int k = 0; k < 4; ++k)
-      r[k] = reinterpret_cast<const float*>(base + std::size_t(idx[m + k]) * stride);
-    for (int q = 0; q < Q; ++q) {
-      __m128 a = _mm_load_ps(r[0] + 4 * q), b = _mm_load_ps(r[1] + 4 * q),
-             c = _mm_load_ps(r[2] + 4 * q), d = _mm_load_ps(r[3] + 4 * q);
-      if (!(LastRaw && q == Q - 1)) {
-        a = _mm_sub_ps(a, sv[q]), b = _mm_sub_ps(b, sv[q]), c = _mm_sub_ps(c, sv[q]);
-        d = _mm_sub_ps(d, sv[q]);
-      }
-      AMALGAM_PD_TRANSPOSE4(__m128, _mm_unpacklo_ps, _mm_unpackhi_ps, _mm_shuffle_ps);
-      _mm_storeu_ps(out[q][0] + m0 + m, a), _mm_storeu_ps(out[q][1] + m0 + m, b);
-      _mm_storeu_ps(out[q][2] + m0 + m, c), _mm_storeu_ps(out[q][3] + m0 + m, d);
-    }
+// One register width: kW neighbours per group; load(r, k, q) is quad q of neighbours k, k + 4, ...
+// in the 128-bit lanes.
+struct Sse {
+  using V = __m128;
+  static constexpr int kW = 4;
+  static V broadcast(const float* s) { return _mm_loadu_ps(s); }
+  static V load(const float* const* r, int k, int q) { return _mm_load_ps(r[k] + 4 * q); }
+  static V sub(V a, V b) { return _mm_sub_ps(a, b); }
+  static V lo(V a, V b) { return _mm_unpacklo_ps(a, b); }
+  static V hi(V a, V b) { return _mm_unpackhi_ps(a, b); }
+  template <int Imm>
+  static V shuffle(V a, V b) {
+    return _mm_shuffle_ps(a, b, Imm);
   }
-  return m;
-}
+  static void store(float* p, V v) { _mm_storeu_ps(p, v); }
+};
 #if defined(__AVX__)
-template <int Q, bool LastRaw>
-inline int gather_records_avx(const char* base, std::size_t stride, const std::uint32_t* idx, int n,
-                              const Real (*sub)[4], Real* const (*out)[4], int m0, int m) {
-  __m256 sv[Q];
-  for (int q = 0; q < Q; ++q) sv[q] = _mm256_broadcast_ps(reinterpret_cast<const __m128*>(sub[q]));
-  for (; m + 8 <= n; m += 8) {
-    const float* r[8];
-    for (int k = 0; k < 8; ++k)
-      r[k] = reinterpret_cast<const float*>(base + std::size_t(idx[m + k]) * stride);
-    for (int q = 0; q < Q; ++q) {
-      auto pair = [&](int k) {  // neighbours k and k + 4
-        return _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_load_ps(r[k] + 4 * q)),
-                                    _mm_load_ps(r[k + 4] + 4 * q), 1);
-      };
-      __m256 a = pair(0), b = pair(1), c = pair(2), d = pair(3);
-      if (!(LastRaw && q == Q - 1)) {
-        a = _mm256_sub_ps(a, sv[q]), b = _mm256_sub_ps(b, sv[q]), c = _mm256_sub_ps(c, sv[q]);
-        d = _mm256_sub_ps(d, sv[q]);
-      }
-      AMALGAM_PD_TRANSPOSE4(__m256, _mm256_unpacklo_ps, _mm256_unpackhi_ps, _mm256_shuffle_ps);
-      _mm256_storeu_ps(out[q][0] + m0 + m, a), _mm256_storeu_ps(out[q][1] + m0 + m, b);
-      _mm256_storeu_ps(out[q][2] + m0 + m, c), _mm256_storeu_ps(out[q][3] + m0 + m, d);
-    }
+struct Avx {
+  using V = __m256;
+  static constexpr int kW = 8;
+  static V broadcast(const float* s) {
+    return _mm256_broadcast_ps(reinterpret_cast<const __m128*>(s));
   }
-  return m;
-}
+  static V load(const float* const* r, int k, int q) {
+    return _mm256_insertf128_ps(_mm256_castps128_ps256(_mm_load_ps(r[k] + 4 * q)),
+                                _mm_load_ps(r[k + 4] + 4 * q), 1);
+  }
+  static V sub(V a, V b) { return _mm256_sub_ps(a, b); }
+  static V lo(V a, V b) { return _mm256_unpacklo_ps(a, b); }
+  static V hi(V a, V b) { return _mm256_unpackhi_ps(a, b); }
+  template <int Imm>
+  static V shuffle(V a, V b) {
+    return _mm256_shuffle_ps(a, b, Imm);
+  }
+  static void store(float* p, V v) { _mm256_storeu_ps(p, v); }
+};
 #endif
 #if defined(__AVX512F__)
-template <int Q, bool LastRaw>
-inline int gather_records_avx512(const char* base, std::size_t stride, const std::uint32_t* idx,
-                                 int n, const Real (*sub)[4], Real* const (*out)[4], int m0,
-                                 int m) {
-  __m512 sv[Q];
-  for (int q = 0; q < Q; ++q) sv[q] = _mm512_broadcast_f32x4(_mm_loadu_ps(sub[q]));
-  for (; m + 16 <= n; m += 16) {
-    const float* r[16];
-    for (int k = 0; k < 16; ++k)
+struct Avx512 {
+  using V = __m512;
+  static constexpr int kW = 16;
+  static V broadcast(const float* s) { return _mm512_broadcast_f32x4(_mm_loadu_ps(s)); }
+  static V load(const float* const* r, int k, int q) {
+    V v = _mm512_castps128_ps512(_mm_load_ps(r[k] + 4 * q));
+    v = _mm512_insertf32x4(v, _mm_load_ps(r[k + 4] + 4 * q), 1);
+    v = _mm512_insertf32x4(v, _mm_load_ps(r[k + 8] + 4 * q), 2);
+    return _mm512_insertf32x4(v, _mm_load_ps(r[k + 12] + 4 * q), 3);
+  }
+  static V sub(V a, V b) { return _mm512_sub_ps(a, b); }
+  static V lo(V a, V b) { return _mm512_unpacklo_ps(a, b); }
+  static V hi(V a, V b) { return _mm512_unpackhi_ps(a, b); }
+  template <int Imm>
+  static V shuffle(V a, V b) {
+    return _mm512_shuffle_ps(a, b, Imm);
+  }
+  static void store(float* p, V v) { _mm512_storeu_ps(p, v); }
+};
+#endif
+// Groups of R::kW neighbours from position m while they fit in n; returns the new m (outputs at
+// m0 + m). The in-lane 4 x 4 transpose is _MM_TRANSPOSE4_PS's.
+template <class R, int Q, bool LastRaw>
+inline int gather_groups(const char* base, std::size_t stride, const std::uint32_t* idx, int n,
+                         const Real (*sub)[4], Real* const (*out)[4], int m0, int m) {
+  using V = typename R::V;
+  V sv[Q];
+  for (int q = 0; q < Q; ++q) sv[q] = R::broadcast(sub[q]);
+  for (; m + R::kW <= n; m += R::kW) {
+    const float* r[R::kW];
+    for (int k = 0; k < R::kW; ++k)
       r[k] = reinterpret_cast<const float*>(base + std::size_t(idx[m + k]) * stride);
     for (int q = 0; q < Q; ++q) {
-      auto four = [&](int k) {  // neighbours k, k + 4, k + 8, k + 12
-        __m512 v = _mm512_castps128_ps512(_mm_load_ps(r[k] + 4 * q));
-        v = _mm512_insertf32x4(v, _mm_load_ps(r[k + 4] + 4 * q), 1);
-        v = _mm512_insertf32x4(v, _mm_load_ps(r[k + 8] + 4 * q), 2);
-        return _mm512_insertf32x4(v, _mm_load_ps(r[k + 12] + 4 * q), 3);
-      };
-      __m512 a = four(0), b = four(1), c = four(2), d = four(3);
-      if (!(LastRaw && q == Q - 1)) {
-        a = _mm512_sub_ps(a, sv[q]), b = _mm512_sub_ps(b, sv[q]), c = _mm512_sub_ps(c, sv[q]);
-        d = _mm512_sub_ps(d, sv[q]);
-      }
-      AMALGAM_PD_TRANSPOSE4(__m512, _mm512_unpacklo_ps, _mm512_unpackhi_ps, _mm512_shuffle_ps);
-      _mm512_storeu_ps(out[q][0] + m0 + m, a), _mm512_storeu_ps(out[q][1] + m0 + m, b);
-      _mm512_storeu_ps(out[q][2] + m0 + m, c), _mm512_storeu_ps(out[q][3] + m0 + m, d);
+      V a = R::load(r, 0, q), b = R::load(r, 1, q), c = R::load(r, 2, q), d = R::load(r, 3, q);
+      if (!(LastRaw && q == Q - 1))
+        a = R::sub(a, sv[q]), b = R::sub(b, sv[q]), c = R::sub(c, sv[q]), d = R::sub(d, sv[q]);
+      const V t0 = R::lo(a, b), t1 = R::lo(c, d), t2 = R::hi(a, b), t3 = R::hi(c, d);
+      R::store(out[q][0] + m0 + m, R::template shuffle<0x44>(t0, t1));
+      R::store(out[q][1] + m0 + m, R::template shuffle<0xee>(t0, t1));
+      R::store(out[q][2] + m0 + m, R::template shuffle<0x44>(t2, t3));
+      R::store(out[q][3] + m0 + m, R::template shuffle<0xee>(t2, t3));
     }
   }
   return m;
 }
-#endif
-#undef AMALGAM_PD_TRANSPOSE4
 }  // namespace detail
 #endif
 
-// The block loops run over n_pad = padded(n) bonds, a multiple of kPad on every path, so that the
-// widest (16 lanes) has no scalar remainder. The pad bonds' neighbour is the particle itself: the
-// gathered eta and xi are exactly 0, so they are dead bonds (l2 = 0) whose terms are never summed
-// (the sums and write-backs stop at n).
+// The block loops run over n_pad = padded(n) bonds, a multiple of the path's float vector (4, 8,
+// 16 lanes), so that GCC vectorises them one vector per iteration with no remainder loop. The pad
+// bonds' neighbour is the particle itself: the gathered eta and xi are exactly 0, so they are dead
+// bonds (l2 = 0) whose terms are never summed (the sums and write-backs stop at n): the padding
+// changes no result, whatever its length.
+#if defined(__AVX512F__)
 constexpr int kPad = 16;
+#elif defined(__AVX__)
+constexpr int kPad = 8;
+#else
+constexpr int kPad = 4;
+#endif
 inline int padded(int n) {
   return (n + kPad - 1) / kPad * kPad;
 }
@@ -161,12 +161,12 @@ void gather_records(const void* records, std::size_t stride, const std::uint32_t
   auto groups = [&](const std::uint32_t* ix, int count, int m0) {
     int g = 0;
 #if defined(__AVX512F__)
-    g = detail::gather_records_avx512<Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
+    g = detail::gather_groups<detail::Avx512, Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
 #endif
 #if defined(__AVX__)
-    g = detail::gather_records_avx<Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
+    g = detail::gather_groups<detail::Avx, Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
 #endif
-    return detail::gather_records_sse<Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
+    return detail::gather_groups<detail::Sse, Q, LastRaw>(base, stride, ix, count, sub, out, m0, g);
   };
   m = groups(idx, n, 0);
   if (m < n_pad) {  // the rest (a multiple of 4: m is, n_pad is) from a padded copy of idx
