@@ -89,7 +89,13 @@ def amalgam(exe, nx, ny, nz, dt, threads, timing_steps=0, repeats=1, correction=
     if timing_steps:
         cmd += ["--timing-steps", str(timing_steps), "--repeats", str(repeats), "--steps", "1"]
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
-    return {k.strip(): float(v) for k, v in (line.split("=") for line in out.splitlines() if "=" in line)}
+    res = {}
+    for k, v in (line.split("=", 1) for line in out.splitlines() if "=" in line):
+        try:
+            res[k.strip()] = float(v)
+        except ValueError:  # simd = avx512
+            res[k.strip()] = v.strip()
+    return res
 
 
 def main():
@@ -142,7 +148,7 @@ def main():
                          f"{nb / med:.3g} |")
         for threads in (1, 2):
             r = amalgam(exe, bx, by, bz, args.dt, threads, args.timing_steps, args.repeats)
-            lines.append(f"| Amalgam (paper form, corrected) | {threads} OpenMP thread(s) | "
+            lines.append(f"| Amalgam (paper form, corrected, SIMD path {r['simd']}) | {threads} OpenMP thread(s) | "
                          f"{r['seconds_per_step']:.4f} ({r['seconds_per_step_min']:.4f}-{r['seconds_per_step_max']:.4f}) | "
                          f"{r['bond_updates_per_s']:.3g} |")
     text = "\n".join(lines) + "\n"

@@ -8,16 +8,25 @@
 //
 // amalgam_pd_wave --nx 100 --ny 10 --nz 10 --dt 5e-7 --backend openmp --threads 2
 //                 [--form paper|lps] [--correction 0|1] [--steps N] [--timing-steps M --repeats R [--profile]]
+//                 [--simd baseline|avx2|avx512|auto]
+// With --timing-steps it also prints cpu_seconds_per_step (the process's CPU time over the timed
+// steps, every thread's: less distorted than wall time by other processes on a shared machine).
+// --simd-paths baseline,avx2,avx512: the timed blocks alternate the paths in one process (each
+// repeat runs every path once, the first path rotating), on the same block, and print per path
+// seconds_per_step[P] and cpu_seconds_per_step[P] (medians over the repeats) and ratio[P] (the
+// median over repeats of that repeat's first path's time over P's).
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <ctime>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
 #include "core/exec/exec.hpp"
+#include "core/exec/simd.hpp"
 #include "solvers/pd_solver.hpp"
 
 using namespace amalgam;
@@ -27,7 +36,7 @@ namespace {
 struct Options {
   int nx = 100, ny = 10, nz = 10;
   double lc = 0.01, dt = 5e-7, v0 = 1.0;
-  std::string backend = "serial", form = "paper";
+  std::string backend = "serial", form = "paper", simd, simd_paths;
   int threads = 1, steps = 0, timing_steps = 0, repeats = 3;
   bool correction = true;
   bool profile = false;  // --profile: per-region times of the timed steps
@@ -69,6 +78,10 @@ Options parse(int argc, char** argv) {
       o.repeats = std::atoi(next());
     else if (a == "--profile")
       o.profile = true;
+    else if (a == "--simd")
+      o.simd = next();
+    else if (a == "--simd-paths")
+      o.simd_paths = next();
     else
       throw std::invalid_argument("unknown option " + a);
   }
@@ -82,6 +95,7 @@ Options parse(int argc, char** argv) {
 
 int main(int argc, char** argv) try {
   const Options o = parse(argc, argv);
+  if (!o.simd.empty()) exec::set_simd_path(exec::parse_simd_path(o.simd));
   const exec::Space space(exec::parse_backend(o.backend), o.threads);
   PdSettings s;
   s.spacing = Real(o.lc);
@@ -125,13 +139,52 @@ int main(int argc, char** argv) try {
     if (vx > 0.1 * o.v0) arrival = double(step + 1) * o.dt;
   }
   std::printf(
-      "particles = %zu\nbonds = %zu\ndt_s = %.6g\nsetup_s = %.4f\narrival_s = %.6g\nsteps = %d\n",
-      x.size(), solver.bonds().size(), o.dt, setup_s, arrival, step);
-  if (o.timing_steps > 0) {
+      "simd = %s\nparticles = %zu\nbonds = %zu\ndt_s = %.6g\nsetup_s = %.4f\narrival_s = "
+      "%.6g\nsteps = %d\n",
+      exec::simd_path_name(exec::simd_path()), x.size(), solver.bonds().size(), o.dt, setup_s,
+      arrival, step);
+  if (o.timing_steps > 0 && !o.simd_paths.empty()) {
+    std::vector<exec::SimdPath> paths;
+    for (std::size_t b = 0; b <= o.simd_paths.size();) {
+      std::size_t e = o.simd_paths.find(',', b);
+      if (e == std::string::npos) e = o.simd_paths.size();
+      paths.push_back(exec::parse_simd_path(o.simd_paths.substr(b, e - b)));
+      b = e + 1;
+    }
+    const std::size_t np = paths.size();
+    std::vector<std::vector<double>> wall(np), cpu(np), ratio(np);
+    for (int r = 0; r < o.repeats; ++r) {
+      for (std::size_t q = 0; q < np; ++q) {
+        const std::size_t i = (q + std::size_t(r)) % np;
+        exec::set_simd_path(paths[i]);
+        const std::clock_t c0 = std::clock();
+        const auto t0 = std::chrono::steady_clock::now();
+        for (int k = 0; k < o.timing_steps; ++k) solver.step(space, dt);
+        wall[i].push_back(
+            std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() /
+            o.timing_steps);
+        cpu[i].push_back(double(std::clock() - c0) / CLOCKS_PER_SEC / o.timing_steps);
+      }
+      for (std::size_t i = 0; i < np; ++i) ratio[i].push_back(wall[0].back() / wall[i].back());
+    }
+    auto median = [](std::vector<double> v) {
+      std::sort(v.begin(), v.end());
+      return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
+    };
+    for (std::size_t i = 0; i < np; ++i) {
+      const char* name = exec::simd_path_name(paths[i]);
+      std::printf(
+          "seconds_per_step[%s] = %.6g\ncpu_seconds_per_step[%s] = %.6g\nratio[%s] = %.4f\n"
+          "bond_updates_per_s[%s] = %.4g\n",
+          name, median(wall[i]), name, median(cpu[i]), name, median(ratio[i]), name,
+          double(solver.bonds().size()) / median(wall[i]));
+    }
+  } else if (o.timing_steps > 0) {
     exec::Profiler profiler;  // --profile: per-region times of the timed steps
     exec::Space timed = space;
     if (o.profile) timed.set_profiler(&profiler);
     std::vector<double> per_step;
+    const std::clock_t c0 = std::clock();
     for (int r = 0; r < o.repeats; ++r) {
       const auto t0 = std::chrono::steady_clock::now();
       for (int k = 0; k < o.timing_steps; ++k) solver.step(timed, dt);
@@ -139,12 +192,13 @@ int main(int argc, char** argv) try {
           std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count() /
           o.timing_steps);
     }
+    const double cpu = double(std::clock() - c0) / CLOCKS_PER_SEC / (o.repeats * o.timing_steps);
     std::sort(per_step.begin(), per_step.end());
     const double med = per_step[per_step.size() / 2];
     std::printf(
         "seconds_per_step = %.6g\nseconds_per_step_min = %.6g\nseconds_per_step_max = %.6g\n"
-        "bond_updates_per_s = %.4g\n",
-        med, per_step.front(), per_step.back(), double(solver.bonds().size()) / med);
+        "bond_updates_per_s = %.4g\ncpu_seconds_per_step = %.6g\n",
+        med, per_step.front(), per_step.back(), double(solver.bonds().size()) / med, cpu);
     if (o.profile) std::printf("%s", profiler.report().c_str());
   }
   return 0;

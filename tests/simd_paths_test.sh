@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Run-time vector width (core/exec/simd.hpp): short runs through the CLI write the same files, byte
 # for byte, on every SIMD path this CPU runs (--simd baseline|avx2|avx512) -- an MPM scene with
-# every kind of frame file, A-ULMPM with object contact, particle domains -- and a bad path is
+# every kind of frame file, A-ULMPM with object contact, particle domains, a peridynamic bar with
+# plasticity, fracture, fragment contact and a collider -- and a bad path is
 # refused with exit 2. Paths the CPU lacks are skipped, saying so.
 # Usage: simd_paths_test.sh AMALGAM DATA_DIR OUTDIR
 set -u
@@ -53,5 +54,6 @@ check() {
 check mpm "$data/async_output.json" --frames 2
 check aul "$data/aul_restart.json" --frames 2
 check domains "$data/domain_restart.json" --frames 1
+check pd "$data/pd_restart.json" --frames 4
 [ ${#paths[@]} -gt 1 ] || { echo "only the baseline path runs on this CPU: nothing to compare"; exit 77; }
 exit 0

@@ -9,6 +9,7 @@
 #include <random>
 
 #include "core/errors.hpp"
+#include "core/exec/simd.hpp"
 #include "io/checkpoint.hpp"
 #include "solvers/pd_simulation.hpp"
 #include "kernels/peridynamics.hpp"
@@ -673,6 +674,64 @@ TEST(PdBackends, LpsFractureRunIsBitwiseIdentical) {
     const PdSolver other = run(exec::Space(c.backend, c.threads));
     expect_same_state(ref, other, c.name());
     EXPECT_EQ(ref.bonds().intact, other.bonds().intact) << c.name();
+  }
+}
+
+// Run-time vector width (core/exec/simd.hpp): the bond passes compiled for AVX2 and AVX-512
+// (kernels/peridynamics_passes.cpp, 8 and 16 float lanes per block loop) give the baseline's
+// state bit for bit, on Serial and on 2 threads: the pulled bar with plasticity, fracture,
+// damage and contact, in the paper's form with and without bond compaction (the compacted rows
+// sum through their stored lanes) and in the LPS form (the baseline on every backend:
+// PdBackends). Paths the CPU or build lacks are skipped, saying
+// so; the test fails if a path diverges (checked by making the AVX-512 force pass add 1 ulp).
+TEST(PdSimdPaths, FracturePlasticityContactBitwiseOnEveryPath) {
+  const exec::SimdPath saved = exec::simd_path();
+  struct Restore {
+    exec::SimdPath p;
+    ~Restore() { exec::set_simd_path(p); }
+  } restore{saved};
+  if (exec::supported_simd_paths().size() < 2)
+    GTEST_SKIP() << "only the baseline path runs here: " << exec::simd_description();
+  for (const std::pair<PdModel, Real>& c : std::vector<std::pair<PdModel, Real>>{
+           {PdModel::Paper, Real(0)}, {PdModel::Paper, Real(0.005)}, {PdModel::Lps, Real(0)}}) {
+    const PdModel model = c.first;
+    const Real fraction = c.second;
+    const std::string form =
+        std::string(pd_model_name(model)) + " form, compact_fraction " + std::to_string(fraction);
+    auto run = [&](const exec::Space& space) {
+      PdSolver solver = pulled_bar(space, fraction, model);
+      const Real dt = solver.stable_dt(space);
+      for (int k = 0; k < 60; ++k) solver.step(space, dt);
+      return solver;
+    };
+    exec::set_simd_path(exec::SimdPath::Baseline);
+    const PdSolver ref = run(exec::Space());
+    const PdDiagnostics d = ref.diagnostics(exec::Space());
+    EXPECT_LT(d.intact, d.bonds * 97 / 100) << form;  // it fractured
+    if (fraction > 0) EXPECT_GT(d.compactions, 0u) << form;
+    std::size_t yielded = 0;
+    for (const Real ep : ref.bonds().plastic) yielded += ep != 0;
+    if (model == PdModel::Paper) EXPECT_GT(yielded, 100u) << form;  // it flowed
+    for (const exec::SimdPath path : {exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
+      if (!exec::simd_path_supported(path)) {
+        std::printf("SIMD path %s: skipped (%s)\n", exec::simd_path_name(path),
+                    exec::simd_path_compiled(path) ? "this CPU lacks it" : "not in this build");
+        continue;
+      }
+      exec::set_simd_path(path);
+      for (const exec::Space& space : {exec::Space(), exec::Space(test::parallel_backend(), 2)}) {
+        const std::string what =
+            form + ", " + exec::simd_path_name(path) + " on " + space.describe();
+        const PdSolver other = run(space);
+        expect_same_state(ref, other, what);
+        EXPECT_EQ(ref.bonds().intact, other.bonds().intact) << what;
+        EXPECT_TRUE(test::bitwise_equal(ref.bonds().plastic.data(), other.bonds().plastic.data(),
+                                        ref.bonds().plastic.size()))
+            << what;
+      }
+    }
+    std::printf("%s: %zu plastic bonds, %llu of %llu intact, bitwise on every path run\n",
+                form.c_str(), yielded, (unsigned long long)d.intact, (unsigned long long)d.bonds);
   }
 }
 

@@ -20,6 +20,7 @@ bool cpu_has(SimdPath p) {
       return __builtin_cpu_supports("avx2");
     case SimdPath::Avx512:
       return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512vl") &&
+             __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq") &&
              __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
   }
   return false;
@@ -67,7 +68,7 @@ const char* simd_path_flags(SimdPath p) {
     case SimdPath::Avx2:
       return "-mavx2";
     case SimdPath::Avx512:
-      return "-mavx512f -mavx512vl -mfma";
+      return "-mavx512f -mavx512vl -mavx512bw -mavx512dq -mfma";
   }
   return "";
 }

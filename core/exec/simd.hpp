@@ -1,6 +1,7 @@
 // Vector width chosen at run time (issue 31, item 4). The hot kernel files are compiled once per
 // instruction set (kernels/CMakeLists.txt, amalgam_simd_variants): the portable baseline (x86-64,
-// SSE2), AVX2 (-mavx2) and AVX-512 (-mavx512f -mavx512vl -mfma: Eigen refuses AVX-512 without FMA),
+// SSE2), AVX2 (-mavx2) and AVX-512 (-mavx512f -mavx512vl -mavx512bw -mavx512dq -mfma: Eigen
+// refuses AVX-512 without FMA; BW for byte lanes at 512 bits),
 // always with -ffp-contract=off (GCC would otherwise contract a * b + c into an FMA). Each compilation puts the file's
 // kernels in its own namespace (AMALGAM_ISA below: isa_baseline, isa_avx2, isa_avx512) and
 // exports a table of entry points; every other symbol of a variant object is made local after a
@@ -50,7 +51,8 @@ SimdPath parse_simd_path(const std::string& name);
 SimdPath simd_path();
 // Forces the path (tests, benchmarks, `--simd`); throws std::invalid_argument if unsupported.
 void set_simd_path(SimdPath p);
-// "avx512 (AVX-512F/VL, 512-bit particle lanes; compiled: baseline avx2 avx512; CPU: ...)",
+// "avx512 (-mavx512f -mavx512vl -mavx512bw -mavx512dq -mfma; compiled: baseline avx2 avx512;
+// CPU runs: baseline avx2 avx512)",
 // for `amalgam info` and the benchmark header.
 std::string simd_description();
 
