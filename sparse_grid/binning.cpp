@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <climits>
 #include <cmath>
+#include <stdexcept>
 #include <string>
 
 #include "core/errors.hpp"
@@ -97,6 +98,8 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
   // particle of the set's spare (free until the permute below); the permutation starts in the
   // buffer where an even or odd number of passes leaves it in perm_, which the permute reads.
   perm_.resize(size_t(n));
+  if (ParticleSet::spare_words_per_particle() < 3)
+    throw std::logic_error("the particle set's spare holds fewer than 3 words per particle");
   std::uint32_t* spare = ps.spare_words();
   std::uint32_t* kin_buf = spare;
   std::uint32_t* kout_buf = spare + n;

@@ -208,9 +208,9 @@ TEST(SparseGrid, FreeingTheTreeTakesNoLibraryThread) {
   EXPECT_EQ(rec.workers(), 0u);
 }
 
-// The permutation gathers every attribute through one spare of a Vec3's width: a Vec3 is gathered
-// into it and swapped, a Mat3 gathered three words at a time and copied back, scalars and other
-// widths (5 words: one word at a time) gathered and copied back. After permutations and a
+// The permutation gathers every attribute through one spare of a Mat3's width: a Mat3 is gathered
+// into it and swapped, Vec3s, scalars and other widths (5 words: one word at a time) gathered and
+// copied back. After permutations and a
 // compaction every attribute holds exactly its own values (a spare handed from one attribute to
 // the next must not leak values, a group copied back must not overwrite a value still to read).
 TEST(ParticleSet, PermuteThroughSparesKeepsEveryAttribute) {
@@ -231,7 +231,7 @@ TEST(ParticleSet, PermuteThroughSparesKeepsEveryAttribute) {
   }
   const int w = int(sizeof(Real) / 4);
   EXPECT_EQ(ps.state_bytes_per_particle(), std::size_t(4 * (7 + 15 * w)));
-  EXPECT_EQ(ps.bytes_per_particle(), ps.state_bytes_per_particle() + std::size_t(4 * 3 * w));
+  EXPECT_EQ(ps.bytes_per_particle(), ps.state_bytes_per_particle() + std::size_t(4 * 9 * w));
   std::mt19937 rng(3);
   std::vector<std::uint32_t> order(n);  // order[i]: the original particle now at i
   for (std::size_t i = 0; i < n; ++i) order[i] = std::uint32_t(i);

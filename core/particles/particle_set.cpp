@@ -10,6 +10,18 @@
 #include "core/errors.hpp"
 
 namespace amalgam {
+namespace {
+// The spare's width in 32-bit words: a Mat3, so Mat3 attributes (C, F, F_lo) are gathered into it
+// and swapped, and the narrower ones copied back. A Vec3-wide spare (12 B instead of 36 in float)
+// gathers a Mat3 in three groups, re-reading it four times: measured, the sort took 1.9x main's
+// time and the whole substep 0.83x main's rate, against 1.3x and 0.99x with this width
+// (docs/benchmarks.md "Memory").
+constexpr int kSpareWords = 9 * int(sizeof(Real) / 4);
+}  // namespace
+
+int ParticleSet::spare_words_per_particle() {
+  return kSpareWords;
+}
 
 int ParticleSet::Attr::words() const {
   const int scalar_words = (type == AttrType::Real) ? int(sizeof(Real) / 4) : 1;
@@ -132,41 +144,32 @@ void ParticleSet::compact(const exec::Space& space, const std::uint32_t* index, 
 }
 
 void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, std::size_t n) {
-  static_assert(kSpareWords == 3 || kSpareWords == 6, "the spare is a float or double Vec3");
+  constexpr int S = kSpareWords;
   for (auto& a : attrs_) {
     const int w = a.words();
     std::uint32_t* sp = spare_words();
     std::uint32_t* d = a.front.data();
-    if (w == kSpareWords) {  // Vec3: gather into the spare and swap the two
-      if (w == 3)
-        gather_records<3>(space, n, perm, d, sp);
-      else
-        gather_records<6>(space, n, perm, d, sp);
+    if (w == S) {  // gather into the spare and swap the two
+      gather_records<S>(space, n, perm, d, sp);
       a.front.swap(spare_);  // sizes equal: both hold n_ particles of w words
       continue;
     }
-    switch (w) {  // the widths of scalars and Mat3 in float (spare 3) and double (spare 6)
-      case 1:
-        gather_in_place<1, 1>(space, n, perm, d, sp);
-        break;
-      case 2:
-        gather_in_place<2, 2>(space, n, perm, d, sp);
-        break;
-      case 9:
-        if (kSpareWords == 3)
-          gather_in_place<9, 3>(space, n, perm, d, sp);
-        else
-          gather_words(space, n, perm, d, w, sp);
-        break;
-      case 18:
-        if (kSpareWords == 6)
-          gather_in_place<18, 6>(space, n, perm, d, sp);
-        else
-          gather_words(space, n, perm, d, w, sp);
-        break;
-      default:
-        gather_words(space, n, perm, d, w, sp);
-    }
+    // The widths of scalars, Vec3 and Mat3 in float and double, narrower than the spare (one
+    // group) or a whole number of spares wide.
+    if (w == 1)
+      gather_in_place<1, 1>(space, n, perm, d, sp);
+    else if (w == 2 && S >= 2)
+      gather_in_place<2, 2>(space, n, perm, d, sp);
+    else if (w == 3 && S >= 3)
+      gather_in_place<3, 3>(space, n, perm, d, sp);
+    else if (w == 6 && S >= 6)
+      gather_in_place<6, 6>(space, n, perm, d, sp);
+    else if (w == 9 && S == 3)
+      gather_in_place<9, 3>(space, n, perm, d, sp);
+    else if (w == 18 && (S == 6 || S == 9))
+      gather_in_place<18, (S == 6 || S == 9) ? S : 1>(space, n, perm, d, sp);
+    else
+      gather_words(space, n, perm, d, w, sp);
   }
 }
 

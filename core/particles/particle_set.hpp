@@ -2,14 +2,14 @@
 //
 // Each attribute is one contiguous array of `width` scalars per particle (Real or int32), so a
 // kernel receives plain pointers (`vec3("x")` is a Vec3*, `mat3("F")` a Mat3*). `permute` gathers
-// through ONE spare of kSpareWords 32-bit words per particle (a Vec3's width): an attribute of
-// that width is gathered into the spare and the two are swapped; a wider one (Mat3) is gathered a
-// group of kSpareWords words at a time (each group copied back into the attribute in the pass that
-// gathers the next), a narrower one (scalars) is gathered and copied back. The sort of
-// ParticleBinning uses the same spare as its keys and scratch (spare_words), so the set and its
-// sort need 4 B (the permutation) + 12 B per particle besides the state in float instead of 52 +
-// 16 B (docs/benchmarks.md "Memory"). No allocation once capacity is reached. Kernels must
-// re-fetch attribute pointers after a permute, as before.
+// through ONE spare of spare_words_per_particle() 32-bit words (a Mat3's width): an attribute of
+// that width is gathered into the spare and the two are swapped; a narrower one (Vec3, scalars)
+// is gathered into it and copied back (a wider one a spare's width at a time, each group copied
+// back in the pass that gathers the next). ParticleBinning's sort keeps its keys, second buffers
+// and run flags in the same spare (spare_words), so the set and its sort need 36 B (the spare) +
+// 4 B (the permutation) per particle besides the state in float, where one spare per attribute
+// width and four sort words took 52 + 16 B (docs/benchmarks.md "Memory"). No allocation once
+// capacity is reached. Kernels must re-fetch attribute pointers after a permute, as before.
 #pragma once
 
 #include <cstdint>
@@ -42,7 +42,9 @@ class ParticleSet {
   int width(Id a) const { return attrs_[a].width; }
   // 32-bit words per particle of the spare (a Vec3: 3 in float, 6 in double; >= 3, as the
   // binning's sort uses it for three words per particle).
-  static constexpr int kSpareWords = 3 * int(sizeof(Real) / 4);
+  // 32-bit words per particle of the spare (9 * sizeof(Real) / 4: a Mat3; at least 3, as the
+  // binning's sort uses it for three words per particle).
+  static int spare_words_per_particle();
   std::size_t bytes_per_particle() const;        // the attributes plus the permutation's spare
   std::size_t state_bytes_per_particle() const;  // the attributes alone (what a Snapshot copies)
 
@@ -62,7 +64,7 @@ class ParticleSet {
   std::uint32_t* words(Id a) { return attrs_[a].front.data(); }
   const std::uint32_t* words(Id a) const { return attrs_[a].front.data(); }
 
-  // The spare, kSpareWords * size() words, free for a caller's scratch between permutes (its
+  // The spare, spare_words_per_particle() * size() words, free for a caller's scratch between permutes (its
   // contents are overwritten by permute and compact; pointers are invalidated by them and resize).
   std::uint32_t* spare_words();
 
@@ -92,7 +94,7 @@ class ParticleSet {
   // front[i] = old_front[perm[i]] for i < m, every attribute.
   void gather(const exec::Space& space, const std::uint32_t* perm, std::size_t m);
   std::vector<Attr> attrs_;
-  std::vector<std::uint32_t> spare_;  // kSpareWords words per particle once a permute ran
+  std::vector<std::uint32_t> spare_;  // spare_words_per_particle() words per particle
   std::size_t n_ = 0;
 };
 
