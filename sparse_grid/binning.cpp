@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <climits>
 #include <cmath>
+#include <stdexcept>
 #include <string>
 
 #include "core/errors.hpp"
@@ -89,13 +90,24 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
                           std::to_string(ext[1]) + "x" + std::to_string(ext[2]) +
                           " leaves, more than a 32-bit key can address");
 
-  keys_.resize(size_t(n));
-  keys_tmp_.resize(size_t(n));
+  // Stable LSD radix sort of (key, index) with a fixed number of chunks.
+  int bits = 0;
+  while ((std::int64_t(1) << bits) < nkeys) ++bits;
+  const int passes = (bits + kDigitBits - 1) / kDigitBits;
+  // Keys, their sort's second buffer and the permutation's second buffer are the three words per
+  // particle of the set's spare (free until the permute below); the permutation starts in the
+  // buffer where an even or odd number of passes leaves it in perm_, which the permute reads.
   perm_.resize(size_t(n));
-  perm_tmp_.resize(size_t(n));
+  if (ParticleSet::spare_words_per_particle() < 3)
+    throw std::logic_error("the particle set's spare holds fewer than 3 words per particle");
+  std::uint32_t* spare = ps.spare_words();
+  std::uint32_t* kin_buf = spare;
+  std::uint32_t* kout_buf = spare + n;
+  std::uint32_t* pin_buf = (passes % 2 == 0) ? perm_.data() : spare + 2 * n;
+  std::uint32_t* pout_buf = (passes % 2 == 0) ? spare + 2 * n : perm_.data();
   {
-    std::uint32_t* keys = keys_.data();
-    std::uint32_t* perm = perm_.data();
+    std::uint32_t* keys = kin_buf;
+    std::uint32_t* perm = pin_buf;
     const int lo0 = box.lo[0], lo1 = box.lo[1], lo2 = box.lo[2];
     const std::int64_t e1 = ext[1], e2 = ext[2];
     auto key_pass = [&](auto order_tag) {
@@ -115,10 +127,6 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
       key_pass(std::integral_constant<int, 2>{});
   }
 
-  // Stable LSD radix sort of (key, index) with a fixed number of chunks.
-  int bits = 0;
-  while ((std::int64_t(1) << bits) < nkeys) ++bits;
-  const int passes = (bits + kDigitBits - 1) / kDigitBits;
   const exec::Index chunk = (n + kSortChunks - 1) / kSortChunks;
   const exec::Index nchunks = (n + chunk - 1) / chunk;
   hist_.resize(size_t(nchunks) * kRadix);
@@ -129,10 +137,10 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
     const std::uint32_t ndig =
         std::uint32_t(std::min<std::int64_t>(kRadix, ((nkeys - 1) >> shift) + 1));
     std::uint32_t* hist = hist_.data();
-    const std::uint32_t* kin = keys_.data();
-    const std::uint32_t* pin = perm_.data();
-    std::uint32_t* kout = keys_tmp_.data();
-    std::uint32_t* pout = perm_tmp_.data();
+    const std::uint32_t* kin = kin_buf;
+    const std::uint32_t* pin = pin_buf;
+    std::uint32_t* kout = kout_buf;
+    std::uint32_t* pout = pout_buf;
     exec::parallel_for(
         space, "bin.radix_hist", nchunks,
         [=](exec::Index c) {
@@ -163,13 +171,13 @@ void ParticleBinning::sort_and_bin(const exec::Space& space, ParticleSet& ps, Pa
           }
         },
         1);
-    keys_.swap(keys_tmp_);
-    perm_.swap(perm_tmp_);
+    std::swap(kin_buf, kout_buf);
+    std::swap(pin_buf, pout_buf);
   }
 
-  // Bins: runs of equal keys (their numbers in keys_tmp_, free once the sort is done).
-  const std::uint32_t* keys = keys_.data();
-  std::uint32_t* flags = keys_tmp_.data();
+  // Bins: runs of equal keys (their numbers in the keys' second buffer, free once sorted).
+  const std::uint32_t* keys = kin_buf;
+  std::uint32_t* flags = kout_buf;
   const std::uint32_t nbins = exec::parallel_scan<std::uint32_t>(
       space, "bin.find_runs", n,
       [=](exec::Index i) { return (i == 0 || keys[i] != keys[i - 1]) ? 1u : 0u; }, flags);

@@ -23,9 +23,10 @@ struct BinTable {
 
 class ParticleBinning {
  public:
-  // keys, keys_tmp, perm, perm_tmp: four 32-bit words per particle (the bins' run flags reuse
-  // keys_tmp once the sort is done).
-  static constexpr std::size_t kScratchBytesPerParticle = 4 * sizeof(std::uint32_t);
+  // The permutation: one 32-bit word per particle. The keys, the sort's second buffers and the
+  // bins' run flags live in the particle set's spare (ParticleSet::spare_words, counted in its
+  // bytes_per_particle), free until the permute that ends the sort.
+  static constexpr std::size_t kScratchBytesPerParticle = sizeof(std::uint32_t);
   // `order` is the B-spline order (1, 2 or 3) whose stencil base defines the key.
   // Sorts `ps` in place by leaf key (attribute `x_id` holds positions), fills `bins`.
   // With `id_id` (an int32 attribute of unique particle ids), the particles of a bin are ordered
@@ -38,7 +39,7 @@ class ParticleBinning {
                     int order, BinTable& bins, ParticleSet::Id id_id = -1);
 
  private:
-  std::vector<std::uint32_t> keys_, keys_tmp_, perm_, perm_tmp_;
+  std::vector<std::uint32_t> perm_;
   std::vector<std::uint32_t> hist_;
 };
 

@@ -208,27 +208,30 @@ TEST(SparseGrid, FreeingTheTreeTakesNoLibraryThread) {
   EXPECT_EQ(rec.workers(), 0u);
 }
 
-// The permutation gathers each attribute into a spare buffer of its width and swaps: attributes of
-// the same width share one spare, and after permutations and a compaction every attribute holds
-// exactly its own values (a spare handed from one attribute to the next must not leak values).
+// The permutation gathers every attribute through one spare of a Mat3's width: a Mat3 is gathered
+// into it and swapped, Vec3s, scalars and other widths (5 words: one word at a time) gathered and
+// copied back. After permutations and a
+// compaction every attribute holds exactly its own values (a spare handed from one attribute to
+// the next must not leak values, a group copied back must not overwrite a value still to read).
 TEST(ParticleSet, PermuteThroughSparesKeepsEveryAttribute) {
   ParticleSet ps;
   const auto a1 = ps.add("a1", AttrType::Int32, 1), v1 = ps.add("v1", AttrType::Real, 3),
              m = ps.add("m", AttrType::Real, 9), v2 = ps.add("v2", AttrType::Real, 3),
-             a2 = ps.add("a2", AttrType::Int32, 1);
+             a2 = ps.add("a2", AttrType::Int32, 1), a5 = ps.add("a5", AttrType::Int32, 5);
   const std::size_t n = 5000;
   ps.resize(n);
   auto value = [](std::size_t p, int attr, int k) { return Real(p * 100 + attr * 10 + k); };
   for (std::size_t p = 0; p < n; ++p) {
     ps.int32(a1)[p] = std::int32_t(p);
     ps.int32(a2)[p] = std::int32_t(7 * p);
+    for (int k = 0; k < 5; ++k) ps.int32(a5)[p * 5 + std::size_t(k)] = std::int32_t(p * 5 + k);
     for (int k = 0; k < 3; ++k) ps.vec3(v1)[p][k] = value(p, 1, k);
     for (int k = 0; k < 3; ++k) ps.vec3(v2)[p][k] = value(p, 2, k);
     for (int k = 0; k < 9; ++k) ps.real(m)[p * 9 + std::size_t(k)] = value(p, 3, k);
   }
   const int w = int(sizeof(Real) / 4);
-  EXPECT_EQ(ps.state_bytes_per_particle(), std::size_t(4 * (2 + 15 * w)));
-  EXPECT_EQ(ps.bytes_per_particle(), ps.state_bytes_per_particle() + std::size_t(4 * (1 + 12 * w)));
+  EXPECT_EQ(ps.state_bytes_per_particle(), std::size_t(4 * (7 + 15 * w)));
+  EXPECT_EQ(ps.bytes_per_particle(), ps.state_bytes_per_particle() + std::size_t(4 * 9 * w));
   std::mt19937 rng(3);
   std::vector<std::uint32_t> order(n);  // order[i]: the original particle now at i
   for (std::size_t i = 0; i < n; ++i) order[i] = std::uint32_t(i);
@@ -250,6 +253,8 @@ TEST(ParticleSet, PermuteThroughSparesKeepsEveryAttribute) {
     const std::size_t p = order[keep[i]];
     ASSERT_EQ(ps.int32(a1)[i], std::int32_t(p));
     ASSERT_EQ(ps.int32(a2)[i], std::int32_t(7 * p));
+    for (int k = 0; k < 5; ++k)
+      ASSERT_EQ(ps.int32(a5)[i * 5 + std::size_t(k)], std::int32_t(p * 5 + std::size_t(k)));
     for (int k = 0; k < 3; ++k) ASSERT_EQ(ps.vec3(v1)[i][k], value(p, 1, k));
     for (int k = 0; k < 3; ++k) ASSERT_EQ(ps.vec3(v2)[i][k], value(p, 2, k));
     for (int k = 0; k < 9; ++k) ASSERT_EQ(ps.real(m)[i * 9 + std::size_t(k)], value(p, 3, k));

@@ -10,6 +10,18 @@
 #include "core/errors.hpp"
 
 namespace amalgam {
+namespace {
+// The spare's width in 32-bit words: a Mat3, so Mat3 attributes (C, F, F_lo) are gathered into it
+// and swapped, and the narrower ones copied back. A Vec3-wide spare (12 B instead of 36 in float)
+// gathers a Mat3 in three groups, re-reading it four times: measured, the sort took 1.9x main's
+// time and the whole substep 0.83x main's rate, against 1.3x and 0.99x with this width
+// (docs/benchmarks.md "Memory").
+constexpr int kSpareWords = 9 * int(sizeof(Real) / 4);
+}  // namespace
+
+int ParticleSet::spare_words_per_particle() {
+  return kSpareWords;
+}
 
 int ParticleSet::Attr::words() const {
   const int scalar_words = (type == AttrType::Real) ? int(sizeof(Real) / 4) : 1;
@@ -40,7 +52,7 @@ ParticleSet::Id ParticleSet::id(const std::string& name) const {
 
 void ParticleSet::resize(std::size_t n) {
   for (auto& a : attrs_) a.front.resize(n * size_t(a.words()), 0u);
-  for (auto& s : spares_) s.second.resize(n * size_t(s.first));
+  if (!spare_.empty()) spare_.resize(n * size_t(kSpareWords));
   n_ = n;
 }
 
@@ -64,30 +76,42 @@ std::size_t ParticleSet::state_bytes_per_particle() const {
 }
 
 std::size_t ParticleSet::bytes_per_particle() const {
-  // One spare per distinct width (those a permute creates; counted before the first permute too).
-  std::vector<int> widths;
-  for (const auto& a : attrs_)
-    if (std::find(widths.begin(), widths.end(), a.words()) == widths.end())
-      widths.push_back(a.words());
-  size_t b = state_bytes_per_particle();
-  for (int w : widths) b += 4 * size_t(w);
-  return b;
+  // The spare a permute creates (counted before the first permute too).
+  return state_bytes_per_particle() + 4 * size_t(kSpareWords);
 }
 
-std::vector<std::uint32_t>& ParticleSet::spare(int words, std::size_t n) {
-  auto it = std::find_if(spares_.begin(), spares_.end(),
-                         [words](const auto& s) { return s.first == words; });
-  if (it == spares_.end()) {
-    spares_.emplace_back(words, std::vector<std::uint32_t>());
-    it = spares_.end() - 1;
-  }
-  if (it->second.size() < n * size_t(words)) it->second.resize(n * size_t(words));
-  return it->second;
+std::uint32_t* ParticleSet::spare_words() {
+  if (spare_.size() < n_ * size_t(kSpareWords)) spare_.resize(n_ * size_t(kSpareWords));
+  return spare_.data();
 }
 
 namespace {
-// dst[i] = src[perm[i]] for records of W 32-bit words; W known at compile time so the copy is
-// a few vector moves instead of a run-time-length loop.
+// The gather of one attribute of W 32-bit words per particle through a spare of G words per
+// particle (W a multiple of G), in place: group g (words gG .. gG+G-1) is gathered into the spare,
+// and copied back into the attribute in the pass that gathers group g+1. A pass writes only group
+// g-1 of A[i] and reads only group g of A[perm[i]]: no element is read after it is overwritten,
+// whatever the permutation, and the passes' iterations are independent. W and G are known at
+// compile time, so the copies are a few vector moves.
+template <int W, int G>
+void gather_in_place(const exec::Space& space, std::size_t n, const std::uint32_t* perm,
+                     std::uint32_t* a, std::uint32_t* sp) {
+  static_assert(W % G == 0, "whole groups");
+  constexpr int groups = W / G;
+  for (int g = 0; g <= groups; ++g) {
+    exec::parallel_for(space, "particles.permute", exec::Index(n), [=](exec::Index i) {
+      std::uint32_t* s = sp + size_t(i) * G;
+      if (g > 0) {
+        std::uint32_t* d = a + size_t(i) * W + (g - 1) * G;
+        for (int k = 0; k < G; ++k) d[k] = s[k];
+      }
+      if (g < groups) {
+        const std::uint32_t* src = a + size_t(perm[i]) * W + g * G;
+        for (int k = 0; k < G; ++k) s[k] = src[k];
+      }
+    });
+  }
+}
+// dst[i] = src[perm[i]] for records of W words (W == the spare's width: the two are swapped).
 template <int W>
 void gather_records(const exec::Space& space, std::size_t n, const std::uint32_t* perm,
                     const std::uint32_t* src, std::uint32_t* dst) {
@@ -96,6 +120,16 @@ void gather_records(const exec::Space& space, std::size_t n, const std::uint32_t
     std::uint32_t* d = dst + size_t(i) * W;
     for (int k = 0; k < W; ++k) d[k] = s[k];
   });
+}
+// Widths other than those of scalars, Vec3 and Mat3: one word at a time, in place as above.
+void gather_words(const exec::Space& space, std::size_t n, const std::uint32_t* perm,
+                  std::uint32_t* a, int w, std::uint32_t* sp) {
+  for (int g = 0; g <= w; ++g) {
+    exec::parallel_for(space, "particles.permute", exec::Index(n), [=](exec::Index i) {
+      if (g > 0) a[size_t(i) * size_t(w) + size_t(g - 1)] = sp[i];
+      if (g < w) sp[i] = a[size_t(perm[i]) * size_t(w) + size_t(g)];
+    });
+  }
 }
 }  // namespace
 
@@ -110,38 +144,32 @@ void ParticleSet::compact(const exec::Space& space, const std::uint32_t* index, 
 }
 
 void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, std::size_t n) {
+  constexpr int S = kSpareWords;
   for (auto& a : attrs_) {
     const int w = a.words();
-    std::vector<std::uint32_t>& back = spare(w, n_);
-    const std::uint32_t* src = a.front.data();
-    std::uint32_t* dst = back.data();
-    switch (w) {  // the widths of scalars, Vec3 and Mat3 in float and double
-      case 1:
-        gather_records<1>(space, n, perm, src, dst);
-        break;
-      case 2:
-        gather_records<2>(space, n, perm, src, dst);
-        break;
-      case 3:
-        gather_records<3>(space, n, perm, src, dst);
-        break;
-      case 6:
-        gather_records<6>(space, n, perm, src, dst);
-        break;
-      case 9:
-        gather_records<9>(space, n, perm, src, dst);
-        break;
-      case 18:
-        gather_records<18>(space, n, perm, src, dst);
-        break;
-      default:
-        exec::parallel_for(space, "particles.permute", exec::Index(n), [=](exec::Index i) {
-          const std::uint32_t* s = src + size_t(perm[i]) * size_t(w);
-          std::uint32_t* d = dst + size_t(i) * size_t(w);
-          for (int k = 0; k < w; ++k) d[k] = s[k];
-        });
+    std::uint32_t* sp = spare_words();
+    std::uint32_t* d = a.front.data();
+    if (w == S) {  // gather into the spare and swap the two
+      gather_records<S>(space, n, perm, d, sp);
+      a.front.swap(spare_);  // sizes equal: both hold n_ particles of w words
+      continue;
     }
-    a.front.swap(back);  // sizes equal: both hold n_ particles of w words
+    // The widths of scalars, Vec3 and Mat3 in float and double, narrower than the spare (one
+    // group) or a whole number of spares wide.
+    if (w == 1)
+      gather_in_place<1, 1>(space, n, perm, d, sp);
+    else if (w == 2 && S >= 2)
+      gather_in_place<2, 2>(space, n, perm, d, sp);
+    else if (w == 3 && S >= 3)
+      gather_in_place<3, 3>(space, n, perm, d, sp);
+    else if (w == 6 && S >= 6)
+      gather_in_place<6, 6>(space, n, perm, d, sp);
+    else if (w == 9 && S == 3)
+      gather_in_place<9, 3>(space, n, perm, d, sp);
+    else if (w == 18 && (S == 6 || S == 9))
+      gather_in_place<18, (S == 6 || S == 9) ? S : 1>(space, n, perm, d, sp);
+    else
+      gather_words(space, n, perm, d, w, sp);
   }
 }
 

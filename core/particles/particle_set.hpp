@@ -2,11 +2,14 @@
 //
 // Each attribute is one contiguous array of `width` scalars per particle (Real or int32), so a
 // kernel receives plain pointers (`vec3("x")` is a Vec3*, `mat3("F")` a Mat3*). `permute` gathers
-// one attribute at a time through the permutation into a spare buffer of the attribute's width
-// and swaps the two (the attribute's old storage becomes the spare for the next attribute of that
-// width): one spare per distinct width, not a back buffer per attribute (MPM float: 52 B per
-// particle instead of 160, docs/benchmarks.md "Memory"), and no allocation once capacity is
-// reached. Kernels must re-fetch attribute pointers after a permute, as before.
+// through ONE spare of spare_words_per_particle() 32-bit words (a Mat3's width): an attribute of
+// that width is gathered into the spare and the two are swapped; a narrower one (Vec3, scalars)
+// is gathered into it and copied back (a wider one a spare's width at a time, each group copied
+// back in the pass that gathers the next). ParticleBinning's sort keeps its keys, second buffers
+// and run flags in the same spare (spare_words), so the set and its sort need 36 B (the spare) +
+// 4 B (the permutation) per particle besides the state in float, where one spare per attribute
+// width and four sort words took 52 + 16 B (docs/benchmarks.md "Memory"). No allocation once
+// capacity is reached. Kernels must re-fetch attribute pointers after a permute, as before.
 #pragma once
 
 #include <cstdint>
@@ -37,7 +40,12 @@ class ParticleSet {
   const std::string& name(Id a) const { return attrs_[a].name; }
   AttrType type(Id a) const { return attrs_[a].type; }
   int width(Id a) const { return attrs_[a].width; }
-  std::size_t bytes_per_particle() const;        // the attributes plus the permutation's spares
+  // 32-bit words per particle of the spare (a Vec3: 3 in float, 6 in double; >= 3, as the
+  // binning's sort uses it for three words per particle).
+  // 32-bit words per particle of the spare (9 * sizeof(Real) / 4: a Mat3; at least 3, as the
+  // binning's sort uses it for three words per particle).
+  static int spare_words_per_particle();
+  std::size_t bytes_per_particle() const;        // the attributes plus the permutation's spare
   std::size_t state_bytes_per_particle() const;  // the attributes alone (what a Snapshot copies)
 
   Real* real(Id a) { return reinterpret_cast<Real*>(attrs_[a].front.data()); }
@@ -55,6 +63,10 @@ class ParticleSet {
   int words_per_particle(Id a) const { return attrs_[a].words(); }
   std::uint32_t* words(Id a) { return attrs_[a].front.data(); }
   const std::uint32_t* words(Id a) const { return attrs_[a].front.data(); }
+
+  // The spare, spare_words_per_particle() * size() words, free for a caller's scratch between permutes (its
+  // contents are overwritten by permute and compact; pointers are invalidated by them and resize).
+  std::uint32_t* spare_words();
 
   // For every attribute: front[i] = old_front[perm[i]] for i < size().
   void permute(const exec::Space& space, const std::uint32_t* perm);
@@ -79,12 +91,10 @@ class ParticleSet {
     std::vector<std::uint32_t> front;  // 4-byte words: Real=float uses 1 word, double 2
     int words() const;
   };
-  // The gather's target for attributes of `words` words per particle, sized for n particles.
-  std::vector<std::uint32_t>& spare(int words, std::size_t n);
   // front[i] = old_front[perm[i]] for i < m, every attribute.
   void gather(const exec::Space& space, const std::uint32_t* perm, std::size_t m);
   std::vector<Attr> attrs_;
-  std::vector<std::pair<int, std::vector<std::uint32_t>>> spares_;  // (words, buffer), by width
+  std::vector<std::uint32_t> spare_;  // spare_words_per_particle() words per particle
   std::size_t n_ = 0;
 };
 
