@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Builds the libFuzzer targets (clang, ASan + UBSan, coverage in every library) into build-fuzz/
-# and runs each for SECONDS (default 60) on its seed corpus, one after another:
+# Builds the libFuzzer targets (clang, ASan + UBSan, coverage in every library:
+# scripts/build_sanitized.sh) into build-fuzz/ (or $AMALGAM_FUZZ_DIR: CI points it at the
+# sanitizer suite's build-asan/, which already holds them) and runs each for SECONDS (default 60)
+# on its seed corpus, one after another:
 #   scripts/fuzz.sh [SECONDS] [fuzz_scene|fuzz_mesh|fuzz_checkpoint ...]
 # Limits per input, as docs/fuzzing.md states them: 1 MB long, 10 s, 1 GB of memory; any crash,
 # sanitizer report, timeout or memory overrun fails the run (exit non-zero) and leaves the input
@@ -14,13 +16,7 @@ targets=("$@")
 [ ${#targets[@]} -eq 0 ] && targets=(fuzz_scene fuzz_mesh fuzz_checkpoint)
 build="${AMALGAM_FUZZ_DIR:-$root/build-fuzz}"
 "$root/scripts/install_deps.sh"
-if [ ! -f "$build/CMakeCache.txt" ]; then
-  cmake -S "$root" -B "$build" -G Ninja -DCMAKE_BUILD_TYPE=RelWithDebInfo \
-        -DCMAKE_CXX_COMPILER=clang++ -DCMAKE_C_COMPILER=clang "-DCMAKE_CXX_FLAGS_RELWITHDEBINFO=-O1 -g1" \
-        -DAMALGAM_FUZZ=ON -DAMALGAM_SANITIZE=address,undefined -DAMALGAM_BUILD_BENCH=OFF -DAMALGAM_MPI=OFF \
-        -DAMALGAM_BUILD_TESTS=ON > /dev/null
-fi
-cmake --build "$build" --parallel "$(nproc)" --target "${targets[@]}"
+"$root/scripts/build_sanitized.sh" "$build" "${targets[@]}"
 mkdir -p "$build/findings"
 seed() {  # seed TARGET: the corpus directory, seeded once
   local dir="$build/corpus/$1"

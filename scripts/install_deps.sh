@@ -21,7 +21,8 @@ PKGS=(
   libgtest-dev libgmock-dev libbenchmark-dev
   libcgal-demo tetgen
   clang-format             # format.check (scripts/check_format.sh): Debian 12 ships clang-format 14
-  clang libclang-rt-14-dev # libFuzzer targets (scripts/fuzz.sh; a smoke run in CI)
+  clang libclang-rt-14-dev libomp-dev  # the clang sanitizer + libFuzzer build (scripts/build_sanitized.sh):
+                                       # compiler-rt's ASan/UBSan/libFuzzer, LLVM's OpenMP (clang's -fopenmp)
   libtrilinos-kokkos-dev   # the optional Kokkos exec backend (Kokkos 3.4.1, Serial space)
   libopenmpi-dev openmpi-bin libtrilinos-zoltan-dev  # distributed runs: MPI ranks, Zoltan partitioning
 )

@@ -10,17 +10,12 @@
 # the test. The backend tests run Serial and OpenMP only here (AMALGAM_TEST_BACKENDS; override
 # by setting it): the bitwise comparisons across every backend are the release suite's job, and
 # TBB and Kokkos call the same kernel bodies, so under ASan they add time, not coverage of our
-# code. The sanitizer build is single-process (-DAMALGAM_MPI=OFF): OpenMPI's own allocations at
-# start-up are reported as leaks, and the distributed tests run in the release suite.
+# code. The build is scripts/build_sanitized.sh's (clang, single-process, with the libFuzzer
+# targets in it, which scripts/fuzz.sh then runs from the same directory: .ci/run).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 "$root/scripts/install_deps.sh"
-# -O1 -g1 (line tables only): the heaviest translation unit (io/vdb_points.cpp, OpenVDB point
-# conversion) compiles in 135 s instead of 251 s with RelWithDebInfo's -O2 -g, and reports keep
-# file:line stack traces.
-AMALGAM_BUILD_DIR="${AMALGAM_ASAN_DIR:-$root/build-asan}" "$root/scripts/build.sh" \
-  -DCMAKE_BUILD_TYPE=RelWithDebInfo "-DCMAKE_CXX_FLAGS_RELWITHDEBINFO=-O1 -g1 -DNDEBUG" \
-  -DAMALGAM_SANITIZE=address,undefined -DAMALGAM_BUILD_BENCH=OFF -DAMALGAM_MPI=OFF
+"$root/scripts/build_sanitized.sh" "${AMALGAM_ASAN_DIR:-$root/build-asan}"
 cd "${AMALGAM_ASAN_DIR:-$root/build-asan}"
 AMALGAM_TEST_BACKENDS="${AMALGAM_TEST_BACKENDS:-serial,openmp}" \
 LSAN_OPTIONS="suppressions=$root/tests/lsan.supp" ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
