@@ -295,7 +295,7 @@ bool pd_restrict_bonds(const exec::Space& space, PdBonds& bonds,
 // The bond passes (pd_dilatation, pd_forces, pd_damage) are compiled once per instruction set
 // (kernels/peridynamics_passes.cpp; core/exec/simd.hpp), each copy in its namespace with one of
 // these tables; the functions above call the table of exec::simd_path()
-// (kernels/simd_dispatch.cpp).
+// (kernels/peridynamics_dispatch.cpp).
 struct PdKernelTable {
   void (*dilatation)(const exec::Space&, const PdView&, PdBonds&, const PdParams&, PdScratch*);
   void (*forces)(const exec::Space&, const PdView&, PdBonds&, const PdParams&, bool, Vec3*, Mat3*,

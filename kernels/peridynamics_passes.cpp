@@ -4,7 +4,7 @@
 // (AVX-512) float lanes wide. Every operation is element-wise IEEE arithmetic (no contraction, no
 // reassociation) and the row sums run in the kSumLanes logical lanes of PdBonds::lane on every
 // path, so the results are bitwise the same on every path (tests/test_peridynamics.cpp,
-// PdSimdPaths). The public functions are in kernels/simd_dispatch.cpp.
+// PdSimdPaths). The public functions are in kernels/peridynamics_dispatch.cpp.
 #include <algorithm>
 #include <cmath>
 #include <cstddef>

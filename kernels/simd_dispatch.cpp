@@ -4,13 +4,11 @@
 #include "core/exec/simd.hpp"
 #include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"
-#include "kernels/peridynamics.hpp"
 
 namespace amalgam {
 
 AMALGAM_SIMD_DECLARE(MpmKernelTable, mpm_kernels)
 AMALGAM_SIMD_DECLARE(MaterialKernelTable, material_kernels)
-AMALGAM_SIMD_DECLARE(PdKernelTable, pd_kernels)
 
 namespace {
 const MpmKernelTable& mpm() {
@@ -64,22 +62,6 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
 void collide_particles(const exec::Space& space, const MpmParticleView& p,
                        const Collider* colliders, int n, Real time) {
   isa_baseline::material_kernels.collide_particles(space, p, colliders, n, time);
-}
-
-// The peridynamic bond passes: the block loops over a row's bonds at the path's width, the sums
-// in the same logical lanes (PdBonds::lane) on every path.
-void pd_dilatation(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
-                   PdScratch* scratch) {
-  AMALGAM_SIMD_PICK(pd_kernels).dilatation(space, p, bonds, prm, scratch);
-}
-void pd_forces(const exec::Space& space, const PdView& p, PdBonds& bonds, const PdParams& prm,
-               bool fracture, Vec3* force, Mat3* stress, PdScratch* scratch,
-               std::uint64_t* intact) {
-  AMALGAM_SIMD_PICK(pd_kernels)
-      .forces(space, p, bonds, prm, fracture, force, stress, scratch, intact);
-}
-std::uint64_t pd_damage(const exec::Space& space, const PdView& p, const PdBonds& bonds) {
-  return AMALGAM_SIMD_PICK(pd_kernels).damage(space, p, bonds);
 }
 
 }  // namespace amalgam
