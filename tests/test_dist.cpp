@@ -22,11 +22,24 @@ namespace {
 constexpr int kSide = 18;  // 18^3 = 5832 lattice points
 constexpr std::uint64_t kCount = std::uint64_t(kSide) * kSide * kSide;
 
-// This rank's contiguous slice of ids before partitioning (what a reader of a file would have).
-void slice(std::uint64_t& begin, std::uint64_t& end) {
+// This rank's contiguous slice of `count` ids before partitioning (what a reader of a file would
+// have), and their points (point_of(id, p)).
+void slice(std::uint64_t& begin, std::uint64_t& end, std::uint64_t count) {
   const Comm& c = Comm::world();
-  begin = kCount * std::uint64_t(c.rank()) / std::uint64_t(c.size());
-  end = kCount * std::uint64_t(c.rank() + 1) / std::uint64_t(c.size());
+  begin = count * std::uint64_t(c.rank()) / std::uint64_t(c.size());
+  end = count * std::uint64_t(c.rank() + 1) / std::uint64_t(c.size());
+}
+template <class PointOf>
+void slice_points(std::uint64_t count, PointOf point_of, std::vector<std::uint64_t>& ids,
+                  std::vector<double>& xyz) {
+  std::uint64_t b = 0, e = 0;
+  slice(b, e, count);
+  for (std::uint64_t id = b; id < e; ++id) {
+    ids.push_back(id);
+    double p[3];
+    point_of(id, p);
+    xyz.insert(xyz.end(), p, p + 3);
+  }
 }
 void point(std::uint64_t id, double* p) {
   p[0] = double(id % kSide) * 0.01;
@@ -35,18 +48,12 @@ void point(std::uint64_t id, double* p) {
 }
 // Every id's owner, known on every rank.
 std::vector<int> all_owners(const std::vector<float>& weight_of_id) {
-  std::uint64_t b = 0, e = 0;
-  slice(b, e);
   std::vector<std::uint64_t> ids;
   std::vector<double> xyz;
+  slice_points(kCount, point, ids, xyz);
   std::vector<float> w;
-  for (std::uint64_t id = b; id < e; ++id) {
-    ids.push_back(id);
-    double p[3];
-    point(id, p);
-    xyz.insert(xyz.end(), p, p + 3);
-    if (!weight_of_id.empty()) w.push_back(weight_of_id[id]);
-  }
+  if (!weight_of_id.empty())
+    for (std::uint64_t id : ids) w.push_back(weight_of_id[id]);
   const std::vector<int> mine = partition_rcb(ids, xyz, w);
   std::vector<std::uint64_t> pairs;
   for (std::size_t k = 0; k < ids.size(); ++k) {
@@ -155,19 +162,14 @@ TEST(Dist, NeighbourPeersAreSymmetricCompleteAndExchange) {
     p[1] = double((id / 64) % 4) * 0.01;
     p[2] = double(id / 256) * 0.01;
   };
-  const std::uint64_t b = kBar * std::uint64_t(c.rank()) / std::uint64_t(c.size()),
-                      e = kBar * std::uint64_t(c.rank() + 1) / std::uint64_t(c.size());
   std::vector<std::uint64_t> ids;
   std::vector<double> xyz;
-  for (std::uint64_t id = b; id < e; ++id) {
-    ids.push_back(id);
-    double p[3];
-    bar_point(id, p);
-    xyz.insert(xyz.end(), p, p + 3);
-  }
+  slice_points(kBar, bar_point, ids, xyz);
   const RcbCuts cuts = RcbCuts::partition(ids, xyz, {});
   const std::vector<int> peers = cuts.neighbours(0.015);  // 1.5 lattice steps
-  if (c.size() == 1) EXPECT_TRUE(peers.empty());
+  if (c.size() == 1) {
+    EXPECT_TRUE(peers.empty());
+  }
   std::vector<char> is_peer(std::size_t(c.size()), 0);
   for (int r : peers) {
     EXPECT_NE(r, c.rank());
@@ -180,10 +182,14 @@ TEST(Dist, NeighbourPeersAreSymmetricCompleteAndExchange) {
   for (int q = 0; q < c.size(); ++q) {
     const std::size_t n = sizes[std::size_t(q)] / sizeof(int);
     for (std::size_t k = 0; k < n; ++k)
-      if (all[at + k] == c.rank()) EXPECT_TRUE(is_peer[std::size_t(q)]) << "rank " << q;
+      if (all[at + k] == c.rank()) {
+        EXPECT_TRUE(is_peer[std::size_t(q)]) << "rank " << q;
+      }
     bool lists_me = false;
     for (std::size_t k = 0; k < n; ++k) lists_me |= all[at + k] == c.rank();
-    if (is_peer[std::size_t(q)]) EXPECT_TRUE(lists_me) << "rank " << q;
+    if (is_peer[std::size_t(q)]) {
+      EXPECT_TRUE(lists_me) << "rank " << q;
+    }
     at += n;
   }
   // Complete: the owner of every lattice point next to one this rank owns is a peer.
@@ -211,8 +217,9 @@ TEST(Dist, NeighbourPeersAreSymmetricCompleteAndExchange) {
     else
       EXPECT_TRUE(v.empty());
   }
-  if (c.size() >= 3)  // some rank (an end slab) has a rank that is not its peer
+  if (c.size() >= 3) {  // some rank (an end slab) has a rank that is not its peer
     EXPECT_GT(c.sum(std::uint64_t(peers.size() + 1 < std::size_t(c.size()))), 0u);
+  }
   for (int q = 0; q < c.size(); ++q)
     if (q != c.rank() && !is_peer[std::size_t(q)]) {
       std::vector<std::vector<char>> bad(std::size_t(c.size()));
