@@ -172,7 +172,18 @@ int run_command(const std::vector<std::string>& args) {
     set_phase("estimating scene " + scene.file);
     const RunEstimate estimate = estimate_of(scene);
     if (!rs.quiet) std::cout << "amalgam: expected: " << describe(estimate) << "\n";
-    const std::string over = over_limits(estimate, double(available_memory_bytes()));
+    // On several ranks the memory is this machine's ranks' share: explicit MPM splits its state
+    // and samples its set-up in slices (solvers/factory.cpp); peridynamics and particle domains
+    // set up the whole scene on every rank.
+    RunEstimate here = estimate;
+    if (const dist::Comm& comm = dist::Comm::world(); comm.size() > 1)
+      here.bytes *= scene.method == Method::Peridynamics || scene.mpm.domains.enabled
+                        ? double(comm.node_ranks())
+                        : double(comm.node_ranks()) / double(comm.size());
+    std::string over = over_limits(here, double(available_memory_bytes()));
+    if (!over.empty() && here.bytes != estimate.bytes)
+      over += " (the share of this machine's " + std::to_string(dist::Comm::world().node_ranks()) +
+              " of " + std::to_string(dist::Comm::world().size()) + " ranks)";
     if (!over.empty() && !o.flag("--force"))
       throw InputError(scene.file + ": " + over + " (--force runs it anyway)");
     std::error_code ec;

@@ -533,6 +533,7 @@ CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
     const std::uint64_t avail = available_memory_bytes();
     d = read_input_file(path, "checkpoint", avail > 0 ? avail : std::uint64_t(1) << 40);
   }
+  sim.before_restore();
   const CheckpointState st =
       read_state(path, d, sim.particles(), scene_fingerprint, sim.restore_sections(),
                  sim.variable_particle_count() ? sim.max_particle_count() : 0);

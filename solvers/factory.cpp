@@ -2,6 +2,7 @@
 
 #include <cmath>
 
+#include "core/dist/comm.hpp"
 #include "core/errors.hpp"
 #include "core/geometry/level_set_collider.hpp"
 #include "solvers/mpm_enriched.hpp"
@@ -107,25 +108,50 @@ void apply_fields(const ObjectSpec& obj, PdSolver& solver, std::size_t first) {
 }
 
 // An object that samples no particle would silently be missing from the run.
-void check_sampled(const std::vector<Vec3>& x, std::size_t k, Real dx) {
-  if (x.empty())
+void check_sampled(std::int64_t count, std::size_t k, Real dx) {
+  if (count == 0)
     throw InputError("/objects/" + std::to_string(k) +
                      ": samples no particles at dx = " + std::to_string(double(dx)) +
                      " (smaller than its lattice spacing?): enlarge it, lower dx or raise "
                      "particles_per_cell");
 }
+
+// This rank's share of an object sampled in slices (one per rank): where its particles start in
+// the object's order (the ranks before it) and how many the object has. Collective.
+IdSlice slice_ids(std::size_t mine) {
+  const dist::Comm& comm = dist::Comm::world();
+  const std::vector<std::uint64_t> counts = dist::from_bytes<std::uint64_t>(
+      comm.allgather(dist::as_bytes(std::vector<std::uint64_t>{mine}), nullptr));
+  IdSlice ids;
+  ids.total = 0;
+  for (std::size_t r = 0; r < counts.size(); ++r) {
+    if (int(r) < comm.rank()) ids.offset += std::int64_t(counts[r]);
+    ids.total += std::int64_t(counts[r]);
+  }
+  return ids;
+}
 }  // namespace
 
 MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
   MpmSolver solver(scene.mpm, scene.materials, build_colliders(scene, space), scene.heat_sources);
+  // On several ranks each samples one slice of every object (its lattice planes, or its share of
+  // a tet mesh's cells), so no rank holds the whole set-up; `distribute` then sends each particle
+  // to the owner of its leaf. The ids are the single process's (the slices in rank order).
+  // Particle domains are refused on several ranks (begin_run) and set up whole.
+  const dist::Comm& comm = dist::Comm::world();
+  const bool sliced = comm.size() > 1 && !scene.mpm.domains.enabled;
+  LatticeSlice slice;
+  if (sliced) slice.part = comm.rank(), slice.parts = comm.size();
+  solver.set_sliced(sliced);
   for (std::size_t k = 0; k < scene.objects.size(); ++k) {
     const ObjectSpec& obj = scene.objects[k];
     Real vol = 0;
-    const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol, space);
-    check_sampled(x, k, scene.mpm.dx);
+    const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol, space, slice);
+    const IdSlice ids = sliced ? slice_ids(x.size()) : IdSlice{};
+    check_sampled(sliced ? ids.total : std::int64_t(x.size()), k, scene.mpm.dx);
     const std::size_t first = solver.particles().size();
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol,
-                         obj.temperature, obj.configuration);
+                         obj.temperature, obj.configuration, ids);
     apply_fields(obj, solver, first, double(scene.mpm.dx));
     if (scene.mpm.domains.enabled) {
       const Real h = Real(double(scene.mpm.dx) / std::cbrt(double(obj.particles_per_cell)));
@@ -168,7 +194,7 @@ PdSolver build_pd_solver(const SceneSpec& scene, const exec::Space& space) {
     }
     Real vol = 0;
     const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol, space);
-    check_sampled(x, k, scene.mpm.dx);
+    check_sampled(std::int64_t(x.size()), k, scene.mpm.dx);
     const std::size_t first = solver.particles().size();
     solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol);
     apply_fields(obj, solver, first);

@@ -10,8 +10,8 @@ MpmAul::MpmAul(ParticleSet& particles, const ObjectContactSettings& contact)
     : contact_settings_(contact), cattr_(ConfigurationAttributes::add_to(particles)) {}
 
 void MpmAul::add_object(ParticleSet& particles, const Vec3* x, std::size_t first, std::size_t n,
-                        const ConfigurationPolicy& policy, Real dx) {
-  const int k = maps_.add_object(policy, n);
+                        std::size_t total, const ConfigurationPolicy& policy, Real dx) {
+  const int k = maps_.add_object(policy, total);
   const Vec3 offset = maps_.lane_offset(k, dx);
   Vec3* Xs = particles.vec3(cattr_.X_s);
   Mat3* Fs = particles.mat3(cattr_.F_s);

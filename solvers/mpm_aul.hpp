@@ -27,10 +27,11 @@ class MpmAul {
  public:
   MpmAul(ParticleSet& particles, const ObjectContactSettings& contact);
 
-  // The particles [first, first + n) form one object with the given update policy: references
-  // X^s = x in the object's lane of the reference grid, F_s = F_0s = I.
+  // The particles [first, first + n) form one object (of `total` particles over every rank: a
+  // distributed set-up's slice) with the given update policy: references X^s = x in the object's
+  // lane of the reference grid, F_s = F_0s = I.
   void add_object(ParticleSet& particles, const Vec3* x, std::size_t first, std::size_t n,
-                  const ConfigurationPolicy& policy, Real dx);
+                  std::size_t total, const ConfigurationPolicy& policy, Real dx);
   void update_configurations(const exec::Space& space, MpmSolver& mpm);
   void couple_objects(const exec::Space& space, MpmSolver& mpm, Real dt);
   void keep_split(const exec::Space& space, ParticleSet& particles, ParticleSet::Id F);

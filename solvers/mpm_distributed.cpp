@@ -116,6 +116,8 @@ struct MpmSolver::Ranks {
   std::uint64_t last_partition = 0;  // step of the last (re)partition
   std::uint64_t repartitions = 0;
   double balanced = 1;  // max/mean particles per rank right after the last partition
+  // Set-up: the most particles a rank held before distribute, of how many (the summary).
+  std::uint64_t set_up_most = 0, set_up_total = 0;
   int force_every = 0;  // test hook: repartition every N substeps
   // Until the first sort the particles are in the order they had on one process (frame 0, or
   // the checkpoint's): their index there. After it, (bin leaf, id) is that order.
@@ -207,26 +209,53 @@ void MpmSolver::distribute(const exec::Space& space) {
   auto ranks = std::make_shared<Ranks>();
   if (const char* e = std::getenv("AMALGAM_TEST_REPARTITION_EVERY"))
     ranks->force_every = std::atoi(e);
-  // Every rank holds every particle (set-up and checkpoints are read whole): the leaves and
-  // their particle counts, each rank handing Zoltan a slice of them.
+  // Each rank sends one slice of the particles to their owners: a fresh set-up's own slice
+  // (solvers/factory.cpp), or, when it holds every particle (a checkpoint read whole), the slice
+  // [n r / R, n (r + 1) / R) of them. A particle's place in the single process's order (the
+  // gathered frames before the first sort) is its id in a fresh set-up (ids follow the sampling
+  // order), its index in a checkpoint otherwise.
+  const std::uint64_t r = std::uint64_t(comm.rank()), R = std::uint64_t(comm.size());
   const std::size_t n = particles_.size();
+  const std::size_t lo = sliced_ ? 0 : std::size_t(n * r / R),
+                    hi = sliced_ ? n : std::size_t(n * (r + 1) / R);
   const Vec3* x = particles_.vec3(bin_position());
-  std::vector<std::uint64_t> key(n);
-  for (std::size_t p = 0; p < n; ++p) {
-    if (!x[p].allFinite())
-      throw SimulationError("particle " + std::to_string(p) + " has a non-finite position");
-    key[p] = leaf_key(particle_leaf(x[p]));
+  const std::int32_t* id = particles_.int32(attr_.id);
+  std::int64_t bad = -1;
+  for (std::size_t p = lo; p < hi && bad < 0; ++p)
+    if (!x[p].allFinite() || x[p].cwiseAbs().maxCoeff() / settings_.dx > Real(1 << 28)) bad = id[p];
+  bad = comm.max(bad);
+  if (bad >= 0)
+    throw SimulationError("particle id " + std::to_string(bad) +
+                          " has a non-finite or runaway position at set-up");
+  // The leaves and their particle counts, joined over the ranks into one table (the same on
+  // every rank), each rank handing Zoltan a slice of it.
+  std::vector<std::uint64_t> key(hi - lo);
+  for (std::size_t p = lo; p < hi; ++p) key[p - lo] = leaf_key(particle_leaf(x[p]));
+  std::vector<std::uint64_t> table;  // (leaf key, particles) pairs, this rank's slice
+  {
+    std::vector<std::uint64_t> sorted = key;
+    std::sort(sorted.begin(), sorted.end());
+    for (std::size_t i = 0; i < sorted.size(); ++i) {
+      if (i == 0 || sorted[i] != sorted[i - 1]) table.push_back(sorted[i]), table.push_back(0);
+      ++table.back();
+    }
   }
-  std::vector<std::uint64_t> leaves = key;
-  std::sort(leaves.begin(), leaves.end());
+  std::vector<std::uint64_t> joined =
+      dist::from_bytes<std::uint64_t>(comm.allgather(dist::as_bytes(table), nullptr));
+  std::vector<std::pair<std::uint64_t, std::uint64_t>> pairs(joined.size() / 2);
+  for (std::size_t i = 0; i < pairs.size(); ++i) pairs[i] = {joined[2 * i], joined[2 * i + 1]};
+  joined = {};
+  std::sort(pairs.begin(), pairs.end());
   std::vector<float> count;
   std::vector<std::uint64_t> unique;
-  for (std::size_t i = 0; i < leaves.size(); ++i) {
-    if (i == 0 || leaves[i] != leaves[i - 1]) unique.push_back(leaves[i]), count.push_back(0);
-    count.back() += 1;
+  std::uint64_t total = 0;
+  for (std::size_t i = 0; i < pairs.size(); ++i) {
+    if (i == 0 || pairs[i].first != pairs[i - 1].first)
+      unique.push_back(pairs[i].first), count.push_back(0);
+    count.back() += float(pairs[i].second);
+    total += pairs[i].second;
   }
-  const std::uint64_t r = std::uint64_t(comm.rank()), R = std::uint64_t(comm.size()),
-                      m = unique.size();
+  const std::uint64_t m = unique.size();
   std::vector<std::uint64_t> ids;
   std::vector<double> xyz;
   std::vector<float> w;
@@ -240,15 +269,54 @@ void MpmSolver::distribute(const exec::Space& space) {
   ranks->cuts = dist::RcbCuts::partition(ids, xyz, w);
   ranks->peers = ranks->cuts.neighbours(kPeerMargin);
   ranks->last_partition = steps_;
-  std::vector<std::uint32_t> keep;
-  for (std::size_t p = 0; p < n; ++p)
-    if (ranks->owner(particle_leaf(x[p])) == comm.rank()) {
-      keep.push_back(std::uint32_t(p));
-      ranks->presort.push_back(p);
+  // Every particle of the slice to its owner (all ranks to all: the set-up's slices are not
+  // spatial), its order key first, then every attribute's words.
+  const int na = particles_.attribute_count();
+  std::size_t words = 0;
+  for (int a = 0; a < na; ++a) words += std::size_t(particles_.words_per_particle(a));
+  const std::size_t record = 8 + words * 4;
+  std::vector<std::vector<char>> send(R);
+  for (std::size_t p = lo; p < hi; ++p) {
+    std::vector<char>& out = send[std::size_t(ranks->owner(key_leaf(key[p - lo])))];
+    const std::uint64_t order = sliced_ ? std::uint64_t(id[p]) : std::uint64_t(p);
+    const char* o = reinterpret_cast<const char*>(&order);
+    out.insert(out.end(), o, o + 8);
+    for (int a = 0; a < na; ++a) {
+      const std::size_t wa = std::size_t(particles_.words_per_particle(a));
+      const char* src = reinterpret_cast<const char*>(particles_.words(a) + p * wa);
+      out.insert(out.end(), src, src + wa * 4);
     }
-  particles_.compact(space, keep.data(), keep.size());
-  ranks->balanced =
-      double(comm.max(std::int64_t(keep.size()))) * double(R) / double(std::max<std::size_t>(n, 1));
+  }
+  key = {};
+  const std::vector<std::vector<char>> in = comm.alltoall(send);
+  send = {};
+  // Received in rank order; kept in the single process's order.
+  std::vector<const char*> rec;
+  for (const auto& b : in)
+    for (std::size_t off = 0; off + record <= b.size(); off += record)
+      rec.push_back(b.data() + off);
+  auto order_of = [](const char* q) {
+    std::uint64_t k;
+    std::memcpy(&k, q, 8);
+    return k;
+  };
+  std::sort(rec.begin(), rec.end(),
+            [&](const char* a, const char* b) { return order_of(a) < order_of(b); });
+  particles_.resize(rec.size());
+  for (std::size_t p = 0; p < rec.size(); ++p) {
+    ranks->presort.push_back(order_of(rec[p]));
+    const char* q = rec[p] + 8;
+    for (int a = 0; a < na; ++a) {
+      const std::size_t wa = std::size_t(particles_.words_per_particle(a));
+      std::memcpy(particles_.words(a) + p * wa, q, wa * 4);
+      q += wa * 4;
+    }
+  }
+  sliced_ = false;
+  ranks->set_up_most = std::uint64_t(comm.max(std::int64_t(hi - lo)));
+  ranks->set_up_total = total;
+  ranks->balanced = double(comm.max(std::int64_t(rec.size()))) * double(R) /
+                    double(std::max<std::uint64_t>(total, 1));
   ranks_ = std::move(ranks);
   ++state_version_;
 }
@@ -780,7 +848,8 @@ std::string MpmSolver::distributed_summary() const {
          std::to_string(mean > 0 ? most / mean : 1.0) + "; last substep: " + std::to_string(halo) +
          " ghost leaves, " + std::to_string(parts) + " partial blocks sent, halo " +
          std::to_string(sums / 1000) + " kB of partial sums + " + std::to_string(rows / 1000) +
-         " kB of node rows (all ranks)\n";
+         " kB of node rows (all ranks); set-up: at most " + std::to_string(rk.set_up_most) +
+         " of " + std::to_string(rk.set_up_total) + " particles on a rank\n";
 }
 
 }  // namespace amalgam

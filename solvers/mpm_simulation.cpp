@@ -120,6 +120,18 @@ void MpmSimulation::keep_rest_positions() {
   const std::int32_t* id = ps.int32(s_.attributes().id);
   rest_.assign(std::size_t(s_.next_id()), Vec3::Zero());
   for (std::size_t i = 0; i < ps.size(); ++i) rest_[std::size_t(id[i])] = x[i];
+  if (!s_.sliced()) return;
+  // A distributed set-up's slices (solvers/factory.cpp): every rank keeps every rest position
+  // (the output joins them by id, on rank 0 or on each rank's part), so the ranks swap theirs.
+  struct IdX {
+    std::int32_t id;
+    Vec3 x;
+  };
+  std::vector<IdX> mine(ps.size());
+  for (std::size_t i = 0; i < ps.size(); ++i) mine[i] = {id[i], x[i]};
+  for (const IdX& e :
+       dist::from_bytes<IdX>(dist::Comm::world().allgather(dist::as_bytes(mine), nullptr)))
+    rest_[std::size_t(e.id)] = e.x;
 }
 
 MpmSimulation::MpmSimulation(MpmSolver solver) : s_(std::move(solver)) {
@@ -133,7 +145,9 @@ MpmSimulation::MpmSimulation(MpmSolver solver) : s_(std::move(solver)) {
 
 std::string MpmSimulation::describe() const {
   std::ostringstream os;
-  os << s_.particles().size() << " particles, dx = " << s_.settings().dx << ", transfer "
+  // A distributed set-up's slice holds part of them: the set-up's count is its ids'.
+  os << (s_.sliced() ? std::size_t(s_.next_id()) : s_.particles().size())
+     << " particles, dx = " << s_.settings().dx << ", transfer "
      << transfer_name(s_.settings().transfer);
   return os.str();
 }

@@ -79,6 +79,9 @@ class MpmSimulation final : public Simulation {
   std::vector<StateSection> checkpoint_sections() override;
   std::vector<StateSection> restore_sections() override;
   std::size_t max_particle_count() const override { return max_particles_; }
+  void before_restore() override {
+    if (s_.sliced()) s_.particles().resize(std::size_t(s_.next_id()));
+  }
   bool variable_particle_count() const override {
     return !s_.emitters().empty() || s_.settings().kill.enabled();
   }

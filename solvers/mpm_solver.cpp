@@ -95,6 +95,7 @@ void MpmSolver::restore(const Snapshot& s) {
   ++state_version_;
 }
 void MpmSolver::restore_clock(double time, std::uint64_t steps) {
+  sliced_ = false;  // the checkpoint's particles replaced the set-up's, whole
   time_ = time;
   steps_ = steps;
   ++state_version_;
@@ -104,11 +105,12 @@ void MpmSolver::restore_clock(double time, std::uint64_t steps) {
 
 void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega,
                               const Vec3& centre, int material, Real volume_per_particle,
-                              Real temperature, const ConfigurationPolicy& policy) {
+                              Real temperature, const ConfigurationPolicy& policy,
+                              const IdSlice& ids) {
   if (material < 0 || size_t(material) >= materials_.size())
     throw InputError("material index out of range");
-  if (next_id_ + std::int64_t(x.size()) > std::int64_t(INT32_MAX))
-    throw InputError("more than 2^31 particle ids");
+  const std::int64_t total = ids.total < 0 ? std::int64_t(x.size()) : ids.total;
+  if (next_id_ + total > std::int64_t(INT32_MAX)) throw InputError("more than 2^31 particle ids");
   const size_t n0 = particles_.size();
   particles_.resize(n0 + x.size());
   Vec3* px = particles_.vec3(attr_.x);
@@ -134,12 +136,13 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
     pm[p] = mass;
     pV[p] = volume_per_particle;
     pmat[p] = material;
-    pid[p] = std::int32_t(next_id_ + std::int64_t(i));
+    pid[p] = std::int32_t(next_id_ + ids.offset + std::int64_t(i));
     if (pplastic) pplastic[p] = mat.initial_plastic();
     if (ptemp) ptemp[p] = temperature;
   }
-  next_id_ += std::int64_t(x.size());
-  if (aul_) aul_->add_object(particles_, px, n0, x.size(), policy, settings_.dx);
+  next_id_ += total;
+  if (aul_)
+    aul_->add_object(particles_, px, n0, x.size(), std::size_t(total), policy, settings_.dx);
 }
 
 void MpmSolver::set_emitters(std::vector<EmitterSpec> emitters) {

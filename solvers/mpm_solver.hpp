@@ -93,6 +93,13 @@ struct GridChannels {
   static GridChannels for_run(const MpmSettings& s, bool has_colliders);
 };
 
+// Which ids add_particles gives: a distributed set-up samples each object in slices, one per
+// rank (solvers/factory.cpp): the particles' ids start at next_id() + offset and the object has
+// `total` particles over every rank, by which next_id() advances (the defaults: all of the object).
+struct IdSlice {
+  std::int64_t offset = 0, total = -1;
+};
+
 class MpmSolver {
  public:
   MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials,
@@ -129,9 +136,16 @@ class MpmSolver {
   // and volume per particle; F = I, C = affine part of the rigid rotation, plastic state at
   // rest, and the given temperature (K; stored only if a material melts).
   // With configuration maps, the particles form one object with the given update policy.
+  // `ids`: which of the object's ids (IdSlice, above).
   void add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega,
                      const Vec3& centre, int material, Real volume_per_particle,
-                     Real temperature = 0, const ConfigurationPolicy& policy = {});
+                     Real temperature = 0, const ConfigurationPolicy& policy = {},
+                     const IdSlice& ids = {});
+  // The particles are this rank's slice of a fresh distributed set-up (ids ascending in the
+  // single process's order; `distribute` sends each to its owner). Cleared when a checkpoint
+  // replaces them (restore_clock).
+  void set_sliced(bool sliced) { sliced_ = sliced; }
+  bool sliced() const { return sliced_; }
 
   // Emitters (solvers/mpm_sources.hpp), run at the end of every substep. Plain MPM (explicit or
   // implicit) only: throws InputError naming the emitter with A-ULMPM or particle domains.
@@ -271,6 +285,7 @@ class MpmSolver {
   std::uint64_t steps_ = 0;
   std::vector<EmitterSpec> emitters_;
   std::int64_t next_id_ = 0;
+  bool sliced_ = false;  // set_sliced
   SourceCounters sources_;
   std::vector<Vec3> emitted_x_;      // emission scratch
   std::vector<std::uint8_t> keep_;   // kill scratch: survivor flags

@@ -97,8 +97,11 @@ struct SceneSpec {
 
 // Samples an object's particles on a jittered lattice of spacing dx / cbrt(ppc), seeded and
 // reproducible (meshes through an OpenVDB level set, under the space's thread limit); returns
-// positions and sets the volume per particle.
+// positions and sets the volume per particle. `slice`: only that part of the sample, in the same
+// order (lattice planes, or a range of a tet mesh's barycentres): the slices of parts 0..P-1 in
+// turn are the whole sample (a distributed MPM set-up samples one per rank, solvers/factory.cpp).
 std::vector<Vec3> sample_object(const ObjectSpec& obj, Real dx, Real& volume_per_particle,
-                                const exec::Space& space = exec::Space());
+                                const exec::Space& space = exec::Space(),
+                                const LatticeSlice& slice = {});
 
 }  // namespace amalgam

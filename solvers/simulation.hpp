@@ -131,6 +131,9 @@ class Simulation {
   // The most particles a checkpoint of this run can hold: the count it starts with unless
   // particles are emitted or removed (a checkpoint's other count is then refused).
   virtual std::size_t max_particle_count() const { return particles().size(); }
+  // Called before a checkpoint is read into particles(): a distributed set-up that holds only a
+  // slice of the scene's particles sizes them to the whole count, which the checkpoint fills.
+  virtual void before_restore() {}
   virtual bool variable_particle_count() const { return false; }
   virtual void restored(double time, std::uint64_t steps) = 0;
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Distributed explicit MPM (issue 28): the frames, samples and point files of a scene with two
 # materials and analytic colliders run on 1, 2, 3 and 4 MPI ranks (and 2 ranks x 2 threads, and 3
-# ranks repartitioning every 10 substeps) are bitwise those of the single process; a run
+# ranks repartitioning every 10 substeps) are bitwise those of the single process, and no rank
+# holds more than half of the particles at set-up on 3 ranks (sampled in slices); a run
 # checkpointed on 3 ranks resumes on 2 and on 1 (and a single-process checkpoint on 4 ranks) and
 # ends bitwise as the uninterrupted run; an interrupt on 4 ranks stops every rank with exit 130 and
 # a checkpoint that resumes bitwise on 3; a feature not distributed yet is refused (exit 3) with
@@ -15,9 +16,16 @@ reference 'frame_*.ply' 'frame_*.vdb' samples.csv 'samples/*' checkpoint.amck ||
 [ "$(echo "$files" | wc -l)" -ge 20 ] || { echo "too few files in the reference run: $files"; exit 1; }
 ranks_match || exit 1
 # Repartitions with migration every 10 substeps (test hook): the same files.
-AMALGAM_TEST_REPARTITION_EVERY=10 mpi 3 run "$scene" --threads 1 --out "$out/rep" ||
-  { echo "repartitioning run failed"; exit 1; }
+AMALGAM_TEST_REPARTITION_EVERY=10 mpi 3 run "$scene" --threads 1 --out "$out/rep" >"$out/rep.log" ||
+  { cat "$out/rep.log"; echo "repartitioning run failed"; exit 1; }
 same "$out/rep" || exit 1
+# The set-up is sampled in slices, one per rank: no rank held more than about a third of the
+# particles (a whole set-up on every rank would hold all of them).
+setup=$(grep -o 'set-up: at most [0-9]* of [0-9]* particles' "$out/rep.log") ||
+  { cat "$out/rep.log"; echo "no set-up line in the summary"; exit 1; }
+read -r most total < <(echo "$setup" | awk '{print $4, $6}')
+[ "$total" -gt 1000 ] && [ $((most * 2)) -lt "$total" ] ||
+  { echo "set-up on 3 ranks: $setup (expected at most half on one rank)"; exit 1; }
 resumes 3 2 2 0 || exit 1  # checkpoint on 3 ranks after frame 2, resumed on 2 and on 1
 resumes 0 3 4 || exit 1    # a single-process checkpoint after frame 3 resumed on 4 ranks
 interrupted 4 150 3 || exit 1  # inside frame 3, on 4 ranks; resumed on 3

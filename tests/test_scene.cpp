@@ -404,3 +404,46 @@ TEST(Scene, VelocityAndDisplacementExpressions) {
         << e.what();
   }
 }
+
+// A distributed set-up samples each object in slices, one per rank (solvers/factory.cpp): the
+// slices of 1..5 parts in turn are the whole sample, point for point, for every shape (lattice
+// shapes, a mesh through its level set, a tet mesh's barycentres).
+TEST(Scene, ObjectSlicesInTurnAreTheWholeSample) {
+  std::vector<std::pair<Scene, std::size_t>> objects;
+  const Scene shapes = parse_scene(R"({
+    "simulation": {"dx": 0.05},
+    "materials": {"m": {"density": 1000, "youngs_modulus": 1e4, "poisson_ratio": 0.3}},
+    "objects": [
+      {"shape": "box", "min": [0, 0, 0], "max": [0.3, 0.2, 0.25], "material": "m"},
+      {"shape": "sphere", "center": [0.5, 0.5, 0.5], "radius": 0.17, "material": "m"},
+      {"shape": "cylinder", "center": [0.5, 0.5, 0.5], "radius": 0.1, "height": 0.3, "axis": "x",
+       "material": "m"},
+      {"shape": "torus", "center": [0.5, 0.5, 0.5], "major_radius": 0.2, "minor_radius": 0.06,
+       "material": "m"}
+    ]})",
+                                   "shapes.json");
+  for (std::size_t k = 0; k < shapes.objects.size(); ++k) objects.push_back({shapes, k});
+  for (const char* f : {"/tests/data/domain_restart.json", "/tests/data/pd_tet_restart.json"})
+    objects.push_back({load_scene(std::string(AMALGAM_SOURCE_DIR) + f), 0});
+  for (const auto& [s, k] : objects) {
+    Real vol = 0;
+    const std::vector<Vec3> whole = sample_object(s.objects[k], s.mpm.dx, vol);
+    ASSERT_GT(whole.size(), 20u) << s.file << " object " << k;
+    for (int parts = 1; parts <= 5; ++parts) {
+      std::vector<Vec3> joined;
+      std::size_t nonempty = 0;
+      for (int part = 0; part < parts; ++part) {
+        Real v = 0;
+        const std::vector<Vec3> x =
+            sample_object(s.objects[k], s.mpm.dx, v, exec::Space(), LatticeSlice{part, parts});
+        EXPECT_EQ(v, vol);
+        nonempty += !x.empty();
+        joined.insert(joined.end(), x.begin(), x.end());
+      }
+      ASSERT_EQ(joined.size(), whole.size()) << s.file << " object " << k << ", " << parts;
+      EXPECT_EQ(std::memcmp(joined.data(), whole.data(), whole.size() * sizeof(Vec3)), 0)
+          << s.file << " object " << k << ", " << parts << " parts";
+      EXPECT_GE(nonempty, std::size_t(std::min(parts, 2))) << "one part holds everything";
+    }
+  }
+}

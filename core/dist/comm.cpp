@@ -199,6 +199,12 @@ void Comm::attach() {
   if (!init) return;  // used before (or without) a Session: one rank
   MPI_Comm_rank(MPI_COMM_WORLD, &rank_);
   MPI_Comm_size(MPI_COMM_WORLD, &size_);
+  MPI_Comm node;
+  if (MPI_Comm_split_type(MPI_COMM_WORLD, MPI_COMM_TYPE_SHARED, rank_, MPI_INFO_NULL, &node) ==
+      MPI_SUCCESS) {
+    MPI_Comm_size(node, &node_ranks_);
+    MPI_Comm_free(&node);
+  }
 }
 
 double Comm::max(double v) const {

@@ -34,6 +34,9 @@ class Comm {
   int rank() const { return rank_; }
   int size() const { return size_; }
   bool root() const { return rank_ == 0; }
+  // How many of the job's ranks share this rank's machine (MPI_COMM_TYPE_SHARED): what the
+  // memory check before a run multiplies a rank's share by. One rank: 1.
+  int node_ranks() const { return node_ranks_; }
 
   // The longest a rank waits in one collective for the others (seconds; `amalgam run
   // --comm-timeout`, default 600). A rank that waits longer prints which collective and which
@@ -84,7 +87,7 @@ class Comm {
   friend class Session;
   Comm();
   void attach();  // reads the rank and size once MPI is initialised
-  int rank_ = 0, size_ = 1;
+  int rank_ = 0, size_ = 1, node_ranks_ = 1;
   double timeout_ = 600;
   mutable Traffic traffic_;
 };

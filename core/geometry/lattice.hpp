@@ -2,6 +2,10 @@
 // lo + (i + 1/2, j + 1/2, k + 1/2) h plus a jitter of up to jitter * h / 2 per axis drawn from a
 // splitmix64 hash of (seed, i, j, k), so the same scene gives the same particles on any machine
 // and thread count. `inside(p)` keeps a point.
+//
+// A `LatticeSlice` samples only the planes i in [n0 * part / parts, n0 * (part + 1) / parts): the
+// points come out in the same i-major order, so the slices of parts 0..parts-1 concatenated are
+// the whole sample, point for point (a distributed set-up samples one slice per rank).
 #pragma once
 
 #include <cstdint>
@@ -23,13 +27,22 @@ inline double centred_unit(std::uint64_t h) {
 }
 }  // namespace detail
 
+struct LatticeSlice {
+  int part = 0, parts = 1;
+  long long begin(long long n) const { return n * part / parts; }
+  long long end(long long n) const { return n * (part + 1) / parts; }
+  // The slice of a list of n items (tetrahedra, say): the same split.
+  bool whole() const { return parts == 1; }
+};
+
 template <class Inside>
 std::vector<Vec3> sample_lattice(const Vec3d& lo, const long long n[3], double h, double jitter,
-                                 std::uint64_t seed, Inside&& inside) {
+                                 std::uint64_t seed, Inside&& inside,
+                                 const LatticeSlice& slice = {}) {
   using detail::centred_unit;
   using detail::splitmix64;
   std::vector<Vec3> pts;
-  for (long long i = 0; i < n[0]; ++i)
+  for (long long i = slice.begin(n[0]); i < slice.end(n[0]); ++i)
     for (long long j = 0; j < n[1]; ++j)
       for (long long k = 0; k < n[2]; ++k) {
         const std::uint64_t id =

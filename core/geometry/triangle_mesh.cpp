@@ -79,7 +79,7 @@ namespace {
 // The bodies below run whole inside the space's task arena (sample_mesh): the level set's
 // construction and also its destruction, which OpenVDB parallelises too.
 std::vector<Vec3> sample_mesh_limited(const TriangleMesh& m, double h, double jitter,
-                                      std::uint64_t seed) {
+                                      std::uint64_t seed, const LatticeSlice& slice) {
   {
     Vec3d lo, hi;
     mesh_bounds(m, lo, hi);
@@ -101,18 +101,19 @@ std::vector<Vec3> sample_mesh_limited(const TriangleMesh& m, double h, double ji
       sampler(acc, *xform);
   long long n[3];
   for (int a = 0; a < 3; ++a) n[a] = (long long)std::ceil((hi[a] - lo[a]) / h);
-  const std::vector<Vec3> out = sample_lattice(lo, n, h, jitter, seed, [&](const Vec3d& p) {
-    return sampler.wsSample(openvdb::Vec3d(p[0], p[1], p[2])) < 0;
-  });
+  const std::vector<Vec3> out = sample_lattice(
+      lo, n, h, jitter, seed,
+      [&](const Vec3d& p) { return sampler.wsSample(openvdb::Vec3d(p[0], p[1], p[2])) < 0; },
+      slice);
   return out;
 }
 
 }  // namespace
 
 std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed,
-                              const exec::Space& space) {
+                              const exec::Space& space, const LatticeSlice& slice) {
   std::vector<Vec3> out;
-  exec::with_thread_limit(space, [&] { out = sample_mesh_limited(m, h, jitter, seed); });
+  exec::with_thread_limit(space, [&] { out = sample_mesh_limited(m, h, jitter, seed, slice); });
   return out;
 }
 

@@ -11,6 +11,7 @@
 
 #include "core/exec/exec.hpp"
 #include "core/geometry/colliders.hpp"
+#include "core/geometry/lattice.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam {
@@ -31,9 +32,10 @@ MeshCheck check_mesh(const TriangleMesh& m);
 double enclosed_volume(const TriangleMesh& m);
 
 // Lattice points of spacing h (jittered by jitter * h, seeded) inside the mesh, in the mesh's
-// coordinates. Inside/outside from a level set of voxel size h.
+// coordinates. Inside/outside from a level set of voxel size h. `slice`: that part of the lattice
+// only (core/geometry/lattice.hpp; the level set is still built over the whole mesh).
 std::vector<Vec3> sample_mesh(const TriangleMesh& m, double h, double jitter, std::uint64_t seed,
-                              const exec::Space& space);
+                              const exec::Space& space, const LatticeSlice& slice = {});
 
 // Bounding box of the vertices.
 void mesh_bounds(const TriangleMesh& m, Vec3d& lo, Vec3d& hi);
