@@ -330,7 +330,8 @@ bool is_checkpoint_manifest(const std::string& path) {
   return in.get(c) && c == '{';
 }
 
-std::string join_checkpoint(const std::string& manifest_path) {
+std::string join_checkpoint(const std::string& manifest_path, const JoinSlice& slice,
+                            std::vector<std::uint64_t>* keys, std::uint64_t* total) {
   const std::string text = read_input_file(manifest_path, "checkpoint manifest", 1 << 26);
   nlohmann::json j;
   try {
@@ -341,6 +342,8 @@ std::string join_checkpoint(const std::string& manifest_path) {
   const std::string dir = dir_of(manifest_path);
   std::vector<std::string> bytes;
   std::vector<ParsedPart> parts;
+  std::vector<char> rows_of;  // per part read: whether its particles join (its slice's)
+  std::uint64_t listed = 0;   // the manifest's particle count over every part
   std::string key;
   try {
     auto at = [&](const nlohmann::json& o, const std::string& where, const char* k) {
@@ -358,6 +361,14 @@ std::string join_checkpoint(const std::string& manifest_path) {
     for (int r = 0; r < ranks; ++r) {
       const std::string w = "/parts/" + std::to_string(r);
       const nlohmann::json& e = list[std::size_t(r)];
+      const std::uint64_t listed_here = at(e, w, "particles").get<std::uint64_t>();
+      if (listed_here > (std::uint64_t(1) << 40))
+        throw InputError(manifest_path + ": " + key + ": " + std::to_string(listed_here) +
+                         " particles is not a count");
+      listed += listed_here;
+      const bool mine = r % slice.parts == slice.part;
+      if (!mine && r > 0) continue;  // another rank's slice
+      rows_of.push_back(mine);
       const std::string file = at(e, w, "file").get<std::string>();
       if (file.empty() || file.find('/') != std::string::npos || file[0] == '.')
         throw InputError(manifest_path + ": " + key + ": '" + file +
@@ -407,12 +418,18 @@ std::string join_checkpoint(const std::string& manifest_path) {
   };
   std::vector<Row> rows;
   for (std::size_t r = 0; r < parts.size(); ++r)
-    for (std::uint64_t i = 0; i < parts[r].n; ++i) {
+    for (std::uint64_t i = 0; rows_of[r] && i < parts[r].n; ++i) {
       std::uint64_t k[2];
       std::memcpy(k, parts[r].secs[0].data + 16 * i, 16);
       rows.push_back({k[0], k[1], std::uint32_t(r), std::uint32_t(i)});
     }
   std::sort(rows.begin(), rows.end());
+  if (keys) {
+    keys->resize(2 * rows.size());
+    for (std::size_t i = 0; i < rows.size(); ++i)
+      (*keys)[2 * i] = rows[i].k0, (*keys)[2 * i + 1] = rows[i].k1;
+  }
+  if (total) *total = listed;
   const ParsedPart& p0 = parts.front();
   std::string b;
   b.append(kMagic, kMagicLen);
@@ -526,18 +543,36 @@ CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
   // A per-rank checkpoint's manifest: its parts joined into the single file one process writes
   // (every rank reads every part; the run's begin_run then keeps each rank's own particles).
   std::string d;
-  if (is_checkpoint_manifest(path)) {
+  const Simulation::Slice slice = sim.checkpoint_slice();
+  std::vector<std::uint64_t> keys;
+  std::uint64_t total = 0;
+  const bool sliced = slice.parts > 1 && is_checkpoint_manifest(path);
+  if (sliced) {
+    // This rank's slice of the parts (the run's `distribute` sends every particle to its owner):
+    // no rank holds the whole checkpoint.
+    d = join_checkpoint(path, JoinSlice{slice.part, slice.parts}, &keys, &total);
+    const std::uint64_t scene = sim.set_up_particle_count();
+    if (sim.variable_particle_count() ? total > sim.max_particle_count() : total != scene)
+      throw InputError(path + ": checkpoint field 'particle count' is " + std::to_string(total) +
+                       (sim.variable_particle_count()
+                            ? ", above the " + std::to_string(sim.max_particle_count()) +
+                                  " particles this scene can hold (its objects and emitters)"
+                            : ", this scene has " + std::to_string(scene) + " particles"));
+    sim.particles().resize(keys.size() / 2);
+  } else if (is_checkpoint_manifest(path)) {
+    sim.before_restore();
     d = join_checkpoint(path);
   } else {
+    sim.before_restore();
     // Never more than the memory there is (a hostile size would end in bad_alloc).
     const std::uint64_t avail = available_memory_bytes();
     d = read_input_file(path, "checkpoint", avail > 0 ? avail : std::uint64_t(1) << 40);
   }
-  sim.before_restore();
   const CheckpointState st =
       read_state(path, d, sim.particles(), scene_fingerprint, sim.restore_sections(),
-                 sim.variable_particle_count() ? sim.max_particle_count() : 0);
+                 sim.variable_particle_count() && !sliced ? sim.max_particle_count() : 0);
   try {
+    if (sliced) sim.restoring_slice(std::move(keys), total);
     sim.restored(st.time, st.steps);
   } catch (const InputError& e) {
     throw InputError(path + ": " + e.what());

@@ -73,6 +73,16 @@ std::uint64_t last_checkpoint_generation(const std::string& dir);
 // Whether `path` is a manifest (JSON) rather than a single-file checkpoint.
 bool is_checkpoint_manifest(const std::string& path);
 // A manifest's parts joined into a single-file checkpoint's bytes (InputError naming file, rank).
-std::string join_checkpoint(const std::string& manifest_path);
+// With slice.parts > 1, only the parts q with q % parts == part give particles (rank 0's part is
+// read for the header and the method's sections in any case): `keys` receives their order keys
+// (two per particle, in the joined order) and `total` the particle count of every part (the
+// manifest's); a distributed run reads its checkpoint this way, each rank a slice
+// (Simulation::checkpoint_slice).
+struct JoinSlice {
+  int part = 0, parts = 1;
+};
+std::string join_checkpoint(const std::string& manifest_path, const JoinSlice& slice = {},
+                            std::vector<std::uint64_t>* keys = nullptr,
+                            std::uint64_t* total = nullptr);
 
 }  // namespace amalgam

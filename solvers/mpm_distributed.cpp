@@ -120,7 +120,8 @@ struct MpmSolver::Ranks {
   std::uint64_t set_up_most = 0, set_up_total = 0;
   int force_every = 0;  // test hook: repartition every N substeps
   // Until the first sort the particles are in the order they had on one process (frame 0, or
-  // the checkpoint's): their index there. After it, (bin leaf, id) is that order.
+  // the checkpoint's): two keys per particle whose order is that one (its index there, or a
+  // per-rank checkpoint's order keys). After it, (bin leaf, id) is that order.
   bool sorted = false;
   std::vector<std::uint64_t> presort;
   // This substep's exchange plan.
@@ -210,10 +211,11 @@ void MpmSolver::distribute(const exec::Space& space) {
   if (const char* e = std::getenv("AMALGAM_TEST_REPARTITION_EVERY"))
     ranks->force_every = std::atoi(e);
   // Each rank sends one slice of the particles to their owners: a fresh set-up's own slice
-  // (solvers/factory.cpp), or, when it holds every particle (a checkpoint read whole), the slice
-  // [n r / R, n (r + 1) / R) of them. A particle's place in the single process's order (the
-  // gathered frames before the first sort) is its id in a fresh set-up (ids follow the sampling
-  // order), its index in a checkpoint otherwise.
+  // (solvers/factory.cpp) or its slice of a per-rank checkpoint (set_slice_keys), or, when it
+  // holds every particle (a checkpoint read whole), the slice [n r / R, n (r + 1) / R) of them.
+  // A particle's place in the single process's order (the gathered frames before the first
+  // sort): its id in a fresh set-up (ids follow the sampling order), the checkpoint's order keys,
+  // or its index in a whole checkpoint.
   const std::uint64_t r = std::uint64_t(comm.rank()), R = std::uint64_t(comm.size());
   const std::size_t n = particles_.size();
   const std::size_t lo = sliced_ ? 0 : std::size_t(n * r / R),
@@ -274,13 +276,16 @@ void MpmSolver::distribute(const exec::Space& space) {
   const int na = particles_.attribute_count();
   std::size_t words = 0;
   for (int a = 0; a < na; ++a) words += std::size_t(particles_.words_per_particle(a));
-  const std::size_t record = 8 + words * 4;
+  const std::size_t record = 16 + words * 4;
   std::vector<std::vector<char>> send(R);
   for (std::size_t p = lo; p < hi; ++p) {
     std::vector<char>& out = send[std::size_t(ranks->owner(key_leaf(key[p - lo])))];
-    const std::uint64_t order = sliced_ ? std::uint64_t(id[p]) : std::uint64_t(p);
-    const char* o = reinterpret_cast<const char*>(&order);
-    out.insert(out.end(), o, o + 8);
+    const std::uint64_t order[2] = {!slice_keys_.empty() ? slice_keys_[2 * p]
+                                    : sliced_            ? std::uint64_t(id[p])
+                                                         : p,
+                                    !slice_keys_.empty() ? slice_keys_[2 * p + 1] : 0};
+    const char* o = reinterpret_cast<const char*>(order);
+    out.insert(out.end(), o, o + 16);
     for (int a = 0; a < na; ++a) {
       const std::size_t wa = std::size_t(particles_.words_per_particle(a));
       const char* src = reinterpret_cast<const char*>(particles_.words(a) + p * wa);
@@ -288,6 +293,7 @@ void MpmSolver::distribute(const exec::Space& space) {
     }
   }
   key = {};
+  slice_keys_ = {};
   const std::vector<std::vector<char>> in = comm.alltoall(send);
   send = {};
   // Received in rank order; kept in the single process's order.
@@ -296,16 +302,17 @@ void MpmSolver::distribute(const exec::Space& space) {
     for (std::size_t off = 0; off + record <= b.size(); off += record)
       rec.push_back(b.data() + off);
   auto order_of = [](const char* q) {
-    std::uint64_t k;
-    std::memcpy(&k, q, 8);
+    std::array<std::uint64_t, 2> k;
+    std::memcpy(k.data(), q, 16);
     return k;
   };
   std::sort(rec.begin(), rec.end(),
             [&](const char* a, const char* b) { return order_of(a) < order_of(b); });
   particles_.resize(rec.size());
   for (std::size_t p = 0; p < rec.size(); ++p) {
-    ranks->presort.push_back(order_of(rec[p]));
-    const char* q = rec[p] + 8;
+    const std::array<std::uint64_t, 2> k = order_of(rec[p]);
+    ranks->presort.insert(ranks->presort.end(), k.begin(), k.end());
+    const char* q = rec[p] + 16;
     for (int a = 0; a < na; ++a) {
       const std::size_t wa = std::size_t(particles_.words_per_particle(a));
       std::memcpy(particles_.words(a) + p * wa, q, wa * 4);
@@ -716,7 +723,7 @@ std::vector<std::uint64_t> MpmSolver::order_keys() const {
     for (std::size_t p = bins_.start.empty() ? 0 : bins_.start.back(); p < n; ++p)
       order[2 * p] = ~std::uint64_t(0), order[2 * p + 1] = std::uint64_t(id[p]);
   } else {
-    for (std::size_t p = 0; p < n; ++p) order[2 * p] = rk.presort[p], order[2 * p + 1] = 0;
+    std::copy(rk.presort.begin(), rk.presort.end(), order.begin());
   }
   return order;
 }

@@ -360,25 +360,81 @@ std::vector<StateSection> MpmSimulation::restore_sections() {
   return out;
 }
 
+Simulation::Slice MpmSimulation::checkpoint_slice() const {
+  const dist::Comm& comm = dist::Comm::world();
+  return s_.sliced() ? Slice{comm.rank(), comm.size()} : Slice{};
+}
+
+void MpmSimulation::before_restore() {
+  if (!s_.sliced()) return;
+  s_.particles().resize(std::size_t(s_.next_id()));
+  s_.set_sliced(false);  // the checkpoint fills every particle
+}
+
+void MpmSimulation::restoring_slice(std::vector<std::uint64_t> keys, std::uint64_t total) {
+  s_.set_slice_keys(std::move(keys));
+  slice_total_ = std::int64_t(total);
+}
+
+// A per-rank checkpoint read in slices: the ids of this rank's rows are distinct and in range,
+// the slices' counts add up to the checkpoint's, and (every particle kept from the set-up) the
+// ids' sum and sum of squares over the ranks are those of 0 .. n - 1, which a duplicate across
+// ranks would change. Collective.
+void MpmSimulation::check_slice_ids(std::int64_t limit) const {
+  const dist::Comm& comm = dist::Comm::world();
+  const ParticleSet& ps = s_.particles();
+  check_unique_attribute(ps, "id", limit);
+  if (comm.sum(std::uint64_t(ps.size())) != std::uint64_t(slice_total_))
+    throw InputError("the checkpoint's parts hold " +
+                     std::to_string(comm.sum(std::uint64_t(ps.size()))) +
+                     " particles, its manifest says " + std::to_string(slice_total_));
+  if (variable_particle_count()) return;
+  const std::int32_t* id = ps.int32(s_.attributes().id);
+  std::uint64_t sum = 0, squares = 0;
+  for (std::size_t i = 0; i < ps.size(); ++i)
+    sum += std::uint64_t(id[i]), squares += std::uint64_t(id[i]) * std::uint64_t(id[i]);
+  const std::uint64_t n = std::uint64_t(slice_total_);
+  // 0 + 1 + ... + (n - 1) and 0 + 1 + ... + (n - 1)^2, modulo 2^64 as the sums above.
+  const std::uint64_t a = n % 2 == 0 ? (n / 2) * (n - 1) : n * ((n - 1) / 2);
+  // n (n - 1) (2n - 1) / 6: one factor divided by 2 and one by 3 first (exact), then modulo 2^64.
+  std::uint64_t f[3] = {n, n - 1, 2 * n - 1};
+  for (std::uint64_t d : {2u, 3u})
+    for (std::uint64_t& x : f)
+      if (x % d == 0) {
+        x /= d;
+        break;
+      }
+  const std::uint64_t b = f[0] * f[1] * f[2];
+  if (comm.sum(sum) != a || comm.sum(squares) != b)
+    throw InputError("attribute 'id' repeats across the checkpoint's parts");
+}
+
 // What a checkpoint gave the particles is checked before a kernel indexes with it (a material
 // index out of range would read past the material table).
 void MpmSimulation::restored(double time, std::uint64_t steps) {
   const ParticleSet& ps = s_.particles();
   check_finite_attributes(ps);
   check_index_attribute(ps, "material", 0, std::int64_t(s_.materials().size()) - 1);
-  if (variable_particle_count()) {
+  const bool slice = slice_total_ >= 0;
+  if (slice && !variable_particle_count()) {
+    check_slice_ids(std::int64_t(s_.next_id()));
+  } else if (variable_particle_count()) {
     const std::int64_t next = source_state_[0], emitted = source_state_[1],
                        killed = source_state_[2];
-    if (next < std::int64_t(ps.size()) || next > std::int64_t(INT32_MAX))
+    const std::int64_t least = slice ? slice_total_ : std::int64_t(ps.size());
+    if (next < least || next > std::int64_t(INT32_MAX))
       throw InputError("section sources.state: next particle id " + std::to_string(next) +
-                       " is outside [" + std::to_string(ps.size()) + ", 2^31 - 1]");
+                       " is outside [" + std::to_string(least) + ", 2^31 - 1]");
+    const std::int64_t count = slice ? slice_total_ : std::int64_t(ps.size());
     if (emitted < 0 || emitted > emitted_bound_ || killed < 0 || killed > next ||
-        next != initial_particles_ + emitted || std::int64_t(ps.size()) != next - killed)
+        next != initial_particles_ + emitted || count != next - killed)
       throw InputError("section sources.state: emitted " + std::to_string(emitted) +
                        " and killed " + std::to_string(killed) + " particles disagree with " +
-                       std::to_string(ps.size()) + " particles and next id " +
-                       std::to_string(next));
-    check_unique_attribute(ps, "id", next);
+                       std::to_string(count) + " particles and next id " + std::to_string(next));
+    if (slice)
+      check_slice_ids(next);
+    else
+      check_unique_attribute(ps, "id", next);
     s_.restore_sources(next, SourceCounters{emitted, killed});
   } else {
     check_permutation_attribute(ps, "id");
@@ -397,6 +453,7 @@ void MpmSimulation::restored(double time, std::uint64_t steps) {
         throw InputError("section domains.corner_x: corner " + std::to_string(k) +
                          " is not finite");
   }
+  slice_total_ = -1;
   s_.restore_clock(time, steps);
 }
 

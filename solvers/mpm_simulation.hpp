@@ -79,9 +79,14 @@ class MpmSimulation final : public Simulation {
   std::vector<StateSection> checkpoint_sections() override;
   std::vector<StateSection> restore_sections() override;
   std::size_t max_particle_count() const override { return max_particles_; }
-  void before_restore() override {
-    if (s_.sliced()) s_.particles().resize(std::size_t(s_.next_id()));
+  // A distributed set-up (solvers/factory.cpp) reads a per-rank checkpoint in slices, one per
+  // rank, and a single-file one whole.
+  Slice checkpoint_slice() const override;
+  std::uint64_t set_up_particle_count() const override {
+    return s_.sliced() ? std::uint64_t(s_.next_id()) : s_.particles().size();
   }
+  void before_restore() override;
+  void restoring_slice(std::vector<std::uint64_t> keys, std::uint64_t total) override;
   bool variable_particle_count() const override {
     return !s_.emitters().empty() || s_.settings().kill.enabled();
   }
@@ -118,6 +123,8 @@ class MpmSimulation final : public Simulation {
   std::size_t max_particles_ = 0;
   std::int64_t initial_particles_ = 0, emitted_bound_ = 0;
   std::int64_t source_state_[3] = {0, 0, 0};
+  std::int64_t slice_total_ = -1;  // restoring_slice: the checkpoint's count over every rank
+  void check_slice_ids(std::int64_t limit) const;
   // Particle domains: enriched particle fraction, summed over the frames of this run and its
   // largest value in one substep.
   double enriched_sum_ = 0, enriched_max_ = 0;

@@ -95,7 +95,6 @@ void MpmSolver::restore(const Snapshot& s) {
   ++state_version_;
 }
 void MpmSolver::restore_clock(double time, std::uint64_t steps) {
-  sliced_ = false;  // the checkpoint's particles replaced the set-up's, whole
   time_ = time;
   steps_ = steps;
   ++state_version_;

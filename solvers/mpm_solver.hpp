@@ -141,11 +141,13 @@ class MpmSolver {
                      const Vec3& centre, int material, Real volume_per_particle,
                      Real temperature = 0, const ConfigurationPolicy& policy = {},
                      const IdSlice& ids = {});
-  // The particles are this rank's slice of a fresh distributed set-up (ids ascending in the
-  // single process's order; `distribute` sends each to its owner). Cleared when a checkpoint
-  // replaces them (restore_clock).
+  // The particles are this rank's slice of a distributed set-up (`distribute` sends each to its
+  // owner): of a fresh one (ids ascending in the single process's order), or of a per-rank
+  // checkpoint, whose two order keys per particle set_slice_keys gives. Cleared when a checkpoint
+  // read whole replaces them.
   void set_sliced(bool sliced) { sliced_ = sliced; }
   bool sliced() const { return sliced_; }
+  void set_slice_keys(std::vector<std::uint64_t> keys) { slice_keys_ = std::move(keys); }
 
   // Emitters (solvers/mpm_sources.hpp), run at the end of every substep. Plain MPM (explicit or
   // implicit) only: throws InputError naming the emitter with A-ULMPM or particle domains.
@@ -285,7 +287,8 @@ class MpmSolver {
   std::uint64_t steps_ = 0;
   std::vector<EmitterSpec> emitters_;
   std::int64_t next_id_ = 0;
-  bool sliced_ = false;  // set_sliced
+  bool sliced_ = false;                    // set_sliced
+  std::vector<std::uint64_t> slice_keys_;  // set_slice_keys
   SourceCounters sources_;
   std::vector<Vec3> emitted_x_;      // emission scratch
   std::vector<std::uint8_t> keep_;   // kill scratch: survivor flags

@@ -131,9 +131,20 @@ class Simulation {
   // The most particles a checkpoint of this run can hold: the count it starts with unless
   // particles are emitted or removed (a checkpoint's other count is then refused).
   virtual std::size_t max_particle_count() const { return particles().size(); }
-  // Called before a checkpoint is read into particles(): a distributed set-up that holds only a
-  // slice of the scene's particles sizes them to the whole count, which the checkpoint fills.
+  // Distributed runs: which slice of a per-rank checkpoint this rank reads (io/checkpoint.cpp
+  // read_checkpoint: the parts q with q % parts == part, then `distribute` sends each particle to
+  // its owner); parts = 1 reads it whole. A set-up that holds only a slice of the scene's
+  // particles (solvers/factory.cpp) counts them all in set_up_particle_count.
+  struct Slice {
+    int part = 0, parts = 1;
+  };
+  virtual Slice checkpoint_slice() const { return {}; }
+  virtual std::uint64_t set_up_particle_count() const { return particles().size(); }
+  // Before a checkpoint is read whole into particles(): they are sized to set_up_particle_count.
   virtual void before_restore() {}
+  // Before restored(), when a slice was read: its rows' order keys (two per particle, the
+  // single process's order) and the checkpoint's particle count over every rank.
+  virtual void restoring_slice(std::vector<std::uint64_t> /*keys*/, std::uint64_t /*total*/) {}
   virtual bool variable_particle_count() const { return false; }
   virtual void restored(double time, std::uint64_t steps) = 0;
 
