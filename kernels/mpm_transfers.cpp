@@ -37,6 +37,7 @@ MpmGridView make_grid_view(const SparseGrid& grid, const BinTable& bins, Real* a
   g.active_leaves = grid.active_leaves().data();
   g.nactive = grid.active_leaves().size();
   g.leaf_coord = grid.leaf_coords().data();
+  g.leaf_bins = grid.leaf_bins().data();
   return g;
 }
 
@@ -215,12 +216,65 @@ void add_imports(const exec::Space& space, const MpmGridView& g, int order, int 
   });
 }
 
+// Scatters bins[k] (bin k when bins is null), k < nbins, each into its block at
+// keep + k * kSize, handed to take(k, block, CH) first when there is a take. Each bin on one
+// thread, the bins balanced over the threads (no colour phases: a bin writes only its block).
+template <int Order, Transfer T, bool L, bool P>
+void scatter_blocks(const exec::Space& space, const char* label, const MpmParticleView& p,
+                    const MpmGridView& g, const MpmStepParams& prm, const std::uint32_t* bins,
+                    std::size_t nbins, Real* keep,
+                    const std::function<void(std::size_t, const Real*, int)>* take) {
+  constexpr int CH = P ? 8 : channels_of(T);
+  using Blk = Block<Order, CH>;
+  exec::parallel_for(
+      space, label, exec::Index(nbins),
+      [&](exec::Index k) {
+        Blk blk;
+        scatter_bin<Order, T, L, P>(blk, bins ? bins[k] : std::uint32_t(k), p, g, prm);
+        if (take) (*take)(std::size_t(k), blk.data, CH);
+        std::memcpy(keep + std::size_t(k) * Blk::kSize, blk.data, sizeof(blk.data));
+      },
+      1);
+}
+
+// grid += the kept blocks of every bin (g.blocks), per active leaf: leaf_bins lists the bin of
+// each colour that reaches the leaf, and its part is added in colour order, as the colour phases
+// add them. a gets lanes 0-3, `second` lanes 4-7 (CH == 8).
+template <int Order, int CH>
+void sum_blocks(const exec::Space& space, const MpmGridView& g, Real* second) {
+  using Blk = Block<Order, CH>;
+  exec::parallel_for(space, "mpm.p2g", exec::Index(g.nactive), [&](exec::Index li) {
+    const std::size_t leaf = std::size_t(g.active_leaves[li]);
+    const Vec3i lc = g.leaf_coord[leaf];
+    Real* la = g.a + leaf * kLeafNodes * 4;
+    Real* lb = CH == 8 ? second + leaf * kLeafNodes * 4 : nullptr;
+    for (int c = 0; c < 8; ++c) {
+      const std::int32_t b = g.leaf_bins[leaf][size_t(c)];
+      if (b < 0) continue;
+      const Vec3i d = lc - g.bin_leaf[b];  // the leaf is the bin's neighbour t
+      const int t = (d[0] << 2) | (d[1] << 1) | d[2];
+      Blk::visit_part(g.blocks + std::size_t(b) * Blk::kSize, t, [&](const Real* s, int off) {
+        Real* n = la + off * 4;
+        simd::store4(n, simd::load4(n) + simd::load4(s));
+        if constexpr (CH == 8)
+          simd::store4(lb + off * 4, simd::load4(lb + off * 4) + simd::load4(s + 4));
+      });
+    }
+  });
+}
+
 template <int Order, Transfer T, bool L, bool P = false>
 void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
               const MpmStepParams& prm) {
   constexpr int CH = P ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
   Real* second = P ? g.q_out : g.b;
+  if (g.blocks && g.leaf_bins && !g.imports && !g.kept_slot) {
+    scatter_blocks<Order, T, L, P>(space, "mpm.p2g", p, g, prm, nullptr, g.nbins, g.blocks,
+                                   nullptr);
+    sum_blocks<Order, CH>(space, g, second);
+    return;
+  }
   for (int c = 0; c < 8; ++c) {
     // Other ranks' partial blocks of this colour first (their leaves and this colour's local
     // blocks are disjoint, so the order within a colour does not matter).
@@ -256,17 +310,7 @@ template <int Order, Transfer T, bool L = false, bool P = false>
 void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                      const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
                      Real* keep, const std::function<void(std::size_t, const Real*, int)>& take) {
-  constexpr int CH = P ? 8 : channels_of(T);
-  using Blk = Block<Order, CH>;
-  exec::parallel_for(
-      space, "mpm.p2g_exports", exec::Index(nbins),
-      [&](exec::Index k) {
-        Blk blk;
-        scatter_bin<Order, T, L, P>(blk, bins[k], p, g, prm);
-        take(std::size_t(k), blk.data, CH);
-        std::memcpy(keep + std::size_t(k) * Blk::kSize, blk.data, sizeof(blk.data));
-      },
-      1);
+  scatter_blocks<Order, T, L, P>(space, "mpm.p2g_exports", p, g, prm, bins, nbins, keep, &take);
 }
 
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
@@ -641,6 +685,10 @@ const MpmKernelTable mpm_kernels = {&grid_clear,    &p2g,         &clear_node4,
 int block_part_nodes(int order, int t) {
   return ((t >> 2) & 1 ? order : kLeafDim) * ((t >> 1) & 1 ? order : kLeafDim) *
          (t & 1 ? order : kLeafDim);
+}
+
+int p2g_channels(Transfer t, bool fused_positions) {
+  return t == Transfer::PicFlip || fused_positions ? 8 : 4;
 }
 
 std::size_t p2g_block_reals(int order, int ch) {
