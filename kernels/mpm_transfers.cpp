@@ -1,7 +1,9 @@
 #include "kernels/mpm_transfers.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <cstring>
+#include <memory>
 
 #include "core/exec/simd.hpp"
 #include "core/math/bspline.hpp"
@@ -217,13 +219,14 @@ void add_imports(const exec::Space& space, const MpmGridView& g, int order, int 
 }
 
 // Scatters bins[k] (bin k when bins is null), k < nbins, each into its block at
-// keep + k * kSize, handed to take(k, block, CH) first when there is a take. Each bin on one
-// thread, the bins balanced over the threads (no colour phases: a bin writes only its block).
-template <int Order, Transfer T, bool L, bool P>
+// keep + k * kSize, handed to take(k, block, CH) first when there is a take, then done(k). Each
+// bin on one thread, the bins balanced over the threads (no colour phases: a bin writes only its
+// block).
+template <int Order, Transfer T, bool L, bool P, class Done>
 void scatter_blocks(const exec::Space& space, const char* label, const MpmParticleView& p,
                     const MpmGridView& g, const MpmStepParams& prm, const std::uint32_t* bins,
                     std::size_t nbins, Real* keep,
-                    const std::function<void(std::size_t, const Real*, int)>* take) {
+                    const std::function<void(std::size_t, const Real*, int)>* take, Done&& done) {
   constexpr int CH = P ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
   exec::parallel_for(
@@ -233,34 +236,58 @@ void scatter_blocks(const exec::Space& space, const char* label, const MpmPartic
         scatter_bin<Order, T, L, P>(blk, bins ? bins[k] : std::uint32_t(k), p, g, prm);
         if (take) (*take)(std::size_t(k), blk.data, CH);
         std::memcpy(keep + std::size_t(k) * Blk::kSize, blk.data, sizeof(blk.data));
+        done(std::size_t(k));
       },
       1);
 }
 
-// grid += the kept blocks of every bin (g.blocks), per active leaf: leaf_bins lists the bin of
-// each colour that reaches the leaf, and its part is added in colour order, as the colour phases
-// add them. a gets lanes 0-3, `second` lanes 4-7 (CH == 8).
+// Leaf `leaf` += the kept blocks (g.blocks) that reach it: leaf_bins lists the bin of each colour
+// that reaches the leaf, and its part is added in colour order, as the colour phases add them.
+// a gets lanes 0-3, `second` lanes 4-7 (CH == 8).
 template <int Order, int CH>
-void sum_blocks(const exec::Space& space, const MpmGridView& g, Real* second) {
+void sum_leaf(const MpmGridView& g, std::size_t leaf, Real* second) {
   using Blk = Block<Order, CH>;
-  exec::parallel_for(space, "mpm.p2g", exec::Index(g.nactive), [&](exec::Index li) {
+  const Vec3i lc = g.leaf_coord[leaf];
+  Real* la = g.a + leaf * kLeafNodes * 4;
+  Real* lb = CH == 8 ? second + leaf * kLeafNodes * 4 : nullptr;
+  for (int c = 0; c < 8; ++c) {
+    const std::int32_t b = g.leaf_bins[leaf][size_t(c)];
+    if (b < 0) continue;
+    const Vec3i d = lc - g.bin_leaf[b];  // the leaf is the bin's neighbour t
+    const int t = (d[0] << 2) | (d[1] << 1) | d[2];
+    Blk::visit_part(g.blocks + std::size_t(b) * Blk::kSize, t, [&](const Real* s, int off) {
+      Real* n = la + off * 4;
+      simd::store4(n, simd::load4(n) + simd::load4(s));
+      if constexpr (CH == 8)
+        simd::store4(lb + off * 4, simd::load4(lb + off * 4) + simd::load4(s + 4));
+    });
+  }
+}
+
+// One-process P2G on kept blocks: every bin scattered in one loop; each active leaf summed by the
+// thread that completes the last block reaching it (a countdown per leaf, whose release/acquire
+// makes the other threads' blocks visible), so the sums run inside the same loop while the blocks
+// are still in cache (a leaf's blocks come from bins at most one x-slab of keys apart). Whoever
+// sums a leaf, it adds the blocks in colour order: the same bits on any thread count.
+template <int Order, Transfer T, bool L, bool P, int CH>
+void p2g_kept_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                     const MpmStepParams& prm, Real* second) {
+  std::size_t slots = 0;
+  for (std::size_t li = 0; li < g.nactive; ++li)
+    slots = std::max(slots, std::size_t(g.active_leaves[li]) + 1);
+  std::unique_ptr<std::atomic<int>[]> pending(new std::atomic<int>[slots]);
+  for (std::size_t li = 0; li < g.nactive; ++li) {
     const std::size_t leaf = std::size_t(g.active_leaves[li]);
-    const Vec3i lc = g.leaf_coord[leaf];
-    Real* la = g.a + leaf * kLeafNodes * 4;
-    Real* lb = CH == 8 ? second + leaf * kLeafNodes * 4 : nullptr;
-    for (int c = 0; c < 8; ++c) {
-      const std::int32_t b = g.leaf_bins[leaf][size_t(c)];
-      if (b < 0) continue;
-      const Vec3i d = lc - g.bin_leaf[b];  // the leaf is the bin's neighbour t
-      const int t = (d[0] << 2) | (d[1] << 1) | d[2];
-      Blk::visit_part(g.blocks + std::size_t(b) * Blk::kSize, t, [&](const Real* s, int off) {
-        Real* n = la + off * 4;
-        simd::store4(n, simd::load4(n) + simd::load4(s));
-        if constexpr (CH == 8)
-          simd::store4(lb + off * 4, simd::load4(lb + off * 4) + simd::load4(s + 4));
+    int n = 0;
+    for (const std::int32_t b : g.leaf_bins[leaf]) n += b >= 0;
+    pending[leaf].store(n, std::memory_order_relaxed);
+  }
+  scatter_blocks<Order, T, L, P>(
+      space, "mpm.p2g", p, g, prm, nullptr, g.nbins, g.blocks, nullptr, [&](std::size_t b) {
+        for (const std::int32_t leaf : g.nbr8[b])
+          if (pending[size_t(leaf)].fetch_sub(1, std::memory_order_acq_rel) == 1)
+            sum_leaf<Order, CH>(g, std::size_t(leaf), second);
       });
-    }
-  });
 }
 
 template <int Order, Transfer T, bool L, bool P = false>
@@ -270,9 +297,7 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
   using Blk = Block<Order, CH>;
   Real* second = P ? g.q_out : g.b;
   if (g.blocks && g.leaf_bins && !g.imports && !g.kept_slot) {
-    scatter_blocks<Order, T, L, P>(space, "mpm.p2g", p, g, prm, nullptr, g.nbins, g.blocks,
-                                   nullptr);
-    sum_blocks<Order, CH>(space, g, second);
+    p2g_kept_blocks<Order, T, L, P, CH>(space, p, g, prm, second);
     return;
   }
   for (int c = 0; c < 8; ++c) {
@@ -310,7 +335,8 @@ template <int Order, Transfer T, bool L = false, bool P = false>
 void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                      const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
                      Real* keep, const std::function<void(std::size_t, const Real*, int)>& take) {
-  scatter_blocks<Order, T, L, P>(space, "mpm.p2g_exports", p, g, prm, bins, nbins, keep, &take);
+  scatter_blocks<Order, T, L, P>(space, "mpm.p2g_exports", p, g, prm, bins, nbins, keep, &take,
+                                 [](std::size_t) {});
 }
 
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
