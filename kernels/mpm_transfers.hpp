@@ -111,8 +111,8 @@ struct MpmGridView {
   // One process, P2G without colour phases: room for one block per bin (bin b's at
   // b * p2g_block_reals(order, p2g_channels(...))) and the grid's leaf_bins (SparseGrid). When
   // both are set (and no imports or kept blocks), P2G scatters every bin into its block in one
-  // balanced loop, then sums each active leaf's blocks in colour order: the colour phases' sums,
-  // bit for bit, with two barriers instead of eight.
+  // balanced loop, and each active leaf's blocks are summed in colour order by the thread that
+  // completes the last of them: the colour phases' sums, bit for bit, in one loop instead of eight.
   Real* blocks = nullptr;
   const std::array<std::int32_t, 8>* leaf_bins = nullptr;
 };
