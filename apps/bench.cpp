@@ -195,7 +195,7 @@ int bench_command(const std::vector<std::string>& args) {
       if (backend == exec::Backend::Serial && t != 1) continue;
       std::vector<double> rate;
       exec::Profiler prof;
-      std::size_t leaves = 0, particle_bytes = 0, leaf_bytes = 0;
+      std::size_t leaves = 0, particle_bytes = 0, leaf_bytes = 0, block_bytes = 0;
       for (int r = 0; r < reps; ++r) {
         MpmSolver solver = make_bench_sphere(so);
         exec::Space warm(backend, t);
@@ -212,6 +212,7 @@ int bench_command(const std::vector<std::string>& args) {
         particle_bytes =
             solver.particles().bytes_per_particle() + solver.binning_bytes_per_particle();
         leaf_bytes = solver.grid().bytes_per_leaf();
+        block_bytes = solver.p2g_block_bytes();
       }
       const double per = 1e9 / (double(so.particles) * steps);
       auto ns = [&](std::initializer_list<const char*> labels) {
@@ -224,14 +225,15 @@ int bench_command(const std::vector<std::string>& args) {
           line, sizeof line,
           "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
           "p2g_ns=%.1f g2p_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f leaves=%zu "
-          "bytes_per_particle=%zu bytes_per_node=%.1f simd=%s",
+          "bytes_per_particle=%zu bytes_per_node=%.1f p2g_block_bytes_per_particle=%.1f simd=%s",
           exec::backend_name(backend), t, so.particles, median(rate),
           *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()),
           ns({"mpm.p2g"}), ns({"mpm.g2p"}),
           ns({"bin.leaf_box", "bin.keys", "bin.radix_hist", "bin.radix_scatter",
               "particles.permute", "bin.find_runs"}),
           ns({"grid.topology"}), ns({"mpm.grid_clear", "mpm.grid_update"}), leaves, particle_bytes,
-          double(leaf_bytes) / 512.0, exec::simd_path_name(exec::simd_path()));
+          double(leaf_bytes) / 512.0, double(block_bytes) / double(so.particles),
+          exec::simd_path_name(exec::simd_path()));
       std::cout << line << std::endl;
     }
   }

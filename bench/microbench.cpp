@@ -46,13 +46,15 @@ void backend_args(benchmark::internal::Benchmark* b) {
 // lagrangian: A-ULMPM, one total-Lagrangian object (binned by X^s once; Lagrangian-mode kernels).
 std::unique_ptr<MpmSolver> prepared(
     Transfer t, int order, const exec::Space& space, bool lagrangian = false,
-    ConfigurationUpdate update = ConfigurationUpdate::TotalLagrangian, int objects = 1) {
+    ConfigurationUpdate update = ConfigurationUpdate::TotalLagrangian, int objects = 1,
+    std::size_t particles = kParticles, double ppc = 0) {
   BenchSceneOptions o;
   o.objects = objects;
   o.policy.update = update;
   o.policy.epsilon = Real(100);  // adaptive: evaluates the criterion every substep, never resets
-  o.particles = kParticles;
-  o.dx = Real(std::cbrt(1e6 / double(kParticles)) / 128.0);  // same ppc as 1e6 at dx = 1/128
+  o.particles = particles;
+  // Same ppc as 1e6 at dx = 1/128 (about 4.2), or `ppc` particles per cell.
+  o.dx = Real(std::cbrt(1e6 / double(particles) * (ppc > 0 ? ppc / 4.19 : 1)) / 128.0);
   o.transfer = t;
   o.order = order;
   o.lagrangian = lagrangian;
@@ -92,6 +94,29 @@ void BM_G2P(benchmark::State& st, Transfer t, int order) {
   // particle is the same as with dt > 0.
   for (auto _ : st) s->grid_to_particle(space, Real(0));
   set_items(st, kParticles, kG2PBytes);
+}
+
+// MLS P2G on its two paths: kept bin blocks (every bin scattered in one loop, then summed per
+// leaf; what particle_to_grid runs) against the eight colour phases (blocks = null), the same
+// bits. On the standard sphere (2^18 particles, ~4.2 per cell) and on one of jelly_drop's size
+// (97,336 particles at 8 per cell: ~100 bins, ~12 per colour).
+void BM_P2GPath(benchmark::State& st, bool blocks, std::size_t particles, double ppc) {
+  const exec::Space space = space_of(st);
+  auto s = prepared(Transfer::Mls, 2, space, false, ConfigurationUpdate::TotalLagrangian, 1,
+                    particles, ppc);
+  const Real dt = Real(1e-4);
+  for (auto _ : st) {
+    if (blocks) {
+      s->particle_to_grid(space, dt);
+    } else {
+      MpmGridView g = s->grid_view();
+      const MpmStepParams prm = s->step_params(dt);
+      grid_clear(space, g, prm);
+      p2g(space, s->particle_view(), g, prm);
+    }
+  }
+  st.counters["bins"] = double(s->bins().count());
+  set_items(st, particles, kP2GBytes);
 }
 
 // A-ULMPM: the Lagrangian-mode transfers (stencil at X^s, stress tau F_s^{-T}, F = F_s F_0s),
@@ -554,6 +579,10 @@ BENCHMARK_CAPTURE(BM_P2G, mls_quadratic, Transfer::Mls, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_P2G, apic_quadratic, Transfer::Apic, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_P2G, flip_quadratic, Transfer::PicFlip, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_P2G, mls_cubic, Transfer::Mls, 3)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_P2GPath, sphere_blocks, true, kParticles, 0)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_P2GPath, sphere_colours, false, kParticles, 0)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_P2GPath, jelly_blocks, true, 97336, 8)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_P2GPath, jelly_colours, false, 97336, 8)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_G2P, mls_quadratic, Transfer::Mls, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_G2P, apic_quadratic, Transfer::Apic, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_G2P, flip_quadratic, Transfer::PicFlip, 2)->Apply(backend_args);

@@ -30,16 +30,22 @@ struct GridBlock {
   template <class P, class Fn>
   static void visit(P* data, const std::array<std::int32_t, 8>& nbr8, Fn&& fn) {
     for (int t = 0; t < 8; ++t) {
-      const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
       const std::size_t leaf = std::size_t(nbr8[size_t(t)]);
-      const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
-                nk = tz ? B - kLeafDim : kLeafDim;
-      for (int i = 0; i < ni; ++i)
-        for (int j = 0; j < nj; ++j)
-          for (int k = 0; k < nk; ++k)
-            fn(data + at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k), leaf,
-               leaf_offset(i, j, k));
+      visit_part(data, t, [&](P* d, int off) { fn(d, leaf, off); });
     }
+  }
+  // Calls fn(block node pointer, offset in leaf) for the block's nodes in its neighbour leaf t
+  // (0..7 as above: 8 nodes a side, Order on a + side), z fastest.
+  template <class P, class Fn>
+  static void visit_part(P* data, int t, Fn&& fn) {
+    const int tx = (t >> 2) & 1, ty = (t >> 1) & 1, tz = t & 1;
+    const int ni = tx ? B - kLeafDim : kLeafDim, nj = ty ? B - kLeafDim : kLeafDim,
+              nk = tz ? B - kLeafDim : kLeafDim;
+    for (int i = 0; i < ni; ++i)
+      for (int j = 0; j < nj; ++j)
+        for (int k = 0; k < nk; ++k)
+          fn(data + at(tx * kLeafDim + i, ty * kLeafDim + j, tz * kLeafDim + k),
+             leaf_offset(i, j, k));
   }
   template <class Fn>
   void for_each_node(const std::array<std::int32_t, 8>& nbr8, Fn&& fn) {

@@ -1,7 +1,9 @@
 #include "kernels/mpm_transfers.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <cstring>
+#include <memory>
 
 #include "core/exec/simd.hpp"
 #include "core/math/bspline.hpp"
@@ -37,6 +39,7 @@ MpmGridView make_grid_view(const SparseGrid& grid, const BinTable& bins, Real* a
   g.active_leaves = grid.active_leaves().data();
   g.nactive = grid.active_leaves().size();
   g.leaf_coord = grid.leaf_coords().data();
+  g.leaf_bins = grid.leaf_bins().data();
   return g;
 }
 
@@ -215,12 +218,88 @@ void add_imports(const exec::Space& space, const MpmGridView& g, int order, int 
   });
 }
 
+// Scatters bins[k] (bin k when bins is null), k < nbins, each into its block at
+// keep + k * kSize, handed to take(k, block, CH) first when there is a take, then done(k). Each
+// bin on one thread, the bins balanced over the threads (no colour phases: a bin writes only its
+// block).
+template <int Order, Transfer T, bool L, bool P, class Done>
+void scatter_blocks(const exec::Space& space, const char* label, const MpmParticleView& p,
+                    const MpmGridView& g, const MpmStepParams& prm, const std::uint32_t* bins,
+                    std::size_t nbins, Real* keep,
+                    const std::function<void(std::size_t, const Real*, int)>* take, Done&& done) {
+  constexpr int CH = P ? 8 : channels_of(T);
+  using Blk = Block<Order, CH>;
+  exec::parallel_for(
+      space, label, exec::Index(nbins),
+      [&](exec::Index k) {
+        Blk blk;
+        scatter_bin<Order, T, L, P>(blk, bins ? bins[k] : std::uint32_t(k), p, g, prm);
+        if (take) (*take)(std::size_t(k), blk.data, CH);
+        std::memcpy(keep + std::size_t(k) * Blk::kSize, blk.data, sizeof(blk.data));
+        done(std::size_t(k));
+      },
+      1);
+}
+
+// Leaf `leaf` += the kept blocks (g.blocks) that reach it: leaf_bins lists the bin of each colour
+// that reaches the leaf, and its part is added in colour order, as the colour phases add them.
+// a gets lanes 0-3, `second` lanes 4-7 (CH == 8).
+template <int Order, int CH>
+void sum_leaf(const MpmGridView& g, std::size_t leaf, Real* second) {
+  using Blk = Block<Order, CH>;
+  const Vec3i lc = g.leaf_coord[leaf];
+  Real* la = g.a + leaf * kLeafNodes * 4;
+  Real* lb = CH == 8 ? second + leaf * kLeafNodes * 4 : nullptr;
+  for (int c = 0; c < 8; ++c) {
+    const std::int32_t b = g.leaf_bins[leaf][size_t(c)];
+    if (b < 0) continue;
+    const Vec3i d = lc - g.bin_leaf[b];  // the leaf is the bin's neighbour t
+    const int t = (d[0] << 2) | (d[1] << 1) | d[2];
+    Blk::visit_part(g.blocks + std::size_t(b) * Blk::kSize, t, [&](const Real* s, int off) {
+      Real* n = la + off * 4;
+      simd::store4(n, simd::load4(n) + simd::load4(s));
+      if constexpr (CH == 8)
+        simd::store4(lb + off * 4, simd::load4(lb + off * 4) + simd::load4(s + 4));
+    });
+  }
+}
+
+// One-process P2G on kept blocks: every bin scattered in one loop; each active leaf summed by the
+// thread that completes the last block reaching it (a countdown per leaf, whose release/acquire
+// makes the other threads' blocks visible), so the sums run inside the same loop while the blocks
+// are still in cache (a leaf's blocks come from bins at most one x-slab of keys apart). Whoever
+// sums a leaf, it adds the blocks in colour order: the same bits on any thread count.
+template <int Order, Transfer T, bool L, bool P, int CH>
+void p2g_kept_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                     const MpmStepParams& prm, Real* second) {
+  std::size_t slots = 0;
+  for (std::size_t li = 0; li < g.nactive; ++li)
+    slots = std::max(slots, std::size_t(g.active_leaves[li]) + 1);
+  std::unique_ptr<std::atomic<int>[]> pending(new std::atomic<int>[slots]);
+  for (std::size_t li = 0; li < g.nactive; ++li) {
+    const std::size_t leaf = std::size_t(g.active_leaves[li]);
+    int n = 0;
+    for (const std::int32_t b : g.leaf_bins[leaf]) n += b >= 0;
+    pending[leaf].store(n, std::memory_order_relaxed);
+  }
+  scatter_blocks<Order, T, L, P>(
+      space, "mpm.p2g", p, g, prm, nullptr, g.nbins, g.blocks, nullptr, [&](std::size_t b) {
+        for (const std::int32_t leaf : g.nbr8[b])
+          if (pending[size_t(leaf)].fetch_sub(1, std::memory_order_acq_rel) == 1)
+            sum_leaf<Order, CH>(g, std::size_t(leaf), second);
+      });
+}
+
 template <int Order, Transfer T, bool L, bool P = false>
 void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
               const MpmStepParams& prm) {
   constexpr int CH = P ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
   Real* second = P ? g.q_out : g.b;
+  if (g.blocks && g.leaf_bins && !g.imports && !g.kept_slot) {
+    p2g_kept_blocks<Order, T, L, P, CH>(space, p, g, prm, second);
+    return;
+  }
   for (int c = 0; c < 8; ++c) {
     // Other ranks' partial blocks of this colour first (their leaves and this colour's local
     // blocks are disjoint, so the order within a colour does not matter).
@@ -256,17 +335,8 @@ template <int Order, Transfer T, bool L = false, bool P = false>
 void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                      const MpmStepParams& prm, const std::uint32_t* bins, std::size_t nbins,
                      Real* keep, const std::function<void(std::size_t, const Real*, int)>& take) {
-  constexpr int CH = P ? 8 : channels_of(T);
-  using Blk = Block<Order, CH>;
-  exec::parallel_for(
-      space, "mpm.p2g_exports", exec::Index(nbins),
-      [&](exec::Index k) {
-        Blk blk;
-        scatter_bin<Order, T, L, P>(blk, bins[k], p, g, prm);
-        take(std::size_t(k), blk.data, CH);
-        std::memcpy(keep + std::size_t(k) * Blk::kSize, blk.data, sizeof(blk.data));
-      },
-      1);
+  scatter_blocks<Order, T, L, P>(space, "mpm.p2g_exports", p, g, prm, bins, nbins, keep, &take,
+                                 [](std::size_t) {});
 }
 
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
@@ -641,6 +711,10 @@ const MpmKernelTable mpm_kernels = {&grid_clear,    &p2g,         &clear_node4,
 int block_part_nodes(int order, int t) {
   return ((t >> 2) & 1 ? order : kLeafDim) * ((t >> 1) & 1 ? order : kLeafDim) *
          (t & 1 ? order : kLeafDim);
+}
+
+int p2g_channels(Transfer t, bool fused_positions) {
+  return t == Transfer::PicFlip || fused_positions ? 8 : 4;
 }
 
 std::size_t p2g_block_reals(int order, int ch) {

@@ -14,7 +14,9 @@
 //
 // P2G is race-free and deterministic: for each of the 8 colours, a parallel_for over that
 // colour's bins scatters each bin's particles, in sorted order, into a private block of
-// (8 + Order)^3 nodes, then adds the block into the bin's 8 leaves with plain adds.
+// (8 + Order)^3 nodes, then adds the block into the bin's 8 leaves with plain adds. With room
+// for every bin's block (MpmGridView::blocks), all bins scatter in one loop and each leaf then
+// adds its (at most 8) blocks in colour order: every node sums the same values in the same order.
 #pragma once
 
 #include <array>
@@ -70,6 +72,8 @@ struct P2GImport {
 int block_part_nodes(int order, int t);
 // Reals of a bin's P2G block ((8 + order)^3 nodes of ch lanes): p2g_blocks' `keep` stride.
 std::size_t p2g_block_reals(int order, int ch);
+// Lanes of a P2G block: 8 for PIC/FLIP (force) or with fused node positions (g.q_out), else 4.
+int p2g_channels(Transfer t, bool fused_positions);
 void copy_block_part(const Real* block, int order, int ch, int t, Real* out);
 
 // What they use of the grid: channel sets and tables from SparseGrid + BinTable.
@@ -104,6 +108,13 @@ struct MpmGridView {
   // again: block kept_slot[b] of `kept` (p2g_block_reals each) is flushed in its colour.
   const std::int32_t* kept_slot = nullptr;
   const Real* kept = nullptr;
+  // One process, P2G without colour phases: room for one block per bin (bin b's at
+  // b * p2g_block_reals(order, p2g_channels(...))) and the grid's leaf_bins (SparseGrid). When
+  // both are set (and no imports or kept blocks), P2G scatters every bin into its block in one
+  // balanced loop, and each active leaf's blocks are summed in colour order by the thread that
+  // completes the last of them: the colour phases' sums, bit for bit, in one loop instead of eight.
+  Real* blocks = nullptr;
+  const std::array<std::int32_t, 8>* leaf_bins = nullptr;
 };
 
 class SparseGrid;

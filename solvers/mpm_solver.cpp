@@ -281,7 +281,24 @@ void MpmSolver::particle_to_grid(const exec::Space& space, Real dt) {
     g.q_out = grid_.node4(channels_.positions);
     clear_node4(space, g, g.q_out);
   }
+  g.blocks = p2g_blocks_for(g.nbins, g.q_out != nullptr);
   p2g(space, particle_view(), g, prm);
+}
+
+// Room for every bin's P2G block (the colour phases' sums without their barriers), or null (the
+// colour phases) when it would exceed the budget: a sparse scene of many near-empty bins would
+// otherwise hold a (8 + order)^3-node block per handful of particles.
+Real* MpmSolver::p2g_blocks_for(std::size_t nbins, bool fused) {
+  const std::size_t reals =
+      nbins * p2g_block_reals(settings_.order, p2g_channels(settings_.transfer, fused));
+  const std::size_t budget =
+      std::max(kP2GBlocksMinBudget, kP2GBlocksBytesPerParticle * particles_.size());
+  if (reals * sizeof(Real) > budget) {
+    std::vector<Real>().swap(p2g_blocks_);
+    return nullptr;
+  }
+  if (p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);
+  return p2g_blocks_.data();
 }
 void MpmSolver::update_grid_velocities(const exec::Space& space, Real dt) {
   if (ranks_) return update_grid_velocities_distributed(space, dt);

@@ -122,6 +122,8 @@ class MpmSolver {
   static constexpr std::size_t binning_bytes_per_particle() {
     return ParticleBinning::kScratchBytesPerParticle;
   }
+  // P2G's kept bin blocks (scratch held between substeps; 0 when P2G runs its colour phases).
+  std::size_t p2g_block_bytes() const { return p2g_blocks_.size() * sizeof(Real); }
 
   // The variants' components, null when the scene does not use them.
   MpmImplicit* implicit() { return implicit_.get(); }
@@ -293,6 +295,12 @@ class MpmSolver {
   std::vector<Vec3> emitted_x_;      // emission scratch
   std::vector<std::uint8_t> keep_;   // kill scratch: survivor flags
   std::vector<std::uint32_t> kept_;  // kill scratch: survivor indices
+  // P2G scratch: one block per bin (MpmGridView::blocks), within max(the minimum, the bytes per
+  // particle below); over it P2G runs its colour phases (the same bits).
+  std::vector<Real> p2g_blocks_;
+  static constexpr std::size_t kP2GBlocksMinBudget = std::size_t(16) << 20;
+  static constexpr std::size_t kP2GBlocksBytesPerParticle = 64;
+  Real* p2g_blocks_for(std::size_t nbins, bool fused);
   std::unique_ptr<MpmSleep> sleep_;
   std::unique_ptr<MpmImplicit> implicit_;
   std::unique_ptr<MpmAul> aul_;

@@ -152,6 +152,13 @@ void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins,
   colour_bins_.resize(nb);
   for (size_t b = 0; b < nb; ++b)
     colour_bins_[count[size_t(colour(bins.leaf[b]))]++] = std::uint32_t(b);
+  // The reverse of nbr8 by colour: leaf nbr8[b][t] is reached by bin b, the only bin of b's colour
+  // that reaches it (the 8 bins reaching a leaf sit at its coordinate minus t: 8 parities).
+  leaf_bins_.resize(leaf_coord_.size());
+  for (const std::int32_t li : active_) leaf_bins_[size_t(li)].fill(-1);
+  for (size_t b = 0; b < nb; ++b)
+    for (int t = 0; t < 8; ++t)
+      leaf_bins_[size_t(nbr8_[b][size_t(t)])][size_t(colour(bins.leaf[b]))] = std::int32_t(b);
 
   if (nbr27_stale_) {
     nbr27_.resize(leaf_coord_.size());

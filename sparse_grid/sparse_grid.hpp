@@ -16,7 +16,8 @@
 // Tables: nbr8[bin][8] (the 8 leaves a bin scatters to), nbr27[leaf][27] (grid stencils, -1 for
 // absent), active leaves (those some bin touches), and bins grouped by the parity colour of their
 // leaf coordinate: same-colour bins' 8-leaf footprints never overlap, so each colour's bins can
-// scatter in parallel without atomics, deterministically.
+// scatter in parallel without atomics, deterministically; leaf_bins[leaf][colour], the bin of each
+// colour that reaches a leaf, lets P2G sum kept bin blocks per leaf in the same colour order.
 #pragma once
 
 #include <array>
@@ -69,6 +70,9 @@ class SparseGrid {
   // Bins of colour c are colour_bins()[colour_start()[c] .. colour_start()[c+1]).
   const std::vector<std::uint32_t>& colour_bins() const { return colour_bins_; }
   const std::array<std::uint32_t, 9>& colour_start() const { return colour_start_; }
+  // Per leaf slot (active leaves only), the bin of each colour c whose 8-leaf footprint (nbr8)
+  // holds the leaf, or -1: a leaf's P2G sum over bins in colour order, without the colour phases.
+  const std::vector<std::array<std::int32_t, 8>>& leaf_bins() const { return leaf_bins_; }
   // Leaf index containing node (i,j,k), or -1 (tree lookup: for tests and setup, not kernels).
   std::int32_t find_leaf(const Vec3i& node) const;
 
@@ -92,6 +96,7 @@ class SparseGrid {
   std::vector<std::array<std::int32_t, 27>> nbr27_;
   std::vector<std::uint32_t> colour_bins_;
   std::array<std::uint32_t, 9> colour_start_{};
+  std::vector<std::array<std::int32_t, 8>> leaf_bins_;
   std::vector<std::vector<Real>> node4_;
   std::uint64_t rebuilds_ = 0;
   bool nbr27_stale_ = true;

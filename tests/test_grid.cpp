@@ -217,7 +217,8 @@ TEST(ParticleSet, PermuteThroughSparesKeepsEveryAttribute) {
   ParticleSet ps;
   const auto a1 = ps.add("a1", AttrType::Int32, 1), v1 = ps.add("v1", AttrType::Real, 3),
              m = ps.add("m", AttrType::Real, 9), v2 = ps.add("v2", AttrType::Real, 3),
-             a2 = ps.add("a2", AttrType::Int32, 1), a5 = ps.add("a5", AttrType::Int32, 5);
+             a2 = ps.add("a2", AttrType::Int32, 1), a5 = ps.add("a5", AttrType::Int32, 5),
+             a11 = ps.add("a11", AttrType::Int32, 11);  // wider than the spare: cut in two slices
   const std::size_t n = 5000;
   ps.resize(n);
   auto value = [](std::size_t p, int attr, int k) { return Real(p * 100 + attr * 10 + k); };
@@ -225,12 +226,13 @@ TEST(ParticleSet, PermuteThroughSparesKeepsEveryAttribute) {
     ps.int32(a1)[p] = std::int32_t(p);
     ps.int32(a2)[p] = std::int32_t(7 * p);
     for (int k = 0; k < 5; ++k) ps.int32(a5)[p * 5 + std::size_t(k)] = std::int32_t(p * 5 + k);
+    for (int k = 0; k < 11; ++k) ps.int32(a11)[p * 11 + std::size_t(k)] = std::int32_t(p * 11 + k);
     for (int k = 0; k < 3; ++k) ps.vec3(v1)[p][k] = value(p, 1, k);
     for (int k = 0; k < 3; ++k) ps.vec3(v2)[p][k] = value(p, 2, k);
     for (int k = 0; k < 9; ++k) ps.real(m)[p * 9 + std::size_t(k)] = value(p, 3, k);
   }
   const int w = int(sizeof(Real) / 4);
-  EXPECT_EQ(ps.state_bytes_per_particle(), std::size_t(4 * (7 + 15 * w)));
+  EXPECT_EQ(ps.state_bytes_per_particle(), std::size_t(4 * (18 + 15 * w)));
   EXPECT_EQ(ps.bytes_per_particle(), ps.state_bytes_per_particle() + std::size_t(4 * 9 * w));
   std::mt19937 rng(3);
   std::vector<std::uint32_t> order(n);  // order[i]: the original particle now at i
@@ -255,6 +257,8 @@ TEST(ParticleSet, PermuteThroughSparesKeepsEveryAttribute) {
     ASSERT_EQ(ps.int32(a2)[i], std::int32_t(7 * p));
     for (int k = 0; k < 5; ++k)
       ASSERT_EQ(ps.int32(a5)[i * 5 + std::size_t(k)], std::int32_t(p * 5 + std::size_t(k)));
+    for (int k = 0; k < 11; ++k)
+      ASSERT_EQ(ps.int32(a11)[i * 11 + std::size_t(k)], std::int32_t(p * 11 + std::size_t(k)));
     for (int k = 0; k < 3; ++k) ASSERT_EQ(ps.vec3(v1)[i][k], value(p, 1, k));
     for (int k = 0; k < 3; ++k) ASSERT_EQ(ps.vec3(v2)[i][k], value(p, 2, k));
     for (int k = 0; k < 9; ++k) ASSERT_EQ(ps.real(m)[i * 9 + std::size_t(k)], value(p, 3, k));
