@@ -1,7 +1,6 @@
 #include "kernels/mpm_transfers.hpp"
 
 #include <algorithm>
-#include <atomic>
 #include <cstring>
 #include <memory>
 
@@ -275,19 +274,19 @@ void p2g_kept_blocks(const exec::Space& space, const MpmParticleView& p, const M
   std::size_t slots = 0;
   for (std::size_t li = 0; li < g.nactive; ++li)
     slots = std::max(slots, std::size_t(g.active_leaves[li]) + 1);
-  std::unique_ptr<std::atomic<int>[]> pending(new std::atomic<int>[slots]);
+  exec::Countdowns pending(slots);
   for (std::size_t li = 0; li < g.nactive; ++li) {
     const std::size_t leaf = std::size_t(g.active_leaves[li]);
     int n = 0;
     for (const std::int32_t b : g.leaf_bins[leaf]) n += b >= 0;
-    pending[leaf].store(n, std::memory_order_relaxed);
+    pending.set(leaf, n);
   }
-  scatter_blocks<Order, T, L, P>(
-      space, "mpm.p2g", p, g, prm, nullptr, g.nbins, g.blocks, nullptr, [&](std::size_t b) {
-        for (const std::int32_t leaf : g.nbr8[b])
-          if (pending[size_t(leaf)].fetch_sub(1, std::memory_order_acq_rel) == 1)
-            sum_leaf<Order, CH>(g, std::size_t(leaf), second);
-      });
+  scatter_blocks<Order, T, L, P>(space, "mpm.p2g", p, g, prm, nullptr, g.nbins, g.blocks, nullptr,
+                                 [&](std::size_t b) {
+                                   for (const std::int32_t leaf : g.nbr8[b])
+                                     if (pending.arrive(std::size_t(leaf)))
+                                       sum_leaf<Order, CH>(g, std::size_t(leaf), second);
+                                 });
 }
 
 template <int Order, Transfer T, bool L, bool P = false>

@@ -12,6 +12,7 @@
 // indirect call per chunk.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -46,6 +47,20 @@ bool backend_compiled(Backend b);
 // "Kokkos 3.4.1 (Serial)" when built with Kokkos, "" otherwise.
 std::string kokkos_version();
 int hardware_threads();
+
+// Per-slot countdowns for "the last arrival does the slot's work" inside a parallel loop (P2G:
+// the thread that completes the last block reaching a leaf sums that leaf). arrive(i) is true for
+// exactly one caller per slot, the one that brings it to zero; acquire/release ordering makes the
+// other arrivals' writes visible to it. The only synchronisation kernels use outside this file.
+class Countdowns {
+ public:
+  explicit Countdowns(std::size_t n) : c_(new std::atomic<int>[n]) {}
+  void set(std::size_t i, int n) { c_[i].store(n, std::memory_order_relaxed); }
+  bool arrive(std::size_t i) { return c_[i].fetch_sub(1, std::memory_order_acq_rel) == 1; }
+
+ private:
+  std::unique_ptr<std::atomic<int>[]> c_;
+};
 
 namespace detail {
 struct BackendState;
