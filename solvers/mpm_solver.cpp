@@ -302,6 +302,7 @@ MpmGridView MpmSolver::grid_view_with_positions() {
 }
 
 void MpmSolver::grid_to_particle(const exec::Space& space, Real dt) {
+  if (ranks_) return grid_to_particle_distributed(space, dt);
   g2p(space, particle_view(), grid_view(), step_params(dt));
   if (sleep_) sleep_->rest(space, particles_, attr_, dt);
 }

@@ -73,6 +73,26 @@ class Comm {
   // HaloPlan does). Returns recv[r]. Only the ranks that exchange bytes take part.
   std::vector<std::vector<char>> exchange(const std::vector<std::vector<char>>& send,
                                           const std::vector<std::size_t>& recv_bytes) const;
+  // `exchange` in two halves, so that work runs while the bytes travel: exchange_start posts the
+  // receives and the sends and returns at once; exchange_finish waits for the receives only and
+  // returns recv[r]. The sends complete as the peers receive (OpenMPI's shared-memory and RDMA
+  // transports let the receiver pull the bytes without the sender's help); `send` must stay
+  // alive and unchanged until the Pending is started again or destroyed, which waits for them.
+  class Pending {
+   public:
+    Pending();
+    ~Pending();
+    Pending(const Pending&) = delete;
+    Pending& operator=(const Pending&) = delete;
+
+   private:
+    friend class Comm;
+    struct State;
+    std::unique_ptr<State> s_;
+  };
+  void exchange_start(Pending& p, const std::vector<std::vector<char>>& send,
+                      const std::vector<std::size_t>& recv_bytes) const;
+  std::vector<std::vector<char>> exchange_finish(Pending& p) const;
   // Root's bytes on every rank.
   void broadcast(std::vector<char>& bytes) const;
   void barrier() const;
