@@ -113,6 +113,10 @@ struct MpmSolver::Ranks {
   std::vector<int> peers;                              // cuts.neighbours(kPeerMargin)
   std::vector<Vec3i> migrate_leaf;  // migrate's scratch: each particle's leaf and rank
   std::vector<int> migrate_dest;
+  std::vector<std::uint32_t> migrate_movers;
+  bool bins_match = false;  // the particles are in the order of bins_ (the last sort)
+  std::vector<Vec3i> last_bin_leaves;
+  std::uint64_t sorts = 0, same_bin_leaves = 0;
   std::uint64_t last_partition = 0;  // step of the last (re)partition
   std::uint64_t repartitions = 0;
   double balanced = 1;  // max/mean particles per rank right after the last partition
@@ -273,32 +277,52 @@ void MpmSolver::migrate(const exec::Space& space, bool anywhere) {
   Ranks& rk = *ranks_;
   const std::size_t n = particles_.size();
   const Vec3* x = particles_.vec3(bin_position());
-  // Each particle's leaf in parallel (with the first bad position), then the owners serially:
-  // the particles are in leaf order from the last sort, so most share the previous one's leaf.
+  // Each particle's leaf in parallel (with the first bad position). While the particles are in
+  // the bins of the last sort (bins_match), a particle still in its bin's leaf stays (that leaf
+  // is this rank's); only the others (about 1 % a substep on the sphere) look their owner up,
+  // serially, and only the leavers are packed and refilled. Otherwise every particle looks up.
   rk.migrate_leaf.resize(n);
+  rk.migrate_dest.resize(n);
   Vec3i* lf = rk.migrate_leaf.data();
+  int* dst = rk.migrate_dest.data();
   const Real dx = settings_.dx;
+  const int me = comm.rank();
+  const bool by_bin = !anywhere && rk.bins_match && !bins_.start.empty() && bins_.start.back() <= n;
+  const std::size_t nb = by_bin ? bins_.count() : 0, tail = by_bin ? bins_.start.back() : 0;
+  constexpr std::size_t kChunk = 4096;  // the particles after the bins (emitted), per task
+  const std::uint32_t* bstart = bins_.start.data();
+  const Vec3i* bleaf = bins_.leaf.data();
   const std::int64_t bad = exec::parallel_reduce(
-      space, "dist.migrate_leaves", exec::Index(n), std::int64_t(-1),
-      [=](exec::Index p, std::int64_t& first) {
-        if (!x[p].allFinite() || x[p].cwiseAbs().maxCoeff() / dx > Real(1 << 28)) {
-          if (first < 0) first = p;
-          return;
+      space, "dist.migrate_leaves", exec::Index(nb + (n - tail + kChunk - 1) / kChunk),
+      std::int64_t(-1),
+      [=](exec::Index i, std::int64_t& first) {
+        const bool bin = std::size_t(i) < nb;
+        const std::size_t p0 = bin ? bstart[i] : tail + (std::size_t(i) - nb) * kChunk,
+                          p1 = bin ? bstart[i + 1] : std::min(n, p0 + kChunk);
+        for (std::size_t p = p0; p < p1; ++p) {
+          if (!x[p].allFinite() || x[p].cwiseAbs().maxCoeff() / dx > Real(1 << 28)) {
+            if (first < 0 || std::int64_t(p) < first) first = std::int64_t(p);
+            continue;
+          }
+          lf[p] = particle_leaf(x[p]);
+          dst[p] = bin && lf[p] == bleaf[i] ? me : -1;
         }
-        lf[p] = particle_leaf(x[p]);
       },
       [](std::int64_t a, std::int64_t b) { return a < 0 ? b : (b < 0 ? a : std::min(a, b)); });
-  rk.migrate_dest.resize(n);
-  std::vector<int>& dest = rk.migrate_dest;
+  rk.bins_match = false;  // the leavers' slots are refilled below
   std::vector<char> is_peer(std::size_t(comm.size()), char(anywhere));
   for (int q : rk.peers) is_peer[std::size_t(q)] = 1;
-  is_peer[std::size_t(comm.rank())] = 1;
+  is_peer[std::size_t(me)] = 1;
   Vec3i last(INT_MIN, 0, 0);
   int last_owner = 0;
   bool far = false;  // a particle for a rank that is not a peer (moved more than a leaf)
+  std::vector<std::uint32_t>& movers = rk.migrate_movers;  // the leavers, increasing
+  movers.clear();
   for (std::size_t p = 0; p < n && bad < 0; ++p) {
+    if (dst[p] == me) continue;
     if (lf[p] != last) last = lf[p], last_owner = rk.owner(lf[p]), far |= !is_peer[last_owner];
-    dest[p] = last_owner;
+    dst[p] = last_owner;
+    if (last_owner != me) movers.push_back(std::uint32_t(p));
   }
   // One reduction for both: 2 a bad position somewhere, 1 a particle for a non-peer.
   const std::int64_t status = comm.max(std::int64_t(bad >= 0 ? 2 : far ? 1 : 0));
@@ -314,11 +338,8 @@ void MpmSolver::migrate(const exec::Space& space, bool anywhere) {
   std::size_t words = 0;
   for (int a = 0; a < na; ++a) words += std::size_t(particles_.words_per_particle(a));
   std::vector<std::vector<char>> send(static_cast<std::size_t>(comm.size()));
-  std::size_t leaving = 0;
-  for (std::size_t p = 0; p < n; ++p) {
-    if (dest[p] == comm.rank()) continue;
-    ++leaving;
-    std::vector<char>& out = send[std::size_t(dest[p])];
+  for (const std::uint32_t p : movers) {
+    std::vector<char>& out = send[std::size_t(dst[p])];
     for (int a = 0; a < na; ++a) {
       const std::size_t wa = std::size_t(particles_.words_per_particle(a));
       const char* src = reinterpret_cast<const char*>(particles_.words(a) + p * wa);
@@ -330,10 +351,10 @@ void MpmSolver::migrate(const exec::Space& space, bool anywhere) {
   // The leavers' slots are filled from the end (a few copies, not a gather of every particle):
   // the order changes, but the sort that follows puts the particles in (leaf, id) order, which
   // does not depend on the order they come in.
-  if (leaving > 0) {
+  if (!movers.empty()) {
     std::size_t m = n;
-    for (std::size_t p = n; p-- > 0;) {
-      if (dest[p] == comm.rank()) continue;
+    for (std::size_t k = movers.size(); k-- > 0;) {
+      const std::size_t p = movers[k];
       --m;
       if (p != m)
         for (int a = 0; a < na; ++a) {
@@ -413,6 +434,12 @@ void MpmSolver::sort_distributed(const exec::Space& space) {
   }
   binning_.sort_and_bin(space, particles_, bin_position(), settings_.dx, settings_.order, bins_,
                         attr_.id);
+  rk.bins_match = true;
+  // How often the plan could be kept (its heads depend on the bins' leaves only): substeps whose
+  // bin leaves are those of the last one, for the summary.
+  ++rk.sorts;
+  if (bins_.leaf == rk.last_bin_leaves) ++rk.same_bin_leaves;
+  rk.last_bin_leaves = bins_.leaf;
   rk.sorted = true;
   rk.presort.clear();
 }
@@ -871,6 +898,7 @@ void MpmSolver::save_distributed(Snapshot& s) const {
 }
 void MpmSolver::restore_distributed(const Snapshot& s) {
   bins_ = s.bins;
+  ranks_->bins_match = false;  // the first migrate after a restore looks every owner up
   ranks_->sorted = s.sorted;
   ranks_->presort = s.presort;
 }
@@ -894,12 +922,14 @@ std::string MpmSolver::distributed_summary() const {
   for (std::size_t q = 0; q < rk.rows_send_nodes.size(); ++q)
     rows += rk.rows_send_nodes[q] * row_bytes;
   sums = comm.sum(sums), rows = comm.sum(rows);
+  const std::uint64_t sorts = comm.sum(rk.sorts), same = comm.sum(rk.same_bin_leaves);
   return "amalgam: distributed MPM on " + std::to_string(comm.size()) +
          " ranks: " + std::to_string(rk.repartitions) + " repartitions, particles max/mean " +
          std::to_string(mean > 0 ? most / mean : 1.0) + "; last substep: " + std::to_string(halo) +
          " ghost leaves, " + std::to_string(parts) + " partial blocks sent, halo " +
          std::to_string(sums / 1000) + " kB of partial sums + " + std::to_string(rows / 1000) +
-         " kB of node rows (all ranks)\n";
+         " kB of node rows (all ranks); a rank's bin leaves as in its previous substep in " +
+         std::to_string(sorts ? 100 * same / sorts : 0) + " % of its substeps\n";
 }
 
 }  // namespace amalgam
