@@ -237,6 +237,16 @@ std::int64_t Comm::max(std::int64_t v) const {
   wait_one(q, "MPI_Iallreduce (max)");
   return r;
 }
+std::vector<double> Comm::max(const std::vector<double>& v) const {
+  if (size_ == 1 || v.empty()) return v;
+  const Meter meter(traffic_, v.size() * sizeof(double), 1);
+  std::vector<double> r(v.size());
+  MPI_Request q;
+  check(MPI_Iallreduce(v.data(), r.data(), int(v.size()), MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD, &q),
+        "MPI_Iallreduce");
+  wait_one(q, "MPI_Iallreduce (max)");
+  return r;
+}
 
 std::vector<char> Comm::allgather(const std::vector<char>& mine,
                                   std::vector<std::size_t>* sizes) const {
@@ -639,6 +649,9 @@ std::uint64_t Comm::sum(std::uint64_t v) const {
   return v;
 }
 std::int64_t Comm::max(std::int64_t v) const {
+  return v;
+}
+std::vector<double> Comm::max(const std::vector<double>& v) const {
   return v;
 }
 std::vector<char> Comm::allgather(const std::vector<char>& mine,

@@ -56,6 +56,8 @@ class Comm {
   double min(double v) const;
   std::uint64_t sum(std::uint64_t v) const;
   std::int64_t max(std::int64_t v) const;
+  // Element by element, in one reduction (several maxima at one synchronisation point).
+  std::vector<double> max(const std::vector<double>& v) const;
   // Every rank's bytes, concatenated in rank order, on every rank (sizes[r]: rank r's count).
   std::vector<char> allgather(const std::vector<char>& mine, std::vector<std::size_t>* sizes) const;
   // Root only receives (others get an empty vector): every rank's bytes in rank order.
