@@ -115,6 +115,7 @@ struct MpmSolver::Ranks {
   std::vector<int> migrate_dest;
   std::vector<std::uint32_t> migrate_movers;
   bool bins_match = false;  // the particles are in the order of bins_ (the last sort)
+  std::int64_t count_most = 0, count_total = 0;  // particles per rank before the last migrate
   std::vector<Vec3i> last_bin_leaves;
   std::uint64_t sorts = 0, same_bin_leaves = 0;
   std::uint64_t last_partition = 0;  // step of the last (re)partition
@@ -324,8 +325,23 @@ void MpmSolver::migrate(const exec::Space& space, bool anywhere) {
     dst[p] = last_owner;
     if (last_owner != me) movers.push_back(std::uint32_t(p));
   }
-  // One reduction for both: 2 a bad position somewhere, 1 a particle for a non-peer.
-  const std::int64_t status = comm.max(std::int64_t(bad >= 0 ? 2 : far ? 1 : 0));
+  // One collective for three: status 2 a bad position somewhere, 1 a particle for a non-peer;
+  // and the particles per rank before migrating, which sort_distributed's repartition test uses
+  // (migration keeps the total; the largest rank is that of the substep before, give or take
+  // the few leavers) instead of two reductions of its own.
+  const std::vector<std::int64_t> all = dist::from_bytes<std::int64_t>(
+      comm.allgather(dist::as_bytes(std::vector<std::int64_t>{bad >= 0 ? 2
+                                                              : far    ? 1
+                                                                       : 0,
+                                                              std::int64_t(n)}),
+                     nullptr));
+  std::int64_t status = 0;
+  rk.count_most = 0, rk.count_total = 0;
+  for (std::size_t q = 0; q + 1 < all.size(); q += 2) {
+    status = std::max(status, all[q]);
+    rk.count_most = std::max(rk.count_most, all[q + 1]);
+    rk.count_total += all[q + 1];
+  }
   if (status == 2)
     throw SimulationError(bad >= 0 ? "step " + std::to_string(steps_) + ": particle id " +
                                          std::to_string(particles_.int32(attr_.id)[bad]) +
@@ -417,9 +433,8 @@ void MpmSolver::sort_distributed(const exec::Space& space) {
   Ranks& rk = *ranks_;
   migrate(space, false);
   // Repartition when the work (particles) is unbalanced; results do not depend on the partition.
-  const std::int64_t mine = std::int64_t(particles_.size());
-  const double most = double(comm.max(mine)),
-               mean = double(comm.sum(std::uint64_t(mine))) / comm.size();
+  // The counts are those migrate gathered (before it moved the leavers).
+  const double most = double(rk.count_most), mean = double(rk.count_total) / comm.size();
   const bool forced = rk.force_every > 0 && steps_ % std::uint64_t(rk.force_every) == 0 &&
                       steps_ > rk.last_partition;
   // A leaf is the partition's grain: when the best cut of the leaves leaves some imbalance, wait
