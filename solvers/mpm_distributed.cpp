@@ -163,7 +163,8 @@ struct MpmSolver::Ranks {
   std::size_t row_leaves = 0;  // update_order[0, row_leaves): leaves in some rows_send
   std::vector<std::vector<char>> p2g_out, rows_out;  // alive until their exchange starts again
   dist::Comm::Pending p2g_pending, rows_pending;
-  bool g2p_interior_done = false;  // update_grid_velocities_distributed gathered interior_bins
+  std::vector<Real*> row_channels;  // the node4 arrays whose rows start_ghost_rows sent
+  bool g2p_interior_done = false;   // update_grid_velocities_distributed gathered interior_bins
   // G2P over a subset of the bins (g2p_bins): their neighbour tables, particle ranges, leaves.
   std::vector<std::array<std::int32_t, 8>> sub_nbr8;
   std::vector<std::uint32_t> sub_start, sub_end;
@@ -730,7 +731,8 @@ void MpmSolver::start_ghost_rows(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   Ranks& rk = *ranks_;
   const std::size_t R = std::size_t(comm.size());
-  std::vector<Real*> channel{grid_.node4(0)};
+  std::vector<Real*>& channel = rk.row_channels;  // finish_ghost_rows stores into the same
+  channel.assign(1, grid_.node4(0));
   if (channels_.second >= 0) channel.push_back(grid_.node4(channels_.second));
   const std::size_t node_bytes = 4 * sizeof(Real) * channel.size();
   std::vector<std::vector<char>>& out = rk.rows_out;
@@ -760,8 +762,7 @@ void MpmSolver::finish_ghost_rows(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   Ranks& rk = *ranks_;
   const std::size_t R = std::size_t(comm.size());
-  std::vector<Real*> channel{grid_.node4(0)};
-  if (channels_.second >= 0) channel.push_back(grid_.node4(channels_.second));
+  const std::vector<Real*>& channel = rk.row_channels;
   const std::size_t node_bytes = 4 * sizeof(Real) * channel.size();
   const std::vector<std::vector<char>> in = comm.exchange_finish(rk.rows_pending);
   for (std::size_t q = 0; q < R; ++q) {
