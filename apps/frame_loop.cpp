@@ -497,20 +497,25 @@ std::vector<double> profile_seconds(const Simulation& sim, const exec::Profiler&
 
 // Collective: what the job's communication cost each rank over the run (set-up included), per
 // substep, as the mean and the most over the ranks (dist::Comm::traffic); empty on one rank.
-std::string communication_summary(double wall, long long substeps) {
+// `loop_exchange`: this rank's seconds in exchanges during the frame loop, so that each rank's
+// work (the loop minus them) shows whether the ranks wait for uneven work or for messages.
+std::string communication_summary(double wall, long long substeps, double loop_exchange) {
   const dist::Comm& comm = dist::Comm::world();
   if (comm.size() == 1) return "";
   const dist::Comm::Traffic t = comm.traffic();
-  const std::vector<double> mine = {double(t.bytes), double(t.messages), double(t.calls),
-                                    t.seconds};
+  const std::vector<double> mine = {double(t.bytes), double(t.messages), double(t.calls), t.seconds,
+                                    wall - loop_exchange};
+  constexpr std::size_t K = 5;
   const std::vector<double> all =
       dist::from_bytes<double>(comm.allgather(dist::as_bytes(mine), nullptr));
   const std::size_t R = std::size_t(comm.size());
-  double mean[4] = {0, 0, 0, 0}, most[4] = {0, 0, 0, 0};
+  double mean[K] = {0, 0, 0, 0, 0}, most[K] = {0, 0, 0, 0, 0};
+  double least = all[4];
   for (std::size_t r = 0; r < R; ++r)
-    for (std::size_t k = 0; k < 4; ++k) {
-      mean[k] += all[4 * r + k] / double(R);
-      most[k] = std::max(most[k], all[4 * r + k]);
+    for (std::size_t k = 0; k < K; ++k) {
+      mean[k] += all[K * r + k] / double(R);
+      most[k] = std::max(most[k], all[K * r + k]);
+      if (k == 4) least = std::min(least, all[K * r + k]);
     }
   const double n = double(std::max(1LL, substeps));
   char line[400];
@@ -520,7 +525,12 @@ std::string communication_summary(double wall, long long substeps) {
                 "%.3g s of %.3g s (%.1f %% / %.1f %%, waiting for slower ranks included)\n",
                 R, mean[0] / n * 1e-3, most[0] / n * 1e-3, mean[1] / n, most[1] / n, mean[2] / n,
                 most[2] / n, mean[3], most[3], wall, 100 * mean[3] / wall, 100 * most[3] / wall);
-  return line;
+  char work[200];
+  std::snprintf(work, sizeof work,
+                "amalgam: work per rank (the frame loop minus its exchanges): least %.3g / mean "
+                "%.3g / most %.3g s, max/mean %.3f\n",
+                least, mean[4], most[4], mean[4] > 0 ? most[4] / mean[4] : 1.0);
+  return std::string(line) + work;
 }
 
 }  // namespace
@@ -604,6 +614,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   const Real cfl0 = sim.cfl();
   const std::vector<std::string> profile_names = sim.profile_columns();
   const auto t_start = std::chrono::steady_clock::now();
+  const double exchange_start = comm.traffic().seconds;
   const double work0 = sim.work_done();
   long long total_substeps = 0;
   std::vector<double> profile_before = profile_seconds(sim, profiler, profile_names.size());
@@ -742,8 +753,9 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   }
   frames.wait();
   const double wall = seconds_since(t_start);
-  const std::string summary = sim.run_summary(wall) + frames.summary() +
-                              communication_summary(wall, total_substeps);  // collective
+  const std::string summary =
+      sim.run_summary(wall) + frames.summary() +
+      communication_summary(wall, total_substeps, comm.traffic().seconds - exchange_start);
   if (!rs.quiet) {
     if (tty) std::cout << "\n";
     std::cout << "amalgam: done: " << scene.frames - rs.first_frame + 1 << " frames, "
@@ -753,6 +765,9 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
               << "amalgam: per-kernel time:\n"
               << profiler.report(wall) << summary;
   }
+  // Diagnosis of distributed runs: every other rank's per-kernel table too, after rank 0's.
+  if (comm.size() > 1 && !comm.root() && std::getenv("AMALGAM_RANK_PROFILE"))
+    std::cout << "amalgam: rank " << comm.rank() << " per-kernel time:\n" << profiler.report(wall);
   return kOk;
 }
 

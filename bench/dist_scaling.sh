@@ -4,7 +4,8 @@
 #   mpirun --oversubscribe -np R amalgam run SCENE --threads 1 --backend BACKEND   (R ranks x 1)
 # the order swapped every pair. Prints per run the process wall time, the frame loop's time
 # (amalgam's "done" line), the communication line (bytes and messages per substep per rank, time
-# in communication) and the distributed summary (repartitions, imbalance), then the medians and
+# in communication), the work per rank (the loop minus its exchanges, max/mean) and the
+# distributed summary (repartitions, imbalance), then the medians and
 # the ratio (1 x R time / R x 1 time: >= 1 means the ranks are at least as fast).
 # Usage: bench/dist_scaling.sh AMALGAM SCENE RANKS PAIRS OUTDIR [BACKEND] [FRAMES]
 set -u
@@ -28,7 +29,7 @@ run() {  # mode (threads|ranks), tag; prints "tag wall loop" and the log's summa
   loop=$(sed -n 's/^amalgam: done: .*(\([0-9.e+-]*\) s).*/\1/p' "$out/$tag.log")
   echo "$tag $(echo "$t1 - $t0" | bc) $loop $(cut -d' ' -f1 /proc/loadavg)" >>"$out/times.txt"
   echo "$tag: whole $(echo "$t1 - $t0" | bc) s, loop $loop s, load $(cut -d' ' -f1 /proc/loadavg)"
-  grep -E "^amalgam: (communication|distributed)" "$out/$tag.log" | sed 's/^/    /'
+  grep -E "^amalgam: (communication|distributed|work per rank)" "$out/$tag.log" | sed 's/^/    /'
 }
 rm -f "$out/times.txt"
 for p in $(seq 1 "$pairs"); do

@@ -113,6 +113,11 @@ struct MpmSolver::Ranks {
   std::vector<int> peers;                              // cuts.neighbours(kPeerMargin)
   std::vector<Vec3i> migrate_leaf;  // migrate's scratch: each particle's leaf and rank
   std::vector<int> migrate_dest;
+  std::vector<std::uint32_t> migrate_movers;
+  bool bins_match = false;  // the particles are in the order of bins_ (the last sort)
+  std::int64_t count_most = 0, count_total = 0;  // particles per rank before the last migrate
+  std::vector<Vec3i> last_bin_leaves;
+  std::uint64_t sorts = 0, same_bin_leaves = 0;
   std::uint64_t last_partition = 0;  // step of the last (re)partition
   std::uint64_t repartitions = 0;
   double balanced = 1;  // max/mean particles per rank right after the last partition
@@ -153,6 +158,20 @@ struct MpmSolver::Ranks {
   };
   std::vector<std::vector<RowPart>> rows_send, rows_recv;
   std::vector<std::size_t> rows_send_nodes, rows_recv_nodes;  // per rank
+  // Overlap (the exchanges travel while the interior works): the bins that reach no ghost leaf,
+  // scattered into `kept` while the partial sums travel and gathered (G2P) while the node rows
+  // do; the owned leaves whose rows others read first in the grid update's order.
+  std::vector<std::uint32_t> interior_bins;
+  std::vector<std::int32_t> update_order;
+  std::size_t row_leaves = 0;  // update_order[0, row_leaves): leaves in some rows_send
+  std::vector<std::vector<char>> p2g_out, rows_out;  // alive until their exchange starts again
+  dist::Comm::Pending p2g_pending, rows_pending;
+  std::vector<Real*> row_channels;  // the node4 arrays whose rows start_ghost_rows sent
+  bool g2p_interior_done = false;   // update_grid_velocities_distributed gathered interior_bins
+  // G2P over a subset of the bins (g2p_bins): their neighbour tables, particle ranges, leaves.
+  std::vector<std::array<std::int32_t, 8>> sub_nbr8;
+  std::vector<std::uint32_t> sub_start, sub_end;
+  std::vector<Vec3i> sub_leaf;
   std::uint64_t halo_leaves = 0, halo_parts = 0;  // per substep, this rank (for the summary)
 
   int owner(const Vec3i& l) {
@@ -335,35 +354,70 @@ void MpmSolver::migrate(const exec::Space& space, bool anywhere) {
   Ranks& rk = *ranks_;
   const std::size_t n = particles_.size();
   const Vec3* x = particles_.vec3(bin_position());
-  // Each particle's leaf in parallel (with the first bad position), then the owners serially:
-  // the particles are in leaf order from the last sort, so most share the previous one's leaf.
+  // Each particle's leaf in parallel (with the first bad position). While the particles are in
+  // the bins of the last sort (bins_match), a particle still in its bin's leaf stays (that leaf
+  // is this rank's); only the others (about 1 % a substep on the sphere) look their owner up,
+  // serially, and only the leavers are packed and refilled. Otherwise every particle looks up.
   rk.migrate_leaf.resize(n);
+  rk.migrate_dest.resize(n);
   Vec3i* lf = rk.migrate_leaf.data();
+  int* dst = rk.migrate_dest.data();
   const Real dx = settings_.dx;
+  const int me = comm.rank();
+  const bool by_bin = !anywhere && rk.bins_match && !bins_.start.empty() && bins_.start.back() <= n;
+  const std::size_t nb = by_bin ? bins_.count() : 0, tail = by_bin ? bins_.start.back() : 0;
+  constexpr std::size_t kChunk = 4096;  // the particles after the bins (emitted), per task
+  const std::uint32_t* bstart = bins_.start.data();
+  const Vec3i* bleaf = bins_.leaf.data();
   const std::int64_t bad = exec::parallel_reduce(
-      space, "dist.migrate_leaves", exec::Index(n), std::int64_t(-1),
-      [=](exec::Index p, std::int64_t& first) {
-        if (!x[p].allFinite() || x[p].cwiseAbs().maxCoeff() / dx > Real(1 << 28)) {
-          if (first < 0) first = p;
-          return;
+      space, "dist.migrate_leaves", exec::Index(nb + (n - tail + kChunk - 1) / kChunk),
+      std::int64_t(-1),
+      [=](exec::Index i, std::int64_t& first) {
+        const bool bin = std::size_t(i) < nb;
+        const std::size_t p0 = bin ? bstart[i] : tail + (std::size_t(i) - nb) * kChunk,
+                          p1 = bin ? bstart[i + 1] : std::min(n, p0 + kChunk);
+        for (std::size_t p = p0; p < p1; ++p) {
+          if (!x[p].allFinite() || x[p].cwiseAbs().maxCoeff() / dx > Real(1 << 28)) {
+            if (first < 0 || std::int64_t(p) < first) first = std::int64_t(p);
+            continue;
+          }
+          lf[p] = particle_leaf(x[p]);
+          dst[p] = bin && lf[p] == bleaf[i] ? me : -1;
         }
-        lf[p] = particle_leaf(x[p]);
       },
       [](std::int64_t a, std::int64_t b) { return a < 0 ? b : (b < 0 ? a : std::min(a, b)); });
-  rk.migrate_dest.resize(n);
-  std::vector<int>& dest = rk.migrate_dest;
+  rk.bins_match = false;  // the leavers' slots are refilled below
   std::vector<char> is_peer(std::size_t(comm.size()), char(anywhere));
   for (int q : rk.peers) is_peer[std::size_t(q)] = 1;
-  is_peer[std::size_t(comm.rank())] = 1;
+  is_peer[std::size_t(me)] = 1;
   Vec3i last(INT_MIN, 0, 0);
   int last_owner = 0;
   bool far = false;  // a particle for a rank that is not a peer (moved more than a leaf)
+  std::vector<std::uint32_t>& movers = rk.migrate_movers;  // the leavers, increasing
+  movers.clear();
   for (std::size_t p = 0; p < n && bad < 0; ++p) {
+    if (dst[p] == me) continue;
     if (lf[p] != last) last = lf[p], last_owner = rk.owner(lf[p]), far |= !is_peer[last_owner];
-    dest[p] = last_owner;
+    dst[p] = last_owner;
+    if (last_owner != me) movers.push_back(std::uint32_t(p));
   }
-  // One reduction for both: 2 a bad position somewhere, 1 a particle for a non-peer.
-  const std::int64_t status = comm.max(std::int64_t(bad >= 0 ? 2 : far ? 1 : 0));
+  // One collective for three: status 2 a bad position somewhere, 1 a particle for a non-peer;
+  // and the particles per rank before migrating, which sort_distributed's repartition test uses
+  // (migration keeps the total; the largest rank is that of the substep before, give or take
+  // the few leavers) instead of two reductions of its own.
+  const std::vector<std::int64_t> all = dist::from_bytes<std::int64_t>(
+      comm.allgather(dist::as_bytes(std::vector<std::int64_t>{bad >= 0 ? 2
+                                                              : far    ? 1
+                                                                       : 0,
+                                                              std::int64_t(n)}),
+                     nullptr));
+  std::int64_t status = 0;
+  rk.count_most = 0, rk.count_total = 0;
+  for (std::size_t q = 0; q + 1 < all.size(); q += 2) {
+    status = std::max(status, all[q]);
+    rk.count_most = std::max(rk.count_most, all[q + 1]);
+    rk.count_total += all[q + 1];
+  }
   if (status == 2)
     throw SimulationError(bad >= 0 ? "step " + std::to_string(steps_) + ": particle id " +
                                          std::to_string(particles_.int32(attr_.id)[bad]) +
@@ -376,11 +430,8 @@ void MpmSolver::migrate(const exec::Space& space, bool anywhere) {
   std::size_t words = 0;
   for (int a = 0; a < na; ++a) words += std::size_t(particles_.words_per_particle(a));
   std::vector<std::vector<char>> send(static_cast<std::size_t>(comm.size()));
-  std::size_t leaving = 0;
-  for (std::size_t p = 0; p < n; ++p) {
-    if (dest[p] == comm.rank()) continue;
-    ++leaving;
-    std::vector<char>& out = send[std::size_t(dest[p])];
+  for (const std::uint32_t p : movers) {
+    std::vector<char>& out = send[std::size_t(dst[p])];
     for (int a = 0; a < na; ++a) {
       const std::size_t wa = std::size_t(particles_.words_per_particle(a));
       const char* src = reinterpret_cast<const char*>(particles_.words(a) + p * wa);
@@ -392,10 +443,10 @@ void MpmSolver::migrate(const exec::Space& space, bool anywhere) {
   // The leavers' slots are filled from the end (a few copies, not a gather of every particle):
   // the order changes, but the sort that follows puts the particles in (leaf, id) order, which
   // does not depend on the order they come in.
-  if (leaving > 0) {
+  if (!movers.empty()) {
     std::size_t m = n;
-    for (std::size_t p = n; p-- > 0;) {
-      if (dest[p] == comm.rank()) continue;
+    for (std::size_t k = movers.size(); k-- > 0;) {
+      const std::size_t p = movers[k];
       --m;
       if (p != m)
         for (int a = 0; a < na; ++a) {
@@ -458,9 +509,8 @@ void MpmSolver::sort_distributed(const exec::Space& space) {
   Ranks& rk = *ranks_;
   migrate(space, false);
   // Repartition when the work (particles) is unbalanced; results do not depend on the partition.
-  const std::int64_t mine = std::int64_t(particles_.size());
-  const double most = double(comm.max(mine)),
-               mean = double(comm.sum(std::uint64_t(mine))) / comm.size();
+  // The counts are those migrate gathered (before it moved the leavers).
+  const double most = double(rk.count_most), mean = double(rk.count_total) / comm.size();
   const bool forced = rk.force_every > 0 && steps_ % std::uint64_t(rk.force_every) == 0 &&
                       steps_ > rk.last_partition;
   // A leaf is the partition's grain: when the best cut of the leaves leaves some imbalance, wait
@@ -475,6 +525,12 @@ void MpmSolver::sort_distributed(const exec::Space& space) {
   }
   binning_.sort_and_bin(space, particles_, bin_position(), settings_.dx, settings_.order, bins_,
                         attr_.id);
+  rk.bins_match = true;
+  // How often the plan could be kept (its heads depend on the bins' leaves only): substeps whose
+  // bin leaves are those of the last one, for the summary.
+  ++rk.sorts;
+  if (bins_.leaf == rk.last_bin_leaves) ++rk.same_bin_leaves;
+  rk.last_bin_leaves = bins_.leaf;
   rk.sorted = true;
   rk.presort.clear();
 }
@@ -568,6 +624,27 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
   };
   rows(recv_parts, rk.rows_recv, rk.rows_recv_nodes);
   rows(send_parts, rk.rows_send, rk.rows_send_nodes);
+  // The overlap's split: bins that reach no ghost (the complement of export_bins, in bin order),
+  // and the owned leaves others read first.
+  rk.interior_bins.clear();
+  for (std::size_t b = 0, k = 0; b < bins_.count(); ++b) {
+    if (k < rk.export_bins.size() && rk.export_bins[k] == b) {
+      ++k;
+      continue;
+    }
+    rk.interior_bins.push_back(std::uint32_t(b));
+  }
+  {
+    std::vector<char> read(grid_.leaf_coords().size(), 0);
+    for (const auto& v : rk.rows_send)
+      for (const Ranks::RowPart& r : v) read[r.slot] = 1;
+    rk.update_order.clear();
+    for (int first = 1; first >= 0; --first) {
+      for (const std::int32_t li : rk.owned_active)
+        if (read[std::size_t(li)] == first) rk.update_order.push_back(li);
+      if (first) rk.row_leaves = rk.update_order.size();
+    }
+  }
   rk.halo_leaves = ghost_keys.size();
   rk.halo_parts = rk.exports.size();
   if (sleep_)
@@ -589,16 +666,27 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
   // The blocks of the bins whose parts other ranks' leaves receive, scattered first: their parts
   // sent, the blocks kept for the colour loop's flush.
   const int ch = settings_.transfer == Transfer::PicFlip || fused_positions() ? 8 : 4;
-  std::vector<std::vector<char>> send(static_cast<std::size_t>(R));
+  std::vector<std::vector<char>>& send = rk.p2g_out;
+  send.resize(std::size_t(R));
   for (int q = 0; q < R; ++q)
     send[std::size_t(q)].resize(rk.send_reals[std::size_t(q)] * sizeof(Real));
   const std::size_t block_reals = p2g_block_reals(order, ch);
-  rk.kept.resize(rk.export_bins.size() * block_reals);
+  // While the parts travel, the interior bins' blocks are scattered and kept too (up to
+  // kKeptInterior bytes of blocks), so that the colour loop after the receive only flushes: a
+  // rank with few exports no longer waits idle for its neighbour's (measured: the rank on the +
+  // side of the cut has almost none and waited ~25 % of its P2G). Each block is what the colour
+  // loop would scatter, flushed in the same colour order: the sums are unchanged.
+  constexpr std::size_t kKeptInterior = std::size_t(256) << 20;
+  const std::size_t ninterior =
+      std::min(rk.interior_bins.size(), kKeptInterior / (block_reals * sizeof(Real)));
+  const std::size_t nexport = rk.export_bins.size();
+  rk.kept.resize((nexport + ninterior) * block_reals);
   rk.kept_slot.assign(bins_.count(), -1);
-  for (std::size_t k = 0; k < rk.export_bins.size(); ++k)
-    rk.kept_slot[rk.export_bins[k]] = std::int32_t(k);
+  for (std::size_t k = 0; k < nexport; ++k) rk.kept_slot[rk.export_bins[k]] = std::int32_t(k);
+  for (std::size_t k = 0; k < ninterior; ++k)
+    rk.kept_slot[rk.interior_bins[k]] = std::int32_t(nexport + k);
   const MpmParticleView pv = particle_view();
-  p2g_blocks(space, pv, g, prm, rk.export_bins.data(), rk.export_bins.size(), rk.kept.data(),
+  p2g_blocks(space, pv, g, prm, rk.export_bins.data(), nexport, rk.kept.data(),
              [&](std::size_t k, const Real* block, int) {
                for (std::uint32_t e = rk.export_start[k]; e < rk.export_start[k + 1]; ++e) {
                  const Ranks::Export& x = rk.exports[e];
@@ -606,14 +694,17 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
                  copy_block_part(block, order, ch, x.t, out);
                }
              });
+  // Both sides know the sizes from the plan's heads: point to point, no sizes round.
+  std::vector<std::size_t> expect(std::size_t(R), 0);
+  for (std::size_t i = 0; i < rk.import_t.size(); ++i)
+    expect[std::size_t(rk.import_rank[i])] +=
+        std::size_t(block_part_nodes(order, rk.import_t[i]) * ch) * sizeof(Real);
+  comm.exchange_start(rk.p2g_pending, send, expect);
+  p2g_blocks(space, pv, g, prm, rk.interior_bins.data(), ninterior,
+             rk.kept.data() + nexport * block_reals, [](std::size_t, const Real*, int) {});
   {
-    // Both sides know the sizes from the plan's heads: point to point, no sizes round.
     exec::ScopedRegion region(space.profiler(), "dist.p2g_exchange");
-    std::vector<std::size_t> expect(std::size_t(R), 0);
-    for (std::size_t i = 0; i < rk.import_t.size(); ++i)
-      expect[std::size_t(rk.import_rank[i])] +=
-          std::size_t(block_part_nodes(order, rk.import_t[i]) * ch) * sizeof(Real);
-    rk.received = comm.exchange(send, expect);
+    rk.received = comm.exchange_finish(rk.p2g_pending);
   }
   // The received parts by colour of the block they come from (the bin leaf = leaf - t).
   std::vector<P2GImport> by_rank;
@@ -647,25 +738,80 @@ void MpmSolver::particle_to_grid_distributed(const exec::Space& space, Real dt) 
 void MpmSolver::update_grid_velocities_distributed(const exec::Space& space, Real dt) {
   Ranks& rk = *ranks_;
   MpmGridView g = grid_view_with_positions();  // A-ULMPM: colliders at the nodes' q_i
+  const MpmStepParams prm = step_params(dt);
+  rk.g2p_interior_done = false;
+  // Overlapped: the owned leaves others read are updated first and their rows sent; while they
+  // travel the other leaves are updated and the interior bins (which read owned leaves only)
+  // gathered: G2P per bin is independent of the others, so the particles end bitwise the same,
+  // and the ghosts hold their rows when this returns, as before. grid_to_particle_distributed
+  // then gathers the bins that read ghosts. Not with sleeping blocks (their nodes are pinned
+  // after the whole update) nor A-ULMPM (the objects' coupling runs on the whole grid, ghosts
+  // included, before G2P): those exchange after the whole update.
+  if (!sleep_ && !aul_) {
+    g.active_leaves = rk.update_order.data();
+    g.nactive = rk.row_leaves;
+    grid_update(space, g, prm);
+    start_ghost_rows(space);
+    g.active_leaves = rk.update_order.data() + rk.row_leaves;
+    g.nactive = rk.update_order.size() - rk.row_leaves;
+    grid_update(space, g, prm);
+    g2p_bins(space, rk.interior_bins, dt);
+    rk.g2p_interior_done = true;
+    finish_ghost_rows(space);
+    return;
+  }
   g.active_leaves = rk.owned_active.data();
   g.nactive = rk.owned_active.size();
-  grid_update(space, g, step_params(dt));
+  grid_update(space, g, prm);
   if (sleep_) sleep_->pin_nodes(space, grid_, bins_, grid_.node4(0));  // own leaves: owned
   exchange_ghost_rows(space);
+}
+
+void MpmSolver::grid_to_particle_distributed(const exec::Space& space, Real dt) {
+  Ranks& rk = *ranks_;
+  if (rk.g2p_interior_done)
+    g2p_bins(space, rk.export_bins, dt);
+  else
+    g2p(space, particle_view(), grid_view(), step_params(dt));
+  rk.g2p_interior_done = false;
+  if (sleep_) sleep_->rest(space, particles_, attr_, dt);
+}
+
+// G2P of the listed bins only: the kernel over a view of their neighbour tables, particle ranges
+// and leaves.
+void MpmSolver::g2p_bins(const exec::Space& space, const std::vector<std::uint32_t>& list,
+                         Real dt) {
+  Ranks& rk = *ranks_;
+  const MpmGridView g = grid_view();
+  rk.sub_nbr8.resize(list.size()), rk.sub_start.resize(list.size());
+  rk.sub_end.resize(list.size()), rk.sub_leaf.resize(list.size());
+  for (std::size_t k = 0; k < list.size(); ++k) {
+    const std::uint32_t b = list[k];
+    rk.sub_nbr8[k] = g.nbr8[b], rk.sub_start[k] = g.bin_start[b];
+    rk.sub_end[k] = g.end_of(b), rk.sub_leaf[k] = g.bin_leaf[b];
+  }
+  MpmGridView s = g;
+  s.nbr8 = rk.sub_nbr8.data(), s.bin_start = rk.sub_start.data();
+  s.bin_end = rk.sub_end.data(), s.bin_leaf = rk.sub_leaf.data(), s.nbins = list.size();
+  g2p(space, particle_view(), s, step_params(dt));
 }
 
 // Owners' node rows (m, v) (and PIC/FLIP's (-, dv)) into the ghosts, the nodes G2P reads only
 // (the parts of the ghost leaves this rank's blocks reach), point to point: both sides know the
 // nodes from the plan. Bytes moved, never combined: a ghost node holds its owner's bits.
-void MpmSolver::exchange_ghost_rows(const exec::Space& space) {
-  exec::ScopedRegion region(space.profiler(), "dist.halo");
+// start_ghost_rows sends this rank's rows (of leaves already updated) and posts the receives;
+// finish_ghost_rows waits for the receives and stores them in the ghost leaves.
+void MpmSolver::start_ghost_rows(const exec::Space& space) {
+  exec::ScopedRegion region(space.profiler(), "dist.halo_send");
   const dist::Comm& comm = dist::Comm::world();
-  const Ranks& rk = *ranks_;
+  Ranks& rk = *ranks_;
   const std::size_t R = std::size_t(comm.size());
-  std::vector<Real*> channel{grid_.node4(0)};
+  std::vector<Real*>& channel = rk.row_channels;  // finish_ghost_rows stores into the same
+  channel.assign(1, grid_.node4(0));
   if (channels_.second >= 0) channel.push_back(grid_.node4(channels_.second));
   const std::size_t node_bytes = 4 * sizeof(Real) * channel.size();
-  std::vector<std::vector<char>> out(R);
+  std::vector<std::vector<char>>& out = rk.rows_out;
+  out.resize(R);
   std::vector<std::size_t> expect(R);
   for (std::size_t q = 0; q < R; ++q) {
     expect[q] = rk.rows_recv_nodes[q] * node_bytes;
@@ -678,12 +824,28 @@ void MpmSolver::exchange_ghost_rows(const exec::Space& space) {
           o += 4;
         }
   }
-  const std::vector<std::vector<char>> in = comm.exchange(out, expect);
+  comm.exchange_start(rk.rows_pending, out, expect);
+}
+
+void MpmSolver::exchange_ghost_rows(const exec::Space& space) {
+  start_ghost_rows(space);
+  finish_ghost_rows(space);
+}
+
+void MpmSolver::finish_ghost_rows(const exec::Space& space) {
+  exec::ScopedRegion region(space.profiler(), "dist.halo");
+  const dist::Comm& comm = dist::Comm::world();
+  Ranks& rk = *ranks_;
+  const std::size_t R = std::size_t(comm.size());
+  const std::vector<Real*>& channel = rk.row_channels;
+  const std::size_t node_bytes = 4 * sizeof(Real) * channel.size();
+  const std::vector<std::vector<char>> in = comm.exchange_finish(rk.rows_pending);
   for (std::size_t q = 0; q < R; ++q) {
-    if (in[q].size() != expect[q])
+    const std::size_t expect = rk.rows_recv_nodes[q] * node_bytes;
+    if (in[q].size() != expect)
       throw std::runtime_error("MPM halo: rank " + std::to_string(q) + " sent " +
                                std::to_string(in[q].size()) + " bytes of node rows, expected " +
-                               std::to_string(expect[q]));
+                               std::to_string(expect));
     const Real* i = reinterpret_cast<const Real*>(in[q].data());
     for (const Ranks::RowPart& r : rk.rows_recv[q])
       for (Real* c : channel)
@@ -827,6 +989,7 @@ void MpmSolver::save_distributed(Snapshot& s) const {
 }
 void MpmSolver::restore_distributed(const Snapshot& s) {
   bins_ = s.bins;
+  ranks_->bins_match = false;  // the first migrate after a restore looks every owner up
   ranks_->sorted = s.sorted;
   ranks_->presort = s.presort;
 }
@@ -850,13 +1013,16 @@ std::string MpmSolver::distributed_summary() const {
   for (std::size_t q = 0; q < rk.rows_send_nodes.size(); ++q)
     rows += rk.rows_send_nodes[q] * row_bytes;
   sums = comm.sum(sums), rows = comm.sum(rows);
+  const std::uint64_t sorts = comm.sum(rk.sorts), same = comm.sum(rk.same_bin_leaves);
   return "amalgam: distributed MPM on " + std::to_string(comm.size()) +
          " ranks: " + std::to_string(rk.repartitions) + " repartitions, particles max/mean " +
          std::to_string(mean > 0 ? most / mean : 1.0) + "; last substep: " + std::to_string(halo) +
          " ghost leaves, " + std::to_string(parts) + " partial blocks sent, halo " +
          std::to_string(sums / 1000) + " kB of partial sums + " + std::to_string(rows / 1000) +
-         " kB of node rows (all ranks); set-up: at most " + std::to_string(rk.set_up_most) +
-         " of " + std::to_string(rk.set_up_total) + " particles on a rank\n";
+         " kB of node rows (all ranks); a rank's bin leaves as in its previous substep in " +
+         std::to_string(sorts ? 100 * same / sorts : 0) + " % of its substeps; set-up: at most " +
+         std::to_string(rk.set_up_most) + " of " + std::to_string(rk.set_up_total) +
+         " particles on a rank\n";
 }
 
 }  // namespace amalgam

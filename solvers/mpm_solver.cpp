@@ -321,6 +321,7 @@ MpmGridView MpmSolver::grid_view_with_positions() {
 }
 
 void MpmSolver::grid_to_particle(const exec::Space& space, Real dt) {
+  if (ranks_) return grid_to_particle_distributed(space, dt);
   g2p(space, particle_view(), grid_view(), step_params(dt));
   if (sleep_) sleep_->rest(space, particles_, attr_, dt);
 }
@@ -433,7 +434,12 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
   // every rank throws the message of the first rank that found a bad particle.
   const dist::Comm& comm = dist::Comm::world();
   const bool many = ranks_ && comm.size() > 1;
-  if (many && comm.max(std::int64_t(chk.bad >= 0)) > 0) {
+  // One reduction for the flag and both speeds (one synchronisation point a substep, not three).
+  const std::vector<double> most =
+      many ? comm.max(std::vector<double>{double(chk.bad >= 0), double(chk.max_wave),
+                                          double(chk.max_speed)})
+           : std::vector<double>{};
+  if (many && most[0] > 0) {
     std::string msg;
     if (chk.bad >= 0)
       msg = "step " + std::to_string(steps_) + ": particle id " +
@@ -468,10 +474,10 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
   // Implicit: the elastic waves are integrated stably, only the material speed limits dt (but
   // particles whose domain is disabled have explicit stresses).
   const bool explicit_stress = !implicit_ || (enriched_ && enriched_->explicit_stresses());
-  const Real max_wave = many ? Real(comm.max(double(chk.max_wave))) : chk.max_wave;
+  const Real max_wave = many ? Real(most[1]) : chk.max_wave;
   const Real wave = explicit_stress ? std::max(max_wave_speed_, max_wave) : Real(0);
   // Emitters about to emit start at their velocity.
-  Real speed = many ? Real(comm.max(double(chk.max_speed))) : chk.max_speed;
+  Real speed = many ? Real(most[2]) : chk.max_speed;
   for (const EmitterSpec& e : emitters_)
     if (time_ < e.end) speed = std::max(speed, e.velocity.norm());
   const Real denom = speed + wave;

@@ -252,7 +252,7 @@ class MpmSolver {
   int leaf_owner(const Vec3i& leaf) const;
   // The ranks this rank exchanges with every substep (RcbCuts::neighbours of its cut box).
   const std::vector<int>& exchange_peers() const;
-  void exchange_ghost_rows(const exec::Space& space);
+  void exchange_ghost_rows(const exec::Space& space);  // start_ghost_rows, finish_ghost_rows
   // Field colliders built around every rank's particles (collective), as on one process.
   void prepare_colliders_distributed(const exec::Space& space, Real t);
   void refuse_distributed() const;
@@ -263,6 +263,10 @@ class MpmSolver {
   void update_grid_distributed(const exec::Space& space);
   void particle_to_grid_distributed(const exec::Space& space, Real dt);
   void update_grid_velocities_distributed(const exec::Space& space, Real dt);
+  void grid_to_particle_distributed(const exec::Space& space, Real dt);
+  void g2p_bins(const exec::Space& space, const std::vector<std::uint32_t>& bins, Real dt);
+  void start_ghost_rows(const exec::Space& space);
+  void finish_ghost_rows(const exec::Space& space);
   void keep_owned_emitted(const exec::Space& space, std::size_t first);
   void compact_bins(const std::vector<std::uint32_t>& kept);
   void save_distributed(Snapshot& s) const;

@@ -243,6 +243,16 @@ std::int64_t Comm::max(std::int64_t v) const {
   wait_one(q, "MPI_Iallreduce (max)");
   return r;
 }
+std::vector<double> Comm::max(const std::vector<double>& v) const {
+  if (size_ == 1 || v.empty()) return v;
+  const Meter meter(traffic_, v.size() * sizeof(double), 1);
+  std::vector<double> r(v.size());
+  MPI_Request q;
+  check(MPI_Iallreduce(v.data(), r.data(), int(v.size()), MPI_DOUBLE, MPI_MAX, MPI_COMM_WORLD, &q),
+        "MPI_Iallreduce");
+  wait_one(q, "MPI_Iallreduce (max)");
+  return r;
+}
 
 std::vector<char> Comm::allgather(const std::vector<char>& mine,
                                   std::vector<std::size_t>* sizes) const {
@@ -370,38 +380,80 @@ std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char
   return recv;
 }
 
-std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char>>& send,
-                                              const std::vector<std::size_t>& recv_bytes) const {
-  if (size_ == 1) return send;
+struct Comm::Pending::State {
+  std::vector<std::vector<char>> recv;
+  std::vector<MPI_Request> recv_req, send_req;
+  std::vector<int> recv_peer, send_peer;
+  void wait_sends() {
+    wait_all(send_req, send_peer, "the halo exchange (sends)");
+    send_req.clear(), send_peer.clear();
+  }
+};
+Comm::Pending::Pending() : s_(std::make_unique<State>()) {}
+Comm::Pending::~Pending() {
+  int finalized = 0;
+  MPI_Finalized(&finalized);
+  if (!finalized && !s_->send_req.empty()) s_->wait_sends();
+}
+
+void Comm::exchange_start(Pending& p, const std::vector<std::vector<char>>& send,
+                          const std::vector<std::size_t>& recv_bytes) const {
+  Pending::State& st = *p.s_;
+  st.wait_sends();  // the previous start's: its buffers may be reused now
+  st.recv.assign(static_cast<std::size_t>(size_), {});
+  st.recv_req.clear(), st.recv_peer.clear();
+  if (size_ == 1) {
+    st.recv = send;
+    return;
+  }
   std::uint64_t payload = 0, sends = 0;
   for (std::size_t r = 0; r < send.size(); ++r)
     if (int(r) != rank_ && !send[r].empty()) payload += send[r].size(), ++sends;
   const Meter meter(traffic_, payload, sends);
-  std::vector<std::vector<char>> recv(static_cast<std::size_t>(size_));
-  std::vector<MPI_Request> req;
-  std::vector<int> peer;
   const std::vector<int> rc = to_int_counts(recv_bytes);
   std::vector<std::size_t> sn(send.size());
   for (std::size_t r = 0; r < send.size(); ++r) sn[r] = send[r].size();
   const std::vector<int> sc = to_int_counts(sn);
   for (int r = 0; r < size_; ++r) {
     if (rc[std::size_t(r)] == 0) continue;
-    recv[std::size_t(r)].resize(recv_bytes[std::size_t(r)]);
-    req.emplace_back();
-    peer.push_back(r);
-    check(MPI_Irecv(recv[std::size_t(r)].data(), rc[std::size_t(r)], MPI_BYTE, r, 28,
-                    MPI_COMM_WORLD, &req.back()),
+    st.recv[std::size_t(r)].resize(recv_bytes[std::size_t(r)]);
+    st.recv_req.emplace_back();
+    st.recv_peer.push_back(r);
+    check(MPI_Irecv(st.recv[std::size_t(r)].data(), rc[std::size_t(r)], MPI_BYTE, r, 28,
+                    MPI_COMM_WORLD, &st.recv_req.back()),
           "MPI_Irecv");
   }
   for (int r = 0; r < size_; ++r) {
     if (sc[std::size_t(r)] == 0) continue;
-    req.emplace_back();
-    peer.push_back(r);
+    st.send_req.emplace_back();
+    st.send_peer.push_back(r);
     check(MPI_Isend(send[std::size_t(r)].data(), sc[std::size_t(r)], MPI_BYTE, r, 28,
-                    MPI_COMM_WORLD, &req.back()),
+                    MPI_COMM_WORLD, &st.send_req.back()),
           "MPI_Isend");
   }
-  wait_all(req, peer, "the halo exchange");
+}
+
+std::vector<std::vector<char>> Comm::exchange_finish(Pending& p) const {
+  Pending::State& st = *p.s_;
+  if (!st.recv_req.empty()) {
+    const auto t0 = std::chrono::steady_clock::now();
+    wait_all(st.recv_req, st.recv_peer, "the halo exchange");
+    traffic_.seconds +=
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  }
+  st.recv_req.clear(), st.recv_peer.clear();
+  return std::move(st.recv);
+}
+
+std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char>>& send,
+                                              const std::vector<std::size_t>& recv_bytes) const {
+  if (size_ == 1) return send;
+  Pending p;
+  exchange_start(p, send, recv_bytes);
+  std::vector<std::vector<char>> recv = exchange_finish(p);
+  const Meter meter(traffic_, 0, 0);
+  --traffic_.calls;  // one call: exchange_start counted it
+  p.s_->wait_sends();
   return recv;
 }
 
@@ -605,6 +657,9 @@ std::uint64_t Comm::sum(std::uint64_t v) const {
 std::int64_t Comm::max(std::int64_t v) const {
   return v;
 }
+std::vector<double> Comm::max(const std::vector<double>& v) const {
+  return v;
+}
 std::vector<char> Comm::allgather(const std::vector<char>& mine,
                                   std::vector<std::size_t>* sizes) const {
   if (sizes) *sizes = {mine.size()};
@@ -625,6 +680,18 @@ std::vector<std::vector<char>> Comm::alltoall(const std::vector<std::vector<char
 std::vector<std::vector<char>> Comm::exchange(const std::vector<std::vector<char>>& send,
                                               const std::vector<std::size_t>&) const {
   return send;
+}
+struct Comm::Pending::State {
+  std::vector<std::vector<char>> recv;
+};
+Comm::Pending::Pending() : s_(std::make_unique<State>()) {}
+Comm::Pending::~Pending() = default;
+void Comm::exchange_start(Pending& p, const std::vector<std::vector<char>>& send,
+                          const std::vector<std::size_t>&) const {
+  p.s_->recv = send;
+}
+std::vector<std::vector<char>> Comm::exchange_finish(Pending& p) const {
+  return std::move(p.s_->recv);
 }
 void Comm::broadcast(std::vector<char>&) const {}
 void Comm::barrier() const {}

@@ -59,6 +59,8 @@ class Comm {
   double min(double v) const;
   std::uint64_t sum(std::uint64_t v) const;
   std::int64_t max(std::int64_t v) const;
+  // Element by element, in one reduction (several maxima at one synchronisation point).
+  std::vector<double> max(const std::vector<double>& v) const;
   // Every rank's bytes, concatenated in rank order, on every rank (sizes[r]: rank r's count).
   std::vector<char> allgather(const std::vector<char>& mine, std::vector<std::size_t>* sizes) const;
   // Root only receives (others get an empty vector): every rank's bytes in rank order.
@@ -76,6 +78,26 @@ class Comm {
   // HaloPlan does). Returns recv[r]. Only the ranks that exchange bytes take part.
   std::vector<std::vector<char>> exchange(const std::vector<std::vector<char>>& send,
                                           const std::vector<std::size_t>& recv_bytes) const;
+  // `exchange` in two halves, so that work runs while the bytes travel: exchange_start posts the
+  // receives and the sends and returns at once; exchange_finish waits for the receives only and
+  // returns recv[r]. The sends complete as the peers receive (OpenMPI's shared-memory and RDMA
+  // transports let the receiver pull the bytes without the sender's help); `send` must stay
+  // alive and unchanged until the Pending is started again or destroyed, which waits for them.
+  class Pending {
+   public:
+    Pending();
+    ~Pending();
+    Pending(const Pending&) = delete;
+    Pending& operator=(const Pending&) = delete;
+
+   private:
+    friend class Comm;
+    struct State;
+    std::unique_ptr<State> s_;
+  };
+  void exchange_start(Pending& p, const std::vector<std::vector<char>>& send,
+                      const std::vector<std::size_t>& recv_bytes) const;
+  std::vector<std::vector<char>> exchange_finish(Pending& p) const;
   // Root's bytes on every rank.
   void broadcast(std::vector<char>& bytes) const;
   void barrier() const;
