@@ -7,7 +7,9 @@
 # -O1 -g1 (line tables only): the heaviest translation unit (io/vdb_points.cpp, OpenVDB point
 # conversion) compiles in about half the time of RelWithDebInfo's -O2 -g, and reports keep
 # file:line stack traces. -DNDEBUG as in the release build (and the sanitizer suite before it
-# shared this build; the fuzz-only build had assertions on). Single-process (-DAMALGAM_MPI=OFF): OpenMPI's own
+# shared this build; the fuzz-only build had assertions on). The gtest binaries whose every test the
+# sanitizer suite leaves out (test_fidelity, test_validation, test_material_validation) are not
+# built here (tests/CMakeLists.txt). Single-process (-DAMALGAM_MPI=OFF): OpenMPI's own
 # allocations at start-up are reported as leaks; the distributed tests run in the release suite.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

@@ -28,6 +28,9 @@ points=(1 $(( (s1 + 1) / 2 )) "$s1" $(( s1 + 1 )) $(( s1 + (s2 + 1) / 2 )) $(( s
 total=0
 for s in "${per_frame[@]}"; do total=$(( total + s )); done
 [ -n "${EXTRA_POINTS:-}" ] && points+=(${EXTRA_POINTS})
+# AMALGAM_INTERRUPT_POINTS=few (the sanitizer suite, scripts/test_sanitizers.sh): the first substep,
+# frame 1's last and the extra points only; the others run the same checkpoint and resume code again.
+[ "${AMALGAM_INTERRUPT_POINTS:-all}" = few ] && points=(1 "$s1" ${EXTRA_POINTS:-})
 # Frame and sample files; the logs (diagnostics, samples.csv, implicit steps) are cut back to the
 # checkpoint on resume, so only their final contents are compared (below).
 files() { (cd "$1" && find . -type f | sed 's|^\./||' | grep -vE '^(diagnostics\.csv|checkpoint\.amck|implicit_steps\.csv|samples\.csv)$' | sort); }
