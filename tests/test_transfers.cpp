@@ -140,14 +140,19 @@ TEST_P(TransferConservation, RoundTripConservesOnParticles) {
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(AllTransfers, TransferConservation,
-                         ::testing::Combine(::testing::Values(Transfer::PicFlip, Transfer::Apic,
-                                                              Transfer::Mls),
-                                            ::testing::Values(2, 3)),
-                         [](const auto& info) {
-                           return std::string(transfer_name(std::get<0>(info.param))) + "_order" +
-                                  std::to_string(std::get<1>(info.param));
-                         });
+// Every transfer with quadratic and cubic B-splines, named "mls_order2" and so on.
+static auto transfers_and_orders() {
+  return ::testing::Combine(::testing::Values(Transfer::PicFlip, Transfer::Apic, Transfer::Mls),
+                            ::testing::Values(2, 3));
+}
+static std::string transfer_order_name(
+    const ::testing::TestParamInfo<std::tuple<Transfer, int>>& info) {
+  return std::string(transfer_name(std::get<0>(info.param))) + "_order" +
+         std::to_string(std::get<1>(info.param));
+}
+
+INSTANTIATE_TEST_SUITE_P(AllTransfers, TransferConservation, transfers_and_orders(),
+                         transfer_order_name);
 
 TEST(TransferPIC, PurePicConservesLinearMomentum) {
   MpmSolver s = make_blob(Transfer::PicFlip, 2);
@@ -200,14 +205,7 @@ TEST_P(P2GBlocks, KeptBlocksSumLikeTheColourPhases) {
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(AllTransfers, P2GBlocks,
-                         ::testing::Combine(::testing::Values(Transfer::PicFlip, Transfer::Apic,
-                                                              Transfer::Mls),
-                                            ::testing::Values(2, 3)),
-                         [](const auto& info) {
-                           return std::string(transfer_name(std::get<0>(info.param))) + "_order" +
-                                  std::to_string(std::get<1>(info.param));
-                         });
+INSTANTIATE_TEST_SUITE_P(AllTransfers, P2GBlocks, transfers_and_orders(), transfer_order_name);
 
 // Each kernel separately, on every backend/thread count, bitwise against Serial.
 class KernelDeterminism : public ::testing::TestWithParam<Transfer> {};
