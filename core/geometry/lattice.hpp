@@ -27,11 +27,12 @@ inline double centred_unit(std::uint64_t h) {
 }
 }  // namespace detail
 
+// Part `part` of `parts`: items [begin(n), end(n)) of n (lattice planes, or a list such as a tet
+// mesh's barycentres).
 struct LatticeSlice {
   int part = 0, parts = 1;
   long long begin(long long n) const { return n * part / parts; }
   long long end(long long n) const { return n * (part + 1) / parts; }
-  // The slice of a list of n items (tetrahedra, say): the same split.
   bool whole() const { return parts == 1; }
 };
 
