@@ -297,8 +297,12 @@ void MpmSolver::distribute(const exec::Space& space) {
   for (int a = 0; a < na; ++a) words += std::size_t(particles_.words_per_particle(a));
   const std::size_t record = 16 + words * 4;
   std::vector<std::vector<char>> send(R);
+  std::uint64_t last_key = ~std::uint64_t(0);  // neighbours in the sampling order share leaves
+  int last_owner = 0;
   for (std::size_t p = lo; p < hi; ++p) {
-    std::vector<char>& out = send[std::size_t(ranks->owner(key_leaf(key[p - lo])))];
+    if (key[p - lo] != last_key)
+      last_key = key[p - lo], last_owner = ranks->owner(key_leaf(last_key));
+    std::vector<char>& out = send[std::size_t(last_owner)];
     const std::uint64_t order[2] = {!slice_keys_.empty() ? slice_keys_[2 * p]
                                     : sliced_            ? std::uint64_t(id[p])
                                                          : p,
