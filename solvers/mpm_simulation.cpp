@@ -205,18 +205,22 @@ Simulation::RankPart MpmSimulation::my_part() const {
 }
 
 std::vector<Column> MpmSimulation::sample(const exec::Space& space) const {
-  return state_columns(mpm_diagnostics(space, all_particles(), s_.attributes(), s_.materials()));
+  return state_columns(s_.diagnostics(space));
 }
 
 FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substeps) {
-  const MpmDiagnostics d = mpm_diagnostics(space, all_particles(), s_.attributes(), s_.materials());
-  // Distributed: the leaf counts summed over the ranks (owned active leaves: the single
-  // process's active leaves).
+  // Distributed: every sum over the ranks, exact (no particle is gathered); the leaf counts' sums
+  // are the single process's (owned active leaves: its active leaves).
+  const MpmDiagnostics d = s_.diagnostics(space);
   const dist::Comm& comm = dist::Comm::world();
   const bool many = s_.distributed();
-  const double leaves = many ? double(comm.sum(std::uint64_t(s_.grid().leaf_count())))
-                             : double(s_.grid().leaf_count());
-  const double active = many ? double(comm.sum(std::uint64_t(s_.owned_active_leaves())))
+  auto over_ranks = [&](std::size_t local) {
+    return many ? double(comm.sum(std::uint64_t(local))) : double(local);
+  };
+  const double particles = over_ranks(s_.particles().size());
+  const double sleeping = s_.sleep() ? over_ranks(s_.sleep()->sleeping(s_.particles())) : 0.0;
+  const double leaves = over_ranks(s_.grid().leaf_count());
+  const double active = many ? over_ranks(s_.owned_active_leaves())
                              : double(s_.grid().active_leaves().size());
   FrameReport r;
   r.columns = state_columns(d);
@@ -233,7 +237,7 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
   ++frames_;
   r.columns.insert(
       r.columns.end(),
-      {{"particles", double(all_particles().size()), true},
+      {{"particles", particles, true},
        {"leaves", leaves, true},
        {"active_leaves", active, true},
        {"cg_iterations", double(ic.iterations), true},
@@ -246,7 +250,7 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
        {"enriched_corners", double(dc.last_enriched_corners), true},
        {"emitted", double(s_.source_counters().emitted - frame_sources_.emitted), true},
        {"killed", double(s_.source_counters().killed - frame_sources_.killed), true},
-       {"sleeping", double(s_.sleep() ? s_.sleep()->sleeping(all_particles()) : 0), true}});
+       {"sleeping", sleeping, true}});
   if (s_.settings().implicit) {
     char cg[64];
     std::snprintf(cg, sizeof cg, "CG %.1f it/step",

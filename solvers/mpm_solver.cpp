@@ -503,15 +503,18 @@ std::vector<Vec3d> MpmSolver::positions_by_id() const {
 }
 
 MpmDiagnostics MpmSolver::diagnostics(const exec::Space& space) const {
-  return mpm_diagnostics(space, particles_, attr_, materials_);
+  return mpm_diagnostics(space, particles_, attr_, materials_, distributed());
 }
 
+// Each sum is exact until one rounding at the end (ExactSum), so the chunks and ranks the particles
+// fall in change no bit: a distributed run's diagnostics are the single process's without
+// gathering a particle.
 MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& particles_,
                                const MpmAttributes& attr_,
-                               const std::vector<MaterialParams>& materials_) {
+                               const std::vector<MaterialParams>& materials_, bool over_ranks) {
   struct Acc {
-    double ke = 0, ee = 0, m = 0, vmax = 0;
-    Vec3d p = Vec3d::Zero();
+    ExactSum s[6];  // kinetic, elastic, mass, momentum x, y, z
+    double vmax = 0;
   };
   const Vec3* v = particles_.vec3(attr_.v);
   const Mat3* F = particles_.mat3(attr_.F);
@@ -521,31 +524,34 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
   const MaterialParams* mats = materials_.data();
   const Real* plastic = attr_.plastic >= 0 ? particles_.real(attr_.plastic) : nullptr;
   const Real* temp = attr_.temperature >= 0 ? particles_.real(attr_.temperature) : nullptr;
-  const Acc a = exec::parallel_reduce(
+  Acc a = exec::parallel_reduce(
       space, "mpm.diagnostics", exec::Index(particles_.size()), Acc{},
       [=](exec::Index i, Acc& acc) {
         const Vec3d vi = v[i].cast<double>();
-        acc.ke += 0.5 * double(m[i]) * vi.squaredNorm();
-        acc.ee += double(V0[i]) * double(mats[mat[i]].energy(F[i], plastic ? plastic[i] : Real(0),
-                                                             temp ? temp[i] : Real(0)));
-        acc.p += double(m[i]) * vi;
-        acc.m += double(m[i]);
+        const double mi = double(m[i]);
+        acc.s[0].add(0.5 * mi * vi.squaredNorm());
+        acc.s[1].add(double(V0[i]) * double(mats[mat[i]].energy(F[i], plastic ? plastic[i] : Real(0),
+                                                               temp ? temp[i] : Real(0))));
+        acc.s[2].add(mi);
+        for (int c = 0; c < 3; ++c) acc.s[3 + c].add(mi * vi[c]);
         acc.vmax = std::max(acc.vmax, vi.norm());
       },
       [](Acc x, const Acc& y) {
-        x.ke += y.ke;
-        x.ee += y.ee;
-        x.p += y.p;
-        x.m += y.m;
+        for (int k = 0; k < 6; ++k) x.s[k].merge(y.s[k]);
         x.vmax = std::max(x.vmax, y.vmax);
         return x;
       });
+  if (over_ranks) {
+    const dist::Comm& comm = dist::Comm::world();
+    dist::sum_over_ranks(comm, a.s, 6);
+    a.vmax = comm.max(a.vmax);
+  }
   MpmDiagnostics d;
-  d.kinetic = a.ke;
-  d.elastic = a.ee;
-  d.momentum = a.p;
+  d.kinetic = a.s[0].value();
+  d.elastic = a.s[1].value();
+  d.mass = a.s[2].value();
+  d.momentum = Vec3d(a.s[3].value(), a.s[4].value(), a.s[5].value());
   d.max_speed = a.vmax;
-  d.mass = a.m;
   return d;
 }
 

@@ -77,10 +77,13 @@ struct MpmDiagnostics {
   double mass = 0;
 };
 
-// Energies, momentum and speeds of MPM particles (a parallel_reduce over them in their order).
+// Energies, momentum and speeds of MPM particles: exact sums rounded once (ExactSum), so neither
+// the particles' order nor their split over chunks and ranks changes a bit. `over_ranks`: these
+// are one rank's particles and the result is every rank's (collective).
 MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& particles,
                                const MpmAttributes& attr,
-                               const std::vector<MaterialParams>& materials);
+                               const std::vector<MaterialParams>& materials,
+                               bool over_ranks = false);
 
 // The channel sets of the grid's node rows ([leaf][512][4] per set) for a run, decided once:
 // set 0 holds (m, p) -> (m, v); PIC/FLIP and particle domains use set 1 for (-, f) -> (-, dv);
@@ -169,7 +172,7 @@ class MpmSolver {
   Real stable_dt(const exec::Space& space) const;
   // One substep of length dt.
   void step(const exec::Space& space, Real dt);
-  MpmDiagnostics diagnostics(const exec::Space& space) const;
+  MpmDiagnostics diagnostics(const exec::Space& space) const;  // every rank's (collective)
   // Particle positions in the order the particles were added (by stable id; sorting permutes the
   // storage), for comparisons between runs and against a rest shape: next_id() entries, NaN for
   // the ids of killed particles.

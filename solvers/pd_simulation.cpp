@@ -44,11 +44,11 @@ const ParticleSet& PdSimulation::all_particles() const {
 }
 
 std::vector<Column> PdSimulation::sample(const exec::Space& space) const {
-  return state_columns(s_.diagnostics_of(space, all_particles()));
+  return state_columns(s_.diagnostics(space));
 }
 
 FrameReport PdSimulation::end_frame(const exec::Space& space, long long) {
-  const PdDiagnostics d = s_.diagnostics_of(space, all_particles());
+  const PdDiagnostics d = s_.diagnostics(space);
   if (s_.distributed()) {
     const PdSolver::CrossRank c = s_.cross_rank();
     cross_broken_ = std::max(cross_broken_, s_.global_sum(c.broken));

@@ -563,43 +563,50 @@ void PdSolver::compute_stress(const exec::Space& space, std::vector<Mat3>& stres
   // distributed: the own rows' stresses (gather_owned joins them for output)
 }
 
+// Exact sums rounded once (ExactSum) over each rank's own particles: the single process's bits on
+// every rank count, without gathering a particle.
 PdDiagnostics PdSolver::diagnostics(const exec::Space& space) const {
-  if (!ranks_) return diagnostics_of(space, particles_);
-  ParticleSet all;
-  gather_particles(all);
-  return diagnostics_of(space, all);
-}
-
-PdDiagnostics PdSolver::diagnostics_of(const exec::Space& space, const ParticleSet& ps) const {
   struct Acc {
-    double ke = 0, vmax = 0, dmax = 0;
-    Vec3d p = Vec3d::Zero();
+    ExactSum ke, p[3];
+    double vmax = 0, dmax = 0;
   };
-  const Vec3* v = ps.vec3(attr_.v);
-  const Real* vol = ps.real(attr_.volume);
-  const Real* dmg = ps.real(attr_.damage);
-  const std::int32_t* mat = ps.int32(attr_.material);
+  const std::vector<std::uint32_t> own = owned_local();
+  const std::uint32_t* idx = own.data();
+  const Vec3* v = particles_.vec3(attr_.v);
+  const Real* vol = particles_.real(attr_.volume);
+  const Real* dmg = particles_.real(attr_.damage);
+  const std::int32_t* mat = particles_.int32(attr_.material);
   const PdMaterial* mats = materials_.data();
-  const Acc r = exec::parallel_reduce(
-      space, "pd.diagnostics", exec::Index(ps.size()), Acc{},
-      [=](exec::Index i, Acc& a) {
+  Acc r = exec::parallel_reduce(
+      space, "pd.diagnostics", exec::Index(own.size()), Acc{},
+      [=](exec::Index k, Acc& a) {
+        const std::uint32_t i = idx[k];
         const double m = double(mats[mat[i]].density) * double(vol[i]);
         const Vec3d vi = v[i].cast<double>();
-        a.ke += 0.5 * m * vi.squaredNorm();
-        a.p += m * vi;
+        a.ke.add(0.5 * m * vi.squaredNorm());
+        for (int c = 0; c < 3; ++c) a.p[c].add(m * vi[c]);
         a.vmax = std::max(a.vmax, vi.norm());
         a.dmax = std::max(a.dmax, double(dmg[i]));
       },
       [](Acc a, const Acc& b) {
-        a.ke += b.ke;
-        a.p += b.p;
+        a.ke.merge(b.ke);
+        for (int c = 0; c < 3; ++c) a.p[c].merge(b.p[c]);
         a.vmax = std::max(a.vmax, b.vmax);
         a.dmax = std::max(a.dmax, b.dmax);
         return a;
       });
+  if (ranks_) {
+    const dist::Comm& comm = dist::Comm::world();
+    ExactSum sums[4] = {r.ke, r.p[0], r.p[1], r.p[2]};
+    dist::sum_over_ranks(comm, sums, 4);
+    r.ke = sums[0];
+    for (int c = 0; c < 3; ++c) r.p[c] = sums[1 + c];
+    const std::vector<double> mx = comm.max(std::vector<double>{r.vmax, r.dmax});
+    r.vmax = mx[0], r.dmax = mx[1];
+  }
   PdDiagnostics d;
-  d.kinetic = r.ke;
-  d.momentum = r.p;
+  d.kinetic = r.ke.value();
+  d.momentum = Vec3d(r.p[0].value(), r.p[1].value(), r.p[2].value());
   d.max_speed = r.vmax;
   d.max_damage = r.dmax;
   d.bonds = bonds_initial_;

@@ -121,6 +121,8 @@ class PdSolver {
   // speed exceeds max_speed.
   Real stable_dt(const exec::Space& space) const;
 
+  // Sums exact until one rounding (ExactSum), over the own particles; collective when
+  // distributed: every rank gets every rank's diagnostics.
   PdDiagnostics diagnostics(const exec::Space& space) const;
   double time() const { return time_; }
   void restore_clock(double time, std::uint64_t steps) {
@@ -246,9 +248,6 @@ class PdSolver {
   // Increments with every change of the state (a step, a restore): caches of gathered output.
   std::uint64_t state_version() const { return version_; }
   std::uint64_t compactions() const { return compactions_; }
-  // Diagnostics of a given particle set (rank 0's gathered particles when distributed) with this
-  // solver's bond counters. Collective when distributed.
-  PdDiagnostics diagnostics_of(const exec::Space& space, const ParticleSet& all) const;
 
  private:
   PdSettings settings_;

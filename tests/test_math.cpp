@@ -1,14 +1,17 @@
 // Maths invariants: B-spline partition of unity and linear reproduction; 3x3 SVD / polar of
-// random, near-singular and inverted matrices reconstruct F with proper rotations.
+// random, near-singular and inverted matrices reconstruct F with proper rotations; ExactSum is
+// exact and correctly rounded whatever the order and grouping of its terms.
 #include <gtest/gtest.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <random>
 #include <vector>
 
 #include "core/math/bspline.hpp"
+#include "core/math/exact_sum.hpp"
 #include "core/math/svd3.hpp"
 
 using namespace amalgam;
@@ -239,4 +242,105 @@ void check_svd_lanes_match_one_at_a_time() {
 TEST(Svd3, LanesGiveBitwiseTheOneMatrixResult) {
   check_svd_lanes_match_one_at_a_time<float>();
   check_svd_lanes_match_one_at_a_time<double>();
+}
+
+namespace {
+double exact_sum(const std::vector<double>& v) {
+  ExactSum s;
+  for (double x : v) s.add(x);
+  return s.value();
+}
+std::uint64_t bits(double x) {
+  std::uint64_t b;
+  std::memcpy(&b, &x, sizeof b);
+  return b;
+}
+}  // namespace
+
+// Terms a·2^b (|a| < 2^53, b in [-40, 0]) have an exact sum that is an integer times 2^-40 and
+// fits in 128 bits: its correctly rounded value is the one rounding of that integer.
+TEST(ExactSum, IsTheCorrectlyRoundedExactSum) {
+  std::mt19937_64 rng(11);
+  for (int trial = 0; trial < 200; ++trial) {
+    const int n = 1 + int(rng() % 2000);
+    std::vector<double> v;
+    __int128 exact = 0;
+    for (int i = 0; i < n; ++i) {
+      const std::int64_t a = std::int64_t(rng() % (std::uint64_t(1) << 53)) -
+                             std::int64_t(std::uint64_t(1) << 52);
+      const int b = -int(rng() % 41);
+      v.push_back(std::ldexp(double(a), b));
+      exact += static_cast<__int128>(a) * (static_cast<__int128>(1) << (b + 40));
+    }
+    const double want = std::ldexp(static_cast<double>(exact), -40);
+    EXPECT_EQ(bits(exact_sum(v)), bits(want)) << "trial " << trial;
+  }
+}
+
+TEST(ExactSum, RoundsOnceToNearestEven) {
+  const double u = std::ldexp(1.0, -52);  // ulp of 1
+  EXPECT_EQ(exact_sum(std::vector<double>(10, 0.1)), 1.0);  // the naive sum is 1 - u
+  EXPECT_EQ(exact_sum({1e300, 1.0, -1e300}), 1.0);
+  EXPECT_EQ(exact_sum({1.0, u / 2}), 1.0);                              // a tie: to even
+  EXPECT_EQ(exact_sum({1.0 + u, u / 2}), 1.0 + 2 * u);                  // a tie: to even
+  EXPECT_EQ(exact_sum({1.0, u / 2, std::ldexp(1.0, -200)}), 1.0 + u);  // above the tie
+  EXPECT_EQ(exact_sum({1.0, u / 2, -std::ldexp(1.0, -200)}), 1.0);     // below it
+  EXPECT_EQ(exact_sum({-1.0, -u / 2, -std::ldexp(1.0, -200)}), -1.0 - u);
+  const double big = std::numeric_limits<double>::max();
+  EXPECT_EQ(exact_sum({big, big, -big}), big);  // beyond the range on the way, not at the end
+  EXPECT_EQ(exact_sum({big, big}), std::numeric_limits<double>::infinity());
+  EXPECT_EQ(exact_sum({-big, -big}), -std::numeric_limits<double>::infinity());
+  const double tiny = std::numeric_limits<double>::denorm_min();
+  EXPECT_EQ(exact_sum({tiny, tiny, tiny}), 3 * tiny);
+  EXPECT_EQ(exact_sum({-tiny, std::numeric_limits<double>::min()}),
+            std::numeric_limits<double>::min() - tiny);
+  EXPECT_EQ(bits(exact_sum({2.5, -2.5})), bits(0.0));
+  EXPECT_EQ(bits(exact_sum({})), bits(0.0));
+  EXPECT_EQ(exact_sum({-0.0, 7.0}), 7.0);
+}
+
+TEST(ExactSum, NonFiniteTerms) {
+  const double inf = std::numeric_limits<double>::infinity();
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_TRUE(std::isnan(exact_sum({1.0, nan, 2.0})));
+  EXPECT_TRUE(std::isnan(exact_sum({inf, 1.0, -inf})));
+  EXPECT_EQ(exact_sum({inf, 1.0, 1e308}), inf);
+  EXPECT_EQ(exact_sum({-inf, -1e308, -1e308}), -inf);
+}
+
+// The same terms in any order, split into any chunks merged in any order or summed word by word
+// (as ranks do): the same bits. Terms spread over 600 binary orders of magnitude, both signs.
+TEST(ExactSum, OrderAndGroupingChangeNoBit) {
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> mant(-1.0, 1.0);
+  std::vector<double> v(20000);
+  for (double& x : v) x = std::ldexp(mant(rng), int(rng() % 600) - 300);
+  const double want = exact_sum(v);
+  double naive_fwd = 0, naive_rev = 0;
+  for (double x : v) naive_fwd += x;
+  for (auto it = v.rbegin(); it != v.rend(); ++it) naive_rev += *it;
+  EXPECT_NE(bits(naive_fwd), bits(naive_rev));  // the order matters to a plain sum here
+  for (int trial = 0; trial < 20; ++trial) {
+    std::vector<double> w = v;
+    std::shuffle(w.begin(), w.end(), rng);
+    EXPECT_EQ(bits(exact_sum(w)), bits(want));
+    // Chunks of random sizes, merged in reverse, and their words summed.
+    std::vector<ExactSum> parts;
+    for (std::size_t i = 0; i < w.size();) {
+      const std::size_t len = 1 + rng() % 3000;
+      ExactSum s;
+      for (std::size_t j = i; j < std::min(w.size(), i + len); ++j) s.add(w[j]);
+      parts.push_back(s);
+      i += len;
+    }
+    ExactSum merged;
+    std::vector<std::int64_t> words(ExactSum::kWords, 0);
+    for (auto it = parts.rbegin(); it != parts.rend(); ++it) {
+      merged.merge(*it);
+      const std::vector<std::int64_t> pw = it->words();
+      for (int k = 0; k < ExactSum::kWords; ++k) words[std::size_t(k)] += pw[std::size_t(k)];
+    }
+    EXPECT_EQ(bits(merged.value()), bits(want));
+    EXPECT_EQ(bits(ExactSum::from_words(words).value()), bits(want));
+  }
 }

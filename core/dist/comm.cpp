@@ -243,6 +243,16 @@ std::int64_t Comm::max(std::int64_t v) const {
   wait_one(q, "MPI_Iallreduce (max)");
   return r;
 }
+std::vector<std::int64_t> Comm::sum(const std::vector<std::int64_t>& v) const {
+  if (size_ == 1 || v.empty()) return v;
+  const Meter meter(traffic_, v.size() * sizeof(std::int64_t), 1);
+  std::vector<std::int64_t> r(v.size());
+  MPI_Request q;
+  check(MPI_Iallreduce(v.data(), r.data(), int(v.size()), MPI_INT64_T, MPI_SUM, MPI_COMM_WORLD, &q),
+        "MPI_Iallreduce");
+  wait_one(q, "MPI_Iallreduce (sum)");
+  return r;
+}
 std::vector<double> Comm::max(const std::vector<double>& v) const {
   if (size_ == 1 || v.empty()) return v;
   const Meter meter(traffic_, v.size() * sizeof(double), 1);
@@ -655,6 +665,9 @@ std::uint64_t Comm::sum(std::uint64_t v) const {
   return v;
 }
 std::int64_t Comm::max(std::int64_t v) const {
+  return v;
+}
+std::vector<std::int64_t> Comm::sum(const std::vector<std::int64_t>& v) const {
   return v;
 }
 std::vector<double> Comm::max(const std::vector<double>& v) const {

@@ -2,9 +2,10 @@
 // each rank. `Comm` is the only place that calls MPI; built without MPI (AMALGAM_MPI=OFF or MPI
 // not found) it is one rank and every collective is the identity, so callers need no #ifdef.
 //
-// Determinism: collectives used on floating-point state are exact (max, min, integer sums) or
-// move bytes (gather, all-to-all); no rank-count-dependent floating-point reduction is offered,
-// because results must be bitwise the same on every rank count (docs/architecture.md).
+// Determinism: collectives used on floating-point state are exact (max, min, integer sums, and
+// sums of doubles through ExactSum's integer words: sum_over_ranks) or move bytes (gather,
+// all-to-all); no rank-count-dependent floating-point reduction is offered, because results must
+// be bitwise the same on every rank count (docs/architecture.md).
 #pragma once
 
 #include <cstddef>
@@ -12,6 +13,8 @@
 #include <memory>
 #include <string>
 #include <vector>
+
+#include "core/math/exact_sum.hpp"
 
 namespace amalgam::dist {
 
@@ -59,6 +62,8 @@ class Comm {
   double min(double v) const;
   std::uint64_t sum(std::uint64_t v) const;
   std::int64_t max(std::int64_t v) const;
+  // Element by element (exact integer sums, in one reduction): ExactSum's words, for one.
+  std::vector<std::int64_t> sum(const std::vector<std::int64_t>& v) const;
   // Element by element, in one reduction (several maxima at one synchronisation point).
   std::vector<double> max(const std::vector<double>& v) const;
   // Every rank's bytes, concatenated in rank order, on every rank (sizes[r]: rank r's count).
@@ -158,5 +163,22 @@ class RcbCuts {
  private:
   std::shared_ptr<void> zz_;  // the Zoltan_Struct holding the cuts
 };
+
+// The exact sums of every rank's accumulators, on every rank, in one integer reduction: the same
+// bits on every rank count (core/math/exact_sum.hpp). One rank: unchanged.
+inline void sum_over_ranks(const Comm& comm, ExactSum* sums, int n) {
+  if (comm.size() == 1) return;
+  std::vector<std::int64_t> w;
+  w.reserve(std::size_t(n) * ExactSum::kWords);
+  for (int i = 0; i < n; ++i) {
+    const std::vector<std::int64_t> wi = sums[i].words();
+    w.insert(w.end(), wi.begin(), wi.end());
+  }
+  w = comm.sum(w);
+  for (int i = 0; i < n; ++i)
+    sums[i] = ExactSum::from_words(std::vector<std::int64_t>(
+        w.begin() + std::ptrdiff_t(i) * ExactSum::kWords,
+        w.begin() + std::ptrdiff_t(i + 1) * ExactSum::kWords));
+}
 
 }  // namespace amalgam::dist
