@@ -220,8 +220,8 @@ FrameReport MpmSimulation::end_frame(const exec::Space& space, long long substep
   const double particles = over_ranks(s_.particles().size());
   const double sleeping = s_.sleep() ? over_ranks(s_.sleep()->sleeping(s_.particles())) : 0.0;
   const double leaves = over_ranks(s_.grid().leaf_count());
-  const double active = many ? over_ranks(s_.owned_active_leaves())
-                             : double(s_.grid().active_leaves().size());
+  const double active =
+      many ? over_ranks(s_.owned_active_leaves()) : double(s_.grid().active_leaves().size());
   FrameReport r;
   r.columns = state_columns(d);
   r.kinetic = d.kinetic;

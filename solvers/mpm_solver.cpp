@@ -530,8 +530,9 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
         const Vec3d vi = v[i].cast<double>();
         const double mi = double(m[i]);
         acc.s[0].add(0.5 * mi * vi.squaredNorm());
-        acc.s[1].add(double(V0[i]) * double(mats[mat[i]].energy(F[i], plastic ? plastic[i] : Real(0),
-                                                               temp ? temp[i] : Real(0))));
+        acc.s[1].add(double(V0[i]) *
+                     double(mats[mat[i]].energy(F[i], plastic ? plastic[i] : Real(0),
+                                                temp ? temp[i] : Real(0))));
         acc.s[2].add(mi);
         for (int c = 0; c < 3; ++c) acc.s[3 + c].add(mi * vi[c]);
         acc.vmax = std::max(acc.vmax, vi.norm());

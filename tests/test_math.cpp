@@ -266,8 +266,8 @@ TEST(ExactSum, IsTheCorrectlyRoundedExactSum) {
     std::vector<double> v;
     __int128 exact = 0;
     for (int i = 0; i < n; ++i) {
-      const std::int64_t a = std::int64_t(rng() % (std::uint64_t(1) << 53)) -
-                             std::int64_t(std::uint64_t(1) << 52);
+      const std::int64_t a =
+          std::int64_t(rng() % (std::uint64_t(1) << 53)) - std::int64_t(std::uint64_t(1) << 52);
       const int b = -int(rng() % 41);
       v.push_back(std::ldexp(double(a), b));
       exact += static_cast<__int128>(a) * (static_cast<__int128>(1) << (b + 40));
@@ -278,11 +278,11 @@ TEST(ExactSum, IsTheCorrectlyRoundedExactSum) {
 }
 
 TEST(ExactSum, RoundsOnceToNearestEven) {
-  const double u = std::ldexp(1.0, -52);  // ulp of 1
+  const double u = std::ldexp(1.0, -52);                    // ulp of 1
   EXPECT_EQ(exact_sum(std::vector<double>(10, 0.1)), 1.0);  // the naive sum is 1 - u
   EXPECT_EQ(exact_sum({1e300, 1.0, -1e300}), 1.0);
-  EXPECT_EQ(exact_sum({1.0, u / 2}), 1.0);                              // a tie: to even
-  EXPECT_EQ(exact_sum({1.0 + u, u / 2}), 1.0 + 2 * u);                  // a tie: to even
+  EXPECT_EQ(exact_sum({1.0, u / 2}), 1.0);                             // a tie: to even
+  EXPECT_EQ(exact_sum({1.0 + u, u / 2}), 1.0 + 2 * u);                 // a tie: to even
   EXPECT_EQ(exact_sum({1.0, u / 2, std::ldexp(1.0, -200)}), 1.0 + u);  // above the tie
   EXPECT_EQ(exact_sum({1.0, u / 2, -std::ldexp(1.0, -200)}), 1.0);     // below it
   EXPECT_EQ(exact_sum({-1.0, -u / 2, -std::ldexp(1.0, -200)}), -1.0 - u);

@@ -176,9 +176,9 @@ inline void sum_over_ranks(const Comm& comm, ExactSum* sums, int n) {
   }
   w = comm.sum(w);
   for (int i = 0; i < n; ++i)
-    sums[i] = ExactSum::from_words(std::vector<std::int64_t>(
-        w.begin() + std::ptrdiff_t(i) * ExactSum::kWords,
-        w.begin() + std::ptrdiff_t(i + 1) * ExactSum::kWords));
+    sums[i] = ExactSum::from_words(
+        std::vector<std::int64_t>(w.begin() + std::ptrdiff_t(i) * ExactSum::kWords,
+                                  w.begin() + std::ptrdiff_t(i + 1) * ExactSum::kWords));
 }
 
 }  // namespace amalgam::dist

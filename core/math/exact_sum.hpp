@@ -136,7 +136,7 @@ class ExactSum {
     std::int64_t c = 0;
     for (int i = 0; i < kDigits - 1; ++i) {
       const std::int64_t d = word_[i] + c;
-      c = d >> 32;                   // floor(d / 2^32)
+      c = d >> 32;                  // floor(d / 2^32)
       word_[i] = d & 0xffffffffLL;  // d - c·2^32
     }
     word_[kDigits - 1] += c;
