@@ -475,7 +475,8 @@ void PdSolver::mirror_distributed() {
   }
   for (std::uint64_t k = 0; k < nb; ++k)
     if (bonds_.reverse[k] != kNoReverse) bonds_.plastic_r[k] = bonds_.plastic[bonds_.reverse[k]];
-  if (!params().plastic) {  // the bond halo serves plastic materials only from here on
+  if (!params().plastic) {  // the bond halo and reverse indices serve plastic materials only
+    bonds_.reverse.assign(nb, kNoReverse);  // (as assemble_local leaves them without)
     auto rk = std::make_shared<Ranks>(*ranks_);
     rk->bond_halo = dist::HaloPlan();
     ranks_ = std::move(rk);
