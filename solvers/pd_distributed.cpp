@@ -5,6 +5,13 @@
 // bond rows, and the cuts are kept (dist::RcbCuts): the owner of a particle is the cut box of its
 // point, known to every rank without communication.
 //
+// Set-up (PdSolver::initialize_distributed, what `amalgam run` uses). Every rank holds every
+// particle's per-particle data (the scene is set up alike on every rank, about 100 bytes a
+// particle) but builds bond rows only for its own particles, plus, per family of the surface
+// correction, the row of the family's first member when another rank owns it; the whole list is
+// never built (~46 bytes per directed bond, ~120 bonds a particle). distribute() after a whole
+// initialize() gives the same bits (tests and one-process callers).
+//
 // Local particles. A rank holds its own particles and ghosts: the bond neighbours of its rows
 // (reference configuration: the ranks whose cut boxes meet the horizon box of a particle,
 // Zoltan_LB_Box_Assign, receive it and keep it when one of their rows names it) and the

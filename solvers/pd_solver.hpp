@@ -215,7 +215,8 @@ class PdSolver {
                            const std::vector<std::uint8_t>& intact);
 
   // Distributed runs (issue 28; solvers/pd_distributed.cpp). Collective: every rank calls it
-  // with the same solver (set up alike on every rank, with the whole state). Zoltan's RCB splits
+  // with the same solver (set up alike on every rank, with the whole state; a no-op after
+  // initialize_distributed, which gives the same layout without the whole bond list). Zoltan's RCB splits
   // the particles by reference position, weighted by bonds, and keeps its cuts; afterwards each
   // rank holds only its own particles and their ghosts (the bond neighbours of its rows and the
   // particles within contact reach), in the order of their global ids, with the CSR rows of its
