@@ -173,13 +173,18 @@ int run_command(const std::vector<std::string>& args) {
     const RunEstimate estimate = estimate_of(scene);
     if (!rs.quiet) std::cout << "amalgam: expected: " << describe(estimate) << "\n";
     // On several ranks the memory is this machine's ranks' share: explicit MPM splits its state
-    // and samples its set-up in slices (solvers/factory.cpp); peridynamics and particle domains
-    // set up the whole scene on every rank.
+    // and samples its set-up in slices (solvers/factory.cpp); peridynamics holds every
+    // particle's per-particle data on every rank but builds only its own particles' bond rows
+    // (solvers/pd_distributed.cpp: the bonds split across the ranks); particle domains set up the
+    // whole scene on every rank.
     RunEstimate here = estimate;
-    if (const dist::Comm& comm = dist::Comm::world(); comm.size() > 1)
-      here.bytes *= scene.method == Method::Peridynamics || scene.mpm.domains.enabled
-                        ? double(comm.node_ranks())
-                        : double(comm.node_ranks()) / double(comm.size());
+    if (const dist::Comm& comm = dist::Comm::world(); comm.size() > 1) {
+      const double mine = double(comm.node_ranks()), all = double(comm.size());
+      if (scene.method == Method::Peridynamics)
+        here.bytes = mine * (estimate.bytes - estimate.bond_bytes + estimate.bond_bytes / all);
+      else
+        here.bytes *= scene.mpm.domains.enabled ? mine : mine / all;
+    }
     std::string over = over_limits(here, double(available_memory_bytes()));
     if (!over.empty() && here.bytes != estimate.bytes)
       over += " (the share of this machine's " + std::to_string(dist::Comm::world().node_ranks()) +

@@ -112,33 +112,38 @@ void for_neighbours(const CellIndex& c, const Vec3* x, std::uint32_t i, Real r, 
     }
 }
 
-// CSR rows of every particle's neighbours within r (rows sorted by index): a count pass, a
-// scan and a fill pass over the cells. `what` prefixes the profiler labels.
+// CSR rows of the particles' neighbours within r (rows sorted by index): a count pass, a scan
+// and a fill pass over the cells. Row q is particle rows[q] (rows null: q, m = n); neighbours are
+// indices into x. `what` prefixes the profiler labels.
 struct RowLabels {
   const char *count, *scan, *fill;
 };
 void neighbour_rows(const exec::Space& space, const RowLabels& label, const Vec3* x, std::size_t n,
                     Real r, std::vector<std::uint64_t>& offsets,
-                    std::vector<std::uint32_t>& neighbor) {
-  offsets.assign(n + 1, 0);
+                    std::vector<std::uint32_t>& neighbor, const std::uint32_t* rows = nullptr,
+                    std::size_t m = 0) {
+  if (!rows) m = n;
+  offsets.assign(m + 1, 0);
   neighbor.clear();
-  if (n == 0) return;
+  if (n == 0 || m == 0) return;
   const CellIndex cells = make_cells(space, x, n, double(r));
-  std::vector<std::uint64_t> count(n);
-  exec::parallel_for(space, label.count, exec::Index(n), [&](exec::Index i) {
+  std::vector<std::uint64_t> count(m);
+  exec::parallel_for(space, label.count, exec::Index(m), [&](exec::Index q) {
     std::uint64_t c = 0;
-    for_neighbours(cells, x, std::uint32_t(i), r, [&](std::uint32_t) { ++c; });
-    count[std::size_t(i)] = c;
+    const std::uint32_t i = rows ? rows[q] : std::uint32_t(q);
+    for_neighbours(cells, x, i, r, [&](std::uint32_t) { ++c; });
+    count[std::size_t(q)] = c;
   });
   const std::uint64_t total = exec::parallel_scan<std::uint64_t>(
-      space, label.scan, exec::Index(n), [&](exec::Index i) { return count[std::size_t(i)]; },
+      space, label.scan, exec::Index(m), [&](exec::Index q) { return count[std::size_t(q)]; },
       offsets.data());
-  offsets[n] = total;
+  offsets[m] = total;
   neighbor.resize(total);
-  exec::parallel_for(space, label.fill, exec::Index(n), [&](exec::Index ii) {
-    std::uint32_t* row = neighbor.data() + offsets[std::size_t(ii)];
+  exec::parallel_for(space, label.fill, exec::Index(m), [&](exec::Index q) {
+    std::uint32_t* row = neighbor.data() + offsets[std::size_t(q)];
     std::uint64_t c = 0;
-    for_neighbours(cells, x, std::uint32_t(ii), r, [&](std::uint32_t j) { row[c++] = j; });
+    const std::uint32_t i = rows ? rows[q] : std::uint32_t(q);
+    for_neighbours(cells, x, i, r, [&](std::uint32_t j) { row[c++] = j; });
     std::sort(row, row + c);
   });
 }
@@ -162,12 +167,13 @@ void fill_reverse(const exec::Space& space, const char* label,
 
 }  // namespace
 
-void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume,
-                    const std::int32_t* material, std::size_t n, const PdParams& prm,
-                    bool partial_volume, PdBonds& bonds) {
+void pd_build_bond_rows(const exec::Space& space, const Vec3* x0, const Real* volume,
+                        const std::int32_t* material, std::size_t n, const std::uint32_t* rows,
+                        std::size_t m, const PdParams& prm, bool partial_volume, PdBonds& bonds) {
   const Real delta = prm.horizon, lc = prm.spacing;
   neighbour_rows(space, {"pd.bond_count", "pd.bond_scan", "pd.bond_fill"}, x0, n, delta,
-                 bonds.offsets, bonds.neighbor);
+                 bonds.offsets, bonds.neighbor, rows, m);
+  if (!rows) m = n;
   const std::size_t total = bonds.neighbor.size();
   bonds.length.resize(total);
   bonds.omega.resize(total);
@@ -175,12 +181,12 @@ void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume
   bonds.plastic.assign(total, Real(0));
   bonds.intact.assign(total, 1);
   bonds.lane.resize(total);
-  bonds.dense.assign(n, 1);
+  bonds.dense.assign(m, 1);
   const std::uint64_t* off = bonds.offsets.data();
-  exec::parallel_for(space, "pd.bond_geometry", exec::Index(n), [&](exec::Index ii) {
-    const std::size_t i = std::size_t(ii);
+  exec::parallel_for(space, "pd.bond_geometry", exec::Index(m), [&](exec::Index q) {
+    const std::size_t i = rows ? rows[q] : std::size_t(q);
     const Mat3& G = prm.materials[material[i]].G;
-    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+    for (std::uint64_t k = off[q]; k < off[q + 1]; ++k) {
       const std::uint32_t j = bonds.neighbor[k];
       const Vec3 xi = x0[j] - x0[i];
       const Real L = xi.norm();
@@ -189,10 +195,30 @@ void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume
       Real nu = 1;
       if (partial_volume && L > delta - lc / 2) nu = std::min(Real(1), (delta + lc / 2 - L) / lc);
       bonds.volume[k] = nu * volume[j];
-      bonds.lane[k] = std::uint8_t((k - off[i]) % kSumLanes);
+      bonds.lane[k] = std::uint8_t((k - off[q]) % kSumLanes);
     }
   });
+  if (rows) bonds.reverse.assign(total, kNoReverse);
+}
+
+void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume,
+                    const std::int32_t* material, std::size_t n, const PdParams& prm,
+                    bool partial_volume, PdBonds& bonds) {
+  pd_build_bond_rows(space, x0, volume, material, n, nullptr, 0, prm, partial_volume, bonds);
   fill_reverse(space, "pd.bond_reverse", bonds.offsets, bonds.neighbor, bonds.reverse);
+}
+
+std::vector<std::uint64_t> pd_count_bonds(const exec::Space& space, const Vec3* x0, std::size_t n,
+                                          const std::uint32_t* rows, std::size_t m, Real horizon) {
+  std::vector<std::uint64_t> count(m);
+  if (n == 0 || m == 0) return count;
+  const CellIndex cells = make_cells(space, x0, n, double(horizon));
+  exec::parallel_for(space, "pd.bond_count", exec::Index(m), [&](exec::Index q) {
+    std::uint64_t c = 0;
+    for_neighbours(cells, x0, rows[q], horizon, [&](std::uint32_t) { ++c; });
+    count[std::size_t(q)] = c;
+  });
+  return count;
 }
 
 namespace {
@@ -303,9 +329,54 @@ void isotropic4(double* out) {
 
 }  // namespace
 
-void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
-                  PdBonds& bonds, const PdParams& prm, bool surface_correction, PdConstants& out) {
+namespace {
+// A family's signature (see pd_constants): material, row length, bond vectors and volumes to
+// 1e-6 of delta and of the largest volume vmax. Row q is particle pi.
+std::vector<std::int64_t> family_signature(const Vec3* x0, const std::int32_t* material,
+                                           const PdBonds& bonds, std::size_t q, std::size_t pi,
+                                           double delta, double vmax) {
+  std::vector<std::int64_t> sig{std::int64_t(material[pi]),
+                                std::int64_t(bonds.offsets[q + 1] - bonds.offsets[q])};
+  for (std::uint64_t k = bonds.offsets[q]; k < bonds.offsets[q + 1]; ++k) {
+    const Vec3d xi = (x0[bonds.neighbor[k]] - x0[pi]).cast<double>() / (1e-6 * delta);
+    for (int a = 0; a < 3; ++a) sig.push_back(std::llround(xi[a]));
+    sig.push_back(std::llround(double(bonds.volume[k]) / (1e-6 * vmax + 1e-300)));
+  }
+  return sig;
+}
+double largest_bond_volume(const PdBonds& bonds, const PdRowSubset* subset) {
+  if (subset && subset->vmax >= 0) return subset->vmax;
+  double vmax = 0;
+  for (std::size_t k = 0; k < bonds.size(); ++k) vmax = std::max(vmax, double(bonds.volume[k]));
+  return vmax;
+}
+}  // namespace
+
+std::vector<std::uint64_t> pd_family_keys(const exec::Space& space, const Vec3* x0,
+                                          const std::int32_t* material, const PdBonds& bonds,
+                                          const PdParams& prm, const PdRowSubset* subset) {
   const std::size_t n = bonds.particles();
+  const double delta = double(prm.horizon), vmax = largest_bond_volume(bonds, subset);
+  const std::uint32_t* rows = subset ? subset->particle : nullptr;
+  std::vector<std::uint64_t> key(n);
+  exec::parallel_for(space, "pd.constants_keys", exec::Index(n), [&](exec::Index ii) {
+    const std::size_t q = std::size_t(ii);
+    const std::vector<std::int64_t> sig =
+        family_signature(x0, material, bonds, q, rows ? rows[q] : q, delta, vmax);
+    std::uint64_t h = 1469598103934665603ull;  // FNV-1a over the signature
+    for (std::int64_t v : sig)
+      for (int b = 0; b < 8; ++b)
+        h = (h ^ ((std::uint64_t(v) >> (8 * b)) & 0xff)) * 1099511628211ull;
+    key[q] = h;
+  });
+  return key;
+}
+
+void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
+                  PdBonds& bonds, const PdParams& prm, bool surface_correction, PdConstants& out,
+                  const PdRowSubset* subset) {
+  const std::size_t n = bonds.particles();
+  const std::uint32_t* rows = subset ? subset->particle : nullptr;
   out.m.resize(n);
   out.a.resize(n);
   out.b.resize(n);
@@ -331,27 +402,11 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   // the largest volume) share one fit: on a lattice only the few hundred distinct positions
   // relative to the faces are fitted. The representative is the lowest index, so the result does
   // not depend on the thread count.
-  double vmax = 0;
-  for (std::size_t k = 0; k < bonds.size(); ++k) vmax = std::max(vmax, double(bonds.volume[k]));
-  auto signature = [&](std::size_t i) {
-    std::vector<std::int64_t> sig{std::int64_t(material[i]),
-                                  std::int64_t(bonds.offsets[i + 1] - bonds.offsets[i])};
-    for (std::uint64_t k = bonds.offsets[i]; k < bonds.offsets[i + 1]; ++k) {
-      const Vec3d xi = (x0[bonds.neighbor[k]] - x0[i]).cast<double>() / (1e-6 * delta);
-      for (int a = 0; a < 3; ++a) sig.push_back(std::llround(xi[a]));
-      sig.push_back(std::llround(double(bonds.volume[k]) / (1e-6 * vmax + 1e-300)));
-    }
-    return sig;
+  const double vmax = largest_bond_volume(bonds, subset);
+  auto signature = [&](std::size_t q) {
+    return family_signature(x0, material, bonds, q, rows ? rows[q] : q, delta, vmax);
   };
-  std::vector<std::uint64_t> key(n);
-  exec::parallel_for(space, "pd.constants_keys", exec::Index(n), [&](exec::Index ii) {
-    const std::vector<std::int64_t> sig = signature(std::size_t(ii));
-    std::uint64_t h = 1469598103934665603ull;  // FNV-1a over the signature
-    for (std::int64_t v : sig)
-      for (int b = 0; b < 8; ++b)
-        h = (h ^ ((std::uint64_t(v) >> (8 * b)) & 0xff)) * 1099511628211ull;
-    key[std::size_t(ii)] = h;
-  });
+  const std::vector<std::uint64_t> key = pd_family_keys(space, x0, material, bonds, prm, subset);
   std::vector<std::uint32_t> rep(n);
   {
     std::unordered_map<std::uint64_t, std::uint32_t> first;
@@ -365,11 +420,12 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   });
   exec::parallel_for(space, "pd.constants", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
-    if (rep[i] != i) return;  // copied from its representative below
+    if (rep[i] != i) return;                    // copied from its representative below
+    const std::size_t pi = rows ? rows[i] : i;  // the row's particle
     const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
     double m = m_cont, kappa = delta / 4;
     std::uint8_t fitted = 0;
-    const PdMaterial& mat = prm.materials[material[i]];
+    const PdMaterial& mat = prm.materials[material[pi]];
     if (prm.model == PdModel::Lps) {  // Silling et al. 2007: m_i over the particle's own family
       double ml = 0;
       for (std::uint64_t k = k0; k < k1; ++k) {
@@ -391,7 +447,7 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
       std::vector<double> w(nb), L(nb), g, f;
       std::vector<Vec3d> dir(nb);
       for (std::uint64_t k = k0; k < k1; ++k) {
-        const Vec3d xi = (x0[bonds.neighbor[k]] - x0[i]).cast<double>();
+        const Vec3d xi = (x0[bonds.neighbor[k]] - x0[pi]).cast<double>();
         L[k - k0] = xi.norm();
         dir[k - k0] = xi / L[k - k0];
         w[k - k0] = delta / L[k - k0] * double(bonds.volume[k]);  // isotropic omega0 V (eq. 4)
@@ -492,7 +548,7 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
       bonds.shear_omega[k] = bonds.shear_omega[q];
     }
   });
-  pd_mirror_bonds(space, bonds);
+  if (!subset) pd_mirror_bonds(space, bonds);
 }
 
 void pd_mirror_bonds(const exec::Space& space, PdBonds& bonds) {

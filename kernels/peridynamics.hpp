@@ -200,9 +200,35 @@ void pd_build_bonds(const exec::Space& space, const Vec3* x0, const Real* volume
                     const std::int32_t* material, std::size_t n, const PdParams& prm,
                     bool partial_volume, PdBonds& bonds);
 
-// m, a, b, kappa, bonds0 per particle and the bonds' shear_omega (see PdConstants).
+// Some rows of the bond list (a distributed set-up builds only the rows a rank needs): row q is
+// particle rows[q] of x0 / volume / material; neighbours stay indices into x0 (the whole set),
+// reverse is kNoReverse. Lanes and dense as pd_build_bonds gives the same rows.
+void pd_build_bond_rows(const exec::Space& space, const Vec3* x0, const Real* volume,
+                        const std::int32_t* material, std::size_t n, const std::uint32_t* rows,
+                        std::size_t m, const PdParams& prm, bool partial_volume, PdBonds& bonds);
+// The row lengths of the particles rows[0..m) (nothing stored).
+std::vector<std::uint64_t> pd_count_bonds(const exec::Space& space, const Vec3* x0, std::size_t n,
+                                          const std::uint32_t* rows, std::size_t m, Real horizon);
+
+// A bond list that holds some rows of the whole set (pd_build_bond_rows): row q's particle, and
+// the largest bond volume over every row of the whole set (a family's signature is relative to
+// it; < 0: these rows' largest).
+struct PdRowSubset {
+  const std::uint32_t* particle = nullptr;
+  double vmax = -1;
+};
+
+// m, a, b, kappa, bonds0 per particle and the bonds' shear_omega (see PdConstants). With a subset
+// the constants are those of its rows, each family fitted once at its first row (the whole set's
+// first member of each family must come first for the whole set's bits), and the mirrored arrays
+// (omega_r, ...) are left to the caller (the reverse bonds may be in other rows).
 void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
-                  PdBonds& bonds, const PdParams& prm, bool surface_correction, PdConstants& out);
+                  PdBonds& bonds, const PdParams& prm, bool surface_correction, PdConstants& out,
+                  const PdRowSubset* subset = nullptr);
+// The families' hash keys pd_constants groups rows by (equal families, equal keys).
+std::vector<std::uint64_t> pd_family_keys(const exec::Space& space, const Vec3* x0,
+                                          const std::int32_t* material, const PdBonds& bonds,
+                                          const PdParams& prm, const PdRowSubset* subset = nullptr);
 
 // Fills omega_r, shear_omega_r and plastic_r from the reverse bonds (after the constants, a
 // compaction or a restore).

@@ -132,6 +132,7 @@ void estimate_pd(const SceneSpec& s, RunEstimate& e) {
                                    probe.particles().state_bytes_per_particle()) +
                             8) +
              e.bonds * bond_bytes;
+  e.bond_bytes = e.bonds * bond_bytes;
   for (std::size_t k = 0; k < s.objects.size(); ++k) {
     const double speed = double(fastest_initial_velocity(s.objects[k]).norm());
     if (!(speed <= double(s.pd.max_speed)))

@@ -16,6 +16,7 @@ struct RunEstimate {
   double grid_leaves = 0;  // MPM: 8^3-node leaves around the objects at the start
   double bonds = 0;        // peridynamics: directed bonds (lattice neighbours in the horizon)
   double bytes = 0;        // resident memory of the state (particles, grid or bonds, snapshot)
+  double bond_bytes = 0;   // peridynamics: the bonds' part of bytes (split across MPI ranks)
   double dt = 0;           // the first substep's stable step (s)
   double substeps_per_frame = 0;
   double substeps = 0;  // the whole run

@@ -219,7 +219,9 @@ PdSolver build_pd_solver(const SceneSpec& scene, const exec::Space& space) {
 std::unique_ptr<Simulation> make_simulation(const SceneSpec& scene, const exec::Space& space) {
   if (scene.method == Method::Peridynamics) {
     PdSolver solver = build_pd_solver(scene, space);
-    solver.initialize(space);
+    // On several ranks every rank holds every particle but builds only the bond rows it needs
+    // (solvers/pd_distributed.cpp); one rank: initialize().
+    solver.initialize_distributed(space);
     return std::make_unique<PdSimulation>(std::move(solver), space);
   }
   return std::make_unique<MpmSimulation>(build_solver(scene, space));

@@ -5,6 +5,13 @@
 // bond rows, and the cuts are kept (dist::RcbCuts): the owner of a particle is the cut box of its
 // point, known to every rank without communication.
 //
+// Set-up (PdSolver::initialize_distributed, what `amalgam run` uses). Every rank holds every
+// particle's per-particle data (the scene is set up alike on every rank, about 100 bytes a
+// particle) but builds bond rows only for its own particles, plus, per family of the surface
+// correction, the row of the family's first member when another rank owns it; the whole list is
+// never built (~46 bytes per directed bond, ~120 bonds a particle). distribute() after a whole
+// initialize() gives the same bits (tests and one-process callers).
+//
 // Local particles. A rank holds its own particles and ghosts: the bond neighbours of its rows
 // (reference configuration: the ranks whose cut boxes meet the horizon box of a particle,
 // Zoltan_LB_Box_Assign, receive it and keep it when one of their rows names it) and the
@@ -38,6 +45,8 @@
 #include <cstring>
 #include <limits>
 #include <string>
+#include <unordered_map>
+#include <utility>
 
 #include "core/dist/comm.hpp"
 #include "core/dist/halo.hpp"
@@ -63,6 +72,9 @@ struct PdSolver::Ranks {
 namespace {
 
 constexpr double kImbalance = 1.25;
+constexpr const char* kMeshesNotDistributed =
+    "peridynamics on several MPI ranks: embedded tet_mesh crack surfaces are not distributed yet "
+    "(issue 28); run one rank";
 constexpr std::uint64_t kRepartitionGap = 16;
 
 // The point a particle is owned by: its reference position moved by less than 0.1 spacing along
@@ -162,10 +174,7 @@ void PdSolver::distribute(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   if (comm.size() == 1 || ranks_) return;
   if (!initialized_) throw std::logic_error("PdSolver: distribute() before initialize()");
-  if (!meshes_.empty())
-    throw InputError(
-        "peridynamics on several MPI ranks: embedded tet_mesh crack surfaces are not distributed "
-        "yet (issue 28); run one rank");
+  if (!meshes_.empty()) throw InputError(kMeshesNotDistributed);
   // Every rank holds the whole state here (each set the scene up alike): it passes Zoltan a slice
   // of the particles, weighted by their bond rows, and then takes its own particles and their
   // ghosts from the whole state.
@@ -246,10 +255,309 @@ void PdSolver::distribute(const exec::Space& space) {
   build_contact_list(space);
 }
 
+namespace {
+// Rows of b appended to a (both built by pd_build_bond_rows: no mirrored arrays yet).
+void append_rows(PdBonds& a, const PdBonds& b) {
+  const std::uint64_t base = a.offsets.empty() ? 0 : a.offsets.back();
+  if (a.offsets.empty()) a.offsets.push_back(0);
+  for (std::size_t q = 1; q < b.offsets.size(); ++q) a.offsets.push_back(base + b.offsets[q]);
+  auto cat = [](auto& to, const auto& from) { to.insert(to.end(), from.begin(), from.end()); };
+  cat(a.neighbor, b.neighbor), cat(a.reverse, b.reverse), cat(a.length, b.length);
+  cat(a.omega, b.omega), cat(a.volume, b.volume), cat(a.plastic, b.plastic);
+  cat(a.intact, b.intact), cat(a.lane, b.lane), cat(a.dense, b.dense);
+}
+}  // namespace
+
+// The set-up of a distributed run without the whole bond list. Every rank holds every particle's
+// attributes (the scene was set up alike on every rank: ~100 bytes per particle, against ~46 per
+// directed bond and ~120 bonds per particle) and their positions serve three look-ups that need
+// no communication: the row lengths of a slice (the cuts' weights), the owners, and each row's
+// neighbours. Rows are built for the own particles only, plus, with the surface correction, the
+// first particle (global id) of each of their families owned by another rank: pd_constants fits a
+// family once, at its first member, whose bond vectors (rounded differently at other positions)
+// give the shared factors, so that particle's row is fitted here too, first. The ghosts' constants
+// and the far ends' per-bond values (omega_r, shear_omega_r) come from their owners. The power
+// iteration of the critical step runs on the distributed layout, its two sums in global id order
+// on rank 0. Bitwise initialize() then distribute() (tests/test_dist_pd.cpp).
+void PdSolver::initialize_distributed(const exec::Space& space) {
+  const dist::Comm& comm = dist::Comm::world();
+  if (comm.size() == 1) return initialize(space);
+  if (initialized_) throw std::logic_error("PdSolver: initialize_distributed() twice");
+  if (!meshes_.empty()) throw InputError(kMeshesNotDistributed);
+  const auto t0 = std::chrono::steady_clock::now();
+  const std::size_t n = particles_.size();
+  if (n >= std::size_t(UINT32_MAX))
+    throw std::runtime_error("distributed peridynamics: over 2^32 particles");
+  const Vec3* x0 = particles_.vec3(attr_.x0);
+  const Vec3* x = particles_.vec3(attr_.x);
+  const Real* vol = particles_.real(attr_.volume);
+  const std::int32_t* mat = particles_.int32(attr_.material);
+  const PdParams prm = params();
+  // 1. The cuts: a slice of the particles, weighted by their row lengths (counted, not stored).
+  const std::uint64_t r = std::uint64_t(comm.rank()), R = std::uint64_t(comm.size());
+  const std::uint64_t b = n * r / R, e = n * (r + 1) / R;
+  std::vector<std::uint32_t> slice(e - b);
+  for (std::uint64_t i = b; i < e; ++i) slice[i - b] = std::uint32_t(i);
+  const std::vector<std::uint64_t> len =
+      pd_count_bonds(space, x0, n, slice.data(), slice.size(), settings_.horizon);
+  std::vector<std::uint64_t> ids;
+  std::vector<double> xyz;
+  std::vector<float> w;
+  for (std::uint64_t i = b; i < e; ++i) {
+    double p[3];
+    own_point(x0[i], i, settings_.spacing, p);
+    ids.push_back(i);
+    xyz.insert(xyz.end(), p, p + 3);
+    w.push_back(float(1 + len[i - b]));
+  }
+  auto ranks = std::make_shared<Ranks>();
+  ranks->cuts = dist::RcbCuts::partition(ids, xyz, w);
+  ranks->n_global = n;
+  std::vector<int> owner(n);
+  std::vector<std::uint32_t> own;
+  for (std::size_t i = 0; i < n; ++i) {
+    double p[3];
+    own_point(x0[i], i, settings_.spacing, p);
+    owner[i] = ranks->cuts.owner(p);
+    if (owner[i] == comm.rank()) own.push_back(std::uint32_t(i));
+  }
+  // 2. The own rows (neighbours by global id), and the families' first members elsewhere.
+  PdBonds rows;
+  pd_build_bond_rows(space, x0, vol, mat, n, own.data(), own.size(), prm, settings_.partial_volume,
+                     rows);
+  double vmax = 0;
+  for (Real v : rows.volume) vmax = std::max(vmax, double(v));
+  vmax = comm.max(vmax);                // the whole list's largest bond volume (exact)
+  std::vector<std::uint32_t> at = own;  // row q's particle
+  std::size_t extra = 0;
+  {  // every model: a family's rows copy its first row's omega (and fits)
+    const PdRowSubset sub{own.data(), vmax};
+    const std::vector<std::uint64_t> key = pd_family_keys(space, x0, mat, rows, prm, &sub);
+    std::vector<std::pair<std::uint64_t, std::uint64_t>> first;  // (key, first own id)
+    for (std::size_t q = 0; q < own.size(); ++q) first.emplace_back(key[q], own[q]);
+    std::stable_sort(first.begin(), first.end(),
+                     [](const auto& a, const auto& c) { return a.first < c.first; });
+    first.erase(std::unique(first.begin(), first.end(),
+                            [](const auto& a, const auto& c) { return a.first == c.first; }),
+                first.end());
+    std::vector<std::uint64_t> mine;
+    for (const auto& f : first) mine.insert(mine.end(), {f.first, f.second});
+    const std::vector<std::uint64_t> all =
+        dist::from_bytes<std::uint64_t>(comm.allgather(dist::as_bytes(mine), nullptr));
+    std::unordered_map<std::uint64_t, std::uint64_t> lowest;
+    for (std::size_t k = 0; k + 1 < all.size(); k += 2) {
+      const auto it = lowest.emplace(all[k], all[k + 1]).first;
+      it->second = std::min(it->second, all[k + 1]);
+    }
+    std::vector<std::uint32_t> reps;
+    for (const auto& f : first)
+      if (lowest[f.first] != f.second) reps.push_back(std::uint32_t(lowest[f.first]));
+    std::sort(reps.begin(), reps.end());
+    reps.erase(std::unique(reps.begin(), reps.end()), reps.end());
+    if (!reps.empty()) {  // their rows first: each family's first row is the whole list's
+      PdBonds with;
+      pd_build_bond_rows(space, x0, vol, mat, n, reps.data(), reps.size(), prm,
+                         settings_.partial_volume, with);
+      append_rows(with, rows);
+      rows = std::move(with);
+      at.insert(at.begin(), reps.begin(), reps.end());
+      extra = reps.size();
+    }
+  }
+  PdConstants c;
+  const PdRowSubset sub{at.data(), vmax};
+  pd_constants(space, x0, mat, rows, prm, settings_.surface_correction, c, &sub);
+  apply_precracks(space, rows, at.data());
+  dist_stats_.rows_built = at.size();
+  dist_stats_.family_rows = extra;
+  // 3. The local particles as distribute() takes them: the own ones with their rows, the bond
+  // neighbours of those rows and the particles within contact reach of their bounding box. Their
+  // records carry the own particles' constants (ghosts': zero until their owners send them).
+  constants_ = PdConstants();
+  constants_.m.assign(n, 0), constants_.a.assign(n, 0), constants_.b.assign(n, 0);
+  constants_.kappa.assign(n, 0), constants_.bonds0.assign(n, 0), constants_.fitted.assign(n, 0);
+  for (std::size_t q = extra; q < at.size(); ++q) {
+    const std::uint32_t i = at[q];
+    constants_.m[i] = c.m[q], constants_.a[i] = c.a[q], constants_.b[i] = c.b[q];
+    constants_.kappa[i] = c.kappa[q], constants_.bonds0[i] = c.bonds0[q];
+    constants_.fitted[i] = c.fitted[q];
+  }
+  c = PdConstants();
+  q_.assign(n, Real(0));
+  std::vector<std::uint8_t> keep(n, 0);
+  double lo[3] = {1e300, 1e300, 1e300}, hi[3] = {-1e300, -1e300, -1e300};
+  for (std::size_t q = extra; q < at.size(); ++q) {
+    const std::uint32_t i = at[q];
+    keep[i] = 1;
+    for (std::uint64_t k = rows.offsets[q]; k < rows.offsets[q + 1]; ++k)
+      keep[rows.neighbor[k]] = 1;
+    for (int a = 0; a < 3; ++a)
+      lo[a] = std::min(lo[a], double(x[i][a])), hi[a] = std::max(hi[a], double(x[i][a]));
+  }
+  if (settings_.contact) {
+    const double reach = 1.01 * double(contact_distance() + (settings_.contact_skin > 0
+                                                                 ? settings_.contact_skin
+                                                                 : Real(0.5) * settings_.spacing));
+    for (std::size_t i = 0; i < n; ++i) {
+      bool in = true;
+      for (int a = 0; a < 3; ++a)
+        in &= double(x[i][a]) >= lo[a] - reach && double(x[i][a]) <= hi[a] + reach;
+      keep[i] |= in;
+    }
+  }
+  std::vector<char> recs;
+  std::vector<BondRec> brs;
+  std::vector<LocalEntry> entries;
+  std::vector<std::size_t> rec_at, row_at;
+  std::size_t q = extra;  // the next own row
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!keep[i]) continue;
+    rec_at.push_back(recs.size());
+    pack_record(recs, i);
+    row_at.push_back(brs.size());
+    const bool mine = owner[i] == comm.rank();
+    std::uint32_t row_len = 0;
+    if (mine) {  // own rows come in increasing id, as the particles here
+      for (std::uint64_t k = rows.offsets[q]; k < rows.offsets[q + 1]; ++k) {
+        BondRec br{};
+        br.nb = rows.neighbor[k];
+        br.L = rows.length[k], br.omega = rows.omega[k], br.shear = rows.shear_omega[k];
+        br.vol = rows.volume[k], br.plastic = rows.plastic[k];
+        br.intact = rows.intact[k], br.lane = rows.lane[k];
+        brs.push_back(br);
+      }
+      row_len = std::uint32_t(rows.offsets[q + 1] - rows.offsets[q]);
+    }
+    entries.push_back(
+        {i, owner[i], nullptr, nullptr, row_len, mine ? rows.dense[q] : std::uint8_t(1)});
+    q += mine;
+  }
+  rows = PdBonds();
+  for (std::size_t k = 0; k < entries.size(); ++k) {
+    entries[k].rec = recs.data() + rec_at[k];
+    entries[k].row = entries[k].owner == comm.rank() ? brs.data() + row_at[k] : nullptr;
+  }
+  // The critical step's start vector: the single process's draw over every particle.
+  const std::vector<Vec3> start_all = probe_start();
+  settings_.compact_fraction = 0;  // as distribute()
+  assemble_local(space, entries, ranks, true);
+  std::vector<char>().swap(recs);
+  std::vector<BondRec>().swap(brs);
+  mirror_distributed();
+  bonds_initial_ = comm.sum(std::uint64_t(bonds_.size()));
+  initialized_ = true;
+  build_contact_list(space);
+  std::vector<Vec3> start(particles_.size());
+  for (std::size_t i = 0; i < start.size(); ++i) start[i] = start_all[ranks_->gid[i]];
+  crit_dt_ = critical_dt(space, &start);
+  // Initial accelerations (velocity Verlet needs a^0), as a step's passes and exchanges.
+  compute_dilatation(space);
+  share(particles_.real(attr_.theta));
+  share(q_.data());
+  compute_forces(space);
+  contact_forces(space);
+  update_damage(space);
+  kick(space, 0);
+  // Every ghost holds its owner's values, as when distribute() takes them from the whole state.
+  for (int a = 0; a < particles_.attribute_count(); ++a)
+    share_bytes(particles_.words(a), std::size_t(particles_.words_per_particle(a)) * 4);
+  dist_stats_.step_bytes = dist_stats_.step_messages = 0;
+  dist_stats_.setup_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  ++version_;
+}
+
+void PdSolver::mirror_distributed() {
+  const std::size_t nb = bonds_.size();
+  std::vector<Real> both(2 * nb);
+  const std::vector<Real>* from[2] = {&bonds_.omega, &bonds_.shear_omega};
+  std::vector<Real>* to[2] = {&bonds_.omega_r, &bonds_.shear_omega_r};
+  for (int f = 0; f < 2; ++f) {
+    std::copy(from[f]->begin(), from[f]->end(), both.begin());
+    ranks_->bond_halo.exchange(both.data());
+    for (std::uint64_t k = 0; k < nb; ++k) {
+      const std::uint64_t rv = bonds_.reverse[k];
+      (*to[f])[k] = rv != kNoReverse ? (*from[f])[rv] : both[nb + k];
+    }
+  }
+  for (std::uint64_t k = 0; k < nb; ++k)
+    if (bonds_.reverse[k] != kNoReverse) bonds_.plastic_r[k] = bonds_.plastic[bonds_.reverse[k]];
+  if (!params().plastic) {  // the bond halo and reverse indices serve plastic materials only
+    bonds_.reverse.assign(nb, kNoReverse);  // (as assemble_local leaves them without)
+    auto rk = std::make_shared<Ranks>(*ranks_);
+    rk->bond_halo = dist::HaloPlan();
+    ranks_ = std::move(rk);
+  } else {
+    share_plastic();
+  }
+  share(constants_.m.data()), share(constants_.a.data()), share(constants_.b.data());
+  share(constants_.kappa.data()), share(constants_.bonds0.data()), share(constants_.fitted.data());
+}
+
+bool PdSolver::restore_distributed(const exec::Space& space, const ParticleSet& all,
+                                   const std::vector<std::uint64_t>& offsets,
+                                   const std::vector<std::uint32_t>& neighbor,
+                                   const std::vector<Real>& plastic,
+                                   const std::vector<std::uint8_t>& intact) {
+  const dist::Comm& comm = dist::Comm::world();
+  const Ranks& rk = *ranks_;
+  const std::uint64_t N = rk.n_global;
+  bool bad = all.size() != N || offsets.size() != N + 1 || offsets[0] != 0 ||
+             offsets[N] != neighbor.size() || plastic.size() != neighbor.size() ||
+             intact.size() != neighbor.size() ||
+             all.attribute_count() != particles_.attribute_count();
+  std::vector<std::uint8_t> keep(bonds_.size(), 0);
+  if (!bad) {
+    for (int a = 0; a < particles_.attribute_count(); ++a) {  // every local particle's state
+      const std::size_t wa = std::size_t(particles_.words_per_particle(a));
+      for (std::size_t i = 0; i < particles_.size(); ++i)
+        std::memcpy(particles_.words(a) + i * wa, all.words(a) + rk.gid[i] * wa, wa * 4);
+    }
+    // Own rows: the checkpoint's row (global ids) must be a sorted subsequence of the row here.
+    for (std::uint32_t i : rk.own) {
+      const std::uint64_t g = rk.gid[i];
+      std::uint64_t k = bonds_.offsets[i];
+      const std::uint64_t k1 = bonds_.offsets[i + 1];
+      if (offsets[g] > offsets[g + 1] || offsets[g + 1] > neighbor.size()) {
+        bad = true;
+        break;
+      }
+      for (std::uint64_t c = offsets[g]; c < offsets[g + 1] && !bad; ++c) {
+        while (k < k1 && rk.gid[bonds_.neighbor[k]] < neighbor[c]) ++k;
+        if (k == k1 || rk.gid[bonds_.neighbor[k]] != neighbor[c]) {
+          bad = true;
+          break;
+        }
+        keep[k] = 1;
+        bonds_.plastic[k] = plastic[c];
+        bonds_.intact[k] = intact[c];
+        ++k;
+      }
+    }
+  }
+  if (comm.max(std::int64_t(bad)) > 0) return false;
+  // The kept rows migrate nowhere (the cuts stay), the ghosts are chosen from the restored
+  // positions, then the far ends' plastic extensions and the contact list.
+  relocal(space, false, &keep);
+  for (std::uint64_t k = 0; k < bonds_.size(); ++k)
+    if (bonds_.reverse[k] != kNoReverse) bonds_.plastic_r[k] = bonds_.plastic[bonds_.reverse[k]];
+  share_plastic();
+  contact_list_ = PdContactList();
+  build_contact_list(space);
+  const Real d = settings_.contact ? contact_distance() : Real(0);
+  intact_ = kept_broken_ = 0;
+  for (std::size_t k = 0; k < bonds_.size(); ++k) {
+    intact_ += bonds_.intact[k];
+    kept_broken_ += !bonds_.intact[k] && pd_contact_reads_broken_bond(bonds_.length[k], d);
+  }
+  meshes_intact_ = intact_;
+  return true;
+}
+
 // The local state from its entries (sorted here by global id): particles, constants, the rows
 // renumbered to local indices, the ghost plan, the drives.
 void PdSolver::assemble_local(const exec::Space& space, std::vector<LocalEntry>& entries,
-                              std::shared_ptr<Ranks> ranks) {
+                              std::shared_ptr<Ranks> ranks, bool bond_plan) {
   const dist::Comm& comm = dist::Comm::world();
   std::sort(entries.begin(), entries.end(),
             [](const LocalEntry& a, const LocalEntry& b) { return a.gid < b.gid; });
@@ -315,7 +623,7 @@ void PdSolver::assemble_local(const exec::Space& space, std::vector<LocalEntry>&
                              " lacks a bond neighbour of particle " + std::to_string(gid[i]));
   // Reverse bonds within this rank's rows (pd_dilatation writes their plastic_r); the others'
   // come through the bond halo.
-  const bool plastic = params().plastic;
+  const bool plastic = params().plastic || bond_plan;
   std::vector<std::uint64_t> bond_own_ids, bond_ghost_ids;
   std::vector<std::uint32_t> bond_own_slots, bond_ghost_slots;
   std::vector<int> bond_ghost_owner;
@@ -457,7 +765,8 @@ void PdSolver::share_bytes(void* data, std::size_t bytes) const {
   st.comm_seconds += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-void PdSolver::relocal(const exec::Space& space, bool repartition) {
+void PdSolver::relocal(const exec::Space& space, bool repartition,
+                       const std::vector<std::uint8_t>* keep) {
   const auto t0 = std::chrono::steady_clock::now();
   const dist::Comm& comm = dist::Comm::world();
   const Ranks& old = *ranks_;
@@ -499,10 +808,13 @@ void PdSolver::relocal(const exec::Space& space, bool repartition) {
     std::vector<char>& b = mig[std::size_t(to)];
     put(b, old.gid[i]);
     pack_record(b, i);
-    put(b, std::uint32_t(bonds_.offsets[i + 1] - bonds_.offsets[i]));
-    put(b, bonds_.dense[i]);
-    for (std::uint64_t k = bonds_.offsets[i]; k < bonds_.offsets[i + 1]; ++k)
-      put(b, bond_record(k, old.gid[bonds_.neighbor[k]]));
+    const std::uint64_t k0 = bonds_.offsets[i], k1 = bonds_.offsets[i + 1];
+    std::uint32_t len = 0;  // the row's bonds that stay (a restriction keeps a subsequence)
+    for (std::uint64_t k = k0; k < k1; ++k) len += !keep || (*keep)[k];
+    put(b, len);
+    put(b, std::uint8_t(bonds_.dense[i] && len == k1 - k0));
+    for (std::uint64_t k = k0; k < k1; ++k)
+      if (!keep || (*keep)[k]) put(b, bond_record(k, old.gid[bonds_.neighbor[k]]));
   }
   std::vector<std::vector<char>> got;
   if (repartition) {

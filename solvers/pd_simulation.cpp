@@ -13,7 +13,7 @@ namespace amalgam {
 
 PdSimulation::PdSimulation(PdSolver solver, const exec::Space& space) : s_(std::move(solver)) {
   const PdDiagnostics d = s_.diagnostics(space);
-  const std::size_t np = s_.particles().size();
+  const std::size_t np = s_.global_particle_count();
   std::ostringstream os;
   os << "peridynamics, " << np << " particles, " << d.bonds << " directed bonds ("
      << double(d.bonds) / double(std::max<std::size_t>(1, np)) << " per particle), spacing "
@@ -91,6 +91,14 @@ std::string PdSimulation::run_summary(double) const {
        << " s in exchanges; at most " << cross_broken_
        << " directed bonds broken between ranks and " << cross_contacts_
        << " contacts with another rank's particles at a frame's end\n";
+    // The set-up's bond rows over every rank: each particle's row once (its owner's), plus the
+    // rows of the families' first members a rank fitted for another's (initialize_distributed).
+    const dist::Comm& comm = dist::Comm::world();
+    os << "amalgam: distributed set-up: " << s_.global_sum(st.rows_built)
+       << " bond rows built over the ranks for " << s_.global_particle_count() << " particles ("
+       << s_.global_sum(st.family_rows) << " of them families' first members owned elsewhere, "
+       << "at most " << comm.max(std::int64_t(st.rows_built)) << " on a rank); "
+       << comm.max(st.setup_seconds) << " s at most per rank\n";
   }
   return os.str();
 }
@@ -223,8 +231,19 @@ std::vector<StateSection> PdSimulation::checkpoint_sections() {
   return out;
 }
 
+void PdSimulation::before_restore() {
+  if (!s_.distributed()) return;
+  // Distributed since the set-up: the checkpoint is read whole here (every particle, every row),
+  // then restored() keeps this rank's local particles and own rows.
+  const ParticleSet& ps = s_.particles();
+  gathered_ = ParticleSet();
+  for (int a = 0; a < ps.attribute_count(); ++a) gathered_.add(ps.name(a), ps.type(a), ps.width(a));
+  gathered_.resize(s_.global_particle_count());
+  gathered_version_ = ~std::uint64_t(0);
+}
+
 std::vector<StateSection> PdSimulation::restore_sections() {
-  offsets_.assign(s_.bonds().offsets.size(), 0);
+  offsets_.assign(s_.distributed() ? s_.global_particle_count() + 1 : s_.bonds().offsets.size(), 0);
   const std::size_t nb = s_.bonds().size();
   std::vector<StateSection> out = {
       {"bonds.offsets", reinterpret_cast<char*>(offsets_.data()),
@@ -250,7 +269,7 @@ Simulation::RankPart PdSimulation::my_part() const {
 }
 
 void PdSimulation::restored(double time, std::uint64_t steps) {
-  const ParticleSet& ps = s_.particles();
+  const ParticleSet& ps = s_.distributed() ? gathered_ : s_.particles();
   check_finite_attributes(ps);
   check_index_attribute(ps, "material", 0, std::int64_t(s_.materials().size()) - 1);
   check_permutation_attribute(ps, "id");
@@ -261,12 +280,15 @@ void PdSimulation::restored(double time, std::uint64_t steps) {
                      std::to_string(neighbor_.size()) + " neighbours, " +
                      std::to_string(plastic_.size()) + " plastic extensions, " +
                      std::to_string(intact_.size()) + " flags)");
-  if (!s_.restore_bonds(offsets_, neighbor_, plastic_, intact_))
+  if (s_.distributed() ? !s_.restore_distributed(exec::Space(), gathered_, offsets_, neighbor_,
+                                                 plastic_, intact_)
+                       : !s_.restore_bonds(offsets_, neighbor_, plastic_, intact_))
     throw InputError(
         "checkpoint's bond list is not a subset of this scene's bonds (written for other "
         "particles or another horizon?)");
   for (PdCrackMesh& m : s_.crack_meshes()) m.restored();
   s_.restore_clock(time, steps);
+  if (s_.distributed()) gathered_version_ = ~std::uint64_t(0);  // regathered when asked
   offsets_ = {};
   neighbor_ = {};
   plastic_ = {};

@@ -56,6 +56,7 @@ class PdSimulation final : public Simulation {
   ParticleSet& particles() override { return s_.distributed() ? gathered_ : s_.particles(); }
   std::vector<StateSection> checkpoint_sections() override;
   std::vector<StateSection> restore_sections() override;
+  void before_restore() override;
   void restored(double time, std::uint64_t steps) override;
   // Per-rank output (issue 28): each rank holds its own particles and ghosts (solver-local) and
   // writes its own ones.

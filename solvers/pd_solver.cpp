@@ -1,6 +1,7 @@
 #include "solvers/pd_solver.hpp"
 
 #include <algorithm>
+#include <cstring>
 #include <cmath>
 #include <random>
 #include <sstream>
@@ -204,29 +205,7 @@ void PdSolver::initialize(const exec::Space& space) {
                settings_.surface_correction, constants_);
   // Pre-cracks break bonds after the constants: the material around a crack is the same material,
   // only disconnected (its damage is > 0 from the start).
-  if (!precracks_.empty()) {
-    const Vec3* x0 = particles_.vec3(attr_.x0);
-    const Precrack* cracks = precracks_.data();
-    const std::size_t nc = precracks_.size();
-    PdBonds& b = bonds_;
-    exec::parallel_for(space, "pd.precracks", exec::Index(n), [&](exec::Index ii) {
-      const std::size_t i = std::size_t(ii);
-      for (std::uint64_t k = b.offsets[i]; k < b.offsets[i + 1]; ++k) {
-        const std::uint32_t j =
-            b.neighbor[k];  // evaluate from the lower index: both rows decide alike
-        const Vec3 &a = x0[std::min<std::size_t>(i, j)], &c = x0[std::max<std::size_t>(i, j)];
-        for (std::size_t q = 0; q < nc; ++q) {
-          const Real sa = (a - cracks[q].point).dot(cracks[q].n),
-                     sc = (c - cracks[q].point).dot(cracks[q].n);
-          if (!(sa * sc < 0)) continue;
-          const Vec3 hit = a + (sa / (sa - sc)) * (c - a);
-          if ((hit.array() >= cracks[q].lo.array()).all() &&
-              (hit.array() <= cracks[q].hi.array()).all())
-            b.intact[k] = 0;
-        }
-      }
-    });
-  }
+  apply_precracks(space, bonds_, nullptr);
   force_.assign(n, Vec3::Zero());
   q_.assign(n, Real(0));
   for (PdCrackMesh& m : meshes_) m.attach(bonds_);
@@ -241,9 +220,44 @@ void PdSolver::initialize(const exec::Space& space) {
   kick(space, 0);
 }
 
-Real PdSolver::critical_dt(const exec::Space& space) {
+void PdSolver::apply_precracks(const exec::Space& space, PdBonds& b, const std::uint32_t* rows) {
+  if (precracks_.empty()) return;
+  const Vec3* x0 = particles_.vec3(attr_.x0);
+  const Precrack* cracks = precracks_.data();
+  const std::size_t nc = precracks_.size();
+  exec::parallel_for(space, "pd.precracks", exec::Index(b.particles()), [&](exec::Index q) {
+    const std::size_t i = rows ? rows[q] : std::size_t(q);
+    for (std::uint64_t k = b.offsets[std::size_t(q)]; k < b.offsets[std::size_t(q) + 1]; ++k) {
+      const std::uint32_t j =
+          b.neighbor[k];  // evaluate from the lower index: both rows decide alike
+      const Vec3 &a = x0[std::min<std::size_t>(i, j)], &c = x0[std::max<std::size_t>(i, j)];
+      for (std::size_t p = 0; p < nc; ++p) {
+        const Real sa = (a - cracks[p].point).dot(cracks[p].n),
+                   sc = (c - cracks[p].point).dot(cracks[p].n);
+        if (!(sa * sc < 0)) continue;
+        const Vec3 hit = a + (sa / (sa - sc)) * (c - a);
+        if ((hit.array() >= cracks[p].lo.array()).all() &&
+            (hit.array() <= cracks[p].hi.array()).all())
+          b.intact[k] = 0;
+      }
+    }
+  });
+}
+
+std::vector<Vec3> PdSolver::probe_start() const {
   const std::size_t n = particles_.size();
-  if (n == 0) return std::numeric_limits<Real>::infinity();
+  const std::int32_t* fixed = particles_.int32(attr_.fixed);
+  std::vector<Vec3> v(n);
+  std::mt19937 rng(20261123);  // a fixed start vector: the estimate is reproducible
+  std::uniform_real_distribution<double> u(-1, 1);
+  for (std::size_t i = 0; i < n; ++i)
+    v[i] = fixed[i] ? Vec3::Zero() : Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
+  return v;
+}
+
+Real PdSolver::critical_dt(const exec::Space& space, const std::vector<Vec3>* start) {
+  const std::size_t n = particles_.size();
+  if (global_particle_count() == 0) return std::numeric_limits<Real>::infinity();
   Vec3* x = particles_.vec3(attr_.x);
   const std::int32_t* fixed = particles_.int32(attr_.fixed);
   const std::int32_t* mat = particles_.int32(attr_.material);
@@ -255,37 +269,72 @@ Real PdSolver::critical_dt(const exec::Space& space) {
   PdParams prm = params();
   prm.materials = elastic.data();
   const PdView p = view();
-  std::vector<Vec3> f0(n), f(n), v(n);
-  pd_dilatation(space, p, bonds_, prm, &scratch_);
-  pd_forces(space, p, bonds_, prm, false, f0.data(), nullptr, &scratch_);
-  std::mt19937 rng(20261123);  // a fixed start vector: the estimate is reproducible
-  std::uniform_real_distribution<double> u(-1, 1);
-  for (std::size_t i = 0; i < n; ++i)
-    v[i] = fixed[i] ? Vec3::Zero() : Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
+  // Distributed: the own particles' values (rows), their ghosts' from the owners before each pass
+  // that reads them; the sums |v|^2 and |A v|^2 of the last iteration in the single process's
+  // order (global id) on rank 0.
+  const std::vector<std::uint32_t> act = owned_local();
+  auto forces = [&](std::vector<Vec3>& f) {
+    if (ranks_) share(x);
+    pd_dilatation(space, p, bonds_, prm, &scratch_);
+    share(particles_.real(attr_.theta));
+    share(q_.data());
+    pd_forces(space, p, bonds_, prm, false, f.data(), nullptr, &scratch_);
+  };
+  std::vector<Vec3> f0(n), f(n), v = start ? *start : probe_start();
+  forces(f0);
   const Real amp =
       Real(3e-3) * settings_.spacing;  // probe displacement: linear, above float round-off
   double lambda = 0;
+  std::vector<double> vv_terms(ranks_ ? act.size() : 0), aa_terms(vv_terms.size());
+  bool iterated = false;
   for (int it = 0; it < 40; ++it) {
     double vmax = 0, vv = 0;
-    for (std::size_t i = 0; i < n; ++i) vmax = std::max(vmax, double(v[i].cwiseAbs().maxCoeff()));
+    for (std::uint32_t i : act) vmax = std::max(vmax, double(v[i].cwiseAbs().maxCoeff()));
+    if (ranks_) vmax = dist::Comm::world().max(vmax);  // exact
     if (!(vmax > 0)) break;
-    for (std::size_t i = 0; i < n; ++i) {
+    for (std::size_t k = 0; k < act.size(); ++k) {
+      const std::uint32_t i = act[k];
       v[i] /= Real(vmax);
-      vv += double(v[i].squaredNorm());
+      const double t = double(v[i].squaredNorm());
+      if (ranks_) vv_terms[k] = t;
+      vv += t;
       x[i] = x_start[i] + amp * v[i];
     }
-    pd_dilatation(space, p, bonds_, prm, &scratch_);
-    pd_forces(space, p, bonds_, prm, false, f.data(), nullptr, &scratch_);
+    forces(f);
     double aa = 0;
-    for (std::size_t i = 0; i < n; ++i) {
+    for (std::size_t k = 0; k < act.size(); ++k) {
+      const std::uint32_t i = act[k];
       v[i] = fixed[i] ? Vec3::Zero()
                       : Vec3(-(f[i] - f0[i]) / (amp * materials_[std::size_t(mat[i])].density));
-      aa += double(v[i].squaredNorm());
+      const double t = double(v[i].squaredNorm());
+      if (ranks_) aa_terms[k] = t;
+      aa += t;
     }
     lambda = std::sqrt(aa / vv);  // |A v| / |v| -> the largest |eigenvalue| of A = rho^-1 K
+    iterated = true;
   }
   std::copy(x_start.begin(), x_start.end(), x);
-  if (!(lambda > 0)) return std::numeric_limits<Real>::infinity();
+  if (ranks_ && iterated) {  // the sums in global id order (as one process adds them)
+    const dist::Comm& comm = dist::Comm::world();
+    const std::vector<std::uint64_t> gid = global_ids();
+    std::vector<double> mine;
+    for (std::size_t k = 0; k < act.size(); ++k)
+      mine.insert(mine.end(), {double(gid[act[k]]), vv_terms[k], aa_terms[k]});
+    const std::vector<double> all =
+        dist::from_bytes<double>(comm.gather(dist::as_bytes(mine), nullptr));
+    std::vector<char> out(sizeof(double));
+    if (comm.root()) {
+      std::vector<double> vv_g(global_particle_count(), 0), aa_g(vv_g.size(), 0);
+      for (std::size_t k = 0; k + 2 < all.size(); k += 3)
+        vv_g[std::size_t(all[k])] = all[k + 1], aa_g[std::size_t(all[k])] = all[k + 2];
+      double vv = 0, aa = 0;
+      for (std::size_t i = 0; i < vv_g.size(); ++i) vv += vv_g[i], aa += aa_g[i];
+      lambda = std::sqrt(aa / vv);
+      std::memcpy(out.data(), &lambda, sizeof lambda);
+    }
+    comm.broadcast(out);
+    std::memcpy(&lambda, out.data(), sizeof lambda);
+  }
   // Power iteration approaches the largest eigenvalue from below: 10 % margin on omega^2.
   return Real(2.0 / std::sqrt(1.1 * lambda));
 }

@@ -113,6 +113,14 @@ class PdSolver {
   // Builds the bond families and the model constants from the current positions (the reference
   // configuration) and the initial forces. Called once, after the particles are added.
   void initialize(const exec::Space& space);
+  // The same on several MPI ranks (collective; one rank: initialize()), and distributed (see
+  // distribute()) without the whole bond list: every rank holds every particle's per-particle
+  // data (set up alike, as added) but builds the bond rows, the per-bond arrays and the constants
+  // that need a row only for the particles it owns (and, for the surface correction's shared
+  // fits, the first particle of each of its families elsewhere; DistStats::rows_built); the
+  // ghosts' constants and the mirrored per-bond values come from their owners. Bitwise the
+  // whole set-up followed by distribute() (solvers/pd_distributed.cpp).
+  void initialize_distributed(const exec::Space& space);
 
   void step(const exec::Space& space, Real dt);
   // min(max_dt, cfl * the critical Verlet step (computed once: it depends on the reference
@@ -199,9 +207,18 @@ class PdSolver {
   bool restore_bonds(const std::vector<std::uint64_t>& offsets,
                      const std::vector<std::uint32_t>& neighbor, const std::vector<Real>& plastic,
                      const std::vector<std::uint8_t>& intact);
+  // Distributed (collective): a whole checkpoint (`all`: every particle in global id order, and
+  // the global bond rows) into this rank's local particles and own rows, then re-ghosted. False on
+  // every rank (nothing usable) when some rank's rows are not a subset of its bonds.
+  bool restore_distributed(const exec::Space& space, const ParticleSet& all,
+                           const std::vector<std::uint64_t>& offsets,
+                           const std::vector<std::uint32_t>& neighbor,
+                           const std::vector<Real>& plastic,
+                           const std::vector<std::uint8_t>& intact);
 
   // Distributed runs (issue 28; solvers/pd_distributed.cpp). Collective: every rank calls it
-  // with the same solver (set up alike on every rank, with the whole state). Zoltan's RCB splits
+  // with the same solver (set up alike on every rank, with the whole state; a no-op after
+  // initialize_distributed, which gives the same layout without the whole bond list). Zoltan's RCB splits
   // the particles by reference position, weighted by bonds, and keeps its cuts; afterwards each
   // rank holds only its own particles and their ghosts (the bond neighbours of its rows and the
   // particles within contact reach), in the order of their global ids, with the CSR rows of its
@@ -236,6 +253,10 @@ class PdSolver {
     double imbalance = 1;  // max / mean bond work per rank, at the last cut
     std::uint64_t step_bytes = 0, step_messages = 0;  // halo traffic sent in the last step
     double comm_seconds = 0;  // in the halo exchanges and re-ghosting, summed
+    // initialize_distributed: bond rows this rank built (its own particles' and, of those, the
+    // family representatives owned elsewhere, family_rows), and its set-up's seconds.
+    std::uint64_t rows_built = 0, family_rows = 0;
+    double setup_seconds = 0;
   };
   const DistStats& dist_stats() const { return dist_stats_; }
   // This rank's own rows' broken bonds to ghosts, and its own particles in contact (closer than
@@ -266,7 +287,11 @@ class PdSolver {
   // elastic, no fracture), with a 10 % margin. Silling & Askari's bound (2005, eq. 34) and
   // Gershgorin's bound on the state-based forces were 2.6x and 3.5-4.5x below the measured
   // critical step of a corrected 8^3 block, i.e. that many more steps for nothing.
-  Real critical_dt(const exec::Space& space);
+  // start (distributed): the power iteration's start vector per local particle (the single
+  // process's draw); the ordered sums of its last iteration are gathered on rank 0.
+  Real critical_dt(const exec::Space& space, const std::vector<Vec3>* start = nullptr);
+  // The power iteration's start vector of every particle (fixed ones zero; a fixed seed).
+  std::vector<Vec3> probe_start() const;
   std::vector<Vec3> force_;
   PdScratch scratch_;    // the passes' per-particle records, reused every step
   std::vector<Real> q_;  // consistent term per particle (PdView::q), recomputed every step
@@ -289,9 +314,17 @@ class PdSolver {
   std::uint64_t global_stored_ = 0;  // distributed: stored bonds summed over the ranks
   // The local particles rebuilt (re-ghosting, with migration when repartitioning): see
   // pd_distributed.cpp. Then the contact list is rebuilt.
-  void relocal(const exec::Space& space, bool repartition);
+  // keep (optional, per bond): the own rows' bonds that stay (a checkpoint's restriction).
+  void relocal(const exec::Space& space, bool repartition,
+               const std::vector<std::uint8_t>* keep = nullptr);
+  // bond_plan: the bond halo also without plastic materials (the set-up's mirrored values).
   void assemble_local(const exec::Space& space, std::vector<LocalEntry>& entries,
-                      std::shared_ptr<Ranks> ranks);
+                      std::shared_ptr<Ranks> ranks, bool bond_plan = false);
+  // Distributed set-up: the far ends' omega and shear_omega of the own rows' bonds (from this
+  // rank's rows, else from the owners' through the bond halo); every ghost's constants.
+  void mirror_distributed();
+  // Pre-cracks break the bonds of `b` (row q is particle rows[q]; null: q) crossing them.
+  void apply_precracks(const exec::Space& space, PdBonds& b, const std::uint32_t* rows);
   // Distributed: the ghosts' positions before the bond passes (or a re-ghost when the contact
   // list is rebuilt or a repartition is due).
   void exchange_positions(const exec::Space& space);

@@ -25,6 +25,14 @@ num() { echo "$line" | sed -n "s/.* \([0-9][0-9]*\) $1.*/\1/p"; }
 [ "$(num 'repartitions')" -gt 5 ] 2>/dev/null || { echo "too few repartitions"; exit 1; }
 [ "$(num 'directed bonds broken between ranks')" -gt 0 ] 2>/dev/null || { echo "no bond broke between ranks"; exit 1; }
 [ "$(num "contacts with another rank")" -gt 0 ] 2>/dev/null || { echo "no contact across ranks"; exit 1; }
+# The set-up builds each particle's bond row once, on its owner (plus a few rows of families'
+# first members fitted for another rank), not the whole list on every rank.
+setup=$(grep "amalgam: distributed set-up:" "$out/rep.log")
+echo "$setup"
+built=$(echo "$setup" | sed -n 's/.*set-up: \([0-9]*\) bond rows built over the ranks for \([0-9]*\) particles (\([0-9]*\) of them.*/\1 \2 \3/p')
+read -r rows_built particles family <<<"$built"
+[ -n "$rows_built" ] && [ $((rows_built - family)) -eq "$particles" ] && [ $((4 * family)) -lt "$particles" ] ||
+  { echo "the set-up built rows it does not need: $setup"; exit 1; }
 resumes 3 3 2 0 || exit 1  # checkpoint on 3 ranks after frame 3, resumed on 2 and on 1
 interrupted 4 150 3 || exit 1  # inside frame 4, on 4 ranks; resumed on 3
 parts_match 2 3 || exit 1        # per-rank parts (owned particles), merged

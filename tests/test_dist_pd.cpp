@@ -6,6 +6,7 @@
 // those of the single process's solver, which every rank also runs.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -24,7 +25,7 @@ constexpr double kLc = 0.01;
 
 // Two brittle blocks flying at each other (they touch, break and bounce) over n x n/2 x n/2
 // lattices, with contact and fracture.
-PdSolver make_scene(int n, const exec::Space& space, bool plastic = false) {
+PdSolver make_scene(int n, const exec::Space& space, bool plastic = false, bool init = true) {
   PdSettings s;
   s.spacing = Real(kLc);
   s.horizon = Real(3.01 * kLc);
@@ -47,7 +48,7 @@ PdSolver make_scene(int n, const exec::Space& space, bool plastic = false) {
     solver.add_particles(x, Vec3(Real(b ? -6 : 6), 0, 0), Vec3(0, 0, Real(b ? 20 : -20)),
                          x[x.size() / 2], 0, Real(kLc * kLc * kLc));
   }
-  solver.initialize(space);
+  if (init) solver.initialize(space);
   return solver;
 }
 
@@ -134,6 +135,88 @@ TEST(DistPd, MemoryPerRankScales) {
   }
   EXPECT_EQ(comm.sum(std::uint64_t(own)), n);
 }
+
+template <class T>
+void expect_same(const std::vector<T>& a, const std::vector<T>& b, const char* what) {
+  ASSERT_EQ(a.size(), b.size()) << what;
+  if (!a.empty())
+    EXPECT_EQ(std::memcmp(a.data(), b.data(), a.size() * sizeof(T)), 0)
+        << what << " on rank " << dist::Comm::world().rank();
+}
+
+// initialize_distributed builds the bond rows of the own particles only (plus, per family, the
+// row of its first member when another rank owns it: the shared fit's bond vectors), and its
+// local state is bitwise the whole set-up's then distribute()'s: particles, every per-bond array,
+// the constants of own particles and ghosts, the critical step. Elastic with a pre-crack, and
+// plastic.
+class DistPdSetUp : public ::testing::TestWithParam<bool> {};
+
+TEST_P(DistPdSetUp, BuildsOnlyTheRowsItNeedsBitwiseTheWholeSetUp) {
+  const exec::Space space;
+  PdSolver ref = make_scene(16, space, GetParam(), false);
+  if (!GetParam())
+    ref.add_precrack(Vec3(Real(0.035), 0, 0), Vec3(1, 0, 0), Vec3::Constant(-1), Vec3::Constant(1));
+  PdSolver s = ref;
+  const std::uint64_t n = ref.particles().size();
+  ref.initialize(space);
+  ref.distribute(space);
+  s.initialize_distributed(space);
+  const dist::Comm& comm = dist::Comm::world();
+  const PdSolver::DistStats& st = s.dist_stats();
+  std::printf("rank %d: %llu bond rows built for %llu own particles (%llu family rows) of %llu\n",
+              comm.rank(), (unsigned long long)st.rows_built, (unsigned long long)st.owned,
+              (unsigned long long)st.family_rows, (unsigned long long)n);
+  if (comm.size() > 1) {
+    EXPECT_EQ(st.rows_built, st.owned + st.family_rows) << "rank " << comm.rank();
+    // A family's first member elsewhere: a few per distinct family, far fewer than the own rows.
+    EXPECT_LT(double(st.family_rows), 0.25 * double(st.owned)) << "rank " << comm.rank();
+    EXPECT_LT(double(st.rows_built), 0.8 * double(n)) << "rank " << comm.rank();
+  }
+  if (comm.size() > 1) EXPECT_EQ(comm.sum(st.owned), n);
+  ASSERT_EQ(s.particles().size(), ref.particles().size()) << "rank " << comm.rank();
+  EXPECT_EQ(s.global_ids(), ref.global_ids());
+  for (int a = 0; a < ref.particles().attribute_count(); ++a) {
+    const std::size_t w = std::size_t(ref.particles().words_per_particle(a));
+    EXPECT_EQ(std::memcmp(s.particles().words(a), ref.particles().words(a),
+                          ref.particles().size() * w * 4),
+              0)
+        << ref.particles().name(a) << " on rank " << comm.rank();
+  }
+  const PdBonds &b = s.bonds(), &r = ref.bonds();
+  expect_same(b.offsets, r.offsets, "offsets");
+  expect_same(b.neighbor, r.neighbor, "neighbor");
+  expect_same(b.reverse, r.reverse, "reverse");
+  expect_same(b.length, r.length, "length");
+  expect_same(b.omega, r.omega, "omega");
+  expect_same(b.shear_omega, r.shear_omega, "shear_omega");
+  expect_same(b.volume, r.volume, "volume");
+  expect_same(b.plastic, r.plastic, "plastic");
+  expect_same(b.intact, r.intact, "intact");
+  expect_same(b.omega_r, r.omega_r, "omega_r");
+  expect_same(b.shear_omega_r, r.shear_omega_r, "shear_omega_r");
+  expect_same(b.plastic_r, r.plastic_r, "plastic_r");
+  expect_same(b.lane, r.lane, "lane");
+  expect_same(b.dense, r.dense, "dense");
+  const PdConstants &c = s.constants(), &rc = ref.constants();
+  expect_same(c.m, rc.m, "m");
+  expect_same(c.a, rc.a, "a");
+  expect_same(c.b, rc.b, "b");
+  expect_same(c.kappa, rc.kappa, "kappa");
+  expect_same(c.bonds0, rc.bonds0, "bonds0");
+  expect_same(c.fitted, rc.fitted, "fitted");
+  if (!GetParam())  // the pre-crack broke bonds
+    EXPECT_GT(s.global_sum(std::uint64_t(std::count(b.intact.begin(), b.intact.end(), 0))), 0u);
+  EXPECT_EQ(s.stable_dt(space), ref.stable_dt(space));
+  EXPECT_EQ(s.diagnostics(space).bonds, ref.diagnostics(space).bonds);
+  run(ref, space, 10);
+  run(s, space, 10);
+  ParticleSet a, ra;
+  s.gather_particles(a);
+  ref.gather_particles(ra);
+  test::expect_gathered_bitwise(a, ra);
+}
+
+INSTANTIATE_TEST_SUITE_P(ElasticAndPlastic, DistPdSetUp, ::testing::Bool());
 
 class DistPdBitwise : public ::testing::TestWithParam<bool> {};
 
