@@ -53,8 +53,9 @@ double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 
-// Files are written by MPI rank 0 only: on a distributed run every rank holds the whole particle
-// state (solvers/pd_distributed.cpp), and the other ranks take part in the collectives alone.
+// Shared files (gathered frames, the single-file checkpoint, diagnostics, samples) are written by
+// MPI rank 0 only: it holds what the collectives joined (the gathered particles, the exact sums
+// of every rank's diagnostics), and the other ranks take part in the collectives alone.
 bool writes_files() {
   return dist::Comm::world().root();
 }
