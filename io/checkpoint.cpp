@@ -25,8 +25,10 @@ constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
 // 6: the particle count may differ from the scene's initial one (MPM emitters and kill regions,
 // whose state follows in section sources.state); 7: per-rank checkpoints (a manifest naming one
 // part per rank, each a version-7 file of the rank's particles with their order keys in section
-// dist.order; a single file is laid out as version 6)
-constexpr std::uint32_t kVersion = 7;
+// dist.order; a single file is laid out as version 6); 8: MPM particles store no mass (it is
+// density x volume0, MaterialParams::mass; an older file's "mass" is skipped on reading, as it
+// always held that product)
+constexpr std::uint32_t kVersion = 8;
 constexpr char kOrderSection[] = "dist.order";
 
 template <class T>
@@ -163,10 +165,12 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
     for (const char* lo : {"x_lo", "F_lo"})
       if (ps.find(lo) >= 0) missing.push_back(ps.find(lo));
   const std::uint32_t nmissing = std::uint32_t(missing.size());
-  if (nattr + nmissing != std::uint32_t(ps.attribute_count()))
+  // Before version 8 MPM particles stored their mass (dropped: it is recomputed).
+  const std::uint32_t ndropped = version < 8 && ps.find("volume0") >= 0 ? 1 : 0;
+  if (nattr + nmissing != std::uint32_t(ps.attribute_count()) + ndropped)
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
                      " particle attributes, expected " +
-                     std::to_string(ps.attribute_count() - int(nmissing)));
+                     std::to_string(ps.attribute_count() - int(nmissing) + int(ndropped)));
   if (max_particles > 0 && version >= 6) {  // checked before anything is sized by it
     if (n > max_particles)
       throw InputError(path + ": checkpoint field 'particle count' is " + std::to_string(n) +
@@ -185,6 +189,11 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
     const auto type = r.get<std::uint32_t>("attribute type");
     const auto width = r.get<std::uint32_t>("attribute width");
     const auto words = r.get<std::uint32_t>("attribute words");
+    if (ndropped && name == "mass" && a < 0 && type == std::uint32_t(AttrType::Real) &&
+        width == 1 && words == std::uint32_t(sizeof(Real) / 4)) {
+      r.take(size_t(n) * 4 * words, "attribute data");
+      continue;
+    }
     if (a < 0 || type != std::uint32_t(ps.type(a)) || width != std::uint32_t(ps.width(a)) ||
         words != std::uint32_t(ps.words_per_particle(a)))
       throw InputError(path + ": checkpoint attribute '" + name +

@@ -177,17 +177,17 @@ inline void scatter_bin(Block<Order, CH>& blk, std::uint32_t b, const MpmParticl
         Lv[l] = p.C[q] * Fs_inv[l];
       }
     }
-    prm.materials[p.material[q0]].kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic, temperature,
-                                                  tau, n);
+    const MaterialParams& mat = prm.materials[p.material[q0]];
+    mat.kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic, temperature, tau, n);
     for (int l = 0; l < n; ++l) {
       const std::uint32_t q = q0 + std::uint32_t(l);
       if constexpr (!L) {
-        p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l], p.mass[q],
-                                   p.volume0[q], dx, inv_dx, dt);
+        p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l],
+                                   mat.mass(p.volume0[q]), p.volume0[q], dx, inv_dx, dt);
       } else {
         p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q],
-                                      tau[l] * Fs_inv[l].transpose(), p.mass[q], p.volume0[q], dx,
-                                      inv_dx, dt, p.x[q], p.F_s[q]);
+                                      tau[l] * Fs_inv[l].transpose(), mat.mass(p.volume0[q]),
+                                      p.volume0[q], dx, inv_dx, dt, p.x[q], p.F_s[q]);
       }
     }
     q0 += std::uint32_t(n);
@@ -539,7 +539,7 @@ struct G2P {
 
 template <int Order>
 void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
-                        Real dx, Real* out) {
+                        Real dx, const MaterialParams* materials, Real* out) {
   using Blk = Block<Order, 4>;
   const Real inv_dx = Real(1) / dx;
   const Mat3 zero = Mat3::Zero();
@@ -555,7 +555,8 @@ void p2g_positions_impl(const exec::Space& space, const MpmParticleView& p, cons
           // The APIC scatter with v -> x_p and C -> F_s: m w (x_p + F_s (X_i - X_p)), no stress.
           for (std::uint32_t q = g.bin_start[b]; q < g.bin_start[b + 1]; ++q)
             p2g_particle<Order, Transfer::Apic, 4>(blk, origin, p.X_ref[q], p.x[q], p.F_s[q], zero,
-                                                   p.mass[q], 0, dx, inv_dx, 0);
+                                                   materials[p.material[q]].mass(p.volume0[q]), 0,
+                                                   dx, inv_dx, 0);
           blk.flush_add4(g.nbr8[b], out);
         },
         1);
@@ -568,9 +569,9 @@ void p2g_positions(const exec::Space& space, const MpmParticleView& p, const Mpm
                    const MpmStepParams& prm, Real* out) {
   clear_node4(space, g, out);
   if (prm.order == 3)
-    p2g_positions_impl<3>(space, p, g, prm.dx, out);
+    p2g_positions_impl<3>(space, p, g, prm.dx, prm.materials, out);
   else
-    p2g_positions_impl<2>(space, p, g, prm.dx, out);
+    p2g_positions_impl<2>(space, p, g, prm.dx, prm.materials, out);
 }
 
 void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {

@@ -40,8 +40,7 @@ struct MpmParticleView {
   Vec3* v;
   Mat3* C;
   Mat3* F;
-  const Real* mass;
-  const Real* volume0;
+  const Real* volume0;  // mass: MaterialParams::mass(volume0) of the particle's material
   const std::int32_t* material;
   std::size_t n;
   // The low parts of x and F (core/math/types.hpp: add_compensated); null: plain Real state

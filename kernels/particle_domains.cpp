@@ -189,7 +189,7 @@ void domain_particles_to_corners(const exec::Space& space, const DomainParticleV
     for (std::uint32_t k = c.adj_start[a]; k < c.adj_start[a + 1]; ++k) {
       const std::size_t q = c.adj[k] >> 3;
       if (p.state[q] == kDomainDisabled) continue;
-      const Real w = Real(0.125) * p.mass[q];  // omega_ap m_p
+      const Real w = Real(0.125) * p.materials[p.material[q]].mass(p.volume0[q]);  // omega_ap m_p
       m += w;
       mv += w * p.v[q];
       f += corner_force(p, piola, quad, q, int(c.adj[k] & 7));  // eq. 8
@@ -396,8 +396,9 @@ void domain_collect_particle_points(const exec::Space& space, const DomainPartic
     const std::size_t k = base + start[i];
     const MaterialParams& m = prm.materials[p.material[i]];
     out.x[k] = p.x[i];
-    out.m[k] = p.mass[i];
-    out.p[k] = p.mass[i] * p.v[i];
+    const Real mass = m.mass(p.volume0[i]);
+    out.m[k] = mass;
+    out.p[k] = mass * p.v[i];
     out.f[k].setZero();
     out.stress[k] = p.volume0[i] * m.kirchhoff(p.F[i], p.C[i], p.plastic ? p.plastic[i] : Real(0),
                                                p.temperature ? p.temperature[i] : Real(0));

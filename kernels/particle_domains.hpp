@@ -57,14 +57,14 @@ struct DomainParticleView {
   Vec3* x;
   Vec3* v;
   Mat3* F;
-  const Real* mass;
-  const Real* volume0;
+  const Real* volume0;  // mass: MaterialParams::mass(volume0) of the particle's material
   const std::int32_t* material;
   const std::int32_t*
       corners;          // 8 per particle; slot a = 4 bx + 2 by + bz, corner at X_p + (b - 1/2) h
   const Vec3* h;        // reference domain edges
   std::int32_t* state;  // DomainState
   std::size_t n;
+  const MaterialParams* materials = nullptr;  // indexed by material (the mass, density x volume0)
   const Real* plastic = nullptr;
   const Real* temperature = nullptr;
   Mat3* C = nullptr;  // disabled particles: their velocity gradient (viscous stress)

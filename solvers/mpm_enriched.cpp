@@ -43,16 +43,10 @@ void MpmEnriched::add_object(MpmSolver& mpm, std::size_t first, Real h,
 DomainParticleView MpmEnriched::particle_view(MpmSolver& mpm) {
   ParticleSet& ps = mpm.particles();
   const MpmAttributes& a = mpm.attributes();
-  DomainParticleView v{ps.vec3(a.x),
-                       ps.vec3(a.v),
-                       ps.mat3(a.F),
-                       ps.real(a.mass),
-                       ps.real(a.volume0),
-                       ps.int32(a.material),
-                       ps.int32(dattr_.corners),
-                       ps.vec3(dattr_.h),
-                       ps.int32(dattr_.state),
-                       ps.size()};
+  DomainParticleView v{ps.vec3(a.x),       ps.vec3(a.v),           ps.mat3(a.F),
+                       ps.real(a.volume0), ps.int32(a.material),   ps.int32(dattr_.corners),
+                       ps.vec3(dattr_.h),  ps.int32(dattr_.state), ps.size()};
+  v.materials = mpm.materials().data();
   if (a.plastic >= 0) v.plastic = ps.real(a.plastic);
   if (a.temperature >= 0) v.temperature = ps.real(a.temperature);
   v.C = ps.mat3(a.C);

@@ -116,14 +116,12 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
   Vec3* pv = particles_.vec3(attr_.v);
   Mat3* pC = particles_.mat3(attr_.C);
   Mat3* pF = particles_.mat3(attr_.F);
-  Real* pm = particles_.real(attr_.mass);
   Real* pV = particles_.real(attr_.volume0);
   std::int32_t* pmat = particles_.int32(attr_.material);
   std::int32_t* pid = particles_.int32(attr_.id);
   Mat3 W;  // velocity gradient of the rigid rotation: v = omega x r  =>  grad v = [omega]_x
   W << 0, -omega[2], omega[1], omega[2], 0, -omega[0], -omega[1], omega[0], 0;
   const MaterialParams& mat = materials_[size_t(material)];
-  const Real mass = mat.density * volume_per_particle;
   Real* pplastic = attr_.plastic >= 0 ? particles_.real(attr_.plastic) : nullptr;
   Real* ptemp = attr_.temperature >= 0 ? particles_.real(attr_.temperature) : nullptr;
   for (size_t i = 0; i < x.size(); ++i) {
@@ -132,7 +130,6 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
     pv[p] = v0 + omega.cross(x[i] - centre);
     pC[p] = W;
     pF[p] = Mat3::Identity();
-    pm[p] = mass;
     pV[p] = volume_per_particle;
     pmat[p] = material;
     pid[p] = std::int32_t(next_id_ + ids.offset + std::int64_t(i));
@@ -192,10 +189,10 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
 }
 
 MpmParticleView MpmSolver::particle_view() {
-  MpmParticleView v{particles_.vec3(attr_.x),         particles_.vec3(attr_.v),
-                    particles_.mat3(attr_.C),         particles_.mat3(attr_.F),
-                    particles_.real(attr_.mass),      particles_.real(attr_.volume0),
-                    particles_.int32(attr_.material), particles_.size()};
+  MpmParticleView v{
+      particles_.vec3(attr_.x), particles_.vec3(attr_.v),       particles_.mat3(attr_.C),
+      particles_.mat3(attr_.F), particles_.real(attr_.volume0), particles_.int32(attr_.material),
+      particles_.size()};
   v.x_lo = particles_.vec3(attr_.x_lo);
   v.F_lo = particles_.mat3(attr_.F_lo);
   if (attr_.plastic >= 0) v.plastic = particles_.real(attr_.plastic);
@@ -518,7 +515,6 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
   };
   const Vec3* v = particles_.vec3(attr_.v);
   const Mat3* F = particles_.mat3(attr_.F);
-  const Real* m = particles_.real(attr_.mass);
   const Real* V0 = particles_.real(attr_.volume0);
   const std::int32_t* mat = particles_.int32(attr_.material);
   const MaterialParams* mats = materials_.data();
@@ -528,7 +524,7 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
       space, "mpm.diagnostics", exec::Index(particles_.size()), Acc{},
       [=](exec::Index i, Acc& acc) {
         const Vec3d vi = v[i].cast<double>();
-        const double mi = double(m[i]);
+        const double mi = double(mats[mat[i]].mass(V0[i]));
         acc.s[0].add(0.5 * mi * vi.squaredNorm());
         acc.s[1].add(double(V0[i]) *
                      double(mats[mat[i]].energy(F[i], plastic ? plastic[i] : Real(0),

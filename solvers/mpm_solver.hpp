@@ -116,6 +116,11 @@ class MpmSolver {
   const MpmAttributes& attributes() const { return attr_; }
   const MpmSettings& settings() const { return settings_; }
   const std::vector<MaterialParams>& materials() const { return materials_; }
+  // Particle p's mass (not stored: its material's density x its volume0).
+  Real particle_mass(std::size_t p) const {
+    return materials_[std::size_t(particles_.int32(attr_.material)[p])].mass(
+        particles_.real(attr_.volume0)[p]);
+  }
   const SparseGrid& grid() const { return grid_; }
   const BinTable& bins() const { return bins_; }
   const GridChannels& channels() const { return channels_; }

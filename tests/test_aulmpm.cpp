@@ -41,11 +41,10 @@ double angular_momentum_y(const MpmSolver& s) {
   const auto& a = s.attributes();
   const Vec3* x = ps.vec3(a.x);
   const Vec3* v = ps.vec3(a.v);
-  const Real* m = ps.real(a.mass);
   double L = 0;
   for (size_t p = 0; p < ps.size(); ++p) {
     const Vec3d r = (x[p] - Vec3(0.5, 0.5, 0.5)).cast<double>();
-    L += double(m[p]) * r.cross(v[p].cast<double>())[1];
+    L += double(s.particle_mass(p)) * r.cross(v[p].cast<double>())[1];
   }
   return L;
 }
@@ -58,12 +57,11 @@ double total_angular_momentum_y(const MpmSolver& s) {
   const auto& ps = s.particles();
   const Mat3* C = ps.mat3(s.attributes().C);
   const Mat3* Fs = ps.mat3(s.aul()->attributes().F_s);
-  const Real* m = ps.real(s.attributes().mass);
   const double D = 0.01 * 0.01 / 4;
   double L = angular_momentum_y(s);
   for (size_t p = 0; p < ps.size(); ++p) {
     const Mat3d A = (Fs[p] * C[p].transpose()).cast<double>();
-    L += double(m[p]) * D * (A(2, 0) - A(0, 2));
+    L += double(s.particle_mass(p)) * D * (A(2, 0) - A(0, 2));
   }
   return L;
 }

@@ -206,6 +206,56 @@ TEST(Checkpoint, FieldsAreCheckedAgainstTheSceneDespiteAValidChecksum) {
   std::remove(bad.c_str());
 }
 
+// Format 8 dropped the MPM particles' "mass" (density x volume0, recomputed where used): a
+// version-7 file, which stored it, is read with it skipped and resumes bitwise; a version-8 file
+// with a mass attribute is refused, naming the attribute count.
+TEST(Checkpoint, VersionSevenMassIsSkipped) {
+  const Scene scene = parse_scene(kScene, "s.json");
+  MpmSimulation sim_a(build_solver(scene)), sim_b(build_solver(scene));
+  MpmSolver& a = sim_a.solver();
+  const exec::Space space;
+  for (int i = 0; i < 3; ++i) a.step(space, a.stable_dt(space));
+  const std::string path = tmp_path("v7.amck"), old = tmp_path("v7_old.amck");
+  write_checkpoint(path, sim_a, 2, scene.fingerprint);
+  const std::string v8 = slurp(path);
+  // The same state as version 7 wrote it: "mass" inserted as the first attribute.
+  std::uint64_t n;
+  std::memcpy(&n, v8.data() + kCountAt, 8);
+  std::string rec;
+  auto put32 = [&](std::uint32_t v) { rec.append(reinterpret_cast<const char*>(&v), 4); };
+  put32(4);
+  rec += "mass";
+  put32(0);  // AttrType::Real
+  put32(1);
+  put32(std::uint32_t(sizeof(Real) / 4));
+  for (std::size_t p = 0; p < n; ++p) {
+    const Real m = a.particle_mass(p);
+    rec.append(reinterpret_cast<const char*>(&m), sizeof m);
+  }
+  std::string d = v8;
+  std::uint32_t nattr;
+  std::memcpy(&nattr, d.data() + kCountAt + 8, 4);
+  ++nattr;
+  std::memcpy(d.data() + kCountAt + 8, &nattr, 4);
+  d.insert(kCountAt + 12, rec);
+  spit(old, with_field(d, 13, std::uint32_t(7)));
+  read_checkpoint(old, sim_b, scene.fingerprint);
+  const ParticleSet &pa = a.particles(), &pb = sim_b.solver().particles();
+  ASSERT_EQ(pb.size(), pa.size());
+  for (int at = 0; at < pa.attribute_count(); ++at)
+    EXPECT_EQ(
+        std::memcmp(pa.words(at), pb.words(at), pa.size() * 4 * size_t(pa.words_per_particle(at))),
+        0)
+        << pa.name(at);
+  spit(old, resealed(d));  // version 8 with a mass attribute
+  EXPECT_NE(error_reading(old, scene.fingerprint)
+                .find("checkpoint has " + std::to_string(nattr) +
+                      " particle attributes, expected " + std::to_string(nattr - 1)),
+            std::string::npos);
+  std::remove(path.c_str());
+  std::remove(old.c_str());
+}
+
 // `--resume` of a device, a FIFO or a directory is refused before anything is read (reading
 // /dev/zero whole ended in std::bad_alloc).
 TEST(Checkpoint, OnlyRegularFilesAreRead) {

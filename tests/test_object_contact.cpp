@@ -46,12 +46,11 @@ Bodies measure(const MpmSolver& s) {
   const auto& ps = s.particles();
   const Vec3* x = ps.vec3(s.attributes().x);
   const Vec3* v = ps.vec3(s.attributes().v);
-  const Real* m = ps.real(s.attributes().mass);
   const std::int32_t* k = ps.int32(s.aul()->attributes().object);
   Bodies b;
   double amax = -1e30, bmin = 1e30;
   for (size_t p = 0; p < ps.size(); ++p) {
-    const double mp = double(m[p]);
+    const double mp = double(s.particle_mass(p));
     b.px += mp * double(v[p][0]);
     if (k[p] == 0) {
       b.xa += mp * double(x[p][0]), b.va += mp * double(v[p][0]), b.ma += mp;

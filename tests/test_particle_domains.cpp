@@ -88,11 +88,11 @@ struct Totals {
 Totals totals(const MpmSolver& s) {
   const auto& ps = s.particles();
   const Vec3* v = ps.vec3(s.attributes().v);
-  const Real* m = ps.real(s.attributes().mass);
   Totals t;
   for (size_t p = 0; p < ps.size(); ++p) {
-    t.mass += double(m[p]);
-    t.momentum += double(m[p]) * v[p].cast<double>();
+    const double m = double(s.particle_mass(p));
+    t.mass += m;
+    t.momentum += m * v[p].cast<double>();
     t.max_speed = std::max(t.max_speed, double(v[p].norm()));
   }
   return t;

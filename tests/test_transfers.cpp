@@ -74,7 +74,7 @@ Moments particle_moments(const MpmSolver& s, bool affine) {
   const double D =
       double(s.settings().dx) * double(s.settings().dx) / (s.settings().order == 2 ? 4.0 : 3.0);
   for (size_t p = 0; p < ps.size(); ++p) {
-    const double m = ps.real(a.mass)[p];
+    const double m = s.particle_mass(p);
     const Vec3d x = ps.vec3(a.x)[p].cast<double>(), v = ps.vec3(a.v)[p].cast<double>();
     const Mat3d C = ps.mat3(a.C)[p].cast<double>();
     r.m += m;

@@ -117,7 +117,7 @@ TEST(VdbGridFields, ReadBackMassAndVelocity) {
   for (auto it = mass->cbeginValueOn(); it; ++it) total += double(*it), ++voxels;
   double particles = 0;
   for (size_t p = 0; p < solver.particles().size(); ++p)
-    particles += double(solver.particles().real(solver.attributes().mass)[p]);
+    particles += double(solver.particle_mass(p));
   EXPECT_NEAR(total, particles, 1e-4 * particles);
   EXPECT_EQ(vel->activeVoxelCount(), voxels);
   // Spot-check velocities against the grid's own storage.

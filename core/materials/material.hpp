@@ -47,6 +47,9 @@ struct MaterialParams {
   bool melting = false;
   Real melting_point = 0, liquid_bulk = 0, liquid_viscosity = 0;
 
+  // A particle's mass from its initial volume: MPM particles store no mass (one float product,
+  // the same everywhere, so every use sees the same bits).
+  Real mass(Real volume0) const { return density * volume0; }
   bool melted(Real temperature) const { return melting && temperature >= melting_point; }
   // Whether particles of this material carry a plastic scalar, and its value at rest.
   bool has_plastic_state() const {

@@ -181,7 +181,6 @@ MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperat
   m.C = ps.add("C", AttrType::Real, 9);
   m.F = ps.add("F", AttrType::Real, 9);
   m.F_lo = ps.add("F_lo", AttrType::Real, 9);
-  m.mass = ps.add("mass", AttrType::Real, 1);
   m.volume0 = ps.add("volume0", AttrType::Real, 1);
   m.material = ps.add("material", AttrType::Int32, 1);
   m.id = ps.add("id", AttrType::Int32, 1);
@@ -198,7 +197,6 @@ MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
   m.C = ps.id("C");
   m.F = ps.id("F");
   m.F_lo = ps.id("F_lo");
-  m.mass = ps.id("mass");
   m.volume0 = ps.id("volume0");
   m.material = ps.id("material");
   m.id = ps.id("id");

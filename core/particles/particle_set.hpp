@@ -103,8 +103,10 @@ class ParticleSet {
 // sort or store them.
 struct MpmAttributes {
   // id: stable particle number; x_lo, F_lo: the low parts of x + x_lo and F + F_lo
-  // (core/math/types.hpp: add_compensated)
-  ParticleSet::Id x, x_lo, v, C, F, F_lo, mass, volume0, material, id;
+  // (core/math/types.hpp: add_compensated). No mass: a particle's mass is
+  // materials[material].density * volume0 (particle_mass), the float product add_particles
+  // stored until checkpoint version 8, so recomputing it is bitwise the stored value.
+  ParticleSet::Id x, x_lo, v, C, F, F_lo, volume0, material, id;
   ParticleSet::Id plastic = -1, temperature = -1;
   static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false);
   static MpmAttributes find_in(const ParticleSet& ps);
