@@ -25,6 +25,7 @@ PKGS=(
                                        # compiler-rt's ASan/UBSan/libFuzzer, LLVM's OpenMP (clang's -fopenmp)
   libtrilinos-kokkos-dev   # the optional Kokkos exec backend (Kokkos 3.4.1, Serial space)
   libopenmpi-dev openmpi-bin libtrilinos-zoltan-dev  # distributed runs: MPI ranks, Zoltan partitioning
+  python3                  # tests/dup_part_id.py (a hostile per-rank checkpoint), bench/*.py
 )
 # Debian 12's blender 3.4.1: headless Cycles renders of surfaced frames (no OpenImageDenoise).
 [ "$RENDER" -eq 1 ] && PKGS+=(blender)

@@ -33,6 +33,18 @@ parts_match 2 3 || exit 1     # per-rank parts, merged (frames and checkpoint)
 parts_resumes 3 2 2 0 || exit 1  # per-rank checkpoint of 3 ranks resumed on 2 and 1
 parts_resumes 0 3 4 || exit 1    # of one process (one part) resumed on 4 ranks
 parts_resumes 2 2 3 || exit 1    # of 2 ranks resumed on 3
+# A hostile per-rank checkpoint: part 1 repeats one of part 0's ids, every checksum made consistent
+# (tests/dup_part_id.py), so only the ids' check across the parts can find it: refused with exit 3
+# on 1, 2 and 3 ranks before any frame is written.
+for np in 0 2 3; do
+  python3 "$(dirname "$0")/dup_part_id.py" "$out/pc2" "$out/dup$np" >/dev/null ||
+    { echo "could not write the hostile checkpoint"; exit 1; }
+  msg=$(mpi $np run "$scene" --threads 1 --parts ranks --out "$out/dup$np" --resume "$out/dup$np/checkpoint.amck" --quiet 2>&1)
+  rc=$?
+  [ $rc -eq 3 ] && echo "$msg" | grep -q "attribute 'id'.*repeats" ||
+    { echo "repeated id across parts on $np ranks: exit $rc, $msg"; exit 1; }
+  ls "$out/dup$np"/frame_0003* >/dev/null 2>&1 && { echo "frames written after a hostile checkpoint"; exit 1; }
+done
 parts_interrupted 3 150 2 || exit 1  # SIGINT inside frame 3 on 3 ranks; resumed on 2
 all=$(echo "$files" | wc -l)
 # Emitters and a kill region: every rank emits alike and keeps what lands in its leaves; the
