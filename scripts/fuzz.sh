@@ -7,7 +7,9 @@
 # Limits per input, as docs/fuzzing.md states them: 1 MB long, 10 s, 1 GB of memory; any crash,
 # sanitizer report, timeout or memory overrun fails the run (exit non-zero) and leaves the input
 # in build-fuzz/findings/. Corpora grow in build-fuzz/corpus/TARGET (kept between runs). The inputs
-# of past findings (tests/fuzz/regressions/TARGET) are replayed first.
+# of past findings (tests/fuzz/regressions/TARGET) are replayed first. AMALGAM_FUZZ_JOBS=N runs up to
+# N targets at once (default 1; CI: 2, one per core, as libFuzzer runs one thread: each target
+# still gets its SECONDS of a whole core, and the three take two rounds instead of three).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 secs="${1:-60}"
@@ -43,7 +45,8 @@ seed() {  # seed TARGET: the corpus directory, seeded once
   esac
   echo "$dir"
 }
-for t in "${targets[@]}"; do
+one() {  # one TARGET: replay its regressions, seed, fuzz; exit non-zero on any finding
+  local t="$1" reg corpus dict
   # Every input a campaign found (tests/fuzz/regressions/TARGET) must pass first.
   reg="$root/tests/fuzz/regressions/$t"
   if [ -d "$reg" ] && [ -n "$(ls -A "$reg")" ]; then
@@ -60,5 +63,18 @@ for t in "${targets[@]}"; do
       -rss_limit_mb=1024 -malloc_limit_mb=1024 -artifact_prefix="$build/findings/$t-" -print_final_stats=1 \
       2> "$build/$t.log" || { echo "fuzz.sh: $t FAILED:"; tail -40 "$build/$t.log"; exit 1; }
   grep -E "^stat::number_of_executed_units|^stat::peak_rss_mb|cov:" "$build/$t.log" | tail -3 | sed "s/^/fuzz.sh: $t: /"
+}
+jobs="${AMALGAM_FUZZ_JOBS:-1}"
+for t in "${targets[@]}"; do
+  if [ "$jobs" -le 1 ]; then one "$t"; continue; fi
+  while [ "$(jobs -rp | wc -l)" -ge "$jobs" ]; do sleep 1; done
+  rm -f "$build/$t.status"
+  { rc=0; one "$t" || rc=$?; echo "$rc" > "$build/$t.status"; } &
 done
+wait
+if [ "$jobs" -gt 1 ]; then
+  for t in "${targets[@]}"; do
+    [ "$(cat "$build/$t.status" 2>/dev/null)" = 0 ] || { echo "fuzz.sh: $t failed (above)"; exit 1; }
+  done
+fi
 echo "fuzz.sh: ${#targets[@]} target(s), ${secs}s each: no crash, no report, no timeout, no memory overrun"
