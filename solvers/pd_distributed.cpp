@@ -170,6 +170,27 @@ PdSolver::BondRec PdSolver::bond_record(std::uint64_t k, std::uint64_t neighbour
   return br;
 }
 
+// How far from a rank's own particles contact ghosts are kept: the contact distance plus the
+// Verlet skin (default half a spacing), 1 % over.
+double PdSolver::contact_reach() const {
+  return 1.01 *
+         double(contact_distance() + (settings_.contact_skin > 0 ? settings_.contact_skin
+                                                                 : Real(0.5) * settings_.spacing));
+}
+
+// With contact on, marks in `keep` the particles within contact_reach() of the box [lo, hi].
+void PdSolver::keep_within_contact_reach(const Vec3* x, std::size_t n, const double* lo,
+                                         const double* hi, std::vector<std::uint8_t>& keep) const {
+  if (!settings_.contact) return;
+  const double reach = contact_reach();
+  for (std::size_t i = 0; i < n; ++i) {
+    bool in = true;
+    for (int a = 0; a < 3; ++a)
+      in &= double(x[i][a]) >= lo[a] - reach && double(x[i][a]) <= hi[a] + reach;
+    keep[i] |= in;
+  }
+}
+
 void PdSolver::distribute(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   if (comm.size() == 1 || ranks_) return;
@@ -214,17 +235,7 @@ void PdSolver::distribute(const exec::Space& space) {
     for (int a = 0; a < 3; ++a)
       lo[a] = std::min(lo[a], double(x[i][a])), hi[a] = std::max(hi[a], double(x[i][a]));
   }
-  if (settings_.contact) {
-    const double reach = 1.01 * double(contact_distance() + (settings_.contact_skin > 0
-                                                                 ? settings_.contact_skin
-                                                                 : Real(0.5) * settings_.spacing));
-    for (std::size_t i = 0; i < n; ++i) {
-      bool in = true;
-      for (int a = 0; a < 3; ++a)
-        in &= double(x[i][a]) >= lo[a] - reach && double(x[i][a]) <= hi[a] + reach;
-      keep[i] |= in;
-    }
-  }
+  keep_within_contact_reach(x, n, lo, hi, keep);
   // Records of the kept particles from the whole state, then the local state from them.
   if (constants_.fitted.empty()) constants_.fitted.assign(n, 0);
   std::vector<char> recs;
@@ -394,17 +405,7 @@ void PdSolver::initialize_distributed(const exec::Space& space) {
     for (int a = 0; a < 3; ++a)
       lo[a] = std::min(lo[a], double(x[i][a])), hi[a] = std::max(hi[a], double(x[i][a]));
   }
-  if (settings_.contact) {
-    const double reach = 1.01 * double(contact_distance() + (settings_.contact_skin > 0
-                                                                 ? settings_.contact_skin
-                                                                 : Real(0.5) * settings_.spacing));
-    for (std::size_t i = 0; i < n; ++i) {
-      bool in = true;
-      for (int a = 0; a < 3; ++a)
-        in &= double(x[i][a]) >= lo[a] - reach && double(x[i][a]) <= hi[a] + reach;
-      keep[i] |= in;
-    }
-  }
+  keep_within_contact_reach(x, n, lo, hi, keep);
   std::vector<char> recs;
   std::vector<BondRec> brs;
   std::vector<LocalEntry> entries;
@@ -860,11 +861,7 @@ void PdSolver::relocal(const exec::Space& space, bool repartition,
   }
   const std::vector<double> boxes = dist::from_bytes<double>(
       comm.allgather(dist::as_bytes(std::vector<double>(box, box + 6)), nullptr));
-  const double reach =
-      settings_.contact ? 1.01 * double(contact_distance() + (settings_.contact_skin > 0
-                                                                  ? settings_.contact_skin
-                                                                  : Real(0.5) * settings_.spacing))
-                        : -1;
+  const double reach = settings_.contact ? contact_reach() : -1;
   const double hb = 1.001 * double(settings_.horizon) + 0.2 * double(settings_.spacing);
   auto in_box = [&](const Vec3& p, std::size_t r) {
     bool in = reach >= 0;

@@ -359,6 +359,9 @@ class PdSolver {
     }
   } armed_;
   Real contact_distance() const;
+  double contact_reach() const;  // solvers/pd_distributed.cpp
+  void keep_within_contact_reach(const Vec3* x, std::size_t n, const double* lo, const double* hi,
+                                 std::vector<std::uint8_t>& keep) const;
   Real crit_dt_ = 0;  // critical Verlet step of the reference configuration (critical_dt)
   double time_ = 0;
   std::uint64_t steps_ = 0;
