@@ -107,7 +107,8 @@ namespace {
 // The run's cost from the scene alone (solvers/estimate.hpp), errors naming the scene file.
 RunEstimate estimate_of(const Scene& scene) {
   try {
-    return estimate_run(scene);
+    const auto& a = scene.output.attributes;
+    return estimate_run(scene, std::find(a.begin(), a.end(), "rest") != a.end());
   } catch (const InputError& e) {
     throw InputError(scene.file + ": " + e.what());
   }

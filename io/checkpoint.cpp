@@ -30,6 +30,7 @@ constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
 // always held that product)
 constexpr std::uint32_t kVersion = 8;
 constexpr char kOrderSection[] = "dist.order";
+constexpr char kOptionalAttribute[] = "rest";
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -167,10 +168,16 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
   const std::uint32_t nmissing = std::uint32_t(missing.size());
   // Before version 8 MPM particles stored their mass (dropped: it is recomputed).
   const std::uint32_t ndropped = version < 8 && ps.find("volume0") >= 0 ? 1 : 0;
-  if (nattr + nmissing != std::uint32_t(ps.attribute_count()) + ndropped)
+  // `rest` (MPM: kept only when the output asks for it, and the output is not part of the scene's
+  // fingerprint) may be in the file and not in this run, which skips it, or in this run and not in
+  // the file, which the simulation then fills (Simulation::fill_absent_attribute).
+  const bool rest = ps.find(kOptionalAttribute) >= 0;
+  const std::uint32_t expected = std::uint32_t(ps.attribute_count()) - nmissing + ndropped;
+  if (nattr != expected && nattr != (rest ? expected - 1 : expected + 1))
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
-                     " particle attributes, expected " +
-                     std::to_string(ps.attribute_count() - int(nmissing) + int(ndropped)));
+                     " particle attributes, expected " + std::to_string(expected));
+  std::vector<char> read(std::size_t(ps.attribute_count()), 0);
+  for (const int a : missing) read[std::size_t(a)] = 1;
   if (max_particles > 0 && version >= 6) {  // checked before anything is sized by it
     if (n > max_particles)
       throw InputError(path + ": checkpoint field 'particle count' is " + std::to_string(n) +
@@ -194,6 +201,11 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
       r.take(size_t(n) * 4 * words, "attribute data");
       continue;
     }
+    if (name == kOptionalAttribute && a < 0 && type == std::uint32_t(AttrType::Real) &&
+        width == 3 && words == std::uint32_t(3 * sizeof(Real) / 4)) {
+      r.take(size_t(n) * 4 * words, "attribute data");
+      continue;
+    }
     if (a < 0 || type != std::uint32_t(ps.type(a)) || width != std::uint32_t(ps.width(a)) ||
         words != std::uint32_t(ps.words_per_particle(a)))
       throw InputError(path + ": checkpoint attribute '" + name +
@@ -201,6 +213,15 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
     const std::size_t bytes = size_t(n) * 4 * words;
     const char* src = r.take(bytes, "attribute data");
     if (bytes > 0) std::memcpy(ps.words(a), src, bytes);
+    if (read[std::size_t(a)])
+      throw InputError(path + ": checkpoint attribute '" + name + "' appears twice");
+    read[std::size_t(a)] = 1;
+  }
+  for (int a = 0; a < ps.attribute_count(); ++a) {
+    if (read[std::size_t(a)]) continue;
+    if (ps.name(a) != kOptionalAttribute)
+      throw InputError(path + ": checkpoint has no particle attribute '" + ps.name(a) + "'");
+    st.absent.push_back(ps.name(a));
   }
   for (const int a : missing)
     if (ps.size() > 0)
@@ -556,6 +577,7 @@ CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
   std::vector<std::uint64_t> keys;
   std::uint64_t total = 0;
   const bool sliced = slice.parts > 1 && is_checkpoint_manifest(path);
+  sim.before_checkpoint_read();
   if (sliced) {
     // This rank's slice of the parts (the run's `distribute` sends every particle to its owner):
     // no rank holds the whole checkpoint.
@@ -582,6 +604,7 @@ CheckpointState read_checkpoint(const std::string& path, Simulation& sim,
                  sim.variable_particle_count() && !sliced ? sim.max_particle_count() : 0);
   try {
     if (sliced) sim.restoring_slice(std::move(keys), total);
+    for (const std::string& name : st.absent) sim.fill_absent_attribute(name);
     sim.restored(st.time, st.steps);
   } catch (const InputError& e) {
     throw InputError(path + ": " + e.what());

@@ -33,6 +33,9 @@ struct CheckpointState {
   std::uint64_t steps = 0;
   int next_frame = 1;  // the frame the run continues with
   int retries = 0;     // retries of frame next_frame so far (interrupted mid-frame)
+  // Optional particle attributes (`rest`) this run carries and the file did not: filled by
+  // Simulation::fill_absent_attribute before Simulation::restored.
+  std::vector<std::string> absent;
 };
 
 // Writes the simulation's particles and state sections (Simulation::checkpoint_sections).

@@ -535,8 +535,6 @@ bool any_material(const SceneSpec& s, bool (*has)(const MaterialParams&)) {
 // Why the scene's method cannot give attribute `name` ("" if it can).
 std::string attribute_missing(const SceneSpec& s, const std::string& name) {
   const bool pd = s.method == Method::Peridynamics;
-  if (name == "rest" && !s.emitters.empty())
-    return "particles emitted during the run (/emitters) have no rest position";
   if (name == "vonmises" || name == "rest" || name == "material") return "";
   if (pd) return name == "damage" || name == "theta" ? "" : "MPM only";
   if (name == "F" || name == "J") return "";

@@ -68,10 +68,11 @@ Vec3 fastest_initial_velocity(const ObjectSpec& o) {
 // MPM: one particle per object, at its fastest initial velocity, in a solver of the scene's
 // settings and materials: its attribute layout gives the bytes per particle, its stable_dt the
 // first substep (wave speeds, speeds, viscosity and max_dt exactly as the run computes them).
-void estimate_mpm(const SceneSpec& s, RunEstimate& e) {
+void estimate_mpm(const SceneSpec& s, bool rest_positions, RunEstimate& e) {
   MpmSettings settings = s.mpm;
   settings.domains.enabled = false;  // domain corners add no particle attributes of their own
   MpmSolver probe(settings, s.materials, {}, s.heat_sources);
+  if (rest_positions) probe.keep_rest_positions();
   const double dx = double(s.mpm.dx);
   for (std::size_t k = 0; k < s.objects.size(); ++k) {
     const ObjectSpec& o = s.objects[k];
@@ -159,7 +160,7 @@ std::string bytes_text(double b) {
 
 }  // namespace
 
-RunEstimate estimate_run(const SceneSpec& s) {
+RunEstimate estimate_run(const SceneSpec& s, bool rest_positions) {
   RunEstimate e;
   const double dx = double(s.mpm.dx);
   for (std::size_t k = 0; k < s.objects.size(); ++k) {
@@ -194,7 +195,7 @@ RunEstimate estimate_run(const SceneSpec& s) {
     }
   }
   if (s.method == Method::Mpm)
-    estimate_mpm(s, e);
+    estimate_mpm(s, rest_positions, e);
   else
     estimate_pd(s, e);
   // The step in the build's precision: a Real that is not a normal number cannot advance time.

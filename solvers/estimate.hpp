@@ -29,7 +29,8 @@ constexpr double kMaxSubsteps = 1e9;
 // Throws InputError when the scene cannot be run at all whatever the machine (an object beyond
 // the grid's index range, a collider field over its sample limit, a step that is not a normal
 // number in the build's precision, initial speeds above the stability limit).
-RunEstimate estimate_run(const SceneSpec& scene);
+// `rest_positions`: the output asks for MPM's `rest` attribute (12 B per particle in float).
+RunEstimate estimate_run(const SceneSpec& scene, bool rest_positions = false);
 
 // One line for people: "9.7e4 particles, 120 leaves, 47 MB, 61 substeps per frame (dt 6.8e-4 s),
 // 2928 substeps".

@@ -52,8 +52,7 @@ std::vector<float> real_values(const ParticleSet& ps, ParticleSet::Id attr, cons
 
 // The attribute `name` of MPM particles (mpm_point_fields).
 PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, const MpmAttributes& a,
-                             const std::vector<MaterialParams>& materials, const exec::Space& space,
-                             const std::vector<Vec3>* rest_by_id) {
+                             const std::vector<MaterialParams>& materials, const exec::Space& space) {
   using T = PointAttribute::Type;
   const std::size_t n = ps.size();
   PointAttribute out{name, T::Float, {}, {}};
@@ -74,13 +73,12 @@ PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, con
   } else if (name == "vonmises") {
     out.f = mpm_von_mises(ps, a, materials, space);
   } else if (name == "rest") {
-    if (!rest_by_id) throw std::logic_error("MPM rest positions were not kept");
+    if (a.rest < 0) throw std::logic_error("MPM rest positions were not kept");
     out.type = T::Vec3;
     out.f.resize(3 * n);
-    const std::int32_t* id = ps.int32(a.id);
+    const Vec3* r = ps.vec3(a.rest);
     for (std::size_t i = 0; i < n; ++i)
-      for (int c = 0; c < 3; ++c)
-        out.f[3 * i + std::size_t(c)] = float((*rest_by_id)[std::size_t(id[i])][c]);
+      for (int c = 0; c < 3; ++c) out.f[3 * i + std::size_t(c)] = float(r[i][c]);
   } else if (name == "material") {
     out.type = T::Int;
     out.i.assign(ps.int32(a.material), ps.int32(a.material) + n);
@@ -101,8 +99,7 @@ PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, con
 
 PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a,
                              const std::vector<MaterialParams>& materials,
-                             const std::vector<std::string>& names, const exec::Space& space,
-                             const std::vector<Vec3>* rest_by_id) {
+                             const std::vector<std::string>& names, const exec::Space& space) {
   PointFields p;
   p.n = ps.size();
   p.x = ps.vec3(a.x);
@@ -110,28 +107,49 @@ PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a,
   p.material = ps.int32(a.material);
   p.id = ps.int32(a.id);
   for (const std::string& name : names)
-    p.attributes.push_back(mpm_attribute(name, ps, a, materials, space, rest_by_id));
+    p.attributes.push_back(mpm_attribute(name, ps, a, materials, space));
   return p;
 }
 
-void MpmSimulation::keep_rest_positions() {
+// A checkpoint written before the output asked for `rest` has none: the set-up's positions are
+// the rest positions of the particles it made (joined by id, over the ranks when the set-up was
+// sliced); a particle emitted later has no rest position to recover.
+void MpmSimulation::before_checkpoint_read() {
+  setup_rest_.clear();
+  const MpmAttributes& a = s_.attributes();
+  if (a.rest < 0) return;
   const ParticleSet& ps = s_.particles();
-  const Vec3* x = ps.vec3(s_.attributes().x);
-  const std::int32_t* id = ps.int32(s_.attributes().id);
-  rest_.assign(std::size_t(s_.next_id()), Vec3::Zero());
-  for (std::size_t i = 0; i < ps.size(); ++i) rest_[std::size_t(id[i])] = x[i];
-  if (!s_.sliced()) return;
-  // A distributed set-up's slices (solvers/factory.cpp): every rank keeps every rest position
-  // (the output joins them by id, on rank 0 or on each rank's part), so the ranks swap theirs.
-  struct IdX {
-    std::int32_t id;
-    Vec3 x;
-  };
-  std::vector<IdX> mine(ps.size());
-  for (std::size_t i = 0; i < ps.size(); ++i) mine[i] = {id[i], x[i]};
-  for (const IdX& e :
-       dist::from_bytes<IdX>(dist::Comm::world().allgather(dist::as_bytes(mine), nullptr)))
-    rest_[std::size_t(e.id)] = e.x;
+  const Vec3* r = ps.vec3(a.rest);
+  const std::int32_t* id = ps.int32(a.id);
+  setup_rest_.resize(ps.size());
+  for (std::size_t i = 0; i < ps.size(); ++i) setup_rest_[i] = {id[i], r[i]};
+  setup_sliced_ = s_.sliced();
+}
+
+void MpmSimulation::fill_absent_attribute(const std::string& name) {
+  const MpmAttributes& a = s_.attributes();
+  if (name != "rest" || a.rest < 0) return Simulation::fill_absent_attribute(name);
+  std::vector<RestById> table = std::move(setup_rest_);
+  setup_rest_ = {};
+  if (setup_sliced_)  // collective: every rank of a sliced set-up gets here
+    table = dist::from_bytes<RestById>(
+        dist::Comm::world().allgather(dist::as_bytes(table), nullptr));
+  std::sort(table.begin(), table.end(),
+            [](const RestById& x, const RestById& y) { return x.id < y.id; });
+  ParticleSet& ps = s_.particles();
+  Vec3* r = ps.vec3(a.rest);
+  const std::int32_t* id = ps.int32(a.id);
+  for (std::size_t i = 0; i < ps.size(); ++i) {
+    const auto it = std::lower_bound(table.begin(), table.end(), id[i],
+                                     [](const RestById& x, std::int32_t v) { return x.id < v; });
+    if (it == table.end() || it->id != id[i])
+      throw InputError("particle attribute 'rest': the checkpoint was written without it and "
+                       "particle id " +
+                       std::to_string(id[i]) +
+                       " was emitted after set-up, so its rest position is unknown (resume "
+                       "without output attribute 'rest', or run from the start)");
+    r[i] = it->x;
+  }
 }
 
 MpmSimulation::MpmSimulation(MpmSolver solver) : s_(std::move(solver)) {

@@ -14,14 +14,13 @@
 namespace amalgam {
 
 // MPM particles for the frame writers with the attributes `names` (point_attribute_names()): F,
-// J = det F, Jp (the plastic scalar), vonmises (of the elastic Cauchy stress), rest (from
-// `rest_by_id`, indexed by particle id), material, temperature, enrichment (the domain state). A
+// J = det F, Jp (the plastic scalar), vonmises (of the elastic Cauchy stress), rest (the
+// attribute MpmAttributes::rest), material, temperature, enrichment (the domain state). A
 // name the particles lack (no plastic state, no temperature) throws std::logic_error: the scene
 // reader refuses it first. Stresses are computed on `space`.
 PointFields mpm_point_fields(const ParticleSet& ps, const MpmAttributes& a,
                              const std::vector<MaterialParams>& materials,
-                             const std::vector<std::string>& names, const exec::Space& space,
-                             const std::vector<Vec3>* rest_by_id = nullptr);
+                             const std::vector<std::string>& names, const exec::Space& space);
 
 class MpmSimulation final : public Simulation {
  public:
@@ -58,13 +57,14 @@ class MpmSimulation final : public Simulation {
 
   PointFields point_fields(const std::vector<std::string>& names,
                            const exec::Space& space) override {
-    return mpm_point_fields(all_particles(), s_.attributes(), s_.materials(), names, space,
-                            rest_.empty() ? nullptr : &rest_);
+    return mpm_point_fields(all_particles(), s_.attributes(), s_.materials(), names, space);
   }
   // Distributed (solvers/mpm_distributed.cpp): the particles are split across the ranks here.
   void begin_run(const exec::Space& space) override { s_.distribute(space); }
   void prepare_checkpoint() override { (void)all_particles(); }
-  void keep_rest_positions() override;
+  void keep_rest_positions() override { s_.keep_rest_positions(); }
+  void before_checkpoint_read() override;
+  void fill_absent_attribute(const std::string& name) override;
   double point_voxel_size() const override { return double(s_.settings().dx); }
   bool surface(SurfaceMesh& out) const override;
   const char* surface_pattern() const override { return "frame_%04d_surface"; }
@@ -97,8 +97,7 @@ class MpmSimulation final : public Simulation {
   const ParticleSet& my_particles() const override { return s_.particles(); }
   PointFields my_point_fields(const std::vector<std::string>& names,
                               const exec::Space& space) override {
-    return mpm_point_fields(s_.particles(), s_.attributes(), s_.materials(), names, space,
-                            rest_.empty() ? nullptr : &rest_);
+    return mpm_point_fields(s_.particles(), s_.attributes(), s_.materials(), names, space);
   }
   void prepare_checkpoint_part() override {}
 
@@ -113,7 +112,12 @@ class MpmSimulation final : public Simulation {
   mutable std::unique_ptr<SparseGrid> gathered_grid_;
   mutable std::uint64_t gathered_grid_version_ = ~std::uint64_t(0);
   MpmSolver::Snapshot snapshot_;
-  std::vector<Vec3> rest_;  // rest positions by particle id (keep_rest_positions), or empty
+  struct RestById {
+    std::int32_t id;
+    Vec3 x;
+  };
+  std::vector<RestById> setup_rest_;  // before_checkpoint_read, for fill_absent_attribute
+  bool setup_sliced_ = false;
   double frame_time_ = 0;
   std::uint64_t frame_steps_ = 0;
   // Emitters and kill regions: the counters at the frame's start, the bound on the particle count

@@ -102,6 +102,13 @@ void MpmSolver::restore_clock(double time, std::uint64_t steps) {
     aul_->invalidate_bins();  // particles may have been replaced: re-bin before the next transfer
 }
 
+void MpmSolver::keep_rest_positions() {
+  if (attr_.rest >= 0) return;
+  attr_.rest = particles_.add("rest", AttrType::Real, 3);
+  const Vec3* x = particles_.vec3(attr_.x);
+  std::copy(x, x + particles_.size(), particles_.vec3(attr_.rest));
+}
+
 void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const Vec3& omega,
                               const Vec3& centre, int material, Real volume_per_particle,
                               Real temperature, const ConfigurationPolicy& policy,
@@ -124,6 +131,7 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
   const MaterialParams& mat = materials_[size_t(material)];
   Real* pplastic = attr_.plastic >= 0 ? particles_.real(attr_.plastic) : nullptr;
   Real* ptemp = attr_.temperature >= 0 ? particles_.real(attr_.temperature) : nullptr;
+  Vec3* prest = attr_.rest >= 0 ? particles_.vec3(attr_.rest) : nullptr;
   for (size_t i = 0; i < x.size(); ++i) {
     const size_t p = n0 + i;
     px[p] = x[i];
@@ -135,6 +143,7 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
     pid[p] = std::int32_t(next_id_ + ids.offset + std::int64_t(i));
     if (pplastic) pplastic[p] = mat.initial_plastic();
     if (ptemp) ptemp[p] = temperature;
+    if (prest) prest[p] = x[i];
   }
   next_id_ += total;
   if (aul_)

@@ -114,6 +114,9 @@ class MpmSolver {
   ParticleSet& particles() { return particles_; }
   const ParticleSet& particles() const { return particles_; }
   const MpmAttributes& attributes() const { return attr_; }
+  // Gives every particle the attribute `rest` (MpmAttributes::rest), its current position, and
+  // every particle added later (emitters) its position at emission. Idempotent.
+  void keep_rest_positions();
   const MpmSettings& settings() const { return settings_; }
   const std::vector<MaterialParams>& materials() const { return materials_; }
   // Particle p's mass (not stored: its material's density x its volume0).

@@ -16,6 +16,7 @@
 #include <string>
 #include <vector>
 
+#include "core/errors.hpp"
 #include "core/exec/exec.hpp"
 #include "core/math/types.hpp"
 #include "core/particles/particle_set.hpp"
@@ -109,9 +110,9 @@ class Simulation {
   // (stresses).
   virtual PointFields point_fields(const std::vector<std::string>& names,
                                    const exec::Space& space) = 0;
-  // Keeps every particle's current position as its rest position (attribute `rest`), by particle
-  // id: called after set-up and before a checkpoint is read. Methods that hold a reference
-  // position (peridynamics: x0) need not.
+  // Keeps every particle's current position as its rest position (attribute `rest`, carried by
+  // each particle; particles made later keep theirs): called after set-up and before a
+  // checkpoint is read. Methods that hold a reference position (peridynamics: x0) need not.
   virtual void keep_rest_positions() {}
   virtual double point_voxel_size() const = 0;  // the VDB point grid's voxel (dx, or the spacing)
   // A surface mesh written per frame (false: none; with per-vertex velocity, and crack faces for
@@ -140,8 +141,15 @@ class Simulation {
   };
   virtual Slice checkpoint_slice() const { return {}; }
   virtual std::uint64_t set_up_particle_count() const { return particles().size(); }
+  // Before a checkpoint is read, on every path, while particles() still holds the set-up's.
+  virtual void before_checkpoint_read() {}
   // Before a checkpoint is read whole into particles(): they are sized to set_up_particle_count.
   virtual void before_restore() {}
+  // The checkpoint had no optional attribute `name` that particles() carries (`rest`: the output
+  // asked for it after the checkpoint was written): fill it, before restored(). Collective.
+  virtual void fill_absent_attribute(const std::string& name) {
+    throw InputError("checkpoint has no particle attribute '" + name + "'");
+  }
   // Before restored(), when a slice was read: its rows' order keys (two per particle, the
   // single process's order) and the checkpoint's particle count over every rank.
   virtual void restoring_slice(std::vector<std::uint64_t> /*keys*/, std::uint64_t /*total*/) {}

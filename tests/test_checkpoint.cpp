@@ -8,6 +8,7 @@
 #include <cstring>
 #include <fstream>
 #include <limits>
+#include <map>
 
 #include "core/errors.hpp"
 #include "core/hash.hpp"
@@ -323,4 +324,98 @@ TEST(Checkpoint, EmissionStateIsCheckedAgainstTheParticles) {
   EXPECT_NE(error_of(with_field(good, id + 4, id0)).find("'id'"), std::string::npos);
   std::remove(path.c_str());
   std::remove(bad.c_str());
+}
+
+// The output attribute `rest` is a particle attribute: each particle keeps the position it was
+// made at (set-up or emission) through sorting, steps and checkpoints; a checkpoint that has it
+// is read by a run that does not ask for it, and one written without it gives a run that asks the
+// set-up's positions by id, unless particles were emitted since (no rest position to recover).
+TEST(Checkpoint, RestPositionsTravelWithTheirParticles) {
+  const std::string text = R"({
+    "simulation": {"dx": 0.05, "frames": 2, "max_dt": 2e-3},
+    "materials": {"water": {"model": "fluid", "density": 1000, "bulk_modulus": 1e4}},
+    "objects": [{"shape": "box", "min": [0.1, 0.35, 0.1], "max": [0.3, 0.45, 0.3], "material": "water",
+                 "velocity": [0, -2, 0]}],
+    "emitters": [{"shape": "box", "min": [0.45, 0.8, 0.45], "max": [0.55, 0.9, 0.55],
+                  "material": "water", "velocity": [0, -4, 0], "end": 1.0}],
+    "output": {"attributes": ["rest"]}
+  })";
+  const Scene scene = parse_scene(text, "e.json");
+  const exec::Space space(exec::Backend::TBB, 2);
+  auto positions = [](const MpmSolver& s, ParticleSet::Id attr) {
+    std::map<std::int32_t, Vec3> m;
+    const Vec3* x = s.particles().vec3(attr);
+    const std::int32_t* id = s.particles().int32(s.attributes().id);
+    for (std::size_t i = 0; i < s.particles().size(); ++i) m[id[i]] = x[i];
+    return m;
+  };
+  MpmSimulation a(build_solver(scene));
+  a.keep_rest_positions();
+  const MpmSolver& sa = a.solver();
+  ASSERT_GE(sa.attributes().rest, 0);
+  std::map<std::int32_t, Vec3> made = positions(sa, sa.attributes().x);  // where each was made
+  const std::size_t set_up = made.size();
+  for (int k = 0; k < 40; ++k) {
+    const std::int64_t before = sa.next_id();
+    a.advance(space, a.stable_dt(space));
+    for (const auto& [id, x] : positions(sa, sa.attributes().x))
+      if (id >= before) made.emplace(id, x);  // emitted in this substep, not moved yet
+  }
+  ASSERT_GT(made.size(), set_up);
+  std::size_t moved = 0;
+  const std::map<std::int32_t, Vec3> now = positions(sa, sa.attributes().x);
+  for (const auto& [id, r] : positions(sa, sa.attributes().rest)) {
+    ASSERT_TRUE(made.count(id)) << id;
+    EXPECT_EQ(r, made.at(id)) << "particle " << id;
+    moved += now.at(id) != r;
+  }
+  EXPECT_GT(moved, set_up / 2);  // the rest positions are not the current ones
+
+  const std::string with = tmp_path("rest.amck"), without = tmp_path("no_rest.amck");
+  write_checkpoint(with, a, 2, scene.fingerprint);
+  {  // read back with rest: every attribute bitwise
+    MpmSimulation b(build_solver(scene));
+    b.keep_rest_positions();
+    read_checkpoint(with, b, scene.fingerprint);
+    const ParticleSet &pa = sa.particles(), &pb = b.solver().particles();
+    ASSERT_EQ(pa.attribute_count(), pb.attribute_count());
+    for (int at = 0; at < pa.attribute_count(); ++at)
+      EXPECT_EQ(std::memcmp(pa.words(at), pb.words(at),
+                            pa.size() * 4 * size_t(pa.words_per_particle(at))),
+                0)
+          << pa.name(at);
+  }
+  {  // a run without rest skips it
+    MpmSimulation c(build_solver(scene));
+    read_checkpoint(with, c, scene.fingerprint);
+    EXPECT_LT(c.solver().attributes().rest, 0);
+    EXPECT_EQ(positions(c.solver(), c.solver().attributes().x), now);
+    // ... and its own checkpoint, without rest, cannot give emitted particles theirs.
+    write_checkpoint(without, c, 2, scene.fingerprint);
+    MpmSimulation d(build_solver(scene));
+    d.keep_rest_positions();
+    try {
+      read_checkpoint(without, d, scene.fingerprint);
+      ADD_FAILURE() << "emitted particles got a rest position";
+    } catch (const InputError& e) {
+      EXPECT_NE(std::string(e.what()).find(without + ": particle attribute 'rest'"),
+                std::string::npos)
+          << e.what();
+      EXPECT_NE(std::string(e.what()).find("emitted after set-up"), std::string::npos);
+    }
+  }
+  // Without emission, a checkpoint lacking rest gives the set-up's positions by id.
+  const Scene plain = parse_scene(kScene, "s.json");
+  MpmSimulation e(build_solver(plain));
+  const std::map<std::int32_t, Vec3> start = positions(e.solver(), e.solver().attributes().x);
+  for (int k = 0; k < 10; ++k) e.advance(space, e.stable_dt(space));
+  write_checkpoint(without, e, 2, plain.fingerprint);
+  MpmSimulation f(build_solver(plain));
+  f.keep_rest_positions();
+  read_checkpoint(without, f, plain.fingerprint);
+  EXPECT_EQ(positions(f.solver(), f.solver().attributes().rest), start);
+  EXPECT_EQ(positions(f.solver(), f.solver().attributes().x),
+            positions(e.solver(), e.solver().attributes().x));
+  std::remove(with.c_str());
+  std::remove(without.c_str());
 }

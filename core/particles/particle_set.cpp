@@ -202,6 +202,7 @@ MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
   m.id = ps.id("id");
   m.plastic = ps.find("plastic");
   m.temperature = ps.find("temperature");
+  m.rest = ps.find("rest");
   return m;
 }
 

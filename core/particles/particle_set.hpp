@@ -108,6 +108,10 @@ struct MpmAttributes {
   // stored until checkpoint version 8, so recomputing it is bitwise the stored value.
   ParticleSet::Id x, x_lo, v, C, F, F_lo, volume0, material, id;
   ParticleSet::Id plastic = -1, temperature = -1;
+  // rest: the position a particle had when it was made (set-up or emission; Houdini's `rest`),
+  // only when the output asks for it (MpmSolver::keep_rest_positions). An attribute like any
+  // other: sorted, migrated between ranks and checkpointed with its particle.
+  ParticleSet::Id rest = -1;
   static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false);
   static MpmAttributes find_in(const ParticleSet& ps);
 };
