@@ -40,6 +40,14 @@ std::string printable(const std::string& s);
 // "setting up X", "frame 12 of X".
 void set_phase(const std::string& phase);
 const std::string& current_phase();
+// Seconds since this process was started (exec), from /proc/self/stat and CLOCK_BOOTTIME
+// (Linux; the start is known to a clock tick, 10 ms): what `amalgam run`'s set-up summary counts
+// from. -1 where unknown.
+double process_age_seconds();
+// CPU seconds of this process so far, all its threads (CLOCK_PROCESS_CPUTIME_ID).
+double process_cpu_seconds();
+// process_age_seconds() when main() began: the dynamic loading and static initialisation.
+extern double g_age_at_main;
 int parse_int(const std::string& key, const std::string& value, int lo, int hi);
 double parse_double(const std::string& key, const std::string& value, double lo, double hi);
 

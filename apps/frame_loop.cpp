@@ -11,6 +11,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <iterator>
 #include <memory>
 
 #include "apps/commands.hpp"
@@ -93,7 +94,12 @@ class FrameWriter {
     commit();  // --parts ranks: frame f - 1's manifest, once every rank's part is on disk
     // The whole frame's points (gathered to rank 0 on a distributed MPM run): for the point files
     // of a single-file run, and for what is computed from every point (previews, surfacing).
-    const bool whole = !parts_ || rs_.preview || scene_.output.surfacing.enabled;
+    // A run that writes none of them (output.ply and output.vdb_points false, no preview, no
+    // surfacing) neither copies nor gathers them: on 2 ranks the sphere's frame 0 gather of
+    // 948,690 particles was a third of the set-up's difference to one process (docs/scaling.md).
+    const OutputSpec& out = scene_.output;
+    const bool point_files = !parts_ && (out.ply || out.vdb_points);
+    const bool whole = point_files || rs_.preview || out.surfacing.enabled;
     PointFields p = whole ? point_fields() : PointFields();  // collective when distributed
     // Grid volumes: collective when distributed (every rank's owned leaves gathered to rank 0).
     // The grid exists once a substep ran.
@@ -112,7 +118,6 @@ class FrameWriter {
         else if (attr && has_attribute(attr))  // the preview's attribute when frames lack it
           s->preview_scalar = *sim_.point_fields({attr}, space_).find(attr);
       }
-      const OutputSpec& out = scene_.output;
       if (grid) s->grid = std::make_unique<GridNodes>(grid_nodes(*grid, sim_.point_voxel_size()));
       s->has_mesh = (out.surface_obj || out.surface_ply) && sim_.surface(s->mesh);
     }
@@ -534,6 +539,53 @@ std::string communication_summary(double wall, long long substeps, double loop_e
   return std::string(line) + work;
 }
 
+// Collective: where the set-up went, from the process's start to the frame loop, per phase (the
+// profiler's "setup.*" regions; on several ranks the least / most of the ranks, each phase's own
+// extremes): `age_at_loop` is the process's age when the loop began (process_age_seconds), so the
+// phases plus "other" (what no region covers: option parsing, the colliders, the solver's
+// construction) make it up.
+std::string setup_summary(const exec::Profiler& profiler, double age_at_loop, double cpu_at_loop) {
+  static const char* const kPhases[] = {
+      "setup.start",           "setup.mpi_init",  "setup.read_scene",
+      "setup.read_checkpoint", "setup.sample",    "setup.slice_ids",
+      "setup.particles",       "setup.begin_run", "setup.frame0"};
+  constexpr std::size_t K = std::size(kPhases) + 3;  // + other, total, CPU
+  std::vector<double> mine(K, 0.0);
+  double covered = 0;
+  for (std::size_t k = 0; k + 3 < K; ++k) covered += mine[k] = profiler.seconds(kPhases[k]);
+  mine[K - 3] = std::max(0.0, age_at_loop - covered);
+  mine[K - 2] = age_at_loop;
+  mine[K - 1] = cpu_at_loop;
+  const dist::Comm& comm = dist::Comm::world();
+  const std::vector<double> all =
+      comm.size() > 1 ? dist::from_bytes<double>(comm.allgather(dist::as_bytes(mine), nullptr))
+                      : mine;
+  const std::size_t R = all.size() / K;
+  if (age_at_loop < 0) return "";
+  auto range = [&](std::size_t k) {
+    double lo = all[k], hi = all[k];
+    for (std::size_t r = 1; r < R; ++r)
+      lo = std::min(lo, all[K * r + k]), hi = std::max(hi, all[K * r + k]);
+    char b[64];
+    if (R == 1)
+      std::snprintf(b, sizeof b, "%.3f", lo);
+    else
+      std::snprintf(b, sizeof b, "%.3f / %.3f", lo, hi);
+    return std::string(b);
+  };
+  std::string line = "amalgam: set-up, process start to frame loop (s";
+  line += R > 1 ? "; least / most of " + std::to_string(R) + " ranks): " : "): ";
+  line += range(K - 2) + " (CPU " + range(K - 1) + ") =";
+  for (std::size_t k = 0; k + 2 < K; ++k) {
+    double hi = 0;
+    for (std::size_t r = 0; r < R; ++r) hi = std::max(hi, all[K * r + k]);
+    if (hi <= 0) continue;
+    line += std::string(" ") + (k + 3 < K ? kPhases[k] + 6 : "other") + " " + range(k) + ",";
+  }
+  line.back() = '\n';
+  return line;
+}
+
 }  // namespace
 
 int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space,
@@ -544,11 +596,17 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
   const dist::Comm& comm = dist::Comm::world();
-  sim.begin_run(space);  // a distributed run splits its work here
+  {
+    exec::ScopedRegion region(space.profiler(), "setup.begin_run");
+    sim.begin_run(space);  // a distributed run splits its work here
+  }
   FrameWriter frames(sim, scene, rs, space);
   // Frame 0 is the initial state; a resumed run never rewrites a frame its checkpoint has passed
   // (resuming inside frame 1 used to write frame 0 again from the mid-frame state).
-  if (!rs.resumed) frames.write(0);
+  if (!rs.resumed) {
+    exec::ScopedRegion region(space.profiler(), "setup.frame0");
+    frames.write(0);
+  }
 
   const std::string csv_path = rs.out_dir + "/diagnostics.csv";
   std::vector<std::string> csv_rows;
@@ -615,6 +673,8 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   const Real cfl0 = sim.cfl();
   const std::vector<std::string> profile_names = sim.profile_columns();
   const auto t_start = std::chrono::steady_clock::now();
+  const double age_at_loop = process_age_seconds();
+  const double cpu_at_loop = process_cpu_seconds();
   const double exchange_start = comm.traffic().seconds;
   const double work0 = sim.work_done();
   long long total_substeps = 0;
@@ -756,7 +816,8 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
   const double wall = seconds_since(t_start);
   const std::string summary =
       sim.run_summary(wall) + frames.summary() +
-      communication_summary(wall, total_substeps, comm.traffic().seconds - exchange_start);
+      communication_summary(wall, total_substeps, comm.traffic().seconds - exchange_start) +
+      setup_summary(profiler, age_at_loop, cpu_at_loop);
   if (!rs.quiet) {
     if (tty) std::cout << "\n";
     std::cout << "amalgam: done: " << scene.frames - rs.first_frame + 1 << " frames, "

@@ -110,6 +110,7 @@ int dispatch(int argc, char** argv) {
 // as exit 3 with what the process was doing, never as an abort.
 int main(int argc, char** argv) {
   using namespace amalgam::cli;
+  g_age_at_main = process_age_seconds();  // the set-up summary's "start" (amalgam run)
   std::unique_ptr<amalgam::dist::Session> mpi;
   int rc = kBadInput;
   try {

@@ -1,4 +1,8 @@
+#include <time.h>
+#include <unistd.h>
+
 #include <cstdio>
+#include <fstream>
 #include <sstream>
 #include <stdexcept>
 
@@ -103,6 +107,35 @@ std::string printable(const std::string& s) {
 }
 
 std::string g_phase = "starting";
+
+double g_age_at_main = -1;
+
+double process_age_seconds() {
+#ifdef __linux__
+  std::ifstream in("/proc/self/stat");
+  std::string stat;
+  std::getline(in, stat);
+  // Field 22, starttime in clock ticks after boot; fields 3.. follow the ")" ending the name.
+  const std::size_t close = stat.rfind(')');
+  if (close == std::string::npos) return -1;
+  std::istringstream fields(stat.substr(close + 2));
+  std::string f;
+  for (int k = 3; k <= 22 && fields >> f; ++k)
+    if (k == 22) {
+      const long tick = ::sysconf(_SC_CLK_TCK);
+      timespec now{};
+      if (tick <= 0 || ::clock_gettime(CLOCK_BOOTTIME, &now) != 0) return -1;
+      return double(now.tv_sec) + 1e-9 * double(now.tv_nsec) - std::stod(f) / double(tick);
+    }
+#endif
+  return -1;
+}
+
+double process_cpu_seconds() {
+  timespec t{};
+  if (::clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t) != 0) return -1;
+  return double(t.tv_sec) + 1e-9 * double(t.tv_nsec);
+}
 
 void set_phase(const std::string& phase) {
   g_phase = phase;

@@ -140,12 +140,18 @@ int run_command(const std::vector<std::string>& args) {
     std::cerr << "amalgam run: " << printable(e.what()) << "\n" << kRunHelp;
     return kUsage;
   }
+  // The set-up's phases are profiler regions "setup.*" (the run's set-up summary, frame_loop.cpp):
+  // the process's start up to main (dynamic loading) and MPI's initialisation first.
   exec::Profiler profiler;
+  if (g_age_at_main >= 0) profiler.add("setup.start", g_age_at_main);
+  if (dist::Comm::world().size() > 1)
+    profiler.add("setup.mpi_init", dist::Comm::world().init_seconds());
   std::signal(SIGINT, on_signal_during_setup);
   std::signal(SIGTERM, on_signal_during_setup);
   try {
     const exec::Space space = make_space(o, &profiler);
     set_phase("reading scene file " + o.positional[0]);
+    const auto t_read = std::chrono::steady_clock::now();
     Scene scene = load_scene(o.positional[0]);
     if (const auto* f = o.get("--frames")) scene.frames = parse_int("--frames", *f, 1, kMaxFrames);
     RunSettings rs;
@@ -172,6 +178,8 @@ int run_command(const std::vector<std::string>& args) {
     // or the substep limits is refused unless --force.
     set_phase("estimating scene " + scene.file);
     const RunEstimate estimate = estimate_of(scene);
+    profiler.add("setup.read_scene",
+                 std::chrono::duration<double>(std::chrono::steady_clock::now() - t_read).count());
     if (!rs.quiet) std::cout << "amalgam: expected: " << describe(estimate) << "\n";
     // On several ranks the memory is this machine's ranks' share: explicit MPM splits its state
     // and samples its set-up in slices (solvers/factory.cpp); peridynamics holds every
@@ -211,6 +219,7 @@ int run_command(const std::vector<std::string>& args) {
     if (std::getenv("AMALGAM_TEST_SIGINT_IN_SETUP")) std::raise(SIGINT);
     if (const auto* r = o.get("--resume")) {
       set_phase("reading checkpoint " + *r);
+      exec::ScopedRegion region(&profiler, "setup.read_checkpoint");
       const CheckpointState st = read_checkpoint(*r, *sim, scene.fingerprint);
       rs.first_frame = st.next_frame;
       rs.resumed = true;

@@ -8,6 +8,9 @@
 # distributed summary (repartitions, imbalance), then the medians and
 # the ratio (1 x R time / R x 1 time: >= 1 means the ranks are at least as fast).
 # Usage: bench/dist_scaling.sh AMALGAM SCENE RANKS PAIRS OUTDIR [BACKEND] [FRAMES]
+# OpenMPI's MCA settings pass through the environment: on one node OMPI_MCA_pml=ob1 skips UCX's
+# initialisation (MPI_Init ~0.4 -> ~0.15 s a rank, docs/scaling.md "Start-up and set-up"); say so
+# with the results. Each log's "set-up, process start to frame loop" line splits the set-up.
 set -u
 amalgam=$1 scene=$2 ranks=$3 pairs=$4 out=$5 backend=${6:-tbb} frames=${7:-}
 export OMPI_ALLOW_RUN_AS_ROOT=1 OMPI_ALLOW_RUN_AS_ROOT_CONFIRM=1

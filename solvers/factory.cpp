@@ -146,13 +146,24 @@ MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
   for (std::size_t k = 0; k < scene.objects.size(); ++k) {
     const ObjectSpec& obj = scene.objects[k];
     Real vol = 0;
-    const std::vector<Vec3> x = sample_object(obj, scene.mpm.dx, vol, space, slice);
-    const IdSlice ids = sliced ? slice_ids(x.size()) : IdSlice{};
+    std::vector<Vec3> x;
+    {
+      exec::ScopedRegion region(space.profiler(), "setup.sample");
+      x = sample_object(obj, scene.mpm.dx, vol, space, slice);
+    }
+    IdSlice ids;
+    if (sliced) {  // collective: includes waiting for the slowest rank's sampling
+      exec::ScopedRegion region(space.profiler(), "setup.slice_ids");
+      ids = slice_ids(x.size());
+    }
     check_sampled(sliced ? ids.total : std::int64_t(x.size()), k, scene.mpm.dx);
     const std::size_t first = solver.particles().size();
-    solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol,
-                         obj.temperature, obj.configuration, ids);
-    apply_fields(obj, solver, first, double(scene.mpm.dx));
+    {
+      exec::ScopedRegion region(space.profiler(), "setup.particles");
+      solver.add_particles(x, obj.velocity, obj.angular_velocity, obj.center, obj.material, vol,
+                           obj.temperature, obj.configuration, ids);
+      apply_fields(obj, solver, first, double(scene.mpm.dx));
+    }
     if (scene.mpm.domains.enabled) {
       const Real h = Real(double(scene.mpm.dx) / std::cbrt(double(obj.particles_per_cell)));
       if (obj.mesh)  // the mesh is embedded in the domains and written deformed every frame (Sec. 4.1)

@@ -26,6 +26,9 @@ setup=$(grep -o 'set-up: at most [0-9]* of [0-9]* particles' "$out/rep.log") ||
 read -r most total < <(echo "$setup" | awk '{print $4, $6}')
 [ "$total" -gt 1000 ] && [ $((most * 2)) -lt "$total" ] ||
   { echo "set-up on 3 ranks: $setup (expected at most half on one rank)"; exit 1; }
+# The set-up's phases are timed on every rank (least / most of the ranks), the split included.
+grep -Eq '^amalgam: set-up, process start to frame loop \(s; least / most of 3 ranks\): [0-9.]+ / [0-9.]+ \(CPU [0-9.]+ / [0-9.]+\) = .*mpi_init [0-9.]+ / [0-9.]+,.* begin_run [0-9.]+ / [0-9.]+' "$out/rep.log" ||
+  { grep "set-up" "$out/rep.log"; echo "no timed set-up line on 3 ranks"; exit 1; }
 resumes 3 2 2 0 || exit 1  # checkpoint on 3 ranks after frame 2, resumed on 2 and on 1
 resumes 0 3 4 || exit 1    # a single-process checkpoint after frame 3 resumed on 4 ranks
 interrupted 4 150 3 || exit 1  # inside frame 3, on 4 ranks; resumed on 3

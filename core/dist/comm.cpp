@@ -175,6 +175,7 @@ Session::Session(int* argc, char*** argv) {
   if (!launched_by_mpi()) return;
   int done = 0;
   MPI_Initialized(&done);
+  const auto t0 = std::chrono::steady_clock::now();
   if (!done) {
     int provided = 0;
     check(MPI_Init_thread(argc, argv, MPI_THREAD_FUNNELED, &provided), "MPI_Init_thread");
@@ -183,6 +184,8 @@ Session::Session(int* argc, char*** argv) {
     Zoltan_Initialize(argc ? *argc : 0, argv ? *argv : nullptr, &version);
   }
   Comm::world().attach();
+  Comm::world().init_seconds_ =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
 Session::~Session() {
   int finalized = 0;

@@ -40,6 +40,9 @@ class Comm {
   // How many of the job's ranks share this rank's machine (MPI_COMM_TYPE_SHARED): what the
   // memory check before a run multiplies a rank's share by. One rank: 1.
   int node_ranks() const { return node_ranks_; }
+  // Seconds this process spent in MPI_Init_thread (and Zoltan_Initialize): the set-up summary's
+  // `mpi_init`. 0 without MPI or when not launched by mpirun.
+  double init_seconds() const { return init_seconds_; }
 
   // The longest a rank waits in one collective for the others (seconds; `amalgam run
   // --comm-timeout`, default 600). A rank that waits longer prints which collective and which
@@ -116,6 +119,7 @@ class Comm {
   void attach();  // reads the rank and size once MPI is initialised
   int rank_ = 0, size_ = 1, node_ranks_ = 1;
   double timeout_ = 600;
+  double init_seconds_ = 0;
   mutable Traffic traffic_;
 };
 
