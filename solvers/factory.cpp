@@ -133,11 +133,7 @@ IdSlice slice_ids(std::size_t mine) {
 }  // namespace
 
 MpmSolver build_solver(const SceneSpec& scene, const exec::Space& space) {
-  MpmSettings settings = scene.mpm;
-  // Grid volumes write the frame's last grid (m, v): the fused substep's grid at a frame's end is
-  // the next substep's split scatter (m, p, f), so such a run keeps the two passes.
-  settings.fused &= !scene.output.grid_volumes;
-  MpmSolver solver(settings, scene.materials, build_colliders(scene, space), scene.heat_sources);
+  MpmSolver solver(scene.mpm, scene.materials, build_colliders(scene, space), scene.heat_sources);
   // On several ranks each samples one slice of every object (its lattice planes, or its share of
   // a tet mesh's cells), so no rank holds the whole set-up; `distribute` then sends each particle
   // to the owner of its leaf. The ids are the single process's (the slices in rank order).
