@@ -194,7 +194,8 @@ int bench_command(const std::vector<std::string>& args) {
   if (implicit) return implicit_bench(so, steps, reps, threads, backends, fixed_dt);
   std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/"
             << int(std::lround(1 / so.dx)) << ", transfer=" << transfer_name(so.transfer)
-            << ", transfer_pass=" << (so.fused ? "fused" : "two_pass") << ", precision=" << real_name() << ", simd=" << exec::simd_description() << ", "
+            << ", transfer_pass=" << (so.fused ? "fused" : "two_pass")
+            << ", precision=" << real_name() << ", simd=" << exec::simd_description() << ", "
             << steps << " substeps x " << reps << " reps (median, [min, max])\n";
   const Real dt = Real(1e-4);
   for (const auto backend : backends) {

@@ -75,10 +75,10 @@ inline int one_material_run(const std::int32_t* material, std::uint32_t q0, std:
 // flatten: every small Eigen operation inside is inlined; GCC's unit-growth limits otherwise
 // leave some out of line as the file grows (measured: G2P 12 % slower).
 template <int Order, Transfer T, int CH, bool P = false, bool S = false, int M = 0>
-__attribute__((flatten)) inline void p2g_particle(GridBlock<Order, CH, M>& blk,
-                                                  const Vec3i& origin, const Vec3& x,
-                                                  const Vec3& v, const Mat3& C, const Mat3& tau,
-                                                  Real m, Real V0, Real dx, Real inv_dx, Real dt,
+__attribute__((flatten)) inline void p2g_particle(GridBlock<Order, CH, M>& blk, const Vec3i& origin,
+                                                  const Vec3& x, const Vec3& v, const Mat3& C,
+                                                  const Mat3& tau, Real m, Real V0, Real dx,
+                                                  Real inv_dx, Real dt,
                                                   const Vec3& xq = Vec3::Zero(),
                                                   const Mat3& Fq = Mat3::Zero()) {
   static_assert(!P || (CH == 8 && T != Transfer::PicFlip && !S),
@@ -574,8 +574,8 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
           update_material_group(p, *mu, q, std::min(q1, q + kN));
         Out out;
         out.clear();
-        far[b] = !scatter_range<Order, T, false, false, true>(
-            out, origin - Vec3i::Constant(M), q0, q1, p, prm);
+        far[b] = !scatter_range<Order, T, false, false, true>(out, origin - Vec3i::Constant(M), q0,
+                                                              q1, p, prm);
         std::memcpy(blocks + b * std::size_t(Out::kSize), out.data, sizeof(out.data));
       },
       1);
@@ -854,10 +854,9 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
 }
 
 extern const MpmKernelTable mpm_kernels;
-const MpmKernelTable mpm_kernels = {&grid_clear,    &p2g,         &clear_node4,
-                                    &p2g_positions, &grid_update, &grid_apply_colliders,
-                                    &g2p,           &p2g_blocks,  &g2p2g,
-                                    &g2p2g_flush};
+const MpmKernelTable mpm_kernels = {
+    &grid_clear,           &p2g, &clear_node4, &p2g_positions, &grid_update,
+    &grid_apply_colliders, &g2p, &p2g_blocks,  &g2p2g,         &g2p2g_flush};
 
 }  // namespace AMALGAM_ISA
 

@@ -110,7 +110,8 @@ void MpmSolver::flush_fused_blocks(const exec::Space& space) {
   for (std::size_t b = 0; b < nb; ++b)
     for (int t = 0; t < 27; ++t) {
       const std::int32_t slot = fused_target_[b * 27 + std::size_t(t)];
-      if (slot >= 0) fused_items_[at[std::size_t(slot)]++] = std::uint32_t(b << 5) | std::uint32_t(t);
+      if (slot >= 0)
+        fused_items_[at[std::size_t(slot)]++] = std::uint32_t(b << 5) | std::uint32_t(t);
     }
   g2p2g_flush(space, grid_view(), settings_.order, p2g_blocks_.data(), fused_start_.data(),
               fused_items_.data());

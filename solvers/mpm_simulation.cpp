@@ -279,7 +279,8 @@ int MpmSimulation::profile_column(const std::string& l) const {
   auto starts = [&l](const char* p) { return l.rfind(p, 0) == 0; };
   // Particle domains: particle -> corner -> grid is the P2G side, grid -> corner -> particle (with
   // the corner collisions and the advection) the G2P side.
-  if (l == "mpm.p2g" || l == "mpm.g2p2g_flush" || l == "domain.p2c" || l == "domain.points_to_grid" || l == "domain.stress")
+  if (l == "mpm.p2g" || l == "mpm.g2p2g_flush" || l == "domain.p2c" ||
+      l == "domain.points_to_grid" || l == "domain.stress")
     return 0;
   if (l == "mpm.g2p" || l == "mpm.g2p2g" || l == "domain.grid_to_corners" || l == "domain.c2p" ||
       l == "domain.collide_corners" || starts("domain.advect"))

@@ -18,8 +18,8 @@ namespace amalgam {
 GridChannels GridChannels::for_run(const MpmSettings& s, bool has_colliders) {
   GridChannels c;
   // The fused substep's split grid keeps the force in set 1 for every transfer.
-  const bool split = s.fused && !s.implicit && !s.configuration_maps && !s.domains.enabled &&
-                     !s.sleep.enabled;
+  const bool split =
+      s.fused && !s.implicit && !s.configuration_maps && !s.domains.enabled && !s.sleep.enabled;
   if (s.transfer == Transfer::PicFlip || s.domains.enabled || split) c.second = c.count++;
   if (s.configuration_maps && (has_colliders || s.contact.mode != ObjectContactMode::None))
     c.positions = c.count++;

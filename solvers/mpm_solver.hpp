@@ -329,14 +329,14 @@ class MpmSolver {
   Real* p2g_blocks_for(std::size_t nbins, bool fused);
   // The fused substep (solvers/mpm_fused.cpp).
   void step_fused(const exec::Space& space, Real dt);
-  void prime_grid(const exec::Space& space);       // the split P2G of the sorted particles
+  void prime_grid(const exec::Space& space);          // the split P2G of the sorted particles
   void flush_fused_blocks(const exec::Space& space);  // the dilated blocks into the new grid
   bool primed_ = false;
   std::uint64_t fused_fallbacks_ = 0, fused_unfused_ = 0;
-  std::vector<Vec3i> fused_bin_leaf_;         // the fused pass's bins' leaves (before re-sorting)
-  std::vector<std::uint8_t> fused_far_;       // per bin: a particle left its dilated block
-  std::vector<std::int32_t> fused_slot_;      // per leaf slot: its index among the active leaves
-  std::vector<std::int32_t> fused_target_;    // per (bin, t): the active leaf index or -1
+  std::vector<Vec3i> fused_bin_leaf_;       // the fused pass's bins' leaves (before re-sorting)
+  std::vector<std::uint8_t> fused_far_;     // per bin: a particle left its dilated block
+  std::vector<std::int32_t> fused_slot_;    // per leaf slot: its index among the active leaves
+  std::vector<std::int32_t> fused_target_;  // per (bin, t): the active leaf index or -1
   std::vector<std::uint32_t> fused_start_, fused_items_;  // per active leaf: its blocks' parts
   std::vector<std::uint32_t> fused_slot_cursor_;
   static constexpr std::size_t kG2P2GBlocksMinBudget = std::size_t(64) << 20;

@@ -146,7 +146,8 @@ TEST_P(G2P2GMaths, ConservesMomentumWithoutExternalForces) {
     const auto& ps = s.particles();
     const auto& a = s.attributes();
     for (std::size_t p = 0; p < ps.size(); ++p)
-      mass += double(s.materials()[std::size_t(ps.int32(a.material)[p])].mass(ps.real(a.volume0)[p]));
+      mass +=
+          double(s.materials()[std::size_t(ps.int32(a.material)[p])].mass(ps.real(a.volume0)[p]));
   }
   std::printf("momentum drift %.3g of m |v|max = %.3g\n", (P1 - P0).norm(), mass * speed);
   EXPECT_LT((P1 - P0).norm(), 1e-5 * mass * speed);
