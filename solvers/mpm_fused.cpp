@@ -59,12 +59,7 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   }
   if (p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);
   fused_far_.assign(g.nbins, 0);
-  MaterialUpdateParams mu;
-  mu.materials = materials_.data();
-  mu.sources = heat_sources_.data();
-  mu.nsources = int(heat_sources_.size());
-  mu.dt = dt;
-  mu.time = Real(time_ + double(dt));
+  const MaterialUpdateParams mu = material_params(dt);
   g2p2g(space, particle_view(), g, prm, material_update_ ? &mu : nullptr, p2g_blocks_.data(),
         fused_far_.data());
   fused_bin_leaf_.assign(bins_.leaf.begin(), bins_.leaf.begin() + std::ptrdiff_t(g.nbins));

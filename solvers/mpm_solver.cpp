@@ -338,14 +338,18 @@ void MpmSolver::collide_particles(const exec::Space& space, Real dt) {
                              t_end);
 }
 
-void MpmSolver::update_materials(const exec::Space& space, Real dt) {
+MaterialUpdateParams MpmSolver::material_params(Real dt) const {
   MaterialUpdateParams prm;
   prm.materials = materials_.data();
   prm.sources = heat_sources_.data();
   prm.nsources = int(heat_sources_.size());
   prm.dt = dt;
   prm.time = Real(time_ + double(dt));
-  update_material_state(space, particle_view(), prm);
+  return prm;
+}
+
+void MpmSolver::update_materials(const exec::Space& space, Real dt) {
+  update_material_state(space, particle_view(), material_params(dt));
 }
 
 void MpmSolver::step(const exec::Space& space, Real dt) {

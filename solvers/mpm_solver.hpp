@@ -329,8 +329,9 @@ class MpmSolver {
   Real* p2g_blocks_for(std::size_t nbins, bool fused);
   // The fused substep (solvers/mpm_fused.cpp).
   void step_fused(const exec::Space& space, Real dt);
-  void prime_grid(const exec::Space& space);          // the split P2G of the sorted particles
-  void flush_fused_blocks(const exec::Space& space);  // the dilated blocks into the new grid
+  MaterialUpdateParams material_params(Real dt) const;  // update_materials' parameters
+  void prime_grid(const exec::Space& space);            // the split P2G of the sorted particles
+  void flush_fused_blocks(const exec::Space& space);    // the dilated blocks into the new grid
   bool primed_ = false;
   std::uint64_t fused_fallbacks_ = 0, fused_unfused_ = 0;
   std::vector<Vec3i> fused_bin_leaf_;       // the fused pass's bins' leaves (before re-sorting)
