@@ -17,11 +17,13 @@ namespace amalgam::cli {
 namespace {
 const char* kBenchHelp =
     "usage: amalgam bench [--particles N] [--steps S] [--reps R] [--threads LIST] [--backends LIST]\n"
-    "                     [--transfer mls|apic|flip|pic] [--implicit [--dt SECONDS]]\n"
+    "                     [--transfer mls|apic|flip|pic] [--transfer-pass fused|two_pass]\n"
+    "                     [--implicit [--dt SECONDS]]\n"
     "Runs the standard sphere scene (N particles, default 1e6, dx = 1/128, MLS, fixed corotated)\n"
     "for S timed substeps (default 10) after 2 warm-up substeps, R times (default 3), on each\n"
     "backend (default serial,openmp,tbb) and thread count (default 1,2), and prints one line per\n"
     "run with the median (min, max) particle-substeps per second and per-kernel ns per particle.\n"
+    "--transfer-pass fused: one pass over the particles per substep (G2P2G; g2p2g_ns).\n"
     "--implicit: the same sphere stiffened to E = 1e7 with the implicit integrator, dx scaled so\n"
     "particles per cell stay those of 1e6 at 1/128, dt = 10x the explicit CFL step of that\n"
     "resolution (or --dt); adds CG iterations per substep (mean, max) and the solve's share.\n"
@@ -129,14 +131,14 @@ int bench_command(const std::vector<std::string>& args) {
     const Options o = parse_options(
         args,
         {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer", "--dt",
-         "--report", "--scale", "--warmup", "--cases", "--compare", "--commit"},
+         "--transfer-pass", "--report", "--scale", "--warmup", "--cases", "--compare", "--commit"},
         {"--help", "--implicit"});
     if (o.flag("--help")) {
       std::cout << kBenchHelp;
       return kOk;
     }
     if (o.get("--report")) {
-      for (const char* k : {"--particles", "--transfer", "--dt"})
+      for (const char* k : {"--particles", "--transfer", "--dt", "--transfer-pass"})
         if (o.get(k)) throw std::invalid_argument(std::string(k) + " does not apply to --report");
       if (o.flag("--implicit"))
         throw std::invalid_argument("--implicit does not apply to --report");
@@ -175,6 +177,11 @@ int bench_command(const std::vector<std::string>& args) {
       else
         throw std::invalid_argument("--transfer expects mls, apic, flip or pic, got '" + *v + "'");
     }
+    if (auto* v = o.get("--transfer-pass")) {
+      if (*v != "fused" && *v != "two_pass")
+        throw std::invalid_argument("--transfer-pass expects fused or two_pass, got '" + *v + "'");
+      so.fused = *v == "fused";
+    }
     implicit = o.flag("--implicit");
     if (auto* v = o.get("--dt")) {
       if (!implicit) throw std::invalid_argument("--dt needs --implicit");
@@ -187,6 +194,7 @@ int bench_command(const std::vector<std::string>& args) {
   if (implicit) return implicit_bench(so, steps, reps, threads, backends, fixed_dt);
   std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/"
             << int(std::lround(1 / so.dx)) << ", transfer=" << transfer_name(so.transfer)
+            << ", transfer_pass=" << (so.fused ? "fused" : "two_pass")
             << ", precision=" << real_name() << ", simd=" << exec::simd_description() << ", "
             << steps << " substeps x " << reps << " reps (median, [min, max])\n";
   const Real dt = Real(1e-4);
@@ -224,11 +232,11 @@ int bench_command(const std::vector<std::string>& args) {
       std::snprintf(
           line, sizeof line,
           "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
-          "p2g_ns=%.1f g2p_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f leaves=%zu "
+          "p2g_ns=%.1f g2p_ns=%.1f g2p2g_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f leaves=%zu "
           "bytes_per_particle=%zu bytes_per_node=%.1f p2g_block_bytes_per_particle=%.1f simd=%s",
           exec::backend_name(backend), t, so.particles, median(rate),
           *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()),
-          ns({"mpm.p2g"}), ns({"mpm.g2p"}),
+          ns({"mpm.p2g"}), ns({"mpm.g2p"}), ns({"mpm.g2p2g", "mpm.g2p2g_flush"}),
           ns({"bin.leaf_box", "bin.keys", "bin.radix_hist", "bin.radix_scatter",
               "particles.permute", "bin.find_runs"}),
           ns({"grid.topology"}), ns({"mpm.grid_clear", "mpm.grid_update"}), leaves, particle_bytes,

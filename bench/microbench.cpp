@@ -96,6 +96,30 @@ void BM_G2P(benchmark::State& st, Transfer t, int order) {
   set_items(st, kParticles, kG2PBytes);
 }
 
+// The fused G2P2G kernel (solvers/mpm_fused.cpp) alone: gather, particle update and the split
+// scatter into the dilated blocks, then their flush into the grid (the leaf lists built by the
+// solver's fused substep before the loop), on the standard sphere. dt = 0 as in BM_G2P; compare
+// with BM_P2G + BM_G2P of the same transfer and order.
+void BM_G2P2G(benchmark::State& st, Transfer t, int order) {
+  const exec::Space space = space_of(st);
+  BenchSceneOptions o;
+  o.particles = kParticles;
+  o.dx = Real(std::cbrt(1e6 / double(kParticles)) / 128.0);
+  o.transfer = t;
+  o.order = order;
+  o.fused = true;
+  MpmSolver s = make_bench_sphere(o);
+  s.step(space, Real(1e-4));  // primes the grid, one fused substep, the next grid flushed
+  const MpmGridView g = s.grid_view();
+  MpmStepParams prm = s.step_params(0);
+  prm.split = true;
+  std::vector<Real> blocks(g.nbins * g2p2g_block_reals(order));
+  std::vector<std::uint8_t> far(g.nbins);
+  for (auto _ : st) g2p2g(space, s.particle_view(), g, prm, nullptr, blocks.data(), far.data());
+  st.counters["bins"] = double(g.nbins);
+  set_items(st, kParticles, kG2PBytes);
+}
+
 // MLS P2G on its two paths: kept bin blocks (every bin scattered in one loop, then summed per
 // leaf; what particle_to_grid runs) against the eight colour phases (blocks = null), the same
 // bits. On the standard sphere (2^18 particles, ~4.2 per cell) and on one of jelly_drop's size
@@ -587,6 +611,10 @@ BENCHMARK_CAPTURE(BM_G2P, mls_quadratic, Transfer::Mls, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_G2P, apic_quadratic, Transfer::Apic, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_G2P, flip_quadratic, Transfer::PicFlip, 2)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_G2P, mls_cubic, Transfer::Mls, 3)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_G2P2G, mls_quadratic, Transfer::Mls, 2)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_G2P2G, apic_quadratic, Transfer::Apic, 2)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_G2P2G, flip_quadratic, Transfer::PicFlip, 2)->Apply(backend_args);
+BENCHMARK_CAPTURE(BM_G2P2G, mls_cubic, Transfer::Mls, 3)->Apply(backend_args);
 BENCHMARK(BM_GridUpdate)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_AulP2G, mls_quadratic, Transfer::Mls)->Apply(backend_args);
 BENCHMARK_CAPTURE(BM_AulP2G, flip_quadratic, Transfer::PicFlip)->Apply(backend_args);

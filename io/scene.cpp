@@ -664,6 +664,9 @@ Scene parse_scene(const std::string& text, const std::string& file) {
   read_vdb_points(out, s.output);
   s.output.diagnostics_csv = out.boolean("diagnostics_csv", true);
   s.output.grid_volumes = out.boolean("grid_volumes", false);
+  // Grid volumes write the frame's last grid (m, v): the fused substep's grid at a frame's end is
+  // the next substep's split scatter (m, p, f), so such a run keeps the two passes.
+  if (s.output.grid_volumes) s.mpm.fused = false;
   s.output.checkpoint_every = int(out.integer("checkpoint_every", 10, 0, 1000000));
   s.output.every_substeps = out.integer("every_substeps", 0, 0, 1000000000);
   const std::string surf = out.choice("surface", "obj", {"obj", "ply", "both", "none"});

@@ -120,6 +120,8 @@ void read_mpm_simulation(JsonObject& sim, Scene& s) {
   if (tr == "pic" && s.mpm.flip_alpha != 0)
     sim.fail("flip_alpha", "must be 0 (or absent) with transfer \"pic\"");
   s.mpm.implicit = sim.choice("integrator", "explicit", {"explicit", "implicit"}) == "implicit";
+  // One pass over the particles per substep (G2P2G) where the variant fuses; docs/architecture.md.
+  s.mpm.fused = sim.choice("transfer_pass", "two_pass", {"fused", "two_pass"}) == "fused";
   {
     JsonObject imp = sim.object("implicit");
     if (imp.has("tolerance") || imp.has("max_iterations") || imp.has("solver") ||

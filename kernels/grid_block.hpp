@@ -16,9 +16,12 @@
 
 namespace amalgam {
 
-template <int Order, int CH>
+// M > 0: a dilated block, M more nodes on every side (node (0,0,0) at the bin leaf's origin - M):
+// the fused G2P2G scatter of particles that moved up to M nodes out of their bin's footprint.
+// visit / for_each_node / gather4 / flush_add4 are for M = 0.
+template <int Order, int CH, int M = 0>
 struct GridBlock {
-  static constexpr int B = kLeafDim + Order;
+  static constexpr int B = kLeafDim + Order + 2 * M;
   static constexpr int kSize = B * B * B * CH;
   alignas(64) Real data[kSize];
   static int at(int i, int j, int k) { return ((i * B + j) * B + k) * CH; }

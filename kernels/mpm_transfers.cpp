@@ -9,6 +9,7 @@
 #include "core/math/lanes.hpp"
 #include "core/math/simd4.hpp"
 #include "kernels/grid_block.hpp"
+#include "kernels/particle_update.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 
 namespace amalgam {
@@ -68,17 +69,21 @@ inline int one_material_run(const std::int32_t* material, std::uint32_t q0, std:
 // Per-particle P2G contribution into a block whose node (0,0,0) is `origin` (pure: no grid).
 // P (A-ULMPM, MLS/APIC only, CH = 8): lanes 4-7 also receive the node-position scatter of
 // p2g_positions, w (m, m (xq + Fq o)) with the same stencil (xq = x_p, Fq = F_s; o = X_i - X_p).
+// S (split, dt-free; CH = 8): the stress force goes into lanes 4-7 for every transfer, without
+// its dt (the fused G2P2G scatters before the next dt is known; grid_update adds dt f / m).
+// M: the block's margin (GridBlock), origin being the bin leaf's origin - M.
 // flatten: every small Eigen operation inside is inlined; GCC's unit-growth limits otherwise
 // leave some out of line as the file grows (measured: G2P 12 % slower).
-template <int Order, Transfer T, int CH, bool P = false>
-__attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const Vec3i& origin,
+template <int Order, Transfer T, int CH, bool P = false, bool S = false, int M = 0>
+__attribute__((flatten)) inline void p2g_particle(GridBlock<Order, CH, M>& blk, const Vec3i& origin,
                                                   const Vec3& x, const Vec3& v, const Mat3& C,
                                                   const Mat3& tau, Real m, Real V0, Real dx,
                                                   Real inv_dx, Real dt,
                                                   const Vec3& xq = Vec3::Zero(),
                                                   const Mat3& Fq = Mat3::Zero()) {
-  static_assert(!P || (CH == 8 && T != Transfer::PicFlip),
+  static_assert(!P || (CH == 8 && T != Transfer::PicFlip && !S),
                 "fused positions: MLS/APIC with an 8-lane block");
+  static_assert(!S || CH == 8, "split force: an 8-lane block");
   const Stencil<Order> st = Stencil<Order>::at(x, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
@@ -87,19 +92,27 @@ __attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const V
   //   MLS:      A = m C - dt V0 D^{-1} tau, G = 0   (stress folded into the affine term)
   //   APIC:     A = m C,                   G = dt V0 tau
   //   PIC/FLIP: A = 0,                     G = V0 tau (force kept apart: FLIP needs v_old)
+  // Split (S): A = m C (MLS, APIC) and the force apart, f_i = -w Sf o (MLS, Sf = V0 D^{-1} tau)
+  // or -G grad w (APIC, G = V0 tau), as PIC/FLIP's.
   // A o = A.col(0) o0[i] + A.col(1) o1[j] + A.col(2) o2[k], and with
   // grad w_ijk = (dwx_i wy_j wz_k, wx_i dwy_j wz_k, wx_i wy_j dwz_k),
   // G grad w = wz_k g0_ij + dwz_k g1_ij, g0_ij = G.col(0) dwx_i wy_j + G.col(1) wx_i dwy_j,
   // g1_ij = G.col(2) wx_i wy_j: a few 4-lane multiply-adds per node, no 3x3 product.
   constexpr bool kGrad = (T != Transfer::Mls);
-  Mat3 A, G;
+  constexpr bool kAffineForce = S && T == Transfer::Mls;
+  Mat3 A, G, Sf;
   if constexpr (T == Transfer::Mls) {
     const Real Dinv = BSpline<Order>::kDinvScale * inv_dx * inv_dx;
-    A = m * C - (dt * V0 * Dinv) * tau;
+    if constexpr (S) {
+      A = m * C;
+      Sf = (V0 * Dinv) * tau;
+    } else {
+      A = m * C - (dt * V0 * Dinv) * tau;
+    }
     G.setZero();
   } else if constexpr (T == Transfer::Apic) {
     A = m * C;
-    G = (dt * V0) * tau;
+    G = S ? Mat3(V0 * tau) : Mat3((dt * V0) * tau);
   } else {
     A.setZero();
     G = V0 * tau;
@@ -110,13 +123,20 @@ __attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const V
   const V4 a0 = simd::col4(A, 0), a1 = simd::col4(A, 1), a2 = simd::col4(A, 2);
   V4 zk[N];  // (m, A.col(2) o2[k])
   for (int k = 0; k < N; ++k) zk[k] = em + a2 * ((Real(k) - st.fx[2]) * dx);
-  // Positions (P): the same separable affine form with v -> xq and A -> m Fq, no stress term.
-  const Mat3 Aq = m * Fq;
-  const V4 mq = simd::row4(0, m * xq);
+  // Positions (P): the same separable affine form with v -> xq and A -> m Fq, no stress term;
+  // split MLS: the force's affine form Sf o in the same lanes.
+  Mat3 Aq;
+  if constexpr (kAffineForce)
+    Aq = Sf;
+  else
+    Aq = m * Fq;
+  const V4 mq = kAffineForce ? V4{} : simd::row4(0, m * xq);
   const V4 q0 = simd::col4(Aq, 0), q1 = simd::col4(Aq, 1), q2 = simd::col4(Aq, 2);
   V4 qk[N] = {};
   if constexpr (P)
     for (int k = 0; k < N; ++k) qk[k] = em + q2 * ((Real(k) - st.fx[2]) * dx);
+  if constexpr (kAffineForce)
+    for (int k = 0; k < N; ++k) qk[k] = q2 * ((Real(k) - st.fx[2]) * dx);
   const V4 g0c = simd::col4(G, 0), g1c = simd::col4(G, 1), g2c = simd::col4(G, 2);
   for (int i = 0; i < N; ++i) {
     const Real oi = (Real(i) - st.fx[0]) * dx;
@@ -132,7 +152,7 @@ __attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const V
         g0 = g0c * (st.dw[0][i] * wy) + g1c * (wx * st.dw[1][j]);
         g1 = g2c * wij;
       }
-      Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
+      Real* row = blk.data + GridBlock<Order, CH, M>::at(l[0] + i, l[1] + j, l[2]);
       for (int k = 0; k < N; ++k) {
         const Real w = wij * st.w[2][k], wz = st.w[2][k], dwz = st.dw[2][k];
         Real* r = row + k * CH;
@@ -140,7 +160,8 @@ __attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const V
         if constexpr (P) simd::store4(r + 4, simd::load4(r + 4) + w * (qij + qk[k]));
         if constexpr (T == Transfer::Mls) {
           simd::store4(r, simd::load4(r) + mom);
-        } else if constexpr (T == Transfer::Apic) {
+          if constexpr (S) simd::store4(r + 4, simd::load4(r + 4) - w * (qij + qk[k]));
+        } else if constexpr (T == Transfer::Apic && !S) {
           simd::store4(r, simd::load4(r) + (mom - (wz * g0 + dwz * g1)));
         } else {
           simd::store4(r, simd::load4(r) + mom);
@@ -151,18 +172,17 @@ __attribute__((flatten)) inline void p2g_particle(Block<Order, CH>& blk, const V
   }
 }
 
-// Scatters bin b's particles into its zeroed block (P2G of one bin, before the flush).
-template <int Order, Transfer T, bool L, bool P, int CH>
-inline void scatter_bin(Block<Order, CH>& blk, std::uint32_t b, const MpmParticleView& p,
-                        const MpmGridView& g, const MpmStepParams& prm) {
+// Scatters particles [q0, q1) into `blk` (node (0,0,0) at `origin`). Particles in batches of up
+// to W of one material: their stresses at once (one per vector lane, the values of one at a time:
+// MaterialParams::kirchhoff_lanes), then their scatter. A dilated block (M > 0: the fused G2P2G)
+// skips a particle whose stencil leaves it and returns false.
+template <int Order, Transfer T, bool L, bool P, bool S = false, int CH, int M>
+inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std::uint32_t q_begin,
+                          std::uint32_t q1, const MpmParticleView& p, const MpmStepParams& prm) {
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
-  std::memset(blk.data, 0, sizeof(blk.data));
-  const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-  // Particles in batches of up to W of one material: their stresses at once (one per vector
-  // lane, the values of one at a time: MaterialParams::kirchhoff_lanes), then their scatter.
   constexpr int W = lanes::kN<Real>;
-  const std::uint32_t q1 = g.end_of(b);
-  for (std::uint32_t q0 = g.bin_start[b]; q0 < q1;) {
+  bool inside = true;
+  for (std::uint32_t q0 = q_begin; q0 < q1;) {
     const int n = one_material_run<W>(p.material, q0, q1);
     Real plastic[W], temperature[W];
     Mat3 tau[W], Lv[W], Fs_inv[W];
@@ -181,9 +201,21 @@ inline void scatter_bin(Block<Order, CH>& blk, std::uint32_t b, const MpmParticl
     mat.kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic, temperature, tau, n);
     for (int l = 0; l < n; ++l) {
       const std::uint32_t q = q0 + std::uint32_t(l);
+      if constexpr (M > 0) {  // the stencil's nodes base .. base + Order inside the block?
+        bool out = false;
+        for (int a = 0; a < 3; ++a) {
+          const int d = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
+          out |= d < 0 || d + Order >= GridBlock<Order, CH, M>::B;
+        }
+        if (out) {
+          inside = false;
+          continue;
+        }
+      }
       if constexpr (!L) {
-        p2g_particle<Order, T, CH>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l],
-                                   mat.mass(p.volume0[q]), p.volume0[q], dx, inv_dx, dt);
+        p2g_particle<Order, T, CH, false, S, M>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l],
+                                                mat.mass(p.volume0[q]), p.volume0[q], dx, inv_dx,
+                                                dt);
       } else {
         p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q],
                                       tau[l] * Fs_inv[l].transpose(), mat.mass(p.volume0[q]),
@@ -192,6 +224,16 @@ inline void scatter_bin(Block<Order, CH>& blk, std::uint32_t b, const MpmParticl
     }
     q0 += std::uint32_t(n);
   }
+  return inside;
+}
+
+// Scatters bin b's particles into its zeroed block (P2G of one bin, before the flush).
+template <int Order, Transfer T, bool L, bool P, bool S = false, int CH>
+inline void scatter_bin(Block<Order, CH>& blk, std::uint32_t b, const MpmParticleView& p,
+                        const MpmGridView& g, const MpmStepParams& prm) {
+  std::memset(blk.data, 0, sizeof(blk.data));
+  scatter_range<Order, T, L, P, S>(blk, g.bin_leaf[b] * kLeafDim, g.bin_start[b], g.end_of(b), p,
+                                   prm);
 }
 
 // Distributed P2G: adds the partial blocks other ranks computed for this rank's leaves, those
@@ -221,18 +263,18 @@ void add_imports(const exec::Space& space, const MpmGridView& g, int order, int 
 // keep + k * kSize, handed to take(k, block, CH) first when there is a take, then done(k). Each
 // bin on one thread, the bins balanced over the threads (no colour phases: a bin writes only its
 // block).
-template <int Order, Transfer T, bool L, bool P, class Done>
+template <int Order, Transfer T, bool L, bool P, bool S = false, class Done>
 void scatter_blocks(const exec::Space& space, const char* label, const MpmParticleView& p,
                     const MpmGridView& g, const MpmStepParams& prm, const std::uint32_t* bins,
                     std::size_t nbins, Real* keep,
                     const std::function<void(std::size_t, const Real*, int)>* take, Done&& done) {
-  constexpr int CH = P ? 8 : channels_of(T);
+  constexpr int CH = P || S ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
   exec::parallel_for(
       space, label, exec::Index(nbins),
       [&](exec::Index k) {
         Blk blk;
-        scatter_bin<Order, T, L, P>(blk, bins ? bins[k] : std::uint32_t(k), p, g, prm);
+        scatter_bin<Order, T, L, P, S>(blk, bins ? bins[k] : std::uint32_t(k), p, g, prm);
         if (take) (*take)(std::size_t(k), blk.data, CH);
         std::memcpy(keep + std::size_t(k) * Blk::kSize, blk.data, sizeof(blk.data));
         done(std::size_t(k));
@@ -268,7 +310,7 @@ void sum_leaf(const MpmGridView& g, std::size_t leaf, Real* second) {
 // makes the other threads' blocks visible), so the sums run inside the same loop while the blocks
 // are still in cache (a leaf's blocks come from bins at most one x-slab of keys apart). Whoever
 // sums a leaf, it adds the blocks in colour order: the same bits on any thread count.
-template <int Order, Transfer T, bool L, bool P, int CH>
+template <int Order, Transfer T, bool L, bool P, int CH, bool S = false>
 void p2g_kept_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                      const MpmStepParams& prm, Real* second) {
   std::size_t slots = 0;
@@ -281,22 +323,23 @@ void p2g_kept_blocks(const exec::Space& space, const MpmParticleView& p, const M
     for (const std::int32_t b : g.leaf_bins[leaf]) n += b >= 0;
     pending.set(leaf, n);
   }
-  scatter_blocks<Order, T, L, P>(space, "mpm.p2g", p, g, prm, nullptr, g.nbins, g.blocks, nullptr,
-                                 [&](std::size_t b) {
-                                   for (const std::int32_t leaf : g.nbr8[b])
-                                     if (pending.arrive(std::size_t(leaf)))
-                                       sum_leaf<Order, CH>(g, std::size_t(leaf), second);
-                                 });
+  auto done = [&](std::size_t b) {
+    for (const std::int32_t leaf : g.nbr8[b])
+      if (pending.arrive(std::size_t(leaf))) sum_leaf<Order, CH>(g, std::size_t(leaf), second);
+  };
+  scatter_blocks<Order, T, L, P, S>(space, "mpm.p2g", p, g, prm, nullptr, g.nbins, g.blocks,
+                                    nullptr, done);
 }
 
-template <int Order, Transfer T, bool L, bool P = false>
+// S: the split (dt-free) scatter of the fused G2P2G's priming (p2g_particle), 8 lanes.
+template <int Order, Transfer T, bool L, bool P = false, bool S = false>
 void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
               const MpmStepParams& prm) {
-  constexpr int CH = P ? 8 : channels_of(T);
+  constexpr int CH = P || S ? 8 : channels_of(T);
   using Blk = Block<Order, CH>;
   Real* second = P ? g.q_out : g.b;
   if (g.blocks && g.leaf_bins && !g.imports && !g.kept_slot) {
-    p2g_kept_blocks<Order, T, L, P, CH>(space, p, g, prm, second);
+    p2g_kept_blocks<Order, T, L, P, CH, S>(space, p, g, prm, second);
     return;
   }
   for (int c = 0; c < 8; ++c) {
@@ -321,7 +364,7 @@ void p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
             return;
           }
           Blk blk;
-          scatter_bin<Order, T, L, P>(blk, b, p, g, prm);
+          scatter_bin<Order, T, L, P, S>(blk, b, p, g, prm);
           blk.for_each_node(g.nbr8[b], flush);
         },
         1);
@@ -455,6 +498,16 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
     x += dt * v_pic;
 }
 
+// Bin b's node rows into its gather block: (m, v_new) and, CH = 8, PIC/FLIP's (-, dv) beside them.
+template <int Order, int CH>
+inline void gather_bin(Block<Order, CH>& blk, const MpmGridView& g, std::size_t b) {
+  blk.for_each_node(g.nbr8[b], [&](Real* d, std::size_t leaf, int off) {
+    const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
+    simd::store4(d, simd::load4(g.a + n));
+    if constexpr (CH == 8) simd::store4(d + 4, simd::load4(g.b + n));
+  });
+}
+
 template <int Order, Transfer T, bool L>
 void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
               const MpmStepParams& prm) {
@@ -466,12 +519,8 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
       space, "mpm.g2p", exec::Index(g.nbins),
       [&](exec::Index bi) {
         const std::size_t b = std::size_t(bi);
-        Blk blk;  // (m, v_new) rows of the grid, and PIC/FLIP's (-, dv) beside them
-        blk.for_each_node(g.nbr8[b], [&](Real* d, std::size_t leaf, int off) {
-          const std::size_t n = (leaf * kLeafNodes + std::size_t(off)) * 4;
-          simd::store4(d, simd::load4(g.a + n));
-          if constexpr (CH == 8) simd::store4(d + 4, simd::load4(g.b + n));
-        });
+        Blk blk;
+        gather_bin(blk, g, b);
         const Vec3i origin = g.bin_leaf[b] * kLeafDim;
         const std::uint32_t q1 = g.end_of(b);
         for (std::uint32_t q = g.bin_start[b]; q < q1; ++q) {
@@ -486,6 +535,86 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
         }
       },
       1);
+}
+
+// The fused G2P2G (Wang et al. 2020): per bin, one pass over its particles' data: gather from
+// the grid and update each particle (g2p_particle), the particle collisions (collide_particle),
+// the material update (update_material_group), then the split (dt-free) scatter of the updated
+// particles into the bin's dilated block (margin kG2P2GMargin: the particles moved) at
+// blocks + b * g2p2g_block_reals(Order). far[b] = 1 when a particle left the dilated block
+// (skipped: the caller falls back to a plain P2G). Every particle's updates are those of
+// g2p, collide_particles and update_material_state, in that order: the same bits.
+template <int Order, Transfer T>
+void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                const MpmStepParams& prm, const MaterialUpdateParams* mu, Real* blocks,
+                std::uint8_t* far) {
+  constexpr int CH = channels_of(T), M = kG2P2GMargin;
+  using Out = GridBlock<Order, 8, M>;
+  const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
+  const Real t_end = prm.time + prm.dt;
+  constexpr int kN = lanes::kN<Real>;
+  auto lo = [](auto* a, std::uint32_t q) { return a ? a + q : nullptr; };
+  exec::parallel_for(
+      space, "mpm.g2p2g", exec::Index(g.nbins),
+      [&](exec::Index bi) {
+        const std::size_t b = std::size_t(bi);
+        const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+        const std::uint32_t q0 = g.bin_start[b], q1 = g.end_of(b);
+        {
+          Block<Order, CH> in;
+          gather_bin(in, g, b);
+          for (std::uint32_t q = q0; q < q1; ++q)
+            g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                              p.C[q], p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
+                                              inv_dx, dt, alpha);
+        }
+        for (std::uint32_t q = q0; prm.ncolliders > 0 && q < q1; ++q)
+          collide_particle(p, prm.colliders, prm.ncolliders, q, t_end);
+        for (std::uint32_t q = q0; mu && q < q1; q += kN)
+          update_material_group(p, *mu, q, std::min(q1, q + kN));
+        Out out;
+        out.clear();
+        far[b] = !scatter_range<Order, T, false, false, true>(out, origin - Vec3i::Constant(M), q0,
+                                                              q1, p, prm);
+        std::memcpy(blocks + b * std::size_t(Out::kSize), out.data, sizeof(out.data));
+      },
+      1);
+}
+
+// Active leaf li of g (the next grid) = the parts of the dilated blocks listed for it
+// (items[start[li] .. start[li + 1]): bin << 5 | t, the leaf at the bin's leaf + (t / 9 - 1,
+// t / 3 % 3 - 1, t % 3 - 1)), in list order: lanes 0-3 into a, 4-7 into b.
+template <int Order>
+void g2p2g_flush_impl(const exec::Space& space, const MpmGridView& g, const Real* blocks,
+                      const std::uint32_t* start, const std::uint32_t* items) {
+  constexpr int M = kG2P2GMargin;
+  using Out = GridBlock<Order, 8, M>;
+  exec::parallel_for(space, "mpm.g2p2g_flush", exec::Index(g.nactive), [&](exec::Index li) {
+    const std::size_t leaf = std::size_t(g.active_leaves[li]);
+    Real* la = g.a + leaf * kLeafNodes * 4;
+    Real* lb = g.b + leaf * kLeafNodes * 4;
+    std::memset(la, 0, kLeafNodes * 4 * sizeof(Real));
+    std::memset(lb, 0, kLeafNodes * 4 * sizeof(Real));
+    for (std::uint32_t k = start[li]; k < start[li + 1]; ++k) {
+      const Real* blk = blocks + std::size_t(items[k] >> 5) * std::size_t(Out::kSize);
+      const int t = int(items[k] & 31u);
+      const int d[3] = {t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1};
+      int n0[3], n1[3];  // the leaf's nodes n0 <= n < n1 inside the block (block node d 8 + n + M)
+      for (int a = 0; a < 3; ++a) {
+        n0[a] = std::max(0, -d[a] * kLeafDim - M);
+        n1[a] = std::min(kLeafDim, Out::B - d[a] * kLeafDim - M);
+      }
+      for (int i = n0[0]; i < n1[0]; ++i)
+        for (int j = n0[1]; j < n1[1]; ++j)
+          for (int k2 = n0[2]; k2 < n1[2]; ++k2) {
+            const Real* s = blk + Out::at(d[0] * kLeafDim + i + M, d[1] * kLeafDim + j + M,
+                                          d[2] * kLeafDim + k2 + M);
+            const int o = leaf_offset(i, j, k2) * 4;
+            simd::store4(la + o, simd::load4(la + o) + simd::load4(s));
+            simd::store4(lb + o, simd::load4(lb + o) + simd::load4(s + 4));
+          }
+    }
+  });
 }
 
 template <template <int, Transfer> class Fn, class... Args>
@@ -519,6 +648,7 @@ struct P2G {
                   const MpmStepParams& prm) {
     if constexpr (T != Transfer::PicFlip) {
       if (p.X_ref && g.q_out) return p2g_impl<O, T, true, true>(s, p, g, prm);
+      if (prm.split) return p2g_impl<O, T, false, false, true>(s, p, g, prm);
     }
     if (p.X_ref)
       p2g_impl<O, T, true>(s, p, g, prm);
@@ -534,6 +664,15 @@ struct G2P {
       g2p_impl<O, T, true>(s, p, g, prm);
     else
       g2p_impl<O, T, false>(s, p, g, prm);
+  }
+};
+
+template <int O, Transfer T>
+struct G2P2G {
+  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g,
+                  const MpmStepParams& prm, const MaterialUpdateParams* mu, Real* blocks,
+                  std::uint8_t* far) {
+    g2p2g_impl<O, T>(s, p, g, prm, mu, blocks, far);
   }
 };
 
@@ -575,7 +714,7 @@ void p2g_positions(const exec::Space& space, const MpmParticleView& p, const Mpm
 }
 
 void grid_clear(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
-  const bool two = prm.transfer == Transfer::PicFlip;
+  const bool two = prm.transfer == Transfer::PicFlip || prm.split;
   exec::parallel_for(space, "mpm.grid_clear", exec::Index(g.nactive), [&](exec::Index i) {
     const std::size_t leaf = std::size_t(g.active_leaves[i]);
     std::memset(g.a + leaf * kLeafNodes * 4, 0, kLeafNodes * 4 * sizeof(Real));
@@ -622,8 +761,23 @@ void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& 
   dispatch<G2P>(prm.order, prm.transfer, space, p, g, prm);
 }
 
+void g2p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+           const MpmStepParams& prm, const MaterialUpdateParams* mu, Real* blocks,
+           std::uint8_t* far) {
+  dispatch<G2P2G>(prm.order, prm.transfer, space, p, g, prm, mu, blocks, far);
+}
+
+void g2p2g_flush(const exec::Space& space, const MpmGridView& g, int order, const Real* blocks,
+                 const std::uint32_t* start, const std::uint32_t* items) {
+  if (order == 3)
+    g2p2g_flush_impl<3>(space, g, blocks, start, items);
+  else
+    g2p2g_flush_impl<2>(space, g, blocks, start, items);
+}
+
 void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
   const bool flip = prm.transfer == Transfer::PicFlip;
+  const bool force = flip || prm.split;  // b holds the force (PIC/FLIP, or the split scatter)
   const Real dt = prm.dt, dx = prm.dx;
   const Vec3 dv_gravity = dt * prm.gravity;
   const Real t_end = prm.time + prm.dt;
@@ -631,7 +785,7 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
     const std::size_t leaf = std::size_t(g.active_leaves[li]);
     const Vec3i node0 = g.leaf_coord[leaf] * kLeafDim;
     Real* la = g.a + leaf * kLeafNodes * 4;
-    Real* lb = flip ? g.b + leaf * kLeafNodes * 4 : nullptr;
+    Real* lb = force ? g.b + leaf * kLeafNodes * 4 : nullptr;
     for (int i = 0; i < kLeafDim; ++i)
       for (int j = 0; j < kLeafDim; ++j)
         for (int k = 0; k < kLeafDim; ++k) {
@@ -646,7 +800,7 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
           const Real inv_m = Real(1) / m;
           const Vec3 v_old(n[1] * inv_m, n[2] * inv_m, n[3] * inv_m);
           Vec3 v = v_old + dv_gravity;
-          if (flip) v += (dt * inv_m) * Vec3(lb[o + 1], lb[o + 2], lb[o + 3]);
+          if (force) v += (dt * inv_m) * Vec3(lb[o + 1], lb[o + 2], lb[o + 3]);
           if (prm.ncolliders > 0) {
             Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
             if (g.q) {  // Lagrangian: the node's current position q_i (A-ULMPM eq. 12)
@@ -700,9 +854,9 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
 }
 
 extern const MpmKernelTable mpm_kernels;
-const MpmKernelTable mpm_kernels = {&grid_clear,    &p2g,         &clear_node4,
-                                    &p2g_positions, &grid_update, &grid_apply_colliders,
-                                    &g2p,           &p2g_blocks};
+const MpmKernelTable mpm_kernels = {
+    &grid_clear,           &p2g, &clear_node4, &p2g_positions, &grid_update,
+    &grid_apply_colliders, &g2p, &p2g_blocks,  &g2p2g,         &g2p2g_flush};
 
 }  // namespace AMALGAM_ISA
 
@@ -715,6 +869,11 @@ int block_part_nodes(int order, int t) {
 
 int p2g_channels(Transfer t, bool fused_positions) {
   return t == Transfer::PicFlip || fused_positions ? 8 : 4;
+}
+
+std::size_t g2p2g_block_reals(int order) {
+  const std::size_t B = std::size_t(kLeafDim + order + 2 * kG2P2GMargin);
+  return B * B * B * 8;
 }
 
 std::size_t p2g_block_reals(int order, int ch) {

@@ -32,6 +32,7 @@
 namespace amalgam {
 
 enum class Transfer { PicFlip, Apic, Mls };
+struct MaterialUpdateParams;  // kernels/material_update.hpp
 const char* transfer_name(Transfer t);
 
 // What the transfer kernels read and write of the particles (SoA pointers).
@@ -131,6 +132,9 @@ struct MpmStepParams {
   const MaterialParams* materials = nullptr;
   const Collider* colliders = nullptr;
   int ncolliders = 0;
+  // The split (dt-free) grid of the fused G2P2G (every transfer): P2G scatters (m, m v + m C o)
+  // into a and the stress force (without dt) into b; grid_update forms (p + dt f) / m + dt g.
+  bool split = false;
 };
 
 // Zeroes the transfer channels of the active leaves.
@@ -161,6 +165,23 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g, const 
 void g2p(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
          const MpmStepParams& prm);
 
+// The fused G2P2G (Wang et al. 2020; explicit, Eulerian): one pass over each bin's particles,
+// g2p, the particle collisions with prm's colliders at prm.time + prm.dt, the material update
+// (mu, when not null), then the split (dt-free, MpmStepParams::split) scatter of the updated
+// particles into the bin's dilated block at blocks + b * g2p2g_block_reals(order): the bin
+// leaf's (8 + order)^3 nodes and kG2P2GMargin more on every side, 8 lanes ((m, m v + m C o),
+// (0, f)). far[b] = 1 when a particle of bin b moved out of its block (its scatter is skipped).
+// g2p2g_flush then sums the blocks into the next grid's leaves (a and b), each leaf its listed
+// blocks in list order (bin << 5 | t for the leaf at the bin's leaf + (t / 9 - 1, t / 3 % 3 - 1,
+// t % 3 - 1), items[start[li] .. start[li + 1]) for active leaf li): bitwise on any thread count.
+constexpr int kG2P2GMargin = 1;
+std::size_t g2p2g_block_reals(int order);
+void g2p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+           const MpmStepParams& prm, const MaterialUpdateParams* mu, Real* blocks,
+           std::uint8_t* far);
+void g2p2g_flush(const exec::Space& space, const MpmGridView& g, int order, const Real* blocks,
+                 const std::uint32_t* start, const std::uint32_t* items);
+
 // The kernels above for one instruction set: mpm_transfers.cpp is compiled once per vector width
 // (core/exec/simd.hpp), each copy in its namespace with one of these tables; the functions above
 // call the table of exec::simd_path() (kernels/simd_dispatch.cpp). A new kernel of that file
@@ -180,6 +201,10 @@ struct MpmKernelTable {
   void (*p2g_blocks)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
                      const MpmStepParams&, const std::uint32_t*, std::size_t, Real*,
                      const std::function<void(std::size_t, const Real*, int)>&);
+  void (*g2p2g)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
+                const MpmStepParams&, const MaterialUpdateParams*, Real*, std::uint8_t*);
+  void (*g2p2g_flush)(const exec::Space&, const MpmGridView&, int, const Real*,
+                      const std::uint32_t*, const std::uint32_t*);
 };
 
 }  // namespace amalgam

@@ -53,6 +53,15 @@ void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGri
   mpm().p2g_blocks(space, p, g, prm, bins, nbins, keep, take);
 }
 
+void g2p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+           const MpmStepParams& prm, const MaterialUpdateParams* mu, Real* blocks,
+           std::uint8_t* far) {
+  mpm().g2p2g(space, p, g, prm, mu, blocks, far);
+}
+void g2p2g_flush(const exec::Space& space, const MpmGridView& g, int order, const Real* blocks,
+                 const std::uint32_t* start, const std::uint32_t* items) {
+  mpm().g2p2g_flush(space, g, order, blocks, start, items);
+}
 // The material update's SVDs run a vector of particles at a time: the path's width. The particle
 // collisions run the baseline's code: only their half-space test is a loop across particles.
 void update_material_state(const exec::Space& space, const MpmParticleView& p,

@@ -13,6 +13,7 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   s.dx = o.dx;
   s.order = o.order;
   s.transfer = o.transfer;
+  s.fused = o.fused;
   s.implicit = o.implicit;
   s.configuration_maps = o.lagrangian;
   s.domains.enabled = o.domains;

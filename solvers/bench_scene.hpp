@@ -24,6 +24,7 @@ struct BenchSceneOptions {
   // Enriched MPM: the sphere sampled on a lattice (about `particles` points) with particle
   // domains (PIC/FLIP on linear weights; `transfer` and `order` unused); enrichment on.
   bool domains = false;
+  bool fused = false;  // simulation.transfer_pass "fused" (G2P2G)
 };
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o);

@@ -183,6 +183,9 @@ void MpmSimulation::restore_frame_start() {
 }
 
 void MpmSimulation::begin_frame() {
+  // A checkpoint holds particles only: every frame starts from them (a fused substep's grid never
+  // crosses a frame's start), so a resumed run computes what the uninterrupted run did.
+  s_.unprime();
   frame_sources_ = s_.source_counters();
   if (s_.implicit()) s_.implicit()->reset_counters();
   if (s_.enriched()) s_.enriched()->domains().reset_counters();
@@ -294,9 +297,10 @@ int MpmSimulation::profile_column(const std::string& l) const {
   auto starts = [&l](const char* p) { return l.rfind(p, 0) == 0; };
   // Particle domains: particle -> corner -> grid is the P2G side, grid -> corner -> particle (with
   // the corner collisions and the advection) the G2P side.
-  if (l == "mpm.p2g" || l == "domain.p2c" || l == "domain.points_to_grid" || l == "domain.stress")
+  if (l == "mpm.p2g" || l == "mpm.g2p2g_flush" || l == "domain.p2c" ||
+      l == "domain.points_to_grid" || l == "domain.stress")
     return 0;
-  if (l == "mpm.g2p" || l == "domain.grid_to_corners" || l == "domain.c2p" ||
+  if (l == "mpm.g2p" || l == "mpm.g2p2g" || l == "domain.grid_to_corners" || l == "domain.c2p" ||
       l == "domain.collide_corners" || starts("domain.advect"))
     return 1;
   if (starts("bin.") || l == "particles.permute") return 2;

@@ -17,7 +17,10 @@ namespace amalgam {
 
 GridChannels GridChannels::for_run(const MpmSettings& s, bool has_colliders) {
   GridChannels c;
-  if (s.transfer == Transfer::PicFlip || s.domains.enabled) c.second = c.count++;
+  // The fused substep's split grid keeps the force in set 1 for every transfer.
+  const bool split =
+      s.fused && !s.implicit && !s.configuration_maps && !s.domains.enabled && !s.sleep.enabled;
+  if (s.transfer == Transfer::PicFlip || s.domains.enabled || split) c.second = c.count++;
   if (s.configuration_maps && (has_colliders || s.contact.mode != ObjectContactMode::None))
     c.positions = c.count++;
   return c;
@@ -93,11 +96,13 @@ void MpmSolver::restore(const Snapshot& s) {
   if (aul_) aul_->invalidate_bins();
   if (ranks_) restore_distributed(s);
   ++state_version_;
+  primed_ = false;
 }
 void MpmSolver::restore_clock(double time, std::uint64_t steps) {
   time_ = time;
   steps_ = steps;
   ++state_version_;
+  primed_ = false;
   if (aul_)
     aul_->invalidate_bins();  // particles may have been replaced: re-bin before the next transfer
 }
@@ -146,6 +151,7 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
     if (prest) prest[p] = x[i];
   }
   next_id_ += total;
+  primed_ = false;  // the fused grid holds the particles it was scattered from
   if (aul_)
     aul_->add_object(particles_, px, n0, x.size(), std::size_t(total), policy, settings_.dx);
 }
@@ -193,6 +199,7 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
   if (kept_.size() == n && killed == 0) return;
   sources_.killed += std::int64_t(killed);
   if (kept_.size() == n) return;
+  primed_ = false;
   particles_.compact(space, kept_.data(), kept_.size());
   if (ranks_) compact_bins(kept_);
 }
@@ -340,14 +347,18 @@ void MpmSolver::collide_particles(const exec::Space& space, Real dt) {
                              t_end);
 }
 
-void MpmSolver::update_materials(const exec::Space& space, Real dt) {
+MaterialUpdateParams MpmSolver::material_params(Real dt) const {
   MaterialUpdateParams prm;
   prm.materials = materials_.data();
   prm.sources = heat_sources_.data();
   prm.nsources = int(heat_sources_.size());
   prm.dt = dt;
   prm.time = Real(time_ + double(dt));
-  update_material_state(space, particle_view(), prm);
+  return prm;
+}
+
+void MpmSolver::update_materials(const exec::Space& space, Real dt) {
+  update_material_state(space, particle_view(), material_params(dt));
 }
 
 void MpmSolver::step(const exec::Space& space, Real dt) {
@@ -365,6 +376,8 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
                       Real(time_) + dt, space);
   if (enriched_) {
     enriched_->step(space, *this, dt);  // particle domains: their own substep (Algorithm 1)
+  } else if (fused_eligible()) {
+    step_fused(space, dt);  // one pass over the particles (solvers/mpm_fused.cpp)
   } else {
     if (aul_)
       aul_->update_configurations(space, *this);  // eq. 33; re-bins only when a reference changed

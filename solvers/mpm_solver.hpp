@@ -68,6 +68,9 @@ struct MpmSettings {
   KillSettings kill;
   // Sleeping blocks (solvers/mpm_sleep.hpp). Explicit MLS/APIC only.
   SleepSettings sleep;
+  // simulation.transfer_pass "fused": one pass over the particles per substep (G2P2G,
+  // solvers/mpm_fused.cpp) where the variant allows it (fused_eligible), else the two passes.
+  bool fused = false;
 };
 
 struct MpmDiagnostics {
@@ -196,6 +199,17 @@ class MpmSolver {
   void update_materials(const exec::Space& space, Real dt);
   // Whether update_materials has anything to do (plastic, fluid or melting material, heat source).
   bool has_material_update() const { return material_update_; }
+  // The fused substep (G2P2G, solvers/mpm_fused.cpp): settings().fused and a variant that fuses
+  // (explicit, Eulerian, one process, no sleeping); the grid then carries the next substep's
+  // split scatter from one substep to the next ("primed"), until unprime(): a frame's start, a
+  // restore, a changed particle set.
+  bool fused_eligible() const;
+  bool primed() const { return primed_; }
+  void unprime() { primed_ = false; }
+  // Fused substeps that fell back to a plain P2G (a particle left its bin's dilated block) and
+  // that ran two passes (the dilated blocks over their memory budget).
+  std::uint64_t fused_fallbacks() const { return fused_fallbacks_; }
+  std::uint64_t fused_unfused() const { return fused_unfused_; }
 
   // The whole evolving state (particles, and the domain corners' positions), to retry a frame.
   struct Snapshot {
@@ -316,6 +330,21 @@ class MpmSolver {
   static constexpr std::size_t kP2GBlocksMinBudget = std::size_t(16) << 20;
   static constexpr std::size_t kP2GBlocksBytesPerParticle = 64;
   Real* p2g_blocks_for(std::size_t nbins, bool fused);
+  // The fused substep (solvers/mpm_fused.cpp).
+  void step_fused(const exec::Space& space, Real dt);
+  MaterialUpdateParams material_params(Real dt) const;  // update_materials' parameters
+  void prime_grid(const exec::Space& space);            // the split P2G of the sorted particles
+  void flush_fused_blocks(const exec::Space& space);    // the dilated blocks into the new grid
+  bool primed_ = false;
+  std::uint64_t fused_fallbacks_ = 0, fused_unfused_ = 0;
+  std::vector<Vec3i> fused_bin_leaf_;       // the fused pass's bins' leaves (before re-sorting)
+  std::vector<std::uint8_t> fused_far_;     // per bin: a particle left its dilated block
+  std::vector<std::int32_t> fused_slot_;    // per leaf slot: its index among the active leaves
+  std::vector<std::int32_t> fused_target_;  // per (bin, t): the active leaf index or -1
+  std::vector<std::uint32_t> fused_start_, fused_items_;  // per active leaf: its blocks' parts
+  std::vector<std::uint32_t> fused_slot_cursor_;
+  static constexpr std::size_t kG2P2GBlocksMinBudget = std::size_t(64) << 20;
+  static constexpr std::size_t kG2P2GBlocksBytesPerParticle = 192;
   std::unique_ptr<MpmSleep> sleep_;
   std::unique_ptr<MpmImplicit> implicit_;
   std::unique_ptr<MpmAul> aul_;

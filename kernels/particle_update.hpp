@@ -1,0 +1,83 @@
+// The per-particle bodies of the material update and the particle collisions
+// (kernels/material_update.cpp), shared with the fused G2P2G (kernels/mpm_transfers.cpp), which
+// runs them on a bin's particles between its gather and its scatter. Included by files compiled
+// once per instruction set (core/exec/simd.hpp): the functions live in that set's namespace.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+
+#include "core/exec/simd.hpp"
+#include "core/math/lanes.hpp"
+#include "core/math/svd3.hpp"
+#include "kernels/material_update.hpp"
+
+namespace amalgam {
+namespace AMALGAM_ISA {
+
+// Material update of particles [i0, i1), at most lanes::kN of them: heat sources, then each
+// particle's projection; the SVDs that the plastic return mappings start from are computed for
+// the group at once, one particle per vector lane (svd3_lanes, bitwise each particle's svd3).
+inline void update_material_group(const MpmParticleView& p, const MaterialUpdateParams& prm,
+                                  exec::Index i0, exec::Index i1) {
+  constexpr int kN = lanes::kN<Real>;
+  Real temperature[kN];
+  Mat3 F[kN];
+  int lane_of[kN], m = 0;
+  for (exec::Index i = i0; i < i1; ++i) {
+    Real& ti = temperature[i - i0];
+    ti = p.temperature ? p.temperature[i] : Real(0);
+    if (p.temperature && prm.nsources > 0) {
+      for (int s = 0; s < prm.nsources; ++s) {
+        const HeatSource& h = prm.sources[s];
+        if (h.region.phi(p.x[i], prm.time) <= 0)
+          ti = h.temperature + (ti - h.temperature) * std::exp(-h.rate * prm.dt);
+      }
+      p.temperature[i] = ti;
+    }
+    const bool svd = prm.materials[p.material[i]].project_takes_svd(ti);
+    lane_of[i - i0] = svd ? m : -1;
+    if (svd) F[m++] = p.F[i];
+  }
+  Svd3<Real> d[kN];
+  if (m > 0) svd3_lanes(F, m, d);
+  for (exec::Index i = i0; i < i1; ++i) {
+    const MaterialParams& mat = prm.materials[p.material[i]];
+    const int l = lane_of[i - i0];
+    Real plastic = p.plastic ? p.plastic[i] : Real(0);
+    if (l >= 0 ? mat.project(p.F[i], plastic, d[l])
+               : mat.project(p.F[i], plastic, temperature[i - i0])) {
+      if (p.plastic) p.plastic[i] = plastic;
+      if (p.F_lo) p.F_lo[i].setZero();  // the projected F is new: no low part carries over
+    }
+  }
+}
+
+// What the particle collisions do to particle i inside collider c (phi < 0).
+inline void collide_one(const MpmParticleView& p, const Collider& c, exec::Index i, Real phi,
+                        Real time) {
+  if (c.boundary == BoundaryType::Sticky) {  // a grip holds what it holds
+    p.v[i] = c.velocity_at(p.x[i], time);
+    return;
+  }
+  const Vec3 nrm = c.outward_normal(p.x[i], time);
+  if (p.x_lo)
+    add_compensated(p.x[i], p.x_lo[i], Vec3(-phi * nrm));
+  else
+    p.x[i] -= phi * nrm;
+  c.project(p.x[i], time, p.v[i]);
+}
+
+// Particle i against every collider, in their order (collide_particles' result for it).
+inline void collide_particle(const MpmParticleView& p, const Collider* colliders, int n,
+                             exec::Index i, Real time) {
+  for (int c = 0; c < n; ++c) {
+    const Collider& col = colliders[c];
+    if (time > col.until) continue;  // released: phi is kReleased everywhere
+    const Real phi = col.phi(p.x[i], time);
+    if (phi < 0) collide_one(p, col, i, phi, time);
+  }
+}
+
+}  // namespace AMALGAM_ISA
+}  // namespace amalgam

@@ -1,0 +1,217 @@
+// The fused substep (G2P2G, solvers/mpm_fused.cpp): the maths first (it agrees with the two
+// passes up to rounding, conserves momentum), then determinism (bitwise on every backend, thread
+// count and vector path), then its fallback and its frame-start priming.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "core/exec/simd.hpp"
+#include "io/scene.hpp"
+#include "mpm_test_scenes.hpp"
+#include "solvers/factory.hpp"
+#include "test_util.hpp"
+
+using namespace amalgam;
+using namespace amalgam::test;
+
+namespace {
+const std::string kFused = R"(, "transfer_pass": "fused")";
+const std::string kTwoPass = R"(, "transfer_pass": "two_pass")";
+
+// Two elastic spheres meeting head-on, no gravity and no colliders: no external force.
+Scene free_scene(const std::string& transfer, int order) {
+  return parse_scene(R"({
+    "simulation": {"dx": 0.04, "order": )" +
+                         std::to_string(order) + R"(, "transfer": ")" + transfer +
+                         R"(", "frames": 1, "gravity": [0, 0, 0])" + kFused + R"(},
+    "materials": {"a": {"model": "neo_hookean", "density": 1000, "youngs_modulus": 2e4, "poisson_ratio": 0.3}},
+    "objects": [
+      {"shape": "sphere", "center": [0.35, 0.5, 0.5], "radius": 0.1, "material": "a", "velocity": [2, 0.5, 0],
+       "angular_velocity": [0, 0, 4]},
+      {"shape": "sphere", "center": [0.62, 0.52, 0.5], "radius": 0.08, "material": "a", "velocity": [-3, 0, 1]}]
+  })",
+                     "inline.json");
+}
+
+// Velocities by particle id (the storage is sorted by leaf).
+std::vector<Vec3d> velocities_by_id(const MpmSolver& s) {
+  const auto& ps = s.particles();
+  const auto& a = s.attributes();
+  std::vector<Vec3d> v(ps.size());
+  for (std::size_t p = 0; p < ps.size(); ++p)
+    v[std::size_t(ps.int32(a.id)[p])] = ps.vec3(a.v)[p].cast<double>();
+  return v;
+}
+
+// Total momentum and mass of the particles.
+std::pair<Vec3d, double> momentum_and_mass(const MpmSolver& s) {
+  const auto& ps = s.particles();
+  const auto& a = s.attributes();
+  Vec3d P = Vec3d::Zero();
+  double M = 0;
+  for (std::size_t p = 0; p < ps.size(); ++p) {
+    const double m =
+        double(s.materials()[std::size_t(ps.int32(a.material)[p])].mass(ps.real(a.volume0)[p]));
+    P += m * ps.vec3(a.v)[p].cast<double>();
+    M += m;
+  }
+  return {P, M};
+}
+}  // namespace
+
+class G2P2GMaths : public ::testing::TestWithParam<std::tuple<std::string, int>> {};
+
+// Fused and two-pass substeps compute the same particle updates from grids that differ only by
+// rounding (the force's dt applied at the node; the blocks summed in another order). The same dt
+// sequence for both runs: the two-pass run's CFL steps.
+TEST_P(G2P2GMaths, AgreesWithTheTwoPassesUpToRounding) {
+  const auto [transfer, order] = GetParam();
+  MpmSolver two = build_solver(small_scene(transfer, order, "explicit", kTwoPass));
+  MpmSolver fused = build_solver(small_scene(transfer, order, "explicit", kFused));
+  ASSERT_TRUE(fused.fused_eligible());
+  ASSERT_FALSE(two.fused_eligible());
+  const exec::Space space;
+  for (int i = 0; i < 8; ++i) {
+    const Real dt = two.stable_dt(space);
+    two.step(space, dt);
+    fused.step(space, dt);
+  }
+  EXPECT_TRUE(fused.primed());
+  const std::vector<Vec3d> xa = two.positions_by_id(), xb = fused.positions_by_id();
+  const std::vector<Vec3d> va = velocities_by_id(two), vb = velocities_by_id(fused);
+  double dx = 0, dv = 0, vmax = 0;
+  for (std::size_t i = 0; i < xa.size(); ++i) {
+    dx = std::max(dx, (xa[i] - xb[i]).norm());
+    dv = std::max(dv, (va[i] - vb[i]).norm());
+    vmax = std::max(vmax, va[i].norm());
+  }
+  std::printf("%s order %d: max |x - x'| = %.3g m (dx = 0.04), max |v - v'| = %.3g of %.3g m/s\n",
+              transfer.c_str(), order, dx, dv, vmax);
+  EXPECT_LT(dx, 1e-5 * 0.04);
+  EXPECT_LT(dv, 1e-4 * vmax);
+  EXPECT_GT(dv, 0);  // the grids do differ by rounding (the dt-free scatter)
+  EXPECT_EQ(fused.fused_unfused(), 0u);
+}
+
+// Without gravity and colliders, the split P2G, the grid update and G2P conserve the particles'
+// momentum (MLS, APIC: the affine transfer), as the two passes do.
+TEST_P(G2P2GMaths, ConservesMomentumWithoutExternalForces) {
+  const auto [transfer, order] = GetParam();
+  if (transfer == "flip") GTEST_SKIP() << "FLIP's blend does not conserve momentum";
+  MpmSolver s = build_solver(free_scene(transfer, order));
+  const exec::Space space;
+  const auto [P0, mass] = momentum_and_mass(s);
+  double speed = 0;
+  for (int i = 0; i < 10; ++i) {
+    s.step(space, s.stable_dt(space));
+    speed = std::max(speed, s.diagnostics(space).max_speed);
+  }
+  const Vec3d P1 = momentum_and_mass(s).first;
+  std::printf("momentum drift %.3g of m |v|max = %.3g\n", (P1 - P0).norm(), mass * speed);
+  EXPECT_LT((P1 - P0).norm(), 1e-5 * mass * speed);
+}
+
+INSTANTIATE_TEST_SUITE_P(Transfers, G2P2GMaths,
+                         ::testing::Combine(::testing::Values("mls", "apic", "flip"),
+                                            ::testing::Values(2, 3)),
+                         [](const auto& info) {
+                           return std::get<0>(info.param) + "_order" +
+                                  std::to_string(std::get<1>(info.param));
+                         });
+
+TEST(G2P2GDeterminism, EveryTransferAndOrderBitwiseOnEveryBackend) {
+  for (const char* transfer : {"mls", "apic", "flip"})
+    for (int order : {2, 3}) {
+      SCOPED_TRACE(std::string(transfer) + " order " + std::to_string(order));
+      run_everywhere(small_scene(transfer, order, "explicit", kFused), 16,
+                     [](const MpmSolver& s) { EXPECT_TRUE(s.primed()); });
+    }
+}
+
+// Every material with state, a heat source and a keyframed mesh collider inside the fused pass.
+TEST(G2P2GDeterminism, MaterialsWithStateBitwiseOnEveryBackend) {
+  run_everywhere(material_scene(kFused), 24, [](const MpmSolver& s) {
+    EXPECT_TRUE(s.fused_eligible());
+    expect_plastic_flow_and_melting(s);
+  });
+}
+
+// The AVX2 and AVX-512 builds of the fused kernel give the baseline's bits (Serial, 2 TBB).
+TEST(G2P2GDeterminism, BitwiseOnEverySimdPath) {
+  struct Guard {
+    exec::SimdPath saved = exec::simd_path();
+    ~Guard() { exec::set_simd_path(saved); }
+  } guard;
+  for (const Scene& scene :
+       {small_scene("mls", 2, "explicit", kFused), small_scene("apic", 3, "explicit", kFused),
+        small_scene("flip", 2, "explicit", kFused), material_scene(kFused)}) {
+    std::vector<Real> ref;
+    for (const exec::SimdPath path :
+         {exec::SimdPath::Baseline, exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
+      if (!exec::simd_path_supported(path)) {
+        std::printf("SIMD path %s: skipped\n", exec::simd_path_name(path));
+        continue;
+      }
+      exec::set_simd_path(path);
+      for (const exec::Space& space : {exec::Space(), exec::Space(exec::Backend::TBB, 2)}) {
+        MpmSolver s = build_solver(scene);
+        for (int i = 0; i < 12; ++i) s.step(space, s.stable_dt(space));
+        const std::vector<Real> st = state_bytes(s);
+        if (ref.empty()) {
+          ref = st;
+          continue;
+        }
+        ASSERT_EQ(st.size(), ref.size());
+        EXPECT_TRUE(bitwise_equal(st.data(), ref.data(), st.size()))
+            << exec::simd_path_name(path) << " on " << space.describe();
+      }
+    }
+  }
+}
+
+// A substep longer than the CFL step moves particles past the dilated blocks' margin: the fused
+// substep falls back to the split P2G of the re-sorted particles, which is exactly what an
+// unprimed substep starts with, and stays bitwise on every backend.
+TEST(G2P2GFallback, AParticlePastTheMarginRescattersLikeAPrimedStart) {
+  const Scene scene = small_scene("mls", 2, "explicit", kFused);
+  auto run = [&](bool unprime_after_fallback, const exec::Space& sp) {
+    MpmSolver s = build_solver(scene);
+    for (int i = 0; i < 6; ++i) {
+      const std::uint64_t before = s.fused_fallbacks();
+      s.step(sp, (i == 2 ? Real(20) : Real(1)) * s.stable_dt(sp));  // substep 2: 20 CFL steps
+      if (unprime_after_fallback && s.fused_fallbacks() > before) s.unprime();
+    }
+    EXPECT_GT(s.fused_fallbacks(), 0u);
+    return state_bytes(s);
+  };
+  const std::vector<Real> a = run(false, exec::Space()), b = run(true, exec::Space());
+  ASSERT_EQ(a.size(), b.size());
+  EXPECT_TRUE(bitwise_equal(a.data(), b.data(), a.size()));
+  for (const auto& c : all_configs()) {
+    const std::vector<Real> s = run(false, exec::Space(c.backend, c.threads));
+    EXPECT_TRUE(bitwise_equal(s.data(), a.data(), a.size())) << c.name();
+  }
+}
+
+// A frame's start unprimes the grid (a checkpoint holds particles only): a run unprimed at a
+// substep is bitwise a fresh solver started from that substep's particles and clock.
+TEST(G2P2GFallback, UnprimedStartIsAFreshStartFromTheParticles) {
+  const Scene scene = small_scene("apic", 2, "explicit", kFused);
+  const exec::Space space(exec::Backend::TBB, 2);
+  MpmSolver a = build_solver(scene);
+  for (int i = 0; i < 4; ++i) a.step(space, a.stable_dt(space));
+  MpmSolver::Snapshot snap;
+  a.save(snap);
+  MpmSolver b = build_solver(scene);
+  b.restore(snap);
+  b.restore_clock(a.time(), a.step_count());
+  a.unprime();
+  for (int i = 0; i < 4; ++i) {
+    const Real dt = a.stable_dt(space);
+    a.step(space, dt);
+    b.step(space, dt);
+  }
+  const std::vector<Real> sa = state_bytes(a), sb = state_bytes(b);
+  ASSERT_EQ(sa.size(), sb.size());
+  EXPECT_TRUE(bitwise_equal(sa.data(), sb.data(), sa.size()));
+}
