@@ -248,10 +248,16 @@ TEST(Checkpoint, VersionSevenMassIsSkipped) {
         std::memcmp(pa.words(at), pb.words(at), pa.size() * 4 * size_t(pa.words_per_particle(at))),
         0)
         << pa.name(at);
-  spit(old, resealed(d));  // version 8 with a mass attribute
+  spit(old, resealed(d));  // version 8 with a mass attribute (one more, as `rest` could be)
+  EXPECT_NE(error_reading(old, scene.fingerprint)
+                .find("checkpoint attribute 'mass' does not match this solver's layout"),
+            std::string::npos);
+  // Two more than the layout: the count alone refuses it.
+  std::memcpy(d.data() + kCountAt + 8, &(++nattr), 4);
+  spit(old, resealed(d));
   EXPECT_NE(error_reading(old, scene.fingerprint)
                 .find("checkpoint has " + std::to_string(nattr) +
-                      " particle attributes, expected " + std::to_string(nattr - 1)),
+                      " particle attributes, expected " + std::to_string(nattr - 2)),
             std::string::npos);
   std::remove(path.c_str());
   std::remove(old.c_str());
