@@ -52,7 +52,8 @@ std::vector<float> real_values(const ParticleSet& ps, ParticleSet::Id attr, cons
 
 // The attribute `name` of MPM particles (mpm_point_fields).
 PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, const MpmAttributes& a,
-                             const std::vector<MaterialParams>& materials, const exec::Space& space) {
+                             const std::vector<MaterialParams>& materials,
+                             const exec::Space& space) {
   using T = PointAttribute::Type;
   const std::size_t n = ps.size();
   PointAttribute out{name, T::Float, {}, {}};
@@ -132,8 +133,8 @@ void MpmSimulation::fill_absent_attribute(const std::string& name) {
   std::vector<RestById> table = std::move(setup_rest_);
   setup_rest_ = {};
   if (setup_sliced_)  // collective: every rank of a sliced set-up gets here
-    table = dist::from_bytes<RestById>(
-        dist::Comm::world().allgather(dist::as_bytes(table), nullptr));
+    table =
+        dist::from_bytes<RestById>(dist::Comm::world().allgather(dist::as_bytes(table), nullptr));
   std::sort(table.begin(), table.end(),
             [](const RestById& x, const RestById& y) { return x.id < y.id; });
   ParticleSet& ps = s_.particles();
@@ -143,11 +144,12 @@ void MpmSimulation::fill_absent_attribute(const std::string& name) {
     const auto it = std::lower_bound(table.begin(), table.end(), id[i],
                                      [](const RestById& x, std::int32_t v) { return x.id < v; });
     if (it == table.end() || it->id != id[i])
-      throw InputError("particle attribute 'rest': the checkpoint was written without it and "
-                       "particle id " +
-                       std::to_string(id[i]) +
-                       " was emitted after set-up, so its rest position is unknown (resume "
-                       "without output attribute 'rest', or run from the start)");
+      throw InputError(
+          "particle attribute 'rest': the checkpoint was written without it and "
+          "particle id " +
+          std::to_string(id[i]) +
+          " was emitted after set-up, so its rest position is unknown (resume "
+          "without output attribute 'rest', or run from the start)");
     r[i] = it->x;
   }
 }
