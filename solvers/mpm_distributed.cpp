@@ -206,6 +206,11 @@ void MpmSolver::refuse_distributed() const {
         "A-ULMPM objects with PIC/FLIP transfers (simulation.transfer \"pic\" or \"flip\") and "
         "colliders or contact between objects are");
   if (enriched_) refuse("particle domains (simulation.domains) are");
+  // One process would run the fused substep, whose grid sums round otherwise than the two
+  // passes' (docs/architecture.md, "The fused substep"): on several ranks the frames would not
+  // be the single process's bits. (Variants that fall back to two passes on one process, e.g.
+  // sleeping, run distributed as usual; ranks_ is not set yet here.)
+  if (fused_eligible()) refuse("the fused G2P2G substep (simulation.transfer_pass \"fused\") is");
 }
 
 // Every rank builds the field colliders around the blocks of all ranks' particles: the region

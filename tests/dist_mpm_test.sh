@@ -71,4 +71,10 @@ cmp -s "$out/retry1/checkpoint.amck" "$out/retry3/checkpoint.amck" ||
 # Implicit MPM is not distributed yet: a clear refusal naming it (exit 3), no frame written.
 refused 2 "$implicit" "$out/imp" "implicit integration (simulation.implicit) is not distributed yet" ||
   exit 1
+# The fused substep rounds its grid sums otherwise than the two passes: on several ranks it is
+# refused (one rank runs it like the single process), so no run's bits depend on the rank count.
+sed 's/"simulation": *{/"simulation": {"transfer_pass": "fused", /' "$scene" >"$out/fused.json"
+grep -q '"transfer_pass": "fused"' "$out/fused.json" || { echo "could not make the fused scene"; exit 1; }
+refused 2 "$out/fused.json" "$out/fu" 'fused G2P2G substep (simulation.transfer_pass "fused") is not distributed yet' ||
+  exit 1
 echo "distributed MPM: $all files bitwise identical on 1-4 ranks, 2x2 threads, with repartitions, resumed 3->2, 3->1 and 1->4 ranks and after an interrupt on 4; per-rank parts (--parts ranks) merged bitwise on 2 and 3 ranks and resumed 3->2, 3->1, 1->4, 2->3 and after an interrupt 3->2; with emitters and a kill region $(echo "$files" | wc -l) files on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1"
