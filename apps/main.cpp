@@ -10,6 +10,7 @@
 
 #include "apps/commands.hpp"
 #include "core/dist/comm.hpp"
+#include "core/exec/cpus.hpp"
 #include "core/exec/exec.hpp"
 #include "core/exec/simd.hpp"
 #include "core/math/types.hpp"
@@ -21,7 +22,8 @@ int info_command(const std::vector<std::string>&) {
             << "precision: " << real_name() << "\n"
             << "backends: ";
   for (auto b : exec::available_backends()) std::cout << exec::backend_name(b) << " ";
-  std::cout << "\nhardware threads: " << exec::hardware_threads() << "\n"
+  std::cout << "\nhardware threads: " << exec::hardware_threads() << " (this process may use "
+            << exec::usable_threads() << ")\n"
             << "SIMD path: " << exec::simd_description() << "\n"
             << "Eigen " << EIGEN_WORLD_VERSION << "." << EIGEN_MAJOR_VERSION << "."
             << EIGEN_MINOR_VERSION << ", oneTBB " << TBB_VERSION_MAJOR << "." << TBB_VERSION_MINOR

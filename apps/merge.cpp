@@ -8,6 +8,7 @@
 
 #include "apps/commands.hpp"
 #include "core/errors.hpp"
+#include "core/exec/cpus.hpp"
 #include "io/checkpoint.hpp"
 #include "io/files.hpp"
 #include "io/parts.hpp"
@@ -41,7 +42,7 @@ int merge_command(const std::vector<std::string>& args) {
   }
   try {
     const std::string dir = o.positional[0];
-    int threads = exec::hardware_threads();
+    int threads = exec::usable_threads();
     if (const auto* t = o.get("--threads")) threads = parse_int("--threads", *t, 1, 4096);
     const exec::Space space(exec::Backend::OpenMP, threads);
     set_phase("merging the parts in " + dir);

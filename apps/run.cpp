@@ -11,12 +11,14 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <sstream>
 #include <stdexcept>
 
 #include "apps/commands.hpp"
 #include "apps/frame_loop.hpp"
 #include "core/dist/comm.hpp"
 #include "core/errors.hpp"
+#include "core/exec/cpus.hpp"
 #include "core/exec/exec.hpp"
 #include "io/checkpoint.hpp"
 #include "io/scene.hpp"
@@ -59,7 +61,8 @@ const char* kRunHelp =
     "uninterrupted run (frames may be raised to extend it).\n"
     "Defaults: --backend openmp (threads: plain std::threads, for ThreadSanitizer runs), --threads "
     "=\n"
-    "all cores, --out = the scene's output.directory,\n"
+    "the CPUs this process may run on (its affinity: all cores, or a rank's share under mpirun),\n"
+    "--out = the scene's output.directory,\n"
     "--frames = the scene's simulation.frames, --checkpoint-every = output.checkpoint_every.\n";
 
 }  // namespace
@@ -117,8 +120,25 @@ RunEstimate estimate_of(const Scene& scene) {
 exec::Space make_space(const Options& o, exec::Profiler* prof) {
   exec::Backend b = exec::Backend::OpenMP;
   if (const auto* s = o.get("--backend")) b = exec::parse_backend(*s);
-  int threads = exec::hardware_threads();
+  const int usable = exec::usable_threads();
+  int threads = usable;
   if (const auto* s = o.get("--threads")) threads = parse_int("--threads", *s, 1, 4096);
+  // More threads than the CPUs this process may use (e.g. a rank that mpirun bound to one core,
+  // its default for up to 2 ranks) share those CPUs: say so, with the launch that fixes it.
+  if (threads > usable && b != exec::Backend::Serial) {
+    const dist::Comm& comm = dist::Comm::world();
+    std::ostringstream w;  // one write, so the ranks' lines do not interleave
+    w << "amalgam: warning: " << threads << " threads but "
+      << (comm.size() > 1 ? "MPI rank " + std::to_string(comm.rank()) : "this process")
+      << " may run on " << usable << " CPU" << (usable == 1 ? "" : "s")
+      << " (its affinity mask); the threads will share " << (usable == 1 ? "it" : "them")
+      << (comm.size() > 1 ? ". Start the ranks with `mpirun --map-by slot:PE=" +
+                                std::to_string(threads) + "` or `--bind-to none`"
+                          : "")
+      << "\n";
+    const std::string line = w.str();
+    std::fwrite(line.data(), 1, line.size(), stderr);
+  }
   return exec::Space(b, threads, prof);
 }
 

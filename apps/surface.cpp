@@ -16,6 +16,7 @@
 
 #include "apps/commands.hpp"
 #include "core/errors.hpp"
+#include "core/exec/cpus.hpp"
 #include "io/scene.hpp"
 #include "io/surfacing.hpp"
 
@@ -41,7 +42,7 @@ const char* kSurfaceHelp =
     "here override it. Without --scene the voxel size and the particle spacing default to half\n"
     "the points' voxel (the run's dx for MPM: right for 8 particles per cell; give --spacing\n"
     "otherwise).\n"
-    "Defaults: --out = RUN_DIR, every frame, --threads = all cores.\n";
+    "Defaults: --out = RUN_DIR, every frame, --threads = the CPUs this process may run on.\n";
 
 std::vector<std::string> split_list(const std::string& s) {
   std::vector<std::string> out;
@@ -127,7 +128,7 @@ std::map<int, std::string> frames_in(const std::string& dir, int first, int last
 int surface_command(const std::vector<std::string>& args) {
   Options o;
   int first = 0, last = 9999;
-  int threads = exec::hardware_threads();
+  int threads = exec::usable_threads();
   int frames_at_once = 0;  // 0: as many as threads
   try {
     o = parse_options(args,

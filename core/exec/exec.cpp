@@ -1,8 +1,10 @@
 // Backends of the exec layer. The only file of the project with OpenMP pragmas and TBB calls
 // (Kokkos calls are in exec_kokkos.cpp, compiled when CMake found Kokkos).
 #include "core/exec/exec.hpp"
+#include "core/exec/cpus.hpp"
 
 #include <omp.h>
+#include <sched.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
@@ -137,6 +139,18 @@ std::string kokkos_version() {
 int hardware_threads() {
   const unsigned n = std::thread::hardware_concurrency();
   return n == 0 ? 1 : static_cast<int>(n);
+}
+
+int usable_threads() {
+#ifdef __linux__
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  if (sched_getaffinity(0, sizeof set, &set) == 0) {
+    const int n = CPU_COUNT(&set);
+    if (n > 0) return n;
+  }
+#endif
+  return hardware_threads();
 }
 
 Space::Space(Backend backend, int threads, Profiler* profiler)
