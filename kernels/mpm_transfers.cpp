@@ -384,12 +384,12 @@ void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const M
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
 // L (Lagrangian mode): the stencil sits at the reference position xs and F_s, F_0s are updated
 // (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F. flatten: as p2g_particle.
-template <int Order, Transfer T, int CH, bool L>
-__attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, const Vec3i& origin,
-                                                  const Vec3& xs, Vec3& x, Vec3* x_lo, Vec3& v,
-                                                  Mat3& C, Mat3& F, Mat3* F_lo, Mat3* Fs,
-                                                  const Mat3* F0s, Real dx, Real inv_dx, Real dt,
-                                                  Real alpha) {
+template <int Order, Transfer T, int CH, bool L, int M = 0>
+__attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>& blk,
+                                                  const Vec3i& origin, const Vec3& xs, Vec3& x,
+                                                  Vec3* x_lo, Vec3& v, Mat3& C, Mat3& F, Mat3* F_lo,
+                                                  Mat3* Fs, const Mat3* F0s, Real dx, Real inv_dx,
+                                                  Real dt, Real alpha) {
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
@@ -405,7 +405,7 @@ __attribute__((flatten)) inline void g2p_particle(const Block<Order, CH>& blk, c
     V4 Ti{}, Tj{}, Tk{}, Tdy{}, Tdz{}, TdV{};
     for (int j = 0; j < N; ++j) {
       V4 U{}, Uk{}, Ud{}, UdV{};
-      const Real* row = blk.data + Block<Order, CH>::at(l[0] + i, l[1] + j, l[2]);
+      const Real* row = blk.data + GridBlock<Order, CH, M>::at(l[0] + i, l[1] + j, l[2]);
       for (int k = 0; k < N; ++k) {
         const V4 vk = simd::load4(row + k * CH);
         U += st.w[2][k] * vk;
@@ -508,6 +508,37 @@ inline void gather_bin(Block<Order, CH>& blk, const MpmGridView& g, std::size_t 
   });
 }
 
+// Bin b's dilated block (node (0,0,0) at the bin leaf's origin - M) from the 27 leaves around the
+// bin's leaf (g.bin_nbr27[b]); a missing leaf's nodes are zero (no mass: no particle's stencil
+// reaches them).
+template <int Order, int CH, int M>
+inline void gather_dilated(GridBlock<Order, CH, M>& blk, const MpmGridView& g, std::size_t b) {
+  using Blk = GridBlock<Order, CH, M>;
+  int leaf_d[Blk::B], off[Blk::B];  // per axis: block node i -> leaf -1/0/+1, offset in it
+  for (int i = 0; i < Blk::B; ++i) {
+    const int a = i - M;
+    leaf_d[i] = a < 0 ? -1 : a / kLeafDim;
+    off[i] = a - leaf_d[i] * kLeafDim;
+  }
+  const std::array<std::int32_t, 27>& n27 = g.bin_nbr27[b];
+  for (int i = 0; i < Blk::B; ++i)
+    for (int j = 0; j < Blk::B; ++j) {
+      const int t0 = (leaf_d[i] + 1) * 9 + (leaf_d[j] + 1) * 3;
+      for (int k = 0; k < Blk::B; ++k) {
+        Real* d = blk.data + Blk::at(i, j, k);
+        const std::int32_t leaf = n27[std::size_t(t0 + leaf_d[k] + 1)];
+        if (leaf < 0) {
+          for (int c = 0; c < CH; ++c) d[c] = Real(0);
+          continue;
+        }
+        const std::size_t n =
+            (std::size_t(leaf) * kLeafNodes + std::size_t(leaf_offset(off[i], off[j], off[k]))) * 4;
+        simd::store4(d, simd::load4(g.a + n));
+        if constexpr (CH == 8) simd::store4(d + 4, simd::load4(g.b + n));
+      }
+    }
+}
+
 template <int Order, Transfer T, bool L>
 void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
               const MpmStepParams& prm) {
@@ -560,11 +591,12 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
         const std::size_t b = std::size_t(bi);
         const Vec3i origin = g.bin_leaf[b] * kLeafDim;
         const std::uint32_t q0 = g.bin_start[b], q1 = g.end_of(b);
-        {
-          Block<Order, CH> in;
-          gather_bin(in, g, b);
+        {  // the particles moved up to M nodes since the bins were sorted: a dilated gather
+          GridBlock<Order, CH, M> in;
+          gather_dilated(in, g, b);
+          const Vec3i in_origin = origin - Vec3i::Constant(M);
           for (std::uint32_t q = q0; q < q1; ++q)
-            g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
+            g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
                                               p.C[q], p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
                                               inv_dx, dt, alpha);
         }

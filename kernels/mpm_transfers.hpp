@@ -98,6 +98,10 @@ struct MpmGridView {
   // Sleeping blocks (solvers/mpm_sleep.hpp): when set, bin b's particles are
   // [bin_start[b], bin_end[b]) in P2G and G2P (bin_end[b] = bin_start[b]: the bin sleeps).
   const std::uint32_t* bin_end = nullptr;
+  // The fused G2P2G: the 27 leaves around each bin's leaf (dx, dy, dz in -1..1, z fastest; -1:
+  // none), from which it gathers the bin's dilated block (its particles may have moved up to
+  // kG2P2GMargin nodes out of the bin's footprint since the last sort).
+  const std::array<std::int32_t, 27>* bin_nbr27 = nullptr;
   std::uint32_t end_of(std::size_t b) const { return bin_end ? bin_end[b] : bin_start[b + 1]; }
   // Distributed P2G: partial blocks of other ranks' bins, grouped by the colour of their bin
   // (imports[import_colour_start[c] .. [c + 1])); P2G adds colour c's before flushing its own

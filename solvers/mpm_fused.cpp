@@ -2,14 +2,17 @@
 // "A massively parallel and scalable multi-GPU material point method", claymore), on the CPU's
 // bins and with the colour-free deterministic flush below.
 //
-//   primed?  no: sort, topology, split P2G (prime_grid)
+//   primed?  no: sort, topology (dilated), split P2G (prime_grid)
 //   grid update (p + dt f) / m + dt g, colliders          (split grid: MpmStepParams::split)
-//   G2P2G over the bins: gather, update (v, C, F, x), particle collisions, material update,
-//         split scatter of the updated particle into its old bin's dilated block
-//   sort (re-bin by the new positions), topology (the next grid's leaves)
-//   flush: each active leaf sums the dilated blocks reaching it in the old bins' order
-//          (a particle outside its block: the split P2G of the sorted particles instead)
+//   G2P2G over the bins: dilated gather, update (v, C, F, x), particle collisions, material
+//         update, split scatter of the updated particle into its bin's dilated block
+//   every particle inside its bin's dilated block: flush (each active leaf sums the blocks
+//         reaching it in bin order); the bins, their order and the topology stay
+//   else: sort (re-bin by the new positions), topology, split P2G of the re-sorted particles
 //
+// The particles are not re-sorted every substep: a bin keeps its particles while they stay
+// within kG2P2GMargin nodes of its footprint, so the sort and the permutation run only every
+// 11-40 substeps (docs/benchmarks.md, "How rarely the particles would need re-sorting").
 // The scatter is dt-free because the next substep's dt (the CFL step) depends on the velocities
 // this pass computes: the grid keeps the stress force in its own lanes and the grid update
 // multiplies it by dt. The particle state is computed by the same per-particle functions as the
@@ -39,12 +42,13 @@ void MpmSolver::prime_grid(const exec::Space& space) {
 void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   if (!primed_) {
     sort_particles(space);
-    update_grid(space);
+    update_grid_fused(space);
     prime_grid(space);
   }
   MpmStepParams prm = step_params(dt);
   prm.split = true;
-  const MpmGridView g = grid_view();
+  MpmGridView g = grid_view();
+  g.bin_nbr27 = fused_nbr27_.data();
   grid_update(space, g, prm);
   const std::size_t reals = g.nbins * g2p2g_block_reals(settings_.order);
   const std::size_t budget =
@@ -62,12 +66,14 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   const MaterialUpdateParams mu = material_params(dt);
   g2p2g(space, particle_view(), g, prm, material_update_ ? &mu : nullptr, p2g_blocks_.data(),
         fused_far_.data());
-  fused_bin_leaf_.assign(bins_.leaf.begin(), bins_.leaf.begin() + std::ptrdiff_t(g.nbins));
-  const bool far = std::any_of(fused_far_.begin(), fused_far_.end(), [](auto f) { return f; });
-  sort_particles(space);
-  update_grid(space);
-  if (far) {  // a particle moved past the margin: scatter the re-sorted particles (same state)
-    prime_grid(space);
+  // The particles stay in their bins, in their order, while every one's stencil lies inside its
+  // bin's dilated block: the grid is then the blocks' sum over the same leaves. The first that
+  // leaves it re-sorts them (every 11-40 substeps in the scenes measured, docs/benchmarks.md):
+  // a function of the state, so every backend and thread count re-sorts at the same substeps.
+  if (std::any_of(fused_far_.begin(), fused_far_.end(), [](auto f) { return f; })) {
+    sort_particles(space);
+    update_grid_fused(space);
+    prime_grid(space);  // the split P2G of the re-sorted particles (the same state)
     ++fused_fallbacks_;
   } else {
     flush_fused_blocks(space);
@@ -75,29 +81,35 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   primed_ = true;
 }
 
-// Lists, per active leaf of the new grid, the parts of the dilated blocks that reach it, in the
-// old bins' order (serial: a few dozen table look-ups per bin), then sums them (g2p2g_flush).
-void MpmSolver::flush_fused_blocks(const exec::Space& space) {
+// After a sort: the grid's leaves for the sorted bins and the leaves their dilated blocks reach
+// (kG2P2GMargin nodes on the - side reach the -1 neighbours), each bin's 27 neighbour leaves for
+// the dilated gather, and per active leaf the parts of the blocks that reach it, in bin order
+// (serial: a few dozen table look-ups per bin), which every flush until the next sort uses.
+void MpmSolver::update_grid_fused(const exec::Space& space) {
+  fused_extra_.clear();
+  for (const Vec3i& l : bins_.leaf)
+    for (int t = 0; t < 27; ++t) {
+      const Vec3i d(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1);
+      if (d.minCoeff() < 0) fused_extra_.push_back(l + d);
+    }
+  grid_.update_topology(space, bins_, &fused_extra_);
+  const std::size_t nb = bins_.count();
+  fused_nbr27_.resize(nb);
+  for (std::size_t b = 0; b < nb; ++b)
+    fused_nbr27_[b] = grid_.nbr27()[std::size_t(grid_.nbr8()[b][0])];
   const std::vector<std::int32_t>& active = grid_.active_leaves();
   fused_slot_.assign(grid_.leaf_count(), -1);
   for (std::size_t li = 0; li < active.size(); ++li)
     fused_slot_[std::size_t(active[li])] = std::int32_t(li);
-  const std::size_t nb = fused_bin_leaf_.size();
   fused_target_.assign(nb * 27, -1);
   fused_start_.assign(active.size() + 1, 0);
-  const auto& nbr27 = grid_.nbr27();
-  for (std::size_t b = 0; b < nb; ++b) {
-    const Vec3i lc = fused_bin_leaf_[b];
-    const std::int32_t own = grid_.find_leaf(lc * kLeafDim);
+  for (std::size_t b = 0; b < nb; ++b)
     for (int t = 0; t < 27; ++t) {
-      const Vec3i d(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1);
-      const std::int32_t leaf =
-          own >= 0 ? nbr27[std::size_t(own)][std::size_t(t)] : grid_.find_leaf((lc + d) * kLeafDim);
+      const std::int32_t leaf = fused_nbr27_[b][std::size_t(t)];
       const std::int32_t slot = leaf >= 0 ? fused_slot_[std::size_t(leaf)] : -1;
       fused_target_[b * 27 + std::size_t(t)] = slot;
       if (slot >= 0) ++fused_start_[std::size_t(slot) + 1];
     }
-  }
   for (std::size_t li = 0; li < active.size(); ++li) fused_start_[li + 1] += fused_start_[li];
   fused_items_.resize(fused_start_.back());
   std::vector<std::uint32_t>& at = fused_slot_cursor_;
@@ -108,6 +120,11 @@ void MpmSolver::flush_fused_blocks(const exec::Space& space) {
       if (slot >= 0)
         fused_items_[at[std::size_t(slot)]++] = std::uint32_t(b << 5) | std::uint32_t(t);
     }
+}
+
+// Each active leaf sums the dilated blocks reaching it in bin order (g2p2g_flush; the tables of
+// update_grid_fused).
+void MpmSolver::flush_fused_blocks(const exec::Space& space) {
   g2p2g_flush(space, grid_view(), settings_.order, p2g_blocks_.data(), fused_start_.data(),
               fused_items_.data());
 }

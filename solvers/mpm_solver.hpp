@@ -206,8 +206,9 @@ class MpmSolver {
   bool fused_eligible() const;
   bool primed() const { return primed_; }
   void unprime() { primed_ = false; }
-  // Fused substeps that fell back to a plain P2G (a particle left its bin's dilated block) and
-  // that ran two passes (the dilated blocks over their memory budget).
+  // Fused substeps that re-sorted the particles (one left its bin's dilated block: the split P2G
+  // of the re-sorted particles instead of the flush) and that ran two passes (the dilated blocks
+  // over their memory budget).
   std::uint64_t fused_fallbacks() const { return fused_fallbacks_; }
   std::uint64_t fused_unfused() const { return fused_unfused_; }
 
@@ -334,10 +335,12 @@ class MpmSolver {
   void step_fused(const exec::Space& space, Real dt);
   MaterialUpdateParams material_params(Real dt) const;  // update_materials' parameters
   void prime_grid(const exec::Space& space);            // the split P2G of the sorted particles
-  void flush_fused_blocks(const exec::Space& space);    // the dilated blocks into the new grid
+  void flush_fused_blocks(const exec::Space& space);    // the dilated blocks into the grid
+  void update_grid_fused(const exec::Space& space);     // topology + tables of the sorted bins
   bool primed_ = false;
   std::uint64_t fused_fallbacks_ = 0, fused_unfused_ = 0;
-  std::vector<Vec3i> fused_bin_leaf_;       // the fused pass's bins' leaves (before re-sorting)
+  std::vector<Vec3i> fused_extra_;  // the leaves the dilated blocks reach beyond nbr8
+  std::vector<std::array<std::int32_t, 27>> fused_nbr27_;  // per bin: MpmGridView::bin_nbr27
   std::vector<std::uint8_t> fused_far_;     // per bin: a particle left its dilated block
   std::vector<std::int32_t> fused_slot_;    // per leaf slot: its index among the active leaves
   std::vector<std::int32_t> fused_target_;  // per (bin, t): the active leaf index or -1
