@@ -412,6 +412,9 @@ void MpmSolver::distribute(const exec::Space& space) {
   ranks->balanced =
       double(comm.max(std::int64_t(N))) * double(R) / double(std::max<std::uint64_t>(total, 1));
   ranks_ = std::move(ranks);
+  // Several ranks run the two passes (fused_eligible): a fused scene's split set is not needed.
+  channels_ = GridChannels::for_run(settings_, !colliders_.empty(), true);
+  grid_.set_node4_channels(channels_.count);
   ++state_version_;
 }
 
