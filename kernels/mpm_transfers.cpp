@@ -229,9 +229,8 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
       }
       if constexpr (!L) {
         p2g_particle<Order, T, CH, false, S, M>(blk, origin, p.x[q], p.v[q], affine<T>(p, q, zero),
-                                                tau[l],
-                                                mat.mass(p.volume0[q]), p.volume0[q], dx, inv_dx,
-                                                dt);
+                                                tau[l], mat.mass(p.volume0[q]), p.volume0[q], dx,
+                                                inv_dx, dt);
       } else {
         p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], affine<T>(p, q, zero),
                                       tau[l] * Fs_inv[l].transpose(), mat.mass(p.volume0[q]),
@@ -549,8 +548,8 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
                                              inv_dx, dt, alpha);
           else
             g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                              lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
-                                              inv_dx, dt, alpha);
+                                              lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr,
+                                              dx, inv_dx, dt, alpha);
         }
       },
       1);
@@ -584,8 +583,8 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
           gather_bin(in, g, b);
           for (std::uint32_t q = q0; q < q1; ++q)
             g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                              lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
-                                              inv_dx, dt, alpha);
+                                              lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr,
+                                              dx, inv_dx, dt, alpha);
         }
         for (std::uint32_t q = q0; prm.ncolliders > 0 && q < q1; ++q)
           collide_particle(p, prm.colliders, prm.ncolliders, q, t_end);

@@ -400,10 +400,9 @@ void domain_collect_particle_points(const exec::Space& space, const DomainPartic
     out.m[k] = mass;
     out.p[k] = mass * p.v[i];
     out.f[k].setZero();
-    out.stress[k] =
-        p.volume0[i] * m.kirchhoff(p.F[i], p.C ? p.C[i] : Mat3::Zero(),
-                                   p.plastic ? p.plastic[i] : Real(0),
-                                   p.temperature ? p.temperature[i] : Real(0));
+    out.stress[k] = p.volume0[i] * m.kirchhoff(p.F[i], p.C ? p.C[i] : Mat3(Mat3::Zero()),
+                                               p.plastic ? p.plastic[i] : Real(0),
+                                               p.temperature ? p.temperature[i] : Real(0));
     out.corner[k] = -std::int32_t(i) - 1;
   });
 }

@@ -173,8 +173,7 @@ void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, st
   }
 }
 
-MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperature,
-                                    bool affine) {
+MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperature, bool affine) {
   MpmAttributes m;
   m.x = ps.add("x", AttrType::Real, 3);
   m.x_lo = ps.add("x_lo", AttrType::Real, 3);
