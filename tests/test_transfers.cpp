@@ -76,7 +76,7 @@ Moments particle_moments(const MpmSolver& s, bool affine) {
   for (size_t p = 0; p < ps.size(); ++p) {
     const double m = s.particle_mass(p);
     const Vec3d x = ps.vec3(a.x)[p].cast<double>(), v = ps.vec3(a.v)[p].cast<double>();
-    const Mat3d C = a.C >= 0 ? ps.mat3(a.C)[p].cast<double>() : Mat3d::Zero();
+    const Mat3d C = a.C >= 0 ? Mat3d(ps.mat3(a.C)[p].cast<double>()) : Mat3d(Mat3d::Zero());
     r.m += m;
     r.p += m * v;
     r.L += x.cross(m * v);
