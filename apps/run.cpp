@@ -111,7 +111,8 @@ namespace {
 RunEstimate estimate_of(const Scene& scene) {
   try {
     const auto& a = scene.output.attributes;
-    return estimate_run(scene, std::find(a.begin(), a.end(), "rest") != a.end());
+    return estimate_run(scene, std::find(a.begin(), a.end(), "rest") != a.end(),
+                        dist::Comm::world().size());
   } catch (const InputError& e) {
     throw InputError(scene.file + ": " + e.what());
   }

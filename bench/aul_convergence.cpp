@@ -76,12 +76,13 @@ Result run(const Variant& var, double dx, double dt, double t_end, const exec::S
   {
     const Vec3* x = ps.vec3(at.x);
     Vec3* v = ps.vec3(at.v);
-    Mat3* C = ps.mat3(at.C);
+    Mat3* C = at.C >= 0 ? ps.mat3(at.C) : nullptr;  // PIC/FLIP keeps none
     const std::int32_t* id = ps.int32(at.id);
     for (size_t p = 0; p < ps.size(); ++p) {
       const double xr = double(x[p][0]) - kXmin;
       X[size_t(id[p])] = xr;
       v[p] = Vec3(Real(kV + kA * w * std::cos(k * xr)), 0, 0);
+      if (!C) continue;
       C[p] = Mat3::Zero();
       C[p](0, 0) = Real(-kA * w * k * std::sin(k * xr));
     }

@@ -31,6 +31,10 @@ constexpr std::size_t kMagicLen = sizeof(kMagic) - 1;
 constexpr std::uint32_t kVersion = 8;
 constexpr char kOrderSection[] = "dist.order";
 constexpr char kOptionalAttribute[] = "rest";
+// MPM's affine matrix: only APIC, MLS and viscous materials keep it (MpmSolver::keeps_affine). A
+// file written by a run that kept it (an older binary's PIC/FLIP run) is read by one that does
+// not with C skipped (it was never read); a run that needs C refuses a file without it.
+constexpr char kAffineAttribute[] = "C";
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -170,10 +174,16 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
   const std::uint32_t ndropped = version < 8 && ps.find("volume0") >= 0 ? 1 : 0;
   // `rest` (MPM: kept only when the output asks for it, and the output is not part of the scene's
   // fingerprint) may be in the file and not in this run, which skips it, or in this run and not in
-  // the file, which the simulation then fills (Simulation::fill_absent_attribute).
+  // the file, which the simulation then fills (Simulation::fill_absent_attribute). MPM's `C` may
+  // be in the file and not in this run (skipped: kAffineAttribute); one absent from the file but
+  // needed by this run is refused below by name.
   const bool rest = ps.find(kOptionalAttribute) >= 0;
+  const bool affine = ps.find(kAffineAttribute) >= 0;
+  const bool skip_affine = !pd && !affine;
   const std::uint32_t expected = std::uint32_t(ps.attribute_count()) - nmissing + ndropped;
-  if (nattr != expected && nattr != (rest ? expected - 1 : expected + 1))
+  const std::uint32_t fewest = expected - (rest ? 1 : 0) - (affine ? 1 : 0);
+  const std::uint32_t most = expected + (rest ? 0 : 1) + (skip_affine ? 1 : 0);
+  if (nattr < fewest || nattr > most)
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
                      " particle attributes, expected " + std::to_string(expected));
   std::vector<char> read(std::size_t(ps.attribute_count()), 0);
@@ -206,6 +216,11 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
       r.take(size_t(n) * 4 * words, "attribute data");
       continue;
     }
+    if (skip_affine && name == kAffineAttribute && a < 0 && type == std::uint32_t(AttrType::Real) &&
+        width == 9 && words == std::uint32_t(9 * sizeof(Real) / 4)) {
+      r.take(size_t(n) * 4 * words, "attribute data");
+      continue;
+    }
     if (a < 0 || type != std::uint32_t(ps.type(a)) || width != std::uint32_t(ps.width(a)) ||
         words != std::uint32_t(ps.words_per_particle(a)))
       throw InputError(path + ": checkpoint attribute '" + name +
@@ -219,6 +234,10 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
   }
   for (int a = 0; a < ps.attribute_count(); ++a) {
     if (read[std::size_t(a)]) continue;
+    if (ps.name(a) == kAffineAttribute && !pd)
+      throw InputError(path + ": checkpoint has no particle attribute '" + ps.name(a) +
+                       "' (the affine velocity matrix this run's APIC/MLS transfer or viscous "
+                       "material needs; a PIC/FLIP run without viscosity writes none)");
     if (ps.name(a) != kOptionalAttribute)
       throw InputError(path + ": checkpoint has no particle attribute '" + ps.name(a) + "'");
     st.absent.push_back(ps.name(a));

@@ -172,6 +172,16 @@ __attribute__((flatten)) inline void p2g_particle(GridBlock<Order, CH, M>& blk, 
   }
 }
 
+// Particle q's C for p2g_particle: PIC/FLIP's scatter has no affine term (and its particles may
+// have no C), so it gets zeros.
+template <Transfer T>
+inline const Mat3& affine(const MpmParticleView& p, std::uint32_t q, const Mat3* zero) {
+  if constexpr (T == Transfer::PicFlip)
+    return zero[0];
+  else
+    return p.C[q];
+}
+
 // Scatters particles [q0, q1) into `blk` (node (0,0,0) at `origin`). Particles in batches of up
 // to W of one material: their stresses at once (one per vector lane, the values of one at a time:
 // MaterialParams::kirchhoff_lanes), then their scatter. A dilated block (M > 0: the fused G2P2G)
@@ -182,6 +192,11 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
   constexpr int W = lanes::kN<Real>;
   bool inside = true;
+  // Without C (PIC/FLIP of materials without viscosity, MpmSolver::keeps_affine) the stress reads
+  // no velocity gradient: zeros stand in for it, and PIC/FLIP's scatter has no affine term.
+  Mat3 zero[W];
+  if (T == Transfer::PicFlip || !p.C)
+    for (int l = 0; l < W; ++l) zero[l].setZero();
   for (std::uint32_t q0 = q_begin; q0 < q1;) {
     const int n = one_material_run<W>(p.material, q0, q1);
     Real plastic[W], temperature[W];
@@ -194,11 +209,11 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
         // A-ULMPM eq. 20: P^0 (F^{0s})^T = tau (F^{sn})^{-T}; the material sees the spatial
         // velocity gradient grad_s v (F^{sn})^{-1}.
         Fs_inv[l] = p.F_s[q].inverse();
-        Lv[l] = p.C[q] * Fs_inv[l];
+        Lv[l] = p.C ? Mat3(p.C[q] * Fs_inv[l]) : zero[l];
       }
     }
     const MaterialParams& mat = prm.materials[p.material[q0]];
-    mat.kirchhoff_lanes(p.F + q0, L ? Lv : p.C + q0, plastic, temperature, tau, n);
+    mat.kirchhoff_lanes(p.F + q0, L ? Lv : p.C ? p.C + q0 : zero, plastic, temperature, tau, n);
     for (int l = 0; l < n; ++l) {
       const std::uint32_t q = q0 + std::uint32_t(l);
       if constexpr (M > 0) {  // the stencil's nodes base .. base + Order inside the block?
@@ -213,11 +228,11 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
         }
       }
       if constexpr (!L) {
-        p2g_particle<Order, T, CH, false, S, M>(blk, origin, p.x[q], p.v[q], p.C[q], tau[l],
-                                                mat.mass(p.volume0[q]), p.volume0[q], dx, inv_dx,
-                                                dt);
+        p2g_particle<Order, T, CH, false, S, M>(blk, origin, p.x[q], p.v[q], affine<T>(p, q, zero),
+                                                tau[l], mat.mass(p.volume0[q]), p.volume0[q], dx,
+                                                inv_dx, dt);
       } else {
-        p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], p.C[q],
+        p2g_particle<Order, T, CH, P>(blk, origin, p.X_ref[q], p.v[q], affine<T>(p, q, zero),
                                       tau[l] * Fs_inv[l].transpose(), mat.mass(p.volume0[q]),
                                       p.volume0[q], dx, inv_dx, dt, p.x[q], p.F_s[q]);
       }
@@ -384,10 +399,12 @@ void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const M
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
 // L (Lagrangian mode): the stencil sits at the reference position xs and F_s, F_0s are updated
 // (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F. flatten: as p2g_particle.
+// C: APIC/MLS's affine matrix (never null); PIC/FLIP stores grad v in it when the particles
+// keep one (a viscous stress reads it), else C is null and nothing is stored.
 template <int Order, Transfer T, int CH, bool L, int M = 0>
 __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>& blk,
                                                   const Vec3i& origin, const Vec3& xs, Vec3& x,
-                                                  Vec3* x_lo, Vec3& v, Mat3& C, Mat3& F, Mat3* F_lo,
+                                                  Vec3* x_lo, Vec3& v, Mat3* C, Mat3& F, Mat3* F_lo,
                                                   Mat3* Fs, const Mat3* F0s, Real dx, Real inv_dx,
                                                   Real dt, Real alpha) {
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
@@ -460,8 +477,9 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
     }
     v = v_pic;
   }
-  for (int a = 0; a < 3; ++a)
-    for (int c = 0; c < 3; ++c) C(c, a) = Ccol[a][c + 1];
+  if (T != Transfer::PicFlip || C)
+    for (int a = 0; a < 3; ++a)
+      for (int c = 0; c < 3; ++c) (*C)(c, a) = Ccol[a][c + 1];
   if constexpr (L) {
     Mat3 grad_v;
     for (int a = 0; a < 3; ++a)
@@ -557,12 +575,12 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
         for (std::uint32_t q = g.bin_start[b]; q < q1; ++q) {
           if constexpr (L)
             g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                             p.C[q], p.F[q], nullptr, p.F_s + q, p.F_0s + q, dx,
+                                             lo(p.C, q), p.F[q], nullptr, p.F_s + q, p.F_0s + q, dx,
                                              inv_dx, dt, alpha);
           else
             g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                              p.C[q], p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
-                                              inv_dx, dt, alpha);
+                                              lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr,
+                                              dx, inv_dx, dt, alpha);
         }
       },
       1);
@@ -596,9 +614,9 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
           gather_dilated(in, g, b);
           const Vec3i in_origin = origin - Vec3i::Constant(M);
           for (std::uint32_t q = q0; q < q1; ++q)
-            g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                              p.C[q], p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
-                                              inv_dx, dt, alpha);
+            g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q),
+                                              p.v[q], lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr,
+                                              nullptr, dx, inv_dx, dt, alpha);
         }
         for (std::uint32_t q = q0; prm.ncolliders > 0 && q < q1; ++q)
           collide_particle(p, prm.colliders, prm.ncolliders, q, t_end);

@@ -8,7 +8,8 @@
 //             (Hu et al. 2018, MLS-MPM; A-ULMPM Sec. 5.8: grad v_p = C_p)
 // Forces (PicFlip, Apic): f_i = -sum_p V_p^0 P_p F_p^T grad w_ip (course report).
 // The stress P_p F_p^T = tau_p is the material's Kirchhoff stress (core/materials/material.hpp),
-// which may depend on grad v_p = C_p (viscosity): G2P stores grad v_p in C_p for every transfer.
+// which may depend on grad v_p = C_p (viscosity): G2P stores grad v_p in C_p for every transfer
+// whose particles keep C (PIC/FLIP of inviscid materials keep none: MpmSolver::keeps_affine).
 // F update: F_p <- (I + dt grad v_p) F_p.  (The course report's code multiplies on the right,
 // F (I + dt grad v); the left product is the correct push-forward and what we implement.)
 //
@@ -39,7 +40,7 @@ const char* transfer_name(Transfer t);
 struct MpmParticleView {
   Vec3* x;  // positions x + x_lo (below); kernels read x
   Vec3* v;
-  Mat3* C;
+  Mat3* C;  // null for PIC/FLIP of inviscid materials (nothing reads it; kernels pass zeros)
   Mat3* F;
   const Real* volume0;  // mass: MaterialParams::mass(volume0) of the particle's material
   const std::int32_t* material;

@@ -360,7 +360,7 @@ void domain_grid_to_corners(const exec::Space& space, const DomainPointView& pts
                   // A disabled particle: plain PIC/FLIP MPM on linear weights (course report).
                   const std::size_t i = std::size_t(-pts.corner[q] - 1);
                   p.v[i] = (1 - alpha) * v + alpha * (p.v[i] + dv);
-                  p.C[i] = grad_v;  // the velocity gradient its viscous stress needs
+                  if (p.C) p.C[i] = grad_v;  // the velocity gradient its viscous stress needs
                   const Mat3 dF = dt * grad_v * p.F[i];  // F += dt grad v F, as g2p
                   if (p.F_lo)
                     add_compensated(p.F[i], p.F_lo[i], dF);
@@ -400,7 +400,8 @@ void domain_collect_particle_points(const exec::Space& space, const DomainPartic
     out.m[k] = mass;
     out.p[k] = mass * p.v[i];
     out.f[k].setZero();
-    out.stress[k] = p.volume0[i] * m.kirchhoff(p.F[i], p.C[i], p.plastic ? p.plastic[i] : Real(0),
+    out.stress[k] = p.volume0[i] * m.kirchhoff(p.F[i], p.C ? p.C[i] : Mat3(Mat3::Zero()),
+                                               p.plastic ? p.plastic[i] : Real(0),
                                                p.temperature ? p.temperature[i] : Real(0));
     out.corner[k] = -std::int32_t(i) - 1;
   });
@@ -414,7 +415,7 @@ std::size_t domain_disable_melted(const exec::Space& space, const DomainParticle
         if (p.state[i] != kDomainDisabled && p.temperature &&
             materials[p.material[i]].melted(p.temperature[i])) {
           p.state[i] = kDomainDisabled;
-          p.C[i].setZero();
+          if (p.C) p.C[i].setZero();
         }
         acc += p.state[i] == kDomainDisabled ? 1 : 0;
       },

@@ -67,7 +67,9 @@ struct DomainParticleView {
   const MaterialParams* materials = nullptr;  // indexed by material (the mass, density x volume0)
   const Real* plastic = nullptr;
   const Real* temperature = nullptr;
-  Mat3* C = nullptr;  // disabled particles: their velocity gradient (viscous stress)
+  // Disabled particles: their velocity gradient (viscous stress); null when no material is
+  // viscous (MpmSolver::keeps_affine), as nothing then reads it.
+  Mat3* C = nullptr;
   // The low parts of x and F (core/math/types.hpp: add_compensated): disabled particles advance
   // x + x_lo; a domain particle's position is its corners' mean (x_lo = 0).
   Vec3* x_lo = nullptr;

@@ -98,11 +98,11 @@ void ConfigurationMaps::reset(const exec::Space& space, ParticleSet& ps,
   const std::int32_t* obj = ps.int32(a.object);
   const Vec3* x = ps.vec3(x_id);
   const Mat3* F = ps.mat3(F_id);
-  Mat3* C = ps.mat3(C_id);
+  Mat3* C = C_id >= 0 ? ps.mat3(C_id) : nullptr;  // PIC/FLIP without viscosity: no C
   exec::parallel_for(space, "aul.reset_configuration", exec::Index(ps.size()), [=](exec::Index i) {
     const size_t k = size_t(obj[i]);
     if (!flag[k]) return;
-    C[i] = C[i] * Fs[i].inverse();  // grad_{new} v = grad_s v (F^{sn})^{-1}
+    if (C) C[i] = C[i] * Fs[i].inverse();  // grad_{new} v = grad_s v (F^{sn})^{-1}
     Xs[i] = x[i] + offset[k];
     F0s[i] = F[i];
     Fs[i].setIdentity();

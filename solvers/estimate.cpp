@@ -68,9 +68,15 @@ Vec3 fastest_initial_velocity(const ObjectSpec& o) {
 // MPM: one particle per object, at its fastest initial velocity, in a solver of the scene's
 // settings and materials: its attribute layout gives the bytes per particle, its stable_dt the
 // first substep (wave speeds, speeds, viscosity and max_dt exactly as the run computes them).
-void estimate_mpm(const SceneSpec& s, bool rest_positions, RunEstimate& e) {
+void estimate_mpm(const SceneSpec& s, bool rest_positions, int ranks, RunEstimate& e) {
   MpmSettings settings = s.mpm;
-  settings.domains.enabled = false;  // domain corners add no particle attributes of their own
+  // Domain corners add no particle attributes of their own; particle domains transfer by
+  // PIC/FLIP (whatever simulation.transfer says): no C unless a material is viscous, and the
+  // second grid set.
+  if (settings.domains.enabled) settings.transfer = Transfer::PicFlip;
+  settings.domains.enabled = false;
+  // Several ranks run the two passes (fuses): no split grid set.
+  if (ranks > 1) settings.fused = false;
   MpmSolver probe(settings, s.materials, {}, s.heat_sources);
   if (rest_positions) probe.keep_rest_positions();
   const double dx = double(s.mpm.dx);
@@ -160,7 +166,7 @@ std::string bytes_text(double b) {
 
 }  // namespace
 
-RunEstimate estimate_run(const SceneSpec& s, bool rest_positions) {
+RunEstimate estimate_run(const SceneSpec& s, bool rest_positions, int ranks) {
   RunEstimate e;
   const double dx = double(s.mpm.dx);
   for (std::size_t k = 0; k < s.objects.size(); ++k) {
@@ -195,7 +201,7 @@ RunEstimate estimate_run(const SceneSpec& s, bool rest_positions) {
     }
   }
   if (s.method == Method::Mpm)
-    estimate_mpm(s, rest_positions, e);
+    estimate_mpm(s, rest_positions, ranks, e);
   else
     estimate_pd(s, e);
   // The step in the build's precision: a Real that is not a normal number cannot advance time.

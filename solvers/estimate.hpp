@@ -30,7 +30,9 @@ constexpr double kMaxSubsteps = 1e9;
 // the grid's index range, a collider field over its sample limit, a step that is not a normal
 // number in the build's precision, initial speeds above the stability limit).
 // `rest_positions`: the output asks for MPM's `rest` attribute (12 B per particle in float).
-RunEstimate estimate_run(const SceneSpec& scene, bool rest_positions = false);
+// `ranks`: MPI ranks of the run (a fused MPM scene runs two passes on several, without the split
+// grid set). The layout (attributes, grid sets) is that of a solver of the scene's settings.
+RunEstimate estimate_run(const SceneSpec& scene, bool rest_positions = false, int ranks = 1);
 
 // One line for people: "9.7e4 particles, 120 leaves, 47 MB, 61 substeps per frame (dt 6.8e-4 s),
 // 2928 substeps".

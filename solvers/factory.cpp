@@ -71,14 +71,14 @@ void apply_fields(const ObjectSpec& obj, MpmSolver& solver, std::size_t first, d
   Vec3* x = ps.vec3(a.x);
   Vec3* lo = ps.vec3(a.x_lo);
   Vec3* v = ps.vec3(a.v);
-  Mat3* C = ps.mat3(a.C);
+  Mat3* C = a.C >= 0 ? ps.mat3(a.C) : nullptr;  // PIC/FLIP without viscosity: no C
   Mat3* F = ps.mat3(a.F);
   const double h = 1e-3 * dx;
   for (std::size_t p = first; p < ps.size(); ++p) {
     const Vec3d X = x[p].cast<double>() + lo[p].cast<double>();
     if (obj.velocity_field) {
       v[p] += field_at(*obj.velocity_field, X).cast<Real>();
-      C[p] += field_gradient(*obj.velocity_field, X, h);
+      if (C) C[p] += field_gradient(*obj.velocity_field, X, h);
     }
     if (obj.displacement_field) {
       const Vec3d y = X + field_at(*obj.displacement_field, X);

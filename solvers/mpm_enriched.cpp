@@ -49,7 +49,7 @@ DomainParticleView MpmEnriched::particle_view(MpmSolver& mpm) {
   v.materials = mpm.materials().data();
   if (a.plastic >= 0) v.plastic = ps.real(a.plastic);
   if (a.temperature >= 0) v.temperature = ps.real(a.temperature);
-  v.C = ps.mat3(a.C);
+  if (a.C >= 0) v.C = ps.mat3(a.C);
   v.x_lo = ps.vec3(a.x_lo);
   v.F_lo = ps.mat3(a.F_lo);
   return v;

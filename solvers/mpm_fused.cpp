@@ -27,7 +27,7 @@
 namespace amalgam {
 
 bool MpmSolver::fused_eligible() const {
-  return settings_.fused && !implicit_ && !aul_ && !enriched_ && !sleep_ && !ranks_;
+  return fuses(settings_, ranks_ != nullptr);
 }
 
 void MpmSolver::prime_grid(const exec::Space& space) {

@@ -15,15 +15,27 @@
 
 namespace amalgam {
 
-GridChannels GridChannels::for_run(const MpmSettings& s, bool has_colliders) {
+bool fuses(const MpmSettings& s, bool distributed) {
+  return s.fused && !s.implicit && !s.configuration_maps && !s.domains.enabled &&
+         !s.sleep.enabled && !distributed;
+}
+
+GridChannels GridChannels::for_run(const MpmSettings& s, bool has_colliders, bool distributed) {
   GridChannels c;
-  // The fused substep's split grid keeps the force in set 1 for every transfer.
-  const bool split =
-      s.fused && !s.implicit && !s.configuration_maps && !s.domains.enabled && !s.sleep.enabled;
+  // The fused substep's split grid keeps the force in set 1 for every transfer; a run that asks
+  // for it but falls back to the two passes does not need it.
+  const bool split = fuses(s, distributed);
   if (s.transfer == Transfer::PicFlip || s.domains.enabled || split) c.second = c.count++;
   if (s.configuration_maps && (has_colliders || s.contact.mode != ObjectContactMode::None))
     c.positions = c.count++;
   return c;
+}
+
+bool MpmSolver::keeps_affine(const MpmSettings& s, const std::vector<MaterialParams>& materials) {
+  if (s.transfer != Transfer::PicFlip && !s.domains.enabled) return true;
+  for (const MaterialParams& m : materials)
+    if (m.reads_velocity_gradient()) return true;
+  return false;
 }
 
 MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials,
@@ -45,7 +57,7 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
     material_update_ |= m.needs_state_update();
   }
   material_update_ |= melting && !heat_sources_.empty();
-  attr_ = MpmAttributes::add_to(particles_, plastic, melting);
+  attr_ = MpmAttributes::add_to(particles_, plastic, melting, keeps_affine(settings_, materials_));
   if (settings_.domains.enabled) {
     if (settings_.configuration_maps)
       throw InputError("particle domains and configuration maps (A-ULMPM) cannot be combined");
@@ -126,7 +138,7 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
   particles_.resize(n0 + x.size());
   Vec3* px = particles_.vec3(attr_.x);
   Vec3* pv = particles_.vec3(attr_.v);
-  Mat3* pC = particles_.mat3(attr_.C);
+  Mat3* pC = attr_.C >= 0 ? particles_.mat3(attr_.C) : nullptr;
   Mat3* pF = particles_.mat3(attr_.F);
   Real* pV = particles_.real(attr_.volume0);
   std::int32_t* pmat = particles_.int32(attr_.material);
@@ -141,7 +153,7 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
     const size_t p = n0 + i;
     px[p] = x[i];
     pv[p] = v0 + omega.cross(x[i] - centre);
-    pC[p] = W;
+    if (pC) pC[p] = W;
     pF[p] = Mat3::Identity();
     pV[p] = volume_per_particle;
     pmat[p] = material;
@@ -205,10 +217,13 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
 }
 
 MpmParticleView MpmSolver::particle_view() {
-  MpmParticleView v{
-      particles_.vec3(attr_.x), particles_.vec3(attr_.v),       particles_.mat3(attr_.C),
-      particles_.mat3(attr_.F), particles_.real(attr_.volume0), particles_.int32(attr_.material),
-      particles_.size()};
+  MpmParticleView v{particles_.vec3(attr_.x),
+                    particles_.vec3(attr_.v),
+                    attr_.C >= 0 ? particles_.mat3(attr_.C) : nullptr,
+                    particles_.mat3(attr_.F),
+                    particles_.real(attr_.volume0),
+                    particles_.int32(attr_.material),
+                    particles_.size()};
   v.x_lo = particles_.vec3(attr_.x_lo);
   v.F_lo = particles_.mat3(attr_.F_lo);
   if (attr_.plastic >= 0) v.plastic = particles_.real(attr_.plastic);

@@ -73,6 +73,11 @@ struct MpmSettings {
   bool fused = false;
 };
 
+// Whether a run of these settings takes the fused substep (MpmSolver::step_fused): `fused` asked
+// for, and a variant that fuses (explicit, Eulerian, no particle domains nor sleeping, one
+// process). Grid-volume output clears `fused` when the scene is read (io/scene.cpp).
+bool fuses(const MpmSettings& s, bool distributed);
+
 struct MpmDiagnostics {
   double kinetic = 0, elastic = 0;
   Vec3d momentum = Vec3d::Zero();
@@ -88,15 +93,16 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
                                const std::vector<MaterialParams>& materials,
                                bool over_ranks = false);
 
-// The channel sets of the grid's node rows ([leaf][512][4] per set) for a run, decided once:
-// set 0 holds (m, p) -> (m, v); PIC/FLIP and particle domains use set 1 for (-, f) -> (-, dv);
-// A-ULMPM with colliders or contact between objects rasterises the nodes' current positions q_i
-// into one more set.
+// The channel sets of the grid's node rows ([leaf][512][4] per set) for a run, decided at set-up
+// (and again when the run is distributed): set 0 holds (m, p) -> (m, v); PIC/FLIP, particle
+// domains and the fused substep's split grid (only when the fused path runs: fuses()) use set 1
+// for (-, f) -> (-, dv) or the dt-free force; A-ULMPM with colliders or contact between objects
+// rasterises the nodes' current positions q_i into one more set.
 struct GridChannels {
   int count = 1;
-  int second = -1;     // PIC/FLIP and particle-domain layout (kernels grid_update)
+  int second = -1;     // PIC/FLIP, particle-domain and split layout (kernels grid_update)
   int positions = -1;  // A-ULMPM node positions
-  static GridChannels for_run(const MpmSettings& s, bool has_colliders);
+  static GridChannels for_run(const MpmSettings& s, bool has_colliders, bool distributed = false);
 };
 
 // Which ids add_particles gives: a distributed set-up samples each object in slices, one per
@@ -117,6 +123,12 @@ class MpmSolver {
   ParticleSet& particles() { return particles_; }
   const ParticleSet& particles() const { return particles_; }
   const MpmAttributes& attributes() const { return attr_; }
+  // Whether particles of these settings and materials carry the affine matrix C
+  // (MpmAttributes::C): APIC and MLS transfer it, and a viscous stress reads it as the velocity
+  // gradient (MaterialParams::reads_velocity_gradient), which G2P stores there for PIC/FLIP and
+  // particle domains too. PIC/FLIP (and particle domains, which transfer by PIC/FLIP) without a
+  // viscous material neither read nor write it.
+  static bool keeps_affine(const MpmSettings& s, const std::vector<MaterialParams>& materials);
   // Gives every particle the attribute `rest` (MpmAttributes::rest), its current position, and
   // every particle added later (emitters) its position at emission. Idempotent.
   void keep_rest_positions();

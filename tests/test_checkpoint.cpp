@@ -425,3 +425,89 @@ TEST(Checkpoint, RestPositionsTravelWithTheirParticles) {
   std::remove(with.c_str());
   std::remove(without.c_str());
 }
+
+// PIC/FLIP runs of materials without viscosity keep no affine matrix C (MpmSolver::keeps_affine).
+// A checkpoint an older binary wrote for such a run holds C after v: it is read with C skipped
+// and resumes bitwise as the run that wrote it (C was never read). An APIC/MLS run refuses a file
+// without C, naming the file and the attribute.
+TEST(Checkpoint, AffineMatrixOnlyWhereTheTransferNeedsIt) {
+  std::string flip_text = kScene;
+  flip_text.replace(flip_text.find("\"frames\": 2"), 11, "\"frames\": 2, \"transfer\": \"flip\"");
+  const Scene flip = parse_scene(flip_text, "flip.json");
+  const exec::Space space(exec::Backend::TBB, 2);
+  MpmSimulation a(build_solver(flip)), b(build_solver(flip));
+  ASSERT_LT(a.solver().attributes().C, 0);
+  for (int i = 0; i < 5; ++i) a.advance(space, a.stable_dt(space));
+  const std::string path = tmp_path("flip.amck"), old = tmp_path("flip_old.amck");
+  write_checkpoint(path, a, 2, flip.fingerprint);
+  const std::string now = slurp(path);
+  EXPECT_EQ(attribute_data_at(now, "C"), std::string::npos);
+  // As the older binary wrote it: "C" (9 Reals a particle, here arbitrary finite values) after v.
+  std::uint64_t n;
+  std::memcpy(&n, now.data() + kCountAt, 8);
+  std::string rec;
+  auto put32 = [&](std::uint32_t v) { rec.append(reinterpret_cast<const char*>(&v), 4); };
+  put32(1);
+  rec += "C";
+  put32(0);  // AttrType::Real
+  put32(9);
+  put32(std::uint32_t(9 * sizeof(Real) / 4));
+  for (std::size_t k = 0; k < 9 * n; ++k) {
+    const Real c = Real(0.25) * Real(k % 7) - Real(0.5);
+    rec.append(reinterpret_cast<const char*>(&c), sizeof c);
+  }
+  std::string d = now;
+  std::uint32_t nattr;
+  std::memcpy(&nattr, d.data() + kCountAt + 8, 4);
+  ++nattr;
+  std::memcpy(d.data() + kCountAt + 8, &nattr, 4);
+  d.insert(attribute_data_at(d, "v") + std::size_t(n) * sizeof(Vec3), rec);
+  spit(old, resealed(d));
+  ASSERT_NE(attribute_data_at(slurp(old), "C"), std::string::npos);
+  read_checkpoint(old, b, flip.fingerprint);
+  const ParticleSet &pa = a.solver().particles(), &pb = b.solver().particles();
+  ASSERT_EQ(pa.attribute_count(), pb.attribute_count());
+  auto same = [&] {
+    for (int at = 0; at < pa.attribute_count(); ++at)
+      if (std::memcmp(pa.words(at), pb.words(at),
+                      pa.size() * 4 * size_t(pa.words_per_particle(at))) != 0)
+        return pa.name(at);
+    return std::string();
+  };
+  EXPECT_EQ(same(), "");
+  for (int i = 0; i < 5; ++i) {
+    a.advance(space, a.stable_dt(space));
+    b.advance(space, b.stable_dt(space));
+  }
+  EXPECT_EQ(same(), "");  // resumed bitwise
+
+  // An MLS run's checkpoint without C: refused by name (also when rest may be absent too).
+  const Scene mls = parse_scene(kScene, "s.json");
+  MpmSimulation m(build_solver(mls));
+  ASSERT_GE(m.solver().attributes().C, 0);
+  m.advance(space, m.stable_dt(space));
+  write_checkpoint(path, m, 2, mls.fingerprint);
+  std::string e = slurp(path);
+  const std::size_t c_data = attribute_data_at(e, "C");
+  ASSERT_NE(c_data, std::string::npos);
+  const std::size_t c_record = c_data - (4 + 1 + 12);  // name length, "C", type, width, words
+  e.erase(c_record, c_data - c_record + m.solver().particles().size() * sizeof(Mat3));
+  std::memcpy(&nattr, e.data() + kCountAt + 8, 4);
+  --nattr;
+  std::memcpy(e.data() + kCountAt + 8, &nattr, 4);
+  spit(old, resealed(e));
+  for (const bool rest : {false, true}) {
+    MpmSimulation r(build_solver(mls));
+    if (rest) r.keep_rest_positions();
+    try {
+      read_checkpoint(old, r, mls.fingerprint);
+      ADD_FAILURE() << "an MLS run read a checkpoint without C";
+    } catch (const InputError& err) {
+      EXPECT_NE(std::string(err.what()).find(old + ": checkpoint has no particle attribute 'C'"),
+                std::string::npos)
+          << err.what();
+    }
+  }
+  std::remove(path.c_str());
+  std::remove(old.c_str());
+}

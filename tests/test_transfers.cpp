@@ -34,7 +34,7 @@ MpmSolver make_blob(Transfer t, int order, Real dt_stress_scale = 1) {
   const auto& a = solver.attributes();
   for (size_t p = 0; p < ps.size(); ++p) {
     for (int k = 0; k < 9; ++k) {
-      ps.mat3(a.C)[p](k) += Real(0.5 * u(rng));
+      if (a.C >= 0) ps.mat3(a.C)[p](k) += Real(0.5 * u(rng));  // PIC/FLIP: no C
       ps.mat3(a.F)[p](k) += Real(0.1 * u(rng) * dt_stress_scale);
     }
     ps.vec3(a.v)[p] += Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
@@ -76,7 +76,7 @@ Moments particle_moments(const MpmSolver& s, bool affine) {
   for (size_t p = 0; p < ps.size(); ++p) {
     const double m = s.particle_mass(p);
     const Vec3d x = ps.vec3(a.x)[p].cast<double>(), v = ps.vec3(a.v)[p].cast<double>();
-    const Mat3d C = ps.mat3(a.C)[p].cast<double>();
+    const Mat3d C = a.C >= 0 ? Mat3d(ps.mat3(a.C)[p].cast<double>()) : Mat3d(Mat3d::Zero());
     r.m += m;
     r.p += m * v;
     r.L += x.cross(m * v);
@@ -226,7 +226,8 @@ TEST_P(KernelDeterminism, P2GGridUpdateG2PBitwiseAcrossBackends) {
     const auto& ps = s.particles();
     std::vector<Real> parts;
     for (auto id : {s.attributes().x, s.attributes().v, s.attributes().C, s.attributes().F})
-      parts.insert(parts.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
+      if (id >= 0)  // PIC/FLIP keeps no C
+        parts.insert(parts.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
     if (ref_grid_p2g.empty()) {
       ref_grid_p2g = grid;
       ref_grid_upd = upd;
@@ -246,3 +247,44 @@ TEST_P(KernelDeterminism, P2GGridUpdateG2PBitwiseAcrossBackends) {
 INSTANTIATE_TEST_SUITE_P(AllTransfers, KernelDeterminism,
                          ::testing::Values(Transfer::PicFlip, Transfer::Apic, Transfer::Mls),
                          [](const auto& info) { return std::string(transfer_name(info.param)); });
+
+// C (the affine matrix) exists only where it is read: APIC and MLS transfer it, a viscous stress
+// reads it as the velocity gradient; PIC/FLIP (and particle domains, which transfer by PIC/FLIP)
+// of materials without viscosity keep none: 9 Reals less per particle.
+TEST(AffineMatrix, KeptOnlyWhereTheTransferOrAViscousStressReadsIt) {
+  const Lame l = Lame::from_young_poisson(1e4, 0.3);
+  const MaterialParams elastic{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
+  MaterialParams damped = elastic;
+  damped.viscosity = Real(0.5);  // Kelvin-Voigt
+  MaterialParams wax = elastic;  // melts into a viscous liquid
+  wax.melting = true;
+  wax.melting_point = 320;
+  wax.liquid_bulk = Real(1e4);
+  MaterialParams dry_wax = wax;  // ... or an inviscid one
+  dry_wax.liquid_viscosity = 0;
+  wax.liquid_viscosity = 1;
+  auto keeps = [](Transfer t, const MaterialParams& m, bool domains = false) {
+    MpmSettings s;
+    s.transfer = t;
+    s.domains.enabled = domains;
+    EXPECT_EQ(MpmSolver::keeps_affine(s, {m}), MpmSolver(s, {m}, {}).attributes().C >= 0);
+    return MpmSolver::keeps_affine(s, {m});
+  };
+  EXPECT_TRUE(keeps(Transfer::Mls, elastic));
+  EXPECT_TRUE(keeps(Transfer::Apic, elastic));
+  EXPECT_FALSE(keeps(Transfer::PicFlip, elastic));
+  EXPECT_TRUE(keeps(Transfer::PicFlip, damped));
+  EXPECT_TRUE(keeps(Transfer::PicFlip, wax));
+  EXPECT_FALSE(keeps(Transfer::PicFlip, dry_wax));
+  EXPECT_FALSE(keeps(Transfer::Mls, dry_wax, true));  // domains: PIC/FLIP whatever the transfer
+  EXPECT_TRUE(keeps(Transfer::Mls, wax, true));
+  MpmSettings s;
+  s.transfer = Transfer::PicFlip;
+  const MpmSolver flip(s, {elastic}, {});
+  s.transfer = Transfer::Apic;
+  const MpmSolver apic(s, {elastic}, {});
+  EXPECT_EQ(flip.particles().find("C"), -1);
+  EXPECT_GE(apic.particles().find("C"), 0);
+  EXPECT_EQ(apic.particles().bytes_per_particle() - flip.particles().bytes_per_particle(),
+            9 * sizeof(Real));
+}

@@ -242,6 +242,11 @@ struct MaterialParams {
   Real wave_speed_factor(Real plastic) const {
     return model == MaterialModel::Snow ? std::sqrt(snow().hardening_factor(plastic)) : Real(1);
   }
+  // Whether kirchhoff() reads the velocity gradient L: a viscous stress (Newtonian fluid,
+  // Kelvin-Voigt solid, or the liquid phase of a melting material). Otherwise L is never read.
+  bool reads_velocity_gradient() const {
+    return viscosity > 0 || (melting && liquid_viscosity > 0);
+  }
   // Kinematic viscosity eta / rho of the more viscous phase (explicit viscosity limits dt).
   Real kinematic_viscosity() const {
     Real eta = viscosity;  // fluid: Newtonian; solids: Kelvin-Voigt (the same explicit bound)

@@ -100,19 +100,22 @@ class ParticleSet {
 
 // The attributes every MPM particle carries, looked up once; `plastic` and `temperature` only
 // exist (id >= 0) when a material of the scene needs them (else -1), so elastic scenes do not
-// sort or store them.
+// sort or store them. So does C (`affine`): the affine velocity matrix APIC and MLS transfer,
+// which is also the velocity gradient a viscous stress reads; a PIC/FLIP run of materials without
+// viscosity has none (MpmSolver::keeps_affine: 36 B less per particle in float).
 struct MpmAttributes {
   // id: stable particle number; x_lo, F_lo: the low parts of x + x_lo and F + F_lo
   // (core/math/types.hpp: add_compensated). No mass: a particle's mass is
   // materials[material].density * volume0 (particle_mass), the float product add_particles
   // stored until checkpoint version 8, so recomputing it is bitwise the stored value.
-  ParticleSet::Id x, x_lo, v, C, F, F_lo, volume0, material, id;
-  ParticleSet::Id plastic = -1, temperature = -1;
+  ParticleSet::Id x, x_lo, v, F, F_lo, volume0, material, id;
+  ParticleSet::Id C = -1, plastic = -1, temperature = -1;
   // rest: the position a particle had when it was made (set-up or emission; Houdini's `rest`),
   // only when the output asks for it (MpmSolver::keep_rest_positions). An attribute like any
   // other: sorted, migrated between ranks and checkpointed with its particle.
   ParticleSet::Id rest = -1;
-  static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false);
+  static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false,
+                              bool affine = true);
   static MpmAttributes find_in(const ParticleSet& ps);
 };
 
