@@ -614,9 +614,9 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
           gather_dilated(in, g, b);
           const Vec3i in_origin = origin - Vec3i::Constant(M);
           for (std::uint32_t q = q0; q < q1; ++q)
-            g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q),
-                                              p.v[q], lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr,
-                                              nullptr, dx, inv_dx, dt, alpha);
+            g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                              lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr,
+                                              dx, inv_dx, dt, alpha);
         }
         for (std::uint32_t q = q0; prm.ncolliders > 0 && q < q1; ++q)
           collide_particle(p, prm.colliders, prm.ncolliders, q, t_end);
