@@ -5,7 +5,8 @@
 # the CLI implicit scene, the peridynamics dynamics, moduli, homogeneous-deformation, hydrostatic
 # plasticity and bar-validation runs, the A-ULMPM disc, bar, twisted-bar and semi-implicit
 # physics runs, the enriched-MPM twisted-bar, stretched-bar and implicit-vs-explicit runs, the
-# interrupt-point runs but the peridynamic retry), which take half a minute to two minutes each under ASan and exercise the
+# interrupt-point runs but the peridynamic retry, the fused-substep one included: its kernel runs
+# here in G2P2G*.*, its checkpoint and resume code is the two-pass one's), which take half a minute to two minutes each under ASan and exercise the
 # same kernels and I/O code as the unit and CLI tests that do run. Also out: the bitwise
 # comparisons whose runs repeat kernels other tests here already run (cli.simd_paths_bitwise: the
 # CLI on every SIMD path, whose kernels SimdPaths.* and PdSimdPaths.* run on every path here;
@@ -27,4 +28,4 @@ cd "${AMALGAM_ASAN_DIR:-$root/build-asan}"
 AMALGAM_TEST_BACKENDS="${AMALGAM_TEST_BACKENDS:-serial,openmp}" AMALGAM_INTERRUPT_POINTS="${AMALGAM_INTERRUPT_POINTS:-few}" \
 AMALGAM_ASYNC_TEST_THREADS="${AMALGAM_ASYNC_TEST_THREADS:-1}" \
 LSAN_OPTIONS="suppressions=$root/tests/lsan.supp" ASAN_OPTIONS=detect_leaks=1:abort_on_error=1 UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 \
-  ctest --output-on-failure -j2 -E "AxialBar|MaterialValidation|Fidelity|default_scene|restart_after_sigint|ImplicitPhysics|PdDynamics|AulMpm.Spinning|AulMpm.FastSpinning|AulMpm.Stretched|AulMpm.Twisted|AulMpm.SemiImplicitLagrangian|ObjectContact.HeadOn|ObjectContact.Sliding|PdValidation|PdModuli|pd_tet_mesh_restart|implicit_scene_reports_cg|PdForms.HomogeneousDeformation|PdPlasticity.HydrostaticLoad|ParticleDomains.TwistCompress|ParticleDomains.StretchedBar|ParticleDomains.ImplicitMatches|interrupt_points_(mpm|implicit|aul|domains|pd)$|simd_paths_bitwise|BackendDeterminism.ImplicitBitwiseIdentical" "$@"
+  ctest --output-on-failure -j2 -E "AxialBar|MaterialValidation|Fidelity|default_scene|restart_after_sigint|ImplicitPhysics|PdDynamics|AulMpm.Spinning|AulMpm.FastSpinning|AulMpm.Stretched|AulMpm.Twisted|AulMpm.SemiImplicitLagrangian|ObjectContact.HeadOn|ObjectContact.Sliding|PdValidation|PdModuli|pd_tet_mesh_restart|implicit_scene_reports_cg|PdForms.HomogeneousDeformation|PdPlasticity.HydrostaticLoad|ParticleDomains.TwistCompress|ParticleDomains.StretchedBar|ParticleDomains.ImplicitMatches|interrupt_points_(mpm|mpm_fused|implicit|aul|domains|pd)$|simd_paths_bitwise|BackendDeterminism.ImplicitBitwiseIdentical" "$@"
