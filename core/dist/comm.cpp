@@ -1,5 +1,6 @@
 #include "core/dist/comm.hpp"
 
+#include <sched.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -9,6 +10,7 @@
 #include <iostream>
 #include <sstream>
 #include <stdexcept>
+#include <thread>
 
 #ifdef AMALGAM_HAVE_MPI
 #include <mpi.h>
@@ -48,7 +50,9 @@ std::vector<int> displacements(const std::vector<int>& c) {
   return d;
 }
 // Waits for MPI requests against the rank's time-out (Comm::timeout): non-blocking operations
-// polled with MPI_Testall, yielding the core after the first millisecond (ranks may share cores).
+// polled with MPI_Testall, yielding the core after the first millisecond (ranks may share cores),
+// and at once when this machine runs more ranks than it has hardware threads (an oversubscribed
+// test or laptop run: a rank that spins holds the core the rank it waits for needs).
 // `peer[k]`: the rank request k waits for (-1: a collective, whose missing ranks MPI does not
 // name). On a time-out the rank says what it waited for and ends the job (exit 1): a peer that was
 // killed or is stuck elsewhere must not leave the others waiting for ever.
@@ -114,6 +118,8 @@ void wait_all(std::vector<MPI_Request>& req, const std::vector<int>& peer, const
   if (req.empty()) return;
   const Comm& comm = Comm::world();
   const auto t0 = std::chrono::steady_clock::now();
+  static const bool sharing =
+      comm.node_ranks() > int(std::max(1u, std::thread::hardware_concurrency()));
   for (long long polls = 0;; ++polls) {
     int done = 0;
     check(MPI_Testall(int(req.size()), req.data(), &done, MPI_STATUSES_IGNORE), what);
@@ -154,7 +160,10 @@ void wait_all(std::vector<MPI_Request>& req, const std::vector<int>& peer, const
       MPI_Abort(MPI_COMM_WORLD, 1);
       std::exit(1);
     }
-    if (polls > 1000 && waited > 1e-3) ::usleep(50);
+    if (sharing)
+      ::sched_yield();
+    else if (polls > 1000 && waited > 1e-3)
+      ::usleep(50);
   }
 }
 void wait_one(MPI_Request r, const char* what) {
