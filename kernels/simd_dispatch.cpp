@@ -1,6 +1,8 @@
 // The public entry points of the kernel files compiled once per instruction set
 // (core/exec/simd.hpp; kernels/CMakeLists.txt, amalgam_simd_variants): each call runs the
 // variant of exec::simd_path().
+#include <stdexcept>
+
 #include "core/exec/simd.hpp"
 #include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"
@@ -56,6 +58,8 @@ void p2g_blocks(const exec::Space& space, const MpmParticleView& p, const MpmGri
 void g2p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
            const MpmStepParams& prm, const MaterialUpdateParams* mu, Real* blocks,
            std::uint8_t* far) {
+  if (g.nbins > 0 && !g.bin_nbr27)  // the dilated gather's leaves (MpmSolver::update_grid_fused)
+    throw std::logic_error("g2p2g: the grid view has no bin_nbr27");
   mpm().g2p2g(space, p, g, prm, mu, blocks, far);
 }
 void g2p2g_flush(const exec::Space& space, const MpmGridView& g, int order, const Real* blocks,

@@ -47,8 +47,7 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   }
   MpmStepParams prm = step_params(dt);
   prm.split = true;
-  MpmGridView g = grid_view();
-  g.bin_nbr27 = fused_nbr27_.data();
+  const MpmGridView g = grid_view();  // with bin_nbr27 (update_grid_fused)
   grid_update(space, g, prm);
   const std::size_t reals = g.nbins * g2p2g_block_reals(settings_.order);
   const std::size_t budget =

@@ -237,6 +237,9 @@ MpmGridView MpmSolver::grid_view() {
   MpmGridView g = make_grid_view(grid_, enriched_ ? enriched_->domains().bins() : bins_,
                                  grid_.node4(0), second);
   if (sleep_) g.bin_end = sleep_->bin_end();
+  // The fused substep's 27 leaves per bin, while they are the current bins' (update_grid_fused).
+  if (!enriched_ && fused_nbr27_.size() == bins_.count() && !fused_nbr27_.empty())
+    g.bin_nbr27 = fused_nbr27_.data();
   return g;
 }
 
