@@ -10,7 +10,6 @@
 #include <iostream>
 #include <sstream>
 #include <stdexcept>
-#include <thread>
 
 #ifdef AMALGAM_HAVE_MPI
 #include <mpi.h>
@@ -119,7 +118,7 @@ void wait_all(std::vector<MPI_Request>& req, const std::vector<int>& peer, const
   const Comm& comm = Comm::world();
   const auto t0 = std::chrono::steady_clock::now();
   static const bool sharing =
-      comm.node_ranks() > int(std::max(1u, std::thread::hardware_concurrency()));
+      comm.node_ranks() > int(std::max(1L, ::sysconf(_SC_NPROCESSORS_ONLN)));
   for (long long polls = 0;; ++polls) {
     int done = 0;
     check(MPI_Testall(int(req.size()), req.data(), &done, MPI_STATUSES_IGNORE), what);
