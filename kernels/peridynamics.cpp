@@ -372,9 +372,9 @@ std::vector<std::uint64_t> pd_family_keys(const exec::Space& space, const Vec3* 
   return key;
 }
 
-void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
-                  PdBonds& bonds, const PdParams& prm, bool surface_correction, PdConstants& out,
-                  const PdRowSubset* subset) {
+std::size_t pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
+                         PdBonds& bonds, const PdParams& prm, bool surface_correction,
+                         PdConstants& out, const PdRowSubset* subset) {
   const std::size_t n = bonds.particles();
   const std::uint32_t* rows = subset ? subset->particle : nullptr;
   out.m.resize(n);
@@ -406,7 +406,10 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   auto signature = [&](std::size_t q) {
     return family_signature(x0, material, bonds, q, rows ? rows[q] : q, delta, vmax);
   };
-  const std::vector<std::uint64_t> key = pd_family_keys(space, x0, material, bonds, prm, subset);
+  const std::vector<std::uint64_t> key =
+      subset && subset->key ? std::vector<std::uint64_t>(subset->key, subset->key + n)
+                            : pd_family_keys(space, x0, material, bonds, prm, subset);
+  const std::uint8_t* given = subset ? subset->given : nullptr;
   std::vector<std::uint32_t> rep(n);
   {
     std::unordered_map<std::uint64_t, std::uint32_t> first;
@@ -421,6 +424,7 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
   exec::parallel_for(space, "pd.constants", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii);
     if (rep[i] != i) return;                    // copied from its representative below
+    if (given && given[i]) return;              // fitted on another rank, set by subset->exchange
     const std::size_t pi = rows ? rows[i] : i;  // the row's particle
     const std::uint64_t k0 = bonds.offsets[i], k1 = bonds.offsets[i + 1];
     double m = m_cont, kappa = delta / 4;
@@ -537,6 +541,9 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     out.bonds0[i] = std::int32_t(k1 - k0);
     out.fitted[i] = fitted;
   });
+  if (given && subset->exchange) subset->exchange(out, bonds);
+  std::size_t fits = 0;
+  for (std::size_t i = 0; i < n; ++i) fits += rep[i] == i && !(given && given[i]);
   exec::parallel_for(space, "pd.constants_copy", exec::Index(n), [&](exec::Index ii) {
     const std::size_t i = std::size_t(ii), r = rep[i];
     if (r == i) return;
@@ -549,6 +556,7 @@ void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* 
     }
   });
   if (!subset) pd_mirror_bonds(space, bonds);
+  return fits;
 }
 
 void pd_mirror_bonds(const exec::Space& space, PdBonds& bonds) {

@@ -17,6 +17,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <functional>
 #include <limits>
 #include <vector>
 
@@ -216,15 +217,23 @@ std::vector<std::uint64_t> pd_count_bonds(const exec::Space& space, const Vec3* 
 struct PdRowSubset {
   const std::uint32_t* particle = nullptr;
   double vmax = -1;
+  // Optional: the rows' family keys (pd_family_keys of these rows), so they are not hashed again.
+  const std::uint64_t* key = nullptr;
+  // Optional: rows whose family another rank fits (given[q] = 1: not fitted here). `exchange`
+  // is called after this call's own fits and before any row copies its family's values; it sets
+  // the given rows' constants (out's per-row values, omega and shear_omega of their bonds).
+  const std::uint8_t* given = nullptr;
+  std::function<void(PdConstants& out, PdBonds& bonds)> exchange;
 };
 
 // m, a, b, kappa, bonds0 per particle and the bonds' shear_omega (see PdConstants). With a subset
 // the constants are those of its rows, each family fitted once at its first row (the whole set's
 // first member of each family must come first for the whole set's bits), and the mirrored arrays
-// (omega_r, ...) are left to the caller (the reverse bonds may be in other rows).
-void pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
-                  PdBonds& bonds, const PdParams& prm, bool surface_correction, PdConstants& out,
-                  const PdRowSubset* subset = nullptr);
+// (omega_r, ...) are left to the caller (the reverse bonds may be in other rows). Returns the
+// number of families fitted here (given rows not counted).
+std::size_t pd_constants(const exec::Space& space, const Vec3* x0, const std::int32_t* material,
+                         PdBonds& bonds, const PdParams& prm, bool surface_correction,
+                         PdConstants& out, const PdRowSubset* subset = nullptr);
 // The families' hash keys pd_constants groups rows by (equal families, equal keys).
 std::vector<std::uint64_t> pd_family_keys(const exec::Space& space, const Vec3* x0,
                                           const std::int32_t* material, const PdBonds& bonds,

@@ -44,6 +44,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <limits>
+#include <optional>
 #include <string>
 #include <unordered_map>
 #include <utility>
@@ -277,6 +278,132 @@ void append_rows(PdBonds& a, const PdBonds& b) {
   cat(a.omega, b.omega), cat(a.volume, b.volume), cat(a.plastic, b.plastic);
   cat(a.intact, b.intact), cat(a.lane, b.lane), cat(a.dense, b.dense);
 }
+
+// Who fits which family of the surface correction (pd_constants) in a distributed set-up. A
+// family (hash key) is held by the ranks with an own row in it; its first member (the lowest
+// global id) gives the fit. Every family is fitted once over the ranks, preferably by one of its
+// holders: in key order, by the least loaded holder while that one is under the mean load, else
+// (deferred, in key order) by the least loaded rank, which builds the first member's row for it
+// (every rank holds every particle during set-up). Families are far from evenly spread over the
+// owners: on the peer block float round-off in the bond vectors makes 36,377 families, 27,216 of
+// them held by the rank of the lower x alone. The fitter sends the fit to the other holders.
+// Every rank computes the same plan from the same gathered list.
+struct FamilyPlan {
+  // Rows built besides the own ones, increasing: the first members owned elsewhere of the
+  // families held here, and of the families fitted here for others; and their families' keys.
+  std::vector<std::uint32_t> extra;
+  std::vector<std::uint64_t> extra_keys;
+  // First members of the families held here that another rank fits -> that rank.
+  std::unordered_map<std::uint32_t, int> given;
+  // First members of the families fitted here that other ranks hold, increasing, and those ranks.
+  std::vector<std::pair<std::uint32_t, std::vector<int>>> serve;
+};
+
+FamilyPlan family_plan(const dist::Comm& comm, const std::vector<std::uint32_t>& own,
+                       const std::vector<std::uint64_t>& own_key) {
+  std::unordered_map<std::uint64_t, std::uint64_t> first_own;  // key -> first own id
+  for (std::size_t q = 0; q < own.size(); ++q) first_own.emplace(own_key[q], own[q]);
+  std::vector<std::uint64_t> mine;
+  for (const auto& [k, id] : first_own) mine.insert(mine.end(), {k, id});
+  std::vector<std::size_t> sizes;
+  const std::vector<std::uint64_t> all =
+      dist::from_bytes<std::uint64_t>(comm.allgather(dist::as_bytes(mine), &sizes));
+  struct Entry {
+    std::uint64_t key, id;
+    int rank;
+  };
+  std::vector<Entry> e;
+  e.reserve(all.size() / 2);
+  std::size_t at = 0;
+  for (int r = 0; r < comm.size(); ++r)
+    for (std::size_t k = 0; k < sizes[std::size_t(r)] / (2 * sizeof(std::uint64_t)); ++k, at += 2)
+      e.push_back({all[at], all[at + 1], r});
+  std::sort(e.begin(), e.end(), [](const Entry& a, const Entry& b) {
+    return a.key != b.key ? a.key < b.key : a.rank < b.rank;
+  });
+  std::vector<std::pair<std::size_t, std::size_t>> fam;  // [begin, end) of e per family
+  for (std::size_t b = 0, f; b < e.size(); b = f) {
+    for (f = b + 1; f < e.size() && e[f].key == e[b].key;) ++f;
+    fam.emplace_back(b, f);
+  }
+  const std::size_t R = std::size_t(comm.size());
+  const std::uint64_t mean = (fam.size() + R - 1) / R;
+  std::vector<std::uint64_t> load(R, 0);
+  std::vector<int> fitter(fam.size(), -1);
+  for (std::size_t g = 0; g < fam.size(); ++g) {
+    int best = -1;
+    for (std::size_t k = fam[g].first; k < fam[g].second; ++k)
+      if (best < 0 || load[std::size_t(e[k].rank)] < load[std::size_t(best)]) best = e[k].rank;
+    if (load[std::size_t(best)] < mean) fitter[g] = best, ++load[std::size_t(best)];
+  }
+  for (std::size_t g = 0; g < fam.size(); ++g) {
+    if (fitter[g] >= 0) continue;
+    const std::size_t r = std::size_t(std::min_element(load.begin(), load.end()) - load.begin());
+    fitter[g] = int(r), ++load[r];
+  }
+  FamilyPlan plan;
+  const int me = comm.rank();
+  std::vector<std::pair<std::uint32_t, std::uint64_t>> extra;  // (first member, key)
+  for (std::size_t g = 0; g < fam.size(); ++g) {
+    const auto [b, f] = fam[g];
+    std::uint64_t lowest = e[b].id;
+    bool held = false;
+    for (std::size_t k = b; k < f; ++k)
+      lowest = std::min(lowest, e[k].id), held = held || e[k].rank == me;
+    const std::uint32_t first = std::uint32_t(lowest);
+    if (held && fitter[g] != me) plan.given.emplace(first, fitter[g]);
+    if ((held || fitter[g] == me) && !(held && first_own.at(e[b].key) == lowest))
+      extra.emplace_back(first, e[b].key);
+    if (fitter[g] == me) {
+      std::vector<int> to;
+      for (std::size_t k = b; k < f; ++k)
+        if (e[k].rank != me) to.push_back(e[k].rank);
+      if (!to.empty()) plan.serve.emplace_back(first, std::move(to));
+    }
+  }
+  std::sort(extra.begin(), extra.end());
+  for (const auto& [id, key] : extra) plan.extra.push_back(id), plan.extra_keys.push_back(key);
+  std::sort(plan.serve.begin(), plan.serve.end());
+  return plan;
+}
+
+// The fits this rank made of families other ranks hold, to those ranks, and theirs into this
+// rank's given rows (first members' rows of the families held here that another rank fits): per
+// family its first member, row length, m, a, b, kappa, bonds0, fitted, omega and shear_omega.
+void exchange_fits(const dist::Comm& comm, const FamilyPlan& plan,
+                   const std::unordered_map<std::uint32_t, std::size_t>& row_of, PdConstants& out,
+                   PdBonds& b) {
+  std::vector<std::vector<char>> send(std::size_t(comm.size()));
+  for (const auto& [id, to] : plan.serve) {
+    const std::size_t q = row_of.at(id);
+    const std::uint64_t k0 = b.offsets[q], k1 = b.offsets[q + 1];
+    std::vector<char> rec;
+    put(rec, id), put(rec, std::uint32_t(k1 - k0));
+    put(rec, out.m[q]), put(rec, out.a[q]), put(rec, out.b[q]), put(rec, out.kappa[q]);
+    put(rec, out.bonds0[q]), put(rec, out.fitted[q]);
+    for (std::uint64_t k = k0; k < k1; ++k) put(rec, b.omega[k]), put(rec, b.shear_omega[k]);
+    for (int r : to)
+      send[std::size_t(r)].insert(send[std::size_t(r)].end(), rec.begin(), rec.end());
+  }
+  const std::vector<std::vector<char>> recv = comm.alltoall(send);
+  std::size_t got = 0;
+  for (const std::vector<char>& from : recv)
+    for (const char *p = from.data(), *end = p + from.size(); p < end; ++got) {
+      const auto id = get<std::uint32_t>(p), nb = get<std::uint32_t>(p);
+      const auto it = plan.given.count(id) ? row_of.find(id) : row_of.end();
+      if (it == row_of.end() || b.offsets[it->second + 1] - b.offsets[it->second] != nb)
+        throw std::logic_error("distributed peridynamics: a family's fit for no row here");
+      const std::size_t q = it->second;
+      out.m[q] = get<Real>(p), out.a[q] = get<Real>(p), out.b[q] = get<Real>(p);
+      out.kappa[q] = get<Real>(p);
+      out.bonds0[q] = get<std::int32_t>(p), out.fitted[q] = get<std::uint8_t>(p);
+      for (std::uint64_t k = b.offsets[q]; k < b.offsets[q + 1]; ++k)
+        b.omega[k] = get<Real>(p), b.shear_omega[k] = get<Real>(p);
+    }
+  if (got != plan.given.size())
+    throw std::logic_error("distributed peridynamics: a shared family's fit did not arrive");
+}
+
 }  // namespace
 
 // The set-up of a distributed run without the whole bond list. Every rank holds every particle's
@@ -304,6 +431,8 @@ void PdSolver::initialize_distributed(const exec::Space& space) {
   const Real* vol = particles_.real(attr_.volume);
   const std::int32_t* mat = particles_.int32(attr_.material);
   const PdParams prm = params();
+  std::optional<exec::ScopedRegion> region;  // the set-up's steps, each a profiler region
+  region.emplace(space.profiler(), "pd.setup_cut");
   // 1. The cuts: a slice of the particles, weighted by their row lengths (counted, not stored).
   const std::uint64_t r = std::uint64_t(comm.rank()), R = std::uint64_t(comm.size());
   const std::uint64_t b = n * r / R, e = n * (r + 1) / R;
@@ -333,6 +462,7 @@ void PdSolver::initialize_distributed(const exec::Space& space) {
     if (owner[i] == comm.rank()) own.push_back(std::uint32_t(i));
   }
   // 2. The own rows (neighbours by global id), and the families' first members elsewhere.
+  region.emplace(space.profiler(), "pd.setup_rows");
   PdBonds rows;
   pd_build_bond_rows(space, x0, vol, mat, n, own.data(), own.size(), prm, settings_.partial_volume,
                      rows);
@@ -341,46 +471,49 @@ void PdSolver::initialize_distributed(const exec::Space& space) {
   vmax = comm.max(vmax);                // the whole list's largest bond volume (exact)
   std::vector<std::uint32_t> at = own;  // row q's particle
   std::size_t extra = 0;
-  {  // every model: a family's rows copy its first row's omega (and fits)
-    const PdRowSubset sub{own.data(), vmax};
-    const std::vector<std::uint64_t> key = pd_family_keys(space, x0, mat, rows, prm, &sub);
-    std::vector<std::pair<std::uint64_t, std::uint64_t>> first;  // (key, first own id)
-    for (std::size_t q = 0; q < own.size(); ++q) first.emplace_back(key[q], own[q]);
-    std::stable_sort(first.begin(), first.end(),
-                     [](const auto& a, const auto& c) { return a.first < c.first; });
-    first.erase(std::unique(first.begin(), first.end(),
-                            [](const auto& a, const auto& c) { return a.first == c.first; }),
-                first.end());
-    std::vector<std::uint64_t> mine;
-    for (const auto& f : first) mine.insert(mine.end(), {f.first, f.second});
-    const std::vector<std::uint64_t> all =
-        dist::from_bytes<std::uint64_t>(comm.allgather(dist::as_bytes(mine), nullptr));
-    std::unordered_map<std::uint64_t, std::uint64_t> lowest;
-    for (std::size_t k = 0; k + 1 < all.size(); k += 2) {
-      const auto it = lowest.emplace(all[k], all[k + 1]).first;
-      it->second = std::min(it->second, all[k + 1]);
-    }
-    std::vector<std::uint32_t> reps;
-    for (const auto& f : first)
-      if (lowest[f.first] != f.second) reps.push_back(std::uint32_t(lowest[f.first]));
-    std::sort(reps.begin(), reps.end());
-    reps.erase(std::unique(reps.begin(), reps.end()), reps.end());
-    if (!reps.empty()) {  // their rows first: each family's first row is the whole list's
-      PdBonds with;
-      pd_build_bond_rows(space, x0, vol, mat, n, reps.data(), reps.size(), prm,
-                         settings_.partial_volume, with);
-      append_rows(with, rows);
-      rows = std::move(with);
-      at.insert(at.begin(), reps.begin(), reps.end());
-      extra = reps.size();
-    }
+  // Every model: a family's rows copy its first member's omega (and fits), that member's row
+  // being the whole list's first of the family. Each family is fitted once over the ranks, by one
+  // of the ranks that hold a row of it (family_plan), from that member's row (here a rank's
+  // own row, or built here first when another rank owns it); the others receive the fit.
+  region.emplace(space.profiler(), "pd.setup_families");
+  PdRowSubset own_sub;
+  own_sub.particle = own.data(), own_sub.vmax = vmax;
+  const std::vector<std::uint64_t> own_key = pd_family_keys(space, x0, mat, rows, prm, &own_sub);
+  const FamilyPlan plan = family_plan(comm, own, own_key);
+  std::vector<std::uint64_t> key = own_key;
+  if (!plan.extra.empty()) {  // their rows first: each family's first row is the whole list's
+    PdBonds with;
+    pd_build_bond_rows(space, x0, vol, mat, n, plan.extra.data(), plan.extra.size(), prm,
+                       settings_.partial_volume, with);
+    append_rows(with, rows);
+    rows = std::move(with);
+    at.insert(at.begin(), plan.extra.begin(), plan.extra.end());
+    key.insert(key.begin(), plan.extra_keys.begin(), plan.extra_keys.end());
+    extra = plan.extra.size();
   }
+  // The first members' rows of the families fitted elsewhere (given: their fits are received)
+  // or fitted here for other ranks.
+  std::vector<std::uint8_t> given(at.size(), 0);
+  std::unordered_map<std::uint32_t, std::size_t> row_of;  // first member -> its row here
+  for (const auto& [id, r] : plan.given) row_of.emplace(id, 0);
+  for (const auto& sv : plan.serve) row_of.emplace(sv.first, 0);
+  for (std::size_t q = 0; q < at.size(); ++q) {
+    const auto it = row_of.find(at[q]);
+    if (it == row_of.end()) continue;
+    it->second = q;
+    given[q] = plan.given.count(at[q]) ? 1 : 0;
+  }
+  region.emplace(space.profiler(), "pd.setup_constants");
   PdConstants c;
-  const PdRowSubset sub{at.data(), vmax};
-  pd_constants(space, x0, mat, rows, prm, settings_.surface_correction, c, &sub);
+  PdRowSubset sub;
+  sub.particle = at.data(), sub.vmax = vmax, sub.key = key.data(), sub.given = given.data();
+  sub.exchange = [&](PdConstants& out, PdBonds& b) { exchange_fits(comm, plan, row_of, out, b); };
+  dist_stats_.families_fitted =
+      pd_constants(space, x0, mat, rows, prm, settings_.surface_correction, c, &sub);
   apply_precracks(space, rows, at.data());
   dist_stats_.rows_built = at.size();
   dist_stats_.family_rows = extra;
+  region.emplace(space.profiler(), "pd.setup_records");
   // 3. The local particles as distribute() takes them: the own ones with their rows, the bond
   // neighbours of those rows and the particles within contact reach of their bounding box. Their
   // records carry the own particles' constants (ghosts': zero until their owners send them).
@@ -410,6 +543,10 @@ void PdSolver::initialize_distributed(const exec::Space& space) {
   std::vector<BondRec> brs;
   std::vector<LocalEntry> entries;
   std::vector<std::size_t> rec_at, row_at;
+  brs.reserve(rows.offsets.back() - rows.offsets[extra]);
+  const std::size_t kept = std::size_t(std::count(keep.begin(), keep.end(), std::uint8_t(1)));
+  recs.reserve(kept * record_layout(particles_).bytes);
+  rec_at.reserve(kept), row_at.reserve(kept), entries.reserve(kept);
   std::size_t q = extra;  // the next own row
   for (std::size_t i = 0; i < n; ++i) {
     if (!keep[i]) continue;
@@ -441,17 +578,21 @@ void PdSolver::initialize_distributed(const exec::Space& space) {
   // The critical step's start vector: the single process's draw over every particle.
   const std::vector<Vec3> start_all = probe_start();
   settings_.compact_fraction = 0;  // as distribute()
+  region.emplace(space.profiler(), "pd.setup_assemble");
   assemble_local(space, entries, ranks, true);
   std::vector<char>().swap(recs);
   std::vector<BondRec>().swap(brs);
   mirror_distributed();
   bonds_initial_ = comm.sum(std::uint64_t(bonds_.size()));
   initialized_ = true;
+  region.emplace(space.profiler(), "pd.setup_contact");
   build_contact_list(space);
+  region.emplace(space.profiler(), "pd.setup_critical_dt");
   std::vector<Vec3> start(particles_.size());
   for (std::size_t i = 0; i < start.size(); ++i) start[i] = start_all[ranks_->gid[i]];
   crit_dt_ = critical_dt(space, &start);
   // Initial accelerations (velocity Verlet needs a^0), as a step's passes and exchanges.
+  region.emplace(space.profiler(), "pd.setup_first_forces");
   compute_dilatation(space);
   share(particles_.real(attr_.theta));
   share(q_.data());
@@ -462,6 +603,7 @@ void PdSolver::initialize_distributed(const exec::Space& space) {
   // Every ghost holds its owner's values, as when distribute() takes them from the whole state.
   for (int a = 0; a < particles_.attribute_count(); ++a)
     share_bytes(particles_.words(a), std::size_t(particles_.words_per_particle(a)) * 4);
+  region.reset();
   dist_stats_.step_bytes = dist_stats_.step_messages = 0;
   dist_stats_.setup_seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -623,26 +765,33 @@ void PdSolver::assemble_local(const exec::Space& space, std::vector<LocalEntry>&
       throw std::logic_error("distributed peridynamics: rank " + std::to_string(comm.rank()) +
                              " lacks a bond neighbour of particle " + std::to_string(gid[i]));
   // Reverse bonds within this rank's rows (pd_dilatation writes their plastic_r); the others'
-  // come through the bond halo.
+  // come through the bond halo. A rank asks the far end's owner for bond (j, i) only when j is a
+  // ghost here, and there i is then a ghost: so only the own bonds to ghosts are offered.
   const bool plastic = params().plastic || bond_plan;
   std::vector<std::uint64_t> bond_own_ids, bond_ghost_ids;
   std::vector<std::uint32_t> bond_own_slots, bond_ghost_slots;
   std::vector<int> bond_ghost_owner;
   const std::uint64_t N = ranks->n_global;
-  for (std::size_t i = 0; i < n && plastic; ++i)
-    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
-      const std::uint32_t j = bd.neighbor[k];
-      bond_own_ids.push_back(gid[i] * N + gid[j]), bond_own_slots.push_back(std::uint32_t(k));
-      if (entries[j].row) {
-        const auto b = bd.neighbor.begin();
+  if (plastic)
+    exec::parallel_for(space, "pd.dist_reverse", exec::Index(n), [&](exec::Index ii) {
+      const std::size_t i = std::size_t(ii);
+      const auto b = bd.neighbor.begin();
+      for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+        const std::uint32_t j = bd.neighbor[k];
+        if (!entries[j].row) continue;
         const auto it = std::lower_bound(b + std::ptrdiff_t(off[j]), b + std::ptrdiff_t(off[j + 1]),
                                          std::uint32_t(i));
         if (it != b + std::ptrdiff_t(off[j + 1]) && *it == i) bd.reverse[k] = std::uint64_t(it - b);
-      } else {
-        bond_ghost_ids.push_back(gid[j] * N + gid[i]);
-        bond_ghost_slots.push_back(std::uint32_t(nb + k));
-        bond_ghost_owner.push_back(entries[j].owner);
       }
+    });
+  for (std::size_t i = 0; i < n && plastic; ++i)
+    for (std::uint64_t k = off[i]; k < off[i + 1]; ++k) {
+      const std::uint32_t j = bd.neighbor[k];
+      if (entries[j].row) continue;
+      bond_own_ids.push_back(gid[i] * N + gid[j]), bond_own_slots.push_back(std::uint32_t(k));
+      bond_ghost_ids.push_back(gid[j] * N + gid[i]);
+      bond_ghost_slots.push_back(std::uint32_t(nb + k));
+      bond_ghost_owner.push_back(entries[j].owner);
     }
   if (nb * 2 > std::uint64_t(UINT32_MAX))
     throw std::runtime_error("distributed peridynamics: over 2^31 bonds on one rank");

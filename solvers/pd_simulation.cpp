@@ -92,13 +92,16 @@ std::string PdSimulation::run_summary(double) const {
        << " directed bonds broken between ranks and " << cross_contacts_
        << " contacts with another rank's particles at a frame's end\n";
     // The set-up's bond rows over every rank: each particle's row once (its owner's), plus the
-    // rows of the families' first members a rank fitted for another's (initialize_distributed).
+    // rows of the families' first members owned by another rank (initialize_distributed), and
+    // the surface correction's families, each fitted on one rank.
     const dist::Comm& comm = dist::Comm::world();
     os << "amalgam: distributed set-up: " << s_.global_sum(st.rows_built)
        << " bond rows built over the ranks for " << s_.global_particle_count() << " particles ("
        << s_.global_sum(st.family_rows) << " of them families' first members owned elsewhere, "
        << "at most " << comm.max(std::int64_t(st.rows_built)) << " on a rank); "
-       << comm.max(st.setup_seconds) << " s at most per rank\n";
+       << s_.global_sum(st.families_fitted) << " families fitted over the ranks, at most "
+       << comm.max(std::int64_t(st.families_fitted)) << " on a rank; " << comm.max(st.setup_seconds)
+       << " s at most per rank\n";
   }
   return os.str();
 }

@@ -201,8 +201,9 @@ void PdSolver::initialize(const exec::Space& space) {
   const std::size_t n = particles_.size();
   pd_build_bonds(space, particles_.vec3(attr_.x0), particles_.real(attr_.volume),
                  particles_.int32(attr_.material), n, params(), settings_.partial_volume, bonds_);
-  pd_constants(space, particles_.vec3(attr_.x0), particles_.int32(attr_.material), bonds_, params(),
-               settings_.surface_correction, constants_);
+  dist_stats_.families_fitted =
+      pd_constants(space, particles_.vec3(attr_.x0), particles_.int32(attr_.material), bonds_,
+                   params(), settings_.surface_correction, constants_);
   // Pre-cracks break bonds after the constants: the material around a crack is the same material,
   // only disconnected (its damage is > 0 from the start).
   apply_precracks(space, bonds_, nullptr);

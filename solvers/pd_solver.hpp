@@ -254,8 +254,10 @@ class PdSolver {
     std::uint64_t step_bytes = 0, step_messages = 0;  // halo traffic sent in the last step
     double comm_seconds = 0;  // in the halo exchanges and re-ghosting, summed
     // initialize_distributed: bond rows this rank built (its own particles' and, of those, the
-    // family representatives owned elsewhere, family_rows), and its set-up's seconds.
-    std::uint64_t rows_built = 0, family_rows = 0;
+    // family representatives owned elsewhere, family_rows), the surface correction's families it
+    // fitted (each family is fitted on one rank; initialize(): all of them), and its set-up's
+    // seconds.
+    std::uint64_t rows_built = 0, family_rows = 0, families_fitted = 0;
     double setup_seconds = 0;
   };
   const DistStats& dist_stats() const { return dist_stats_; }

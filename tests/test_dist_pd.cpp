@@ -163,16 +163,26 @@ TEST_P(DistPdSetUp, BuildsOnlyTheRowsItNeedsBitwiseTheWholeSetUp) {
   s.initialize_distributed(space);
   const dist::Comm& comm = dist::Comm::world();
   const PdSolver::DistStats& st = s.dist_stats();
-  std::printf("rank %d: %llu bond rows built for %llu own particles (%llu family rows) of %llu\n",
-              comm.rank(), (unsigned long long)st.rows_built, (unsigned long long)st.owned,
-              (unsigned long long)st.family_rows, (unsigned long long)n);
+  std::printf(
+      "rank %d: %llu families fitted; %llu bond rows built for %llu own particles (%llu "
+      "family rows) of %llu\n",
+      comm.rank(), (unsigned long long)st.families_fitted, (unsigned long long)st.rows_built,
+      (unsigned long long)st.owned, (unsigned long long)st.family_rows, (unsigned long long)n);
   if (comm.size() > 1) {
     EXPECT_EQ(st.rows_built, st.owned + st.family_rows) << "rank " << comm.rank();
-    // A family's first member elsewhere: a few per distinct family, far fewer than the own rows.
-    EXPECT_LT(double(st.family_rows), 0.25 * double(st.owned)) << "rank " << comm.rank();
+    // Rows of families' first members owned elsewhere (one per family held here and elsewhere,
+    // or fitted here for other ranks): on this small block, most of whose families are surface
+    // ones, under half the own rows.
+    EXPECT_LT(double(st.family_rows), 0.5 * double(st.owned)) << "rank " << comm.rank();
     EXPECT_LT(double(st.rows_built), 0.8 * double(n)) << "rank " << comm.rank();
   }
   if (comm.size() > 1) EXPECT_EQ(comm.sum(st.owned), n);
+  // Each family of the surface correction is fitted on one rank only, at most the mean a rank.
+  const std::uint64_t families = ref.dist_stats().families_fitted;
+  EXPECT_EQ(comm.sum(st.families_fitted), families) << "rank " << comm.rank();
+  const std::int64_t R = comm.size();
+  EXPECT_LE(comm.max(std::int64_t(st.families_fitted)), (std::int64_t(families) + R - 1) / R)
+      << "rank " << comm.rank();
   ASSERT_EQ(s.particles().size(), ref.particles().size()) << "rank " << comm.rank();
   EXPECT_EQ(s.global_ids(), ref.global_ids());
   for (int a = 0; a < ref.particles().attribute_count(); ++a) {
