@@ -26,7 +26,12 @@ num() { echo "$line" | sed -n "s/.* \([0-9][0-9]*\) $1.*/\1/p"; }
 [ "$(num 'directed bonds broken between ranks')" -gt 0 ] 2>/dev/null || { echo "no bond broke between ranks"; exit 1; }
 [ "$(num "contacts with another rank")" -gt 0 ] 2>/dev/null || { echo "no contact across ranks"; exit 1; }
 # The set-up builds each particle's bond row once, on its owner (plus a few rows of families'
-# first members fitted for another rank), not the whole list on every rank.
+# first members owned by another rank, for the families a rank holds or fits), not the whole list
+# on every rank; each family of the surface correction is fitted on one rank, at most the mean.
+fits=$(grep "amalgam: distributed set-up:" "$out/rep.log" | sed -n 's/.*; \([0-9]*\) families fitted over the ranks, at most \([0-9]*\) on a rank.*/\1 \2/p')
+read -r fitted fitted_max <<<"$fits"
+[ -n "$fitted" ] && [ "$fitted_max" -le $(((fitted + 2) / 3)) ] ||
+  { echo "the families' fits are not spread over the 3 ranks: $fits"; exit 1; }
 setup=$(grep "amalgam: distributed set-up:" "$out/rep.log")
 echo "$setup"
 built=$(echo "$setup" | sed -n 's/.*set-up: \([0-9]*\) bond rows built over the ranks for \([0-9]*\) particles (\([0-9]*\) of them.*/\1 \2 \3/p')
