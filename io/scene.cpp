@@ -550,10 +550,7 @@ std::string attribute_missing(const SceneSpec& s, const std::string& name) {
 
 // output.attributes: names of point_attribute_names() the method has, each once.
 void read_attributes(JsonObject& out, Scene& s) {
-  if (!out.has("attributes")) {
-    s.output.attributes = default_attributes(s);
-    return;
-  }
+  if (!out.has("attributes")) return;  // P, v and id only: nothing the scene did not ask for
   const std::vector<std::string>& known = point_attribute_names();
   s.output.attributes = out.strings("attributes", {});
   for (std::size_t i = 0; i < s.output.attributes.size(); ++i) {
@@ -579,14 +576,6 @@ bool attribute_available(const SceneSpec& scene, const std::string& name) {
   const std::vector<std::string>& known = point_attribute_names();
   return std::find(known.begin(), known.end(), name) != known.end() &&
          attribute_missing(scene, name).empty();
-}
-
-std::vector<std::string> default_attributes(const SceneSpec& scene) {
-  if (scene.method == Method::Peridynamics) return {"damage", "material", "theta"};
-  std::vector<std::string> out = {"J", "material"};
-  for (const char* a : {"Jp", "temperature", "enrichment"})
-    if (attribute_missing(scene, a).empty()) out.push_back(a);
-  return out;
 }
 
 Scene parse_scene(const std::string& text, const std::string& file) {

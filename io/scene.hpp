@@ -20,7 +20,7 @@ struct OutputSpec {
   bool vdb_points = true;
   VdbPrecision vdb_precision = VdbPrecision::Compact;  // output.vdb_points: "full" or "compact"
   // Attributes written beyond P, v and id (output.attributes, point_attribute_names()), checked
-  // against the method; the method's default list when the scene gives none (default_attributes).
+  // against the method; none when the scene gives none (frames then carry P, v and id only).
   std::vector<std::string> attributes;
   bool diagnostics_csv = true;
   bool grid_volumes = false;  // frame_NNNN_grid.vdb: node mass and velocity
@@ -56,10 +56,6 @@ constexpr int kMaxRetries = 10;
 // Largest scene file read (a scene is a few kB of JSON; meshes are separate files).
 constexpr std::uint64_t kMaxSceneBytes = 64ull << 20;
 
-// The attributes frames carry when output.attributes is absent (what they carried before it
-// existed): MPM J and material, plus Jp, temperature and enrichment where the scene has them;
-// peridynamics damage, material and theta.
-std::vector<std::string> default_attributes(const SceneSpec& scene);
 // Whether `name` is an output attribute the scene's method has (point_attribute_names()).
 bool attribute_available(const SceneSpec& scene, const std::string& name);
 

@@ -227,7 +227,7 @@ std::unique_ptr<Simulation> jelly_drop(const exec::Space& space, Scene& scene) {
 
 }  // namespace
 
-// The default scene's frame 0 written compact with the default attributes (J, material): at most
+// The default scene's frame 0 written compact with its attributes (none asked: P, v, id): at most
 // 12 bytes per particle (issue 32). The full-precision size is printed for comparison.
 TEST(VdbPoints, CompactJellyDropFrameZeroIsAtMostTwelveBytesPerParticle) {
   const exec::Space space(exec::Backend::TBB, 2);
@@ -246,6 +246,11 @@ TEST(VdbPoints, CompactJellyDropFrameZeroIsAtMostTwelveBytesPerParticle) {
   std::printf("jelly_drop frame 0, %zu particles: compact %.2f B/particle, full %.2f\n", p.n,
               compact_bpp, full_bpp);
   EXPECT_LE(compact_bpp, 12.0);
+  // Nothing the scene did not ask for (issue 32 item 2): no output.attributes, so P, v, id only.
+  EXPECT_TRUE(scene.output.attributes.empty());
+  const auto grid = read_points(compact);
+  EXPECT_EQ(grid->tree().cbeginLeaf()->attributeSet().descriptor().size(), 3u);
+  EXPECT_EQ(attribute_type(*grid, "J").first, "missing");
   std::filesystem::remove(compact);
   std::filesystem::remove(full);
 }
