@@ -497,12 +497,15 @@ void PdSolver::initialize_distributed(const exec::Space& space) {
   std::unordered_map<std::uint32_t, std::size_t> row_of;  // first member -> its row here
   for (const auto& [id, r] : plan.given) row_of.emplace(id, 0);
   for (const auto& sv : plan.serve) row_of.emplace(sv.first, 0);
+  std::size_t found = 0;
   for (std::size_t q = 0; q < at.size(); ++q) {
     const auto it = row_of.find(at[q]);
     if (it == row_of.end()) continue;
-    it->second = q;
+    it->second = q, ++found;
     given[q] = plan.given.count(at[q]) ? 1 : 0;
   }
+  if (found != row_of.size())
+    throw std::logic_error("distributed peridynamics: a family's first member has no row here");
   region.emplace(space.profiler(), "pd.setup_constants");
   PdConstants c;
   PdRowSubset sub;
