@@ -223,7 +223,8 @@ class MpmSolver {
   // The fused substep (G2P2G, solvers/mpm_fused.cpp): settings().fused and a variant that fuses
   // (explicit, Eulerian, one process, no sleeping); the grid then carries the next substep's
   // split scatter from one substep to the next ("primed"), until unprime(): a frame's start, a
-  // restore, a changed particle set.
+  // restore, a changed particle set. The two passes re-sorted only when needed keep their bins
+  // and topology while primed, with the same resets.
   bool fused_eligible() const;
   bool primed() const { return primed_; }
   void unprime() { primed_ = false; }
