@@ -122,6 +122,10 @@ void read_mpm_simulation(JsonObject& sim, Scene& s) {
   s.mpm.implicit = sim.choice("integrator", "explicit", {"explicit", "implicit"}) == "implicit";
   // One pass over the particles per substep (G2P2G) where the variant fuses; docs/architecture.md.
   s.mpm.fused = sim.choice("transfer_pass", "two_pass", {"fused", "two_pass"}) == "fused";
+  // The two passes re-sort the particles only when one leaves its bin's dilated block, where the
+  // variant allows it (sorts_when_needed); docs/architecture.md.
+  s.mpm.sort_when_needed =
+      sim.choice("sort", "every_substep", {"every_substep", "when_needed"}) == "when_needed";
   {
     JsonObject imp = sim.object("implicit");
     if (imp.has("tolerance") || imp.has("max_iterations") || imp.has("solver") ||

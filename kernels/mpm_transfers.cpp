@@ -631,40 +631,118 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
       1);
 }
 
-// Active leaf li of g (the next grid) = the parts of the dilated blocks listed for it
-// (items[start[li] .. start[li + 1]): bin << 5 | t, the leaf at the bin's leaf + (t / 9 - 1,
-// t / 3 % 3 - 1, t % 3 - 1)), in list order: lanes 0-3 into a, 4-7 into b.
+// Active leaf li of g = the parts of the dilated blocks (CH lanes, margin kG2P2GMargin) listed for
+// it (items[start[li] .. start[li + 1]): bin << 5 | t, the leaf at the bin's leaf + (t / 9 - 1,
+// t / 3 % 3 - 1, t % 3 - 1)), in list order: lanes 0-3 into a, 4-7 (CH = 8) into b. The leaf is
+// overwritten (no grid_clear needed), and its sum is the same whichever thread computes it.
+template <int Order, int CH>
+void sum_dilated_leaf(const MpmGridView& g, std::size_t li, const Real* blocks,
+                      const std::uint32_t* start, const std::uint32_t* items) {
+  constexpr int M = kG2P2GMargin;
+  using Blk = GridBlock<Order, CH, M>;
+  const std::size_t leaf = std::size_t(g.active_leaves[li]);
+  Real* la = g.a + leaf * kLeafNodes * 4;
+  Real* lb = CH == 8 ? g.b + leaf * kLeafNodes * 4 : nullptr;
+  std::memset(la, 0, kLeafNodes * 4 * sizeof(Real));
+  if constexpr (CH == 8) std::memset(lb, 0, kLeafNodes * 4 * sizeof(Real));
+  for (std::uint32_t k = start[li]; k < start[li + 1]; ++k) {
+    const Real* blk = blocks + std::size_t(items[k] >> 5) * std::size_t(Blk::kSize);
+    const int t = int(items[k] & 31u);
+    const int d[3] = {t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1};
+    int n0[3], n1[3];  // the leaf's nodes n0 <= n < n1 inside the block (block node d 8 + n + M)
+    for (int a = 0; a < 3; ++a) {
+      n0[a] = std::max(0, -d[a] * kLeafDim - M);
+      n1[a] = std::min(kLeafDim, Blk::B - d[a] * kLeafDim - M);
+    }
+    for (int i = n0[0]; i < n1[0]; ++i)
+      for (int j = n0[1]; j < n1[1]; ++j)
+        for (int k2 = n0[2]; k2 < n1[2]; ++k2) {
+          const Real* s = blk + Blk::at(d[0] * kLeafDim + i + M, d[1] * kLeafDim + j + M,
+                                        d[2] * kLeafDim + k2 + M);
+          const int o = leaf_offset(i, j, k2) * 4;
+          simd::store4(la + o, simd::load4(la + o) + simd::load4(s));
+          if constexpr (CH == 8) simd::store4(lb + o, simd::load4(lb + o) + simd::load4(s + 4));
+        }
+  }
+}
+
+// Every active leaf of g (the next grid) = the fused pass's 8-lane dilated blocks listed for it.
 template <int Order>
 void g2p2g_flush_impl(const exec::Space& space, const MpmGridView& g, const Real* blocks,
                       const std::uint32_t* start, const std::uint32_t* items) {
-  constexpr int M = kG2P2GMargin;
-  using Out = GridBlock<Order, 8, M>;
   exec::parallel_for(space, "mpm.g2p2g_flush", exec::Index(g.nactive), [&](exec::Index li) {
-    const std::size_t leaf = std::size_t(g.active_leaves[li]);
-    Real* la = g.a + leaf * kLeafNodes * 4;
-    Real* lb = g.b + leaf * kLeafNodes * 4;
-    std::memset(la, 0, kLeafNodes * 4 * sizeof(Real));
-    std::memset(lb, 0, kLeafNodes * 4 * sizeof(Real));
-    for (std::uint32_t k = start[li]; k < start[li + 1]; ++k) {
-      const Real* blk = blocks + std::size_t(items[k] >> 5) * std::size_t(Out::kSize);
-      const int t = int(items[k] & 31u);
-      const int d[3] = {t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1};
-      int n0[3], n1[3];  // the leaf's nodes n0 <= n < n1 inside the block (block node d 8 + n + M)
-      for (int a = 0; a < 3; ++a) {
-        n0[a] = std::max(0, -d[a] * kLeafDim - M);
-        n1[a] = std::min(kLeafDim, Out::B - d[a] * kLeafDim - M);
-      }
-      for (int i = n0[0]; i < n1[0]; ++i)
-        for (int j = n0[1]; j < n1[1]; ++j)
-          for (int k2 = n0[2]; k2 < n1[2]; ++k2) {
-            const Real* s = blk + Out::at(d[0] * kLeafDim + i + M, d[1] * kLeafDim + j + M,
-                                          d[2] * kLeafDim + k2 + M);
-            const int o = leaf_offset(i, j, k2) * 4;
-            simd::store4(la + o, simd::load4(la + o) + simd::load4(s));
-            simd::store4(lb + o, simd::load4(lb + o) + simd::load4(s + 4));
-          }
-    }
+    sum_dilated_leaf<Order, 8>(g, std::size_t(li), blocks, start, items);
   });
+}
+
+// The two passes between sorts (MpmSolver's lazy sort): P2G of each bin into its dilated block
+// (CH = the two passes' lanes: 4, PIC/FLIP 8), all bins in one balanced loop; each active leaf is
+// summed (sum_dilated_leaf, the blocks in bin order) by the thread that completes the last block
+// reaching it (a countdown per active leaf, release / acquire), while the blocks are hot.
+// target[b * 27 + t]: the active index of the leaf at bin b's leaf + offset t, or -1. far[b] = 1
+// when a particle of bin b lies outside its dilated block (not scattered: the caller re-sorts).
+template <int Order, Transfer T>
+void p2g_dilated_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                      const MpmStepParams& prm, Real* blocks, const std::uint32_t* start,
+                      const std::uint32_t* items, const std::int32_t* target, std::uint8_t* far) {
+  constexpr int CH = channels_of(T), M = kG2P2GMargin;
+  using Blk = GridBlock<Order, CH, M>;
+  exec::Countdowns pending(std::max<std::size_t>(g.nactive, 1));
+  for (std::size_t li = 0; li < g.nactive; ++li) {
+    const int n = int(start[li + 1] - start[li]);
+    pending.set(li, n);
+    if (n == 0) sum_dilated_leaf<Order, CH>(g, li, blocks, start, items);  // zeroes it
+  }
+  exec::parallel_for(
+      space, "mpm.p2g", exec::Index(g.nbins),
+      [&](exec::Index bi) {
+        const std::size_t b = std::size_t(bi);
+        Blk blk;
+        blk.clear();
+        const Vec3i origin = g.bin_leaf[b] * kLeafDim - Vec3i::Constant(M);
+        far[b] = !scatter_range<Order, T, false, false>(blk, origin, g.bin_start[b], g.end_of(b), p,
+                                                        prm);
+        std::memcpy(blocks + b * std::size_t(Blk::kSize), blk.data, sizeof(blk.data));
+        for (int t = 0; t < 27; ++t) {
+          const std::int32_t li = target[b * 27 + std::size_t(t)];
+          if (li >= 0 && pending.arrive(std::size_t(li)))
+            sum_dilated_leaf<Order, CH>(g, std::size_t(li), blocks, start, items);
+        }
+      },
+      1);
+}
+
+// G2P between sorts: each bin gathers its dilated block from the 27 leaves around its leaf
+// (gather_dilated) and updates its particles as g2p does (g2p_particle: the same bits for the same
+// grid); far[b] = 1 when a particle of bin b ends outside the bin's dilated block.
+template <int Order, Transfer T>
+void g2p_dilated_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                      const MpmStepParams& prm, std::uint8_t* far) {
+  constexpr int CH = channels_of(T), M = kG2P2GMargin;
+  using Blk = GridBlock<Order, CH, M>;
+  const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
+  auto lo = [](auto* a, std::uint32_t q) { return a ? a + q : nullptr; };
+  exec::parallel_for(
+      space, "mpm.g2p", exec::Index(g.nbins),
+      [&](exec::Index bi) {
+        const std::size_t b = std::size_t(bi);
+        Blk in;
+        gather_dilated(in, g, b);
+        const Vec3i origin = g.bin_leaf[b] * kLeafDim - Vec3i::Constant(M);
+        bool out = false;
+        const std::uint32_t q1 = g.end_of(b);
+        for (std::uint32_t q = g.bin_start[b]; q < q1; ++q) {
+          g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                            lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
+                                            inv_dx, dt, alpha);
+          for (int a = 0; a < 3; ++a) {
+            const int d = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
+            out |= d < 0 || d + Order >= Blk::B;
+          }
+        }
+        far[b] = out;
+      },
+      1);
 }
 
 template <template <int, Transfer> class Fn, class... Args>
@@ -723,6 +801,22 @@ struct G2P2G {
                   const MpmStepParams& prm, const MaterialUpdateParams* mu, Real* blocks,
                   std::uint8_t* far) {
     g2p2g_impl<O, T>(s, p, g, prm, mu, blocks, far);
+  }
+};
+
+template <int O, Transfer T>
+struct P2GDilated {
+  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g,
+                  const MpmStepParams& prm, Real* blocks, const std::uint32_t* start,
+                  const std::uint32_t* items, const std::int32_t* target, std::uint8_t* far) {
+    p2g_dilated_impl<O, T>(s, p, g, prm, blocks, start, items, target, far);
+  }
+};
+template <int O, Transfer T>
+struct G2PDilated {
+  static void run(const exec::Space& s, const MpmParticleView& p, const MpmGridView& g,
+                  const MpmStepParams& prm, std::uint8_t* far) {
+    g2p_dilated_impl<O, T>(s, p, g, prm, far);
   }
 };
 
@@ -825,6 +919,18 @@ void g2p2g_flush(const exec::Space& space, const MpmGridView& g, int order, cons
     g2p2g_flush_impl<2>(space, g, blocks, start, items);
 }
 
+void p2g_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                 const MpmStepParams& prm, Real* blocks, const std::uint32_t* start,
+                 const std::uint32_t* items, const std::int32_t* target, std::uint8_t* far) {
+  dispatch<P2GDilated>(prm.order, prm.transfer, space, p, g, prm, blocks, start, items, target,
+                       far);
+}
+
+void g2p_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                 const MpmStepParams& prm, std::uint8_t* far) {
+  dispatch<G2PDilated>(prm.order, prm.transfer, space, p, g, prm, far);
+}
+
 void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
   const bool flip = prm.transfer == Transfer::PicFlip;
   const bool force = flip || prm.split;  // b holds the force (PIC/FLIP, or the split scatter)
@@ -905,8 +1011,8 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
 
 extern const MpmKernelTable mpm_kernels;
 const MpmKernelTable mpm_kernels = {
-    &grid_clear,           &p2g, &clear_node4, &p2g_positions, &grid_update,
-    &grid_apply_colliders, &g2p, &p2g_blocks,  &g2p2g,         &g2p2g_flush};
+    &grid_clear, &p2g,        &clear_node4, &p2g_positions, &grid_update, &grid_apply_colliders,
+    &g2p,        &p2g_blocks, &g2p2g,       &g2p2g_flush,   &p2g_dilated, &g2p_dilated};
 
 }  // namespace AMALGAM_ISA
 
@@ -924,6 +1030,11 @@ int p2g_channels(Transfer t, bool fused_positions) {
 std::size_t g2p2g_block_reals(int order) {
   const std::size_t B = std::size_t(kLeafDim + order + 2 * kG2P2GMargin);
   return B * B * B * 8;
+}
+
+std::size_t dilated_block_reals(int order, int ch) {
+  const std::size_t B = std::size_t(kLeafDim + order + 2 * kG2P2GMargin);
+  return B * B * B * std::size_t(ch);
 }
 
 std::size_t p2g_block_reals(int order, int ch) {

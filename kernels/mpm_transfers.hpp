@@ -187,6 +187,25 @@ void g2p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView
 void g2p2g_flush(const exec::Space& space, const MpmGridView& g, int order, const Real* blocks,
                  const std::uint32_t* start, const std::uint32_t* items);
 
+// The two passes between sorts (MpmSolver's re-sort when needed, explicit and Eulerian): the
+// particles stay in the bins of the last sort while their stencils fit the bins' dilated blocks
+// (kG2P2GMargin more nodes on every side, as the fused pass's).
+// p2g_dilated: each bin's particles into its dilated block at blocks + b * dilated_block_reals(
+// order, p2g_channels(transfer, false)) (the two passes' lanes and values: (m, p), PIC/FLIP's
+// force in lanes 4-7), all bins in one loop; each active leaf li of g is overwritten with the
+// parts listed for it (start / items as g2p2g_flush) in list order, by the thread completing the
+// last block reaching it (target[b * 27 + t]: the active index of the leaf at bin b's leaf +
+// (t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1), or -1): bitwise on any thread count. far[b] = 1 when a
+// particle of bin b lies outside the block (not scattered: the grid is then incomplete).
+// g2p_dilated: g2p from each bin's dilated block (g.bin_nbr27), far[b] = 1 when a particle of
+// bin b ends outside its block.
+std::size_t dilated_block_reals(int order, int ch);
+void p2g_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                 const MpmStepParams& prm, Real* blocks, const std::uint32_t* start,
+                 const std::uint32_t* items, const std::int32_t* target, std::uint8_t* far);
+void g2p_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                 const MpmStepParams& prm, std::uint8_t* far);
+
 // The kernels above for one instruction set: mpm_transfers.cpp is compiled once per vector width
 // (core/exec/simd.hpp), each copy in its namespace with one of these tables; the functions above
 // call the table of exec::simd_path() (kernels/simd_dispatch.cpp). A new kernel of that file
@@ -210,6 +229,11 @@ struct MpmKernelTable {
                 const MpmStepParams&, const MaterialUpdateParams*, Real*, std::uint8_t*);
   void (*g2p2g_flush)(const exec::Space&, const MpmGridView&, int, const Real*,
                       const std::uint32_t*, const std::uint32_t*);
+  void (*p2g_dilated)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
+                      const MpmStepParams&, Real*, const std::uint32_t*, const std::uint32_t*,
+                      const std::int32_t*, std::uint8_t*);
+  void (*g2p_dilated)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
+                      const MpmStepParams&, std::uint8_t*);
 };
 
 }  // namespace amalgam

@@ -66,6 +66,17 @@ void g2p2g_flush(const exec::Space& space, const MpmGridView& g, int order, cons
                  const std::uint32_t* start, const std::uint32_t* items) {
   mpm().g2p2g_flush(space, g, order, blocks, start, items);
 }
+void p2g_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                 const MpmStepParams& prm, Real* blocks, const std::uint32_t* start,
+                 const std::uint32_t* items, const std::int32_t* target, std::uint8_t* far) {
+  mpm().p2g_dilated(space, p, g, prm, blocks, start, items, target, far);
+}
+void g2p_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
+                 const MpmStepParams& prm, std::uint8_t* far) {
+  if (g.nbins > 0 && !g.bin_nbr27)  // the dilated gather's leaves (MpmSolver::update_grid_fused)
+    throw std::logic_error("g2p_dilated: the grid view has no bin_nbr27");
+  mpm().g2p_dilated(space, p, g, prm, far);
+}
 // The material update's SVDs run a vector of particles at a time: the path's width. The particle
 // collisions run the baseline's code: only their half-space test is a loop across particles.
 void update_material_state(const exec::Space& space, const MpmParticleView& p,

@@ -211,6 +211,10 @@ void MpmSolver::refuse_distributed() const {
   // be the single process's bits. (Variants that fall back to two passes on one process, e.g.
   // sleeping, run distributed as usual; ranks_ is not set yet here.)
   if (fused_eligible()) refuse("the fused G2P2G substep (simulation.transfer_pass \"fused\") is");
+  // Likewise re-sorting only when needed: one process sums each node's particles in the order
+  // of bins kept between sorts, and the ranks migrate and sort every substep.
+  if (sort_when_needed_eligible())
+    refuse("re-sorting only when needed (simulation.sort \"when_needed\") is");
 }
 
 // Every rank builds the field colliders around the blocks of all ranks' particles: the region

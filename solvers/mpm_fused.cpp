@@ -30,6 +30,10 @@ bool MpmSolver::fused_eligible() const {
   return fuses(settings_, ranks_ != nullptr);
 }
 
+bool MpmSolver::sort_when_needed_eligible() const {
+  return sorts_when_needed(settings_, ranks_ != nullptr);
+}
+
 void MpmSolver::prime_grid(const exec::Space& space) {
   MpmGridView g = grid_view();
   MpmStepParams prm = step_params(0);
@@ -77,6 +81,70 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   } else {
     flush_fused_blocks(space);
   }
+  primed_ = true;
+}
+
+// The two passes re-sorted only when needed (simulation.sort "when_needed"): the fused path's bins,
+// dilated blocks and flush tables with the two passes' own grid (no split: 4 lanes for MLS/APIC,
+// PIC/FLIP's 8) and kernels.
+//
+//   primed and no far flag?  no: sort, topology (dilated), flush tables   (update_grid_fused)
+//   P2G (p2g_dilated): each bin into its dilated block, each leaf sums its blocks in bin order
+//       a particle outside its block (moved by the particle collisions)? sort, topology, P2G again
+//   grid update (p / m, gravity, forces, colliders)
+//   G2P (g2p_dilated): gather the dilated block, update the particles; far flag per bin
+//   particle collisions, material update
+//
+// A function of the state alone (the particles' positions and the bins of the last sort), so
+// every backend, thread count and vector path sorts at the same substeps; primed_ is reset where
+// the fused path's is (a frame's start, restore, added or removed particles), so a resumed run
+// sorts where the uninterrupted one did.
+void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
+  auto any = [](const std::vector<std::uint8_t>& f) {
+    return std::any_of(f.begin(), f.end(), [](std::uint8_t x) { return x != 0; });
+  };
+  bool sorted = false;
+  if (!primed_ || any(lazy_far_)) {
+    if (primed_) ++lazy_resorts_;
+    sort_particles(space);
+    sorted = true;
+  }
+  const int ch = p2g_channels(settings_.transfer, false);
+  const std::size_t reals = bins_.count() * dilated_block_reals(settings_.order, ch);
+  const std::size_t budget =
+      std::max(kG2P2GBlocksMinBudget, kG2P2GBlocksBytesPerParticle * particles_.size());
+  if (reals * sizeof(Real) > budget) {  // the dilated blocks would not fit: sort every substep
+    if (!sorted) sort_particles(space);
+    update_grid(space);
+    particle_to_grid(space, dt);
+    update_grid_velocities(space, dt);
+    grid_to_particle(space, dt);
+    collide_particles(space, dt);
+    if (material_update_) update_materials(space, dt);
+    lazy_far_.clear();
+    primed_ = false;
+    ++lazy_unfit_;
+    return;
+  }
+  if (sorted) update_grid_fused(space);
+  if (p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);
+  lazy_far_.assign(bins_.count(), 0);
+  p2g_dilated(space, particle_view(), grid_view(), step_params(dt), p2g_blocks_.data(),
+              fused_start_.data(), fused_items_.data(), fused_target_.data(), lazy_far_.data());
+  if (any(lazy_far_)) {  // pushed past its block after the last G2P (particle collisions)
+    ++lazy_resorts_;
+    sort_particles(space);
+    update_grid_fused(space);
+    const std::size_t r = bins_.count() * dilated_block_reals(settings_.order, ch);
+    if (p2g_blocks_.size() < r) p2g_blocks_.resize(r);
+    lazy_far_.assign(bins_.count(), 0);
+    p2g_dilated(space, particle_view(), grid_view(), step_params(dt), p2g_blocks_.data(),
+                fused_start_.data(), fused_items_.data(), fused_target_.data(), lazy_far_.data());
+  }
+  update_grid_velocities(space, dt);
+  g2p_dilated(space, particle_view(), grid_view(), step_params(dt), lazy_far_.data());
+  collide_particles(space, dt);
+  if (material_update_) update_materials(space, dt);
   primed_ = true;
 }
 

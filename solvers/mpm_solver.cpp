@@ -20,6 +20,12 @@ bool fuses(const MpmSettings& s, bool distributed) {
          !s.sleep.enabled && !distributed;
 }
 
+bool sorts_when_needed(const MpmSettings& s, bool distributed) {
+  MpmSettings f = s;
+  f.fused = true;
+  return s.sort_when_needed && !s.fused && fuses(f, distributed);
+}
+
 GridChannels GridChannels::for_run(const MpmSettings& s, bool has_colliders, bool distributed) {
   GridChannels c;
   // The fused substep's split grid keeps the force in set 1 for every transfer; a run that asks
@@ -396,6 +402,8 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
     enriched_->step(space, *this, dt);  // particle domains: their own substep (Algorithm 1)
   } else if (fused_eligible()) {
     step_fused(space, dt);  // one pass over the particles (solvers/mpm_fused.cpp)
+  } else if (sort_when_needed_eligible()) {
+    step_sorted_when_needed(space, dt);  // the two passes, re-sorted only when needed (same file)
   } else {
     if (aul_)
       aul_->update_configurations(space, *this);  // eq. 33; re-bins only when a reference changed

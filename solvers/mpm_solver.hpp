@@ -71,12 +71,21 @@ struct MpmSettings {
   // simulation.transfer_pass "fused": one pass over the particles per substep (G2P2G,
   // solvers/mpm_fused.cpp) where the variant allows it (fused_eligible), else the two passes.
   bool fused = false;
+  // simulation.sort "when_needed": the two passes keep the bins of the last sort while every
+  // particle's stencil fits its bin's dilated block, and re-sort only when one leaves it
+  // (MpmSolver::step_sorted_when_needed, solvers/mpm_fused.cpp) where the variant allows it
+  // (sorts_when_needed); "every_substep": sort every substep.
+  bool sort_when_needed = false;
 };
 
 // Whether a run of these settings takes the fused substep (MpmSolver::step_fused): `fused` asked
 // for, and a variant that fuses (explicit, Eulerian, no particle domains nor sleeping, one
 // process). Grid-volume output clears `fused` when the scene is read (io/scene.cpp).
 bool fuses(const MpmSettings& s, bool distributed);
+// Whether a run of these settings takes the two passes re-sorted only when needed: asked for, not
+// fused, and a variant that fuses (the same conditions: explicit, Eulerian, no particle domains
+// nor sleeping, one process).
+bool sorts_when_needed(const MpmSettings& s, bool distributed);
 
 struct MpmDiagnostics {
   double kinetic = 0, elastic = 0;
@@ -214,7 +223,8 @@ class MpmSolver {
   // The fused substep (G2P2G, solvers/mpm_fused.cpp): settings().fused and a variant that fuses
   // (explicit, Eulerian, one process, no sleeping); the grid then carries the next substep's
   // split scatter from one substep to the next ("primed"), until unprime(): a frame's start, a
-  // restore, a changed particle set.
+  // restore, a changed particle set. The two passes re-sorted only when needed keep their bins
+  // and topology while primed, with the same resets.
   bool fused_eligible() const;
   bool primed() const { return primed_; }
   void unprime() { primed_ = false; }
@@ -223,6 +233,14 @@ class MpmSolver {
   // over their memory budget).
   std::uint64_t fused_fallbacks() const { return fused_fallbacks_; }
   std::uint64_t fused_unfused() const { return fused_unfused_; }
+  // The two passes re-sorted only when needed (settings().sort_when_needed, sorts_when_needed):
+  // the bins and the grid's topology are kept while primed() (the same resets as the fused
+  // grid's). Substeps that re-sorted because a particle had left its bin's dilated block (after
+  // G2P, or found in P2G), and substeps that ran the sort-every-substep passes (the dilated
+  // blocks over their memory budget).
+  bool sort_when_needed_eligible() const;
+  std::uint64_t lazy_resorts() const { return lazy_resorts_; }
+  std::uint64_t lazy_unfit() const { return lazy_unfit_; }
 
   // The whole evolving state (particles, and the domain corners' positions), to retry a frame.
   struct Snapshot {
@@ -349,6 +367,9 @@ class MpmSolver {
   void prime_grid(const exec::Space& space);            // the split P2G of the sorted particles
   void flush_fused_blocks(const exec::Space& space);    // the dilated blocks into the grid
   void update_grid_fused(const exec::Space& space);     // topology + tables of the sorted bins
+  void step_sorted_when_needed(const exec::Space& space, Real dt);  // the two passes, lazy sort
+  std::vector<std::uint8_t> lazy_far_;  // per bin: a particle left its dilated block (G2P, P2G)
+  std::uint64_t lazy_resorts_ = 0, lazy_unfit_ = 0;
   bool primed_ = false;
   std::uint64_t fused_fallbacks_ = 0, fused_unfused_ = 0;
   std::vector<Vec3i> fused_extra_;  // the leaves the dilated blocks reach beyond nbr8

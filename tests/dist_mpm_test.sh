@@ -77,4 +77,9 @@ sed 's/"simulation": *{/"simulation": {"transfer_pass": "fused", /' "$scene" >"$
 grep -q '"transfer_pass": "fused"' "$out/fused.json" || { echo "could not make the fused scene"; exit 1; }
 refused 2 "$out/fused.json" "$out/fu" 'fused G2P2G substep (simulation.transfer_pass "fused") is not distributed yet' ||
   exit 1
+# So is re-sorting only when needed (one process sums the nodes in the order of kept bins).
+sed 's/"simulation": *{/"simulation": {"sort": "when_needed", /' "$scene" >"$out/lazy.json"
+grep -q '"sort": "when_needed"' "$out/lazy.json" || { echo "could not make the lazy-sort scene"; exit 1; }
+refused 2 "$out/lazy.json" "$out/ls" 're-sorting only when needed (simulation.sort "when_needed") is not distributed yet' ||
+  exit 1
 echo "distributed MPM: $all files bitwise identical on 1-4 ranks, 2x2 threads, with repartitions, resumed 3->2, 3->1 and 1->4 ranks and after an interrupt on 4; per-rank parts (--parts ranks) merged bitwise on 2 and 3 ranks and resumed 3->2, 3->1, 1->4, 2->3 and after an interrupt 3->2; with emitters and a kill region $(echo "$files" | wc -l) files on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1"
