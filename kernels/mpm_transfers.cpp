@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cstring>
 #include <memory>
+#include <vector>
 
 #include "core/exec/simd.hpp"
 #include "core/math/bspline.hpp"
@@ -635,9 +636,12 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
 // it (items[start[li] .. start[li + 1]): bin << 5 | t, the leaf at the bin's leaf + (t / 9 - 1,
 // t / 3 % 3 - 1, t % 3 - 1)), in list order: lanes 0-3 into a, 4-7 (CH = 8) into b. The leaf is
 // overwritten (no grid_clear needed), and its sum is the same whichever thread computes it.
+// box (optional): per bin, the block nodes its particles' stencils reached (lo x, y, z, hi x, y, z,
+// inclusive); the rest of its block is zero and is not added.
 template <int Order, int CH>
 void sum_dilated_leaf(const MpmGridView& g, std::size_t li, const Real* blocks,
-                      const std::uint32_t* start, const std::uint32_t* items) {
+                      const std::uint32_t* start, const std::uint32_t* items,
+                      const std::array<std::int8_t, 6>* box = nullptr) {
   constexpr int M = kG2P2GMargin;
   using Blk = GridBlock<Order, CH, M>;
   const std::size_t leaf = std::size_t(g.active_leaves[li]);
@@ -650,10 +654,18 @@ void sum_dilated_leaf(const MpmGridView& g, std::size_t li, const Real* blocks,
     const int t = int(items[k] & 31u);
     const int d[3] = {t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1};
     int n0[3], n1[3];  // the leaf's nodes n0 <= n < n1 inside the block (block node d 8 + n + M)
+    bool empty = false;
     for (int a = 0; a < 3; ++a) {
       n0[a] = std::max(0, -d[a] * kLeafDim - M);
       n1[a] = std::min(kLeafDim, Blk::B - d[a] * kLeafDim - M);
+      if (box) {
+        const std::array<std::int8_t, 6>& bx = box[items[k] >> 5];
+        n0[a] = std::max(n0[a], int(bx[std::size_t(a)]) - d[a] * kLeafDim - M);
+        n1[a] = std::min(n1[a], int(bx[std::size_t(a) + 3]) + 1 - d[a] * kLeafDim - M);
+      }
+      empty |= n0[a] >= n1[a];
     }
+    if (empty) continue;
     for (int i = n0[0]; i < n1[0]; ++i)
       for (int j = n0[1]; j < n1[1]; ++j)
         for (int k2 = n0[2]; k2 < n1[2]; ++k2) {
@@ -693,6 +705,10 @@ void p2g_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
     pending.set(li, n);
     if (n == 0) sum_dilated_leaf<Order, CH>(g, li, blocks, start, items);  // zeroes it
   }
+  // Per bin, the block nodes its particles reach: between sorts mostly the bin's own footprint,
+  // so the margin's slabs (zero) are not added into the leaves.
+  std::vector<std::array<std::int8_t, 6>> box(g.nbins);
+  const Real inv_dx = Real(1) / prm.dx;
   exec::parallel_for(
       space, "mpm.p2g", exec::Index(g.nbins),
       [&](exec::Index bi) {
@@ -702,11 +718,22 @@ void p2g_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
         const Vec3i origin = g.bin_leaf[b] * kLeafDim - Vec3i::Constant(M);
         far[b] = !scatter_range<Order, T, false, false>(blk, origin, g.bin_start[b], g.end_of(b), p,
                                                         prm);
+        int lo[3] = {Blk::B, Blk::B, Blk::B}, hi[3] = {-1, -1, -1};
+        for (std::uint32_t q = g.bin_start[b]; q < g.end_of(b); ++q)
+          for (int a = 0; a < 3; ++a) {
+            const int d = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
+            lo[a] = std::min(lo[a], d);
+            hi[a] = std::max(hi[a], d + Order);
+          }
+        for (int a = 0; a < 3; ++a) {  // a particle outside the block was not scattered (far)
+          box[b][std::size_t(a)] = std::int8_t(std::clamp(lo[a], 0, Blk::B));
+          box[b][std::size_t(a) + 3] = std::int8_t(std::clamp(hi[a], -1, Blk::B - 1));
+        }
         std::memcpy(blocks + b * std::size_t(Blk::kSize), blk.data, sizeof(blk.data));
         for (int t = 0; t < 27; ++t) {
           const std::int32_t li = target[b * 27 + std::size_t(t)];
           if (li >= 0 && pending.arrive(std::size_t(li)))
-            sum_dilated_leaf<Order, CH>(g, std::size_t(li), blocks, start, items);
+            sum_dilated_leaf<Order, CH>(g, std::size_t(li), blocks, start, items, box.data());
         }
       },
       1);

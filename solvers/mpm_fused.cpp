@@ -110,11 +110,17 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
     sorted = true;
   }
   const int ch = p2g_channels(settings_.transfer, false);
-  const std::size_t reals = bins_.count() * dilated_block_reals(settings_.order, ch);
   const std::size_t budget =
       std::max(kG2P2GBlocksMinBudget, kG2P2GBlocksBytesPerParticle * particles_.size());
-  if (reals * sizeof(Real) > budget) {  // the dilated blocks would not fit: sort every substep
-    if (!sorted) sort_particles(space);
+  // The dilated blocks of the sorted bins within the budget? Otherwise the sorted particles take
+  // the plain two passes this substep, and the next one sorts again.
+  auto fits = [&] {
+    const std::size_t reals = bins_.count() * dilated_block_reals(settings_.order, ch);
+    if (reals * sizeof(Real) > budget) return false;
+    if (p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);
+    return true;
+  };
+  auto plain_two_passes = [&] {
     update_grid(space);
     particle_to_grid(space, dt);
     update_grid_velocities(space, dt);
@@ -124,22 +130,24 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
     lazy_far_.clear();
     primed_ = false;
     ++lazy_unfit_;
-    return;
-  }
-  if (sorted) update_grid_fused(space);
-  if (p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);
-  lazy_far_.assign(bins_.count(), 0);
-  p2g_dilated(space, particle_view(), grid_view(), step_params(dt), p2g_blocks_.data(),
-              fused_start_.data(), fused_items_.data(), fused_target_.data(), lazy_far_.data());
-  if (any(lazy_far_)) {  // pushed past its block after the last G2P (particle collisions)
-    ++lazy_resorts_;
-    sort_particles(space);
-    update_grid_fused(space);
-    const std::size_t r = bins_.count() * dilated_block_reals(settings_.order, ch);
-    if (p2g_blocks_.size() < r) p2g_blocks_.resize(r);
+  };
+  auto scatter = [&] {
     lazy_far_.assign(bins_.count(), 0);
     p2g_dilated(space, particle_view(), grid_view(), step_params(dt), p2g_blocks_.data(),
                 fused_start_.data(), fused_items_.data(), fused_target_.data(), lazy_far_.data());
+  };
+  if (!fits()) {  // (kept bins always fit: they fitted when they were sorted)
+    if (!sorted) sort_particles(space);
+    return plain_two_passes();
+  }
+  if (sorted) update_grid_fused(space);
+  scatter();
+  if (any(lazy_far_)) {  // pushed past its block after the last G2P (particle collisions)
+    ++lazy_resorts_;
+    sort_particles(space);
+    if (!fits()) return plain_two_passes();
+    update_grid_fused(space);
+    scatter();
   }
   update_grid_velocities(space, dt);
   g2p_dilated(space, particle_view(), grid_view(), step_params(dt), lazy_far_.data());
