@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "core/exec/simd.hpp"
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
 #include "test_util.hpp"
@@ -119,6 +120,42 @@ inline void expect_plastic_flow_and_melting(const MpmSolver& s) {
   std::printf("particles with plastic flow: %d, melted: %d of %zu\n", plastic, melted, ps.size());
   EXPECT_GT(plastic, 10);
   EXPECT_GT(melted, 10);
+}
+
+// The AVX2 and AVX-512 builds of the kernels give the baseline's bits (Serial and 2 TBB threads):
+// `steps` CFL substeps of each of the small MLS, APIC and FLIP scenes and the materials scene,
+// `simulation` added to each scene's simulation block (the transfer pass, the sort).
+inline void expect_bitwise_on_every_simd_path(const std::string& simulation, int steps) {
+  struct Guard {
+    exec::SimdPath saved = exec::simd_path();
+    ~Guard() { exec::set_simd_path(saved); }
+  } guard;
+  for (const Scene& scene :
+       {small_scene("mls", 2, "explicit", simulation),
+        small_scene("apic", 3, "explicit", simulation),
+        small_scene("flip", 2, "explicit", simulation), material_scene(simulation)}) {
+    std::vector<Real> ref;
+    for (const exec::SimdPath path :
+         {exec::SimdPath::Baseline, exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
+      if (!exec::simd_path_supported(path)) {
+        std::printf("SIMD path %s: skipped\n", exec::simd_path_name(path));
+        continue;
+      }
+      exec::set_simd_path(path);
+      for (const exec::Space& space : {exec::Space(), exec::Space(exec::Backend::TBB, 2)}) {
+        MpmSolver s = build_solver(scene);
+        for (int i = 0; i < steps; ++i) s.step(space, s.stable_dt(space));
+        const std::vector<Real> st = state_bytes(s);
+        if (ref.empty()) {
+          ref = st;
+          continue;
+        }
+        ASSERT_EQ(st.size(), ref.size());
+        EXPECT_TRUE(bitwise_equal(st.data(), ref.data(), st.size()))
+            << exec::simd_path_name(path) << " on " << space.describe();
+      }
+    }
+  }
 }
 
 }  // namespace amalgam::test

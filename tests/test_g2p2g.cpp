@@ -139,35 +139,7 @@ TEST(G2P2GDeterminism, MaterialsWithStateBitwiseOnEveryBackend) {
 
 // The AVX2 and AVX-512 builds of the fused kernel give the baseline's bits (Serial, 2 TBB).
 TEST(G2P2GDeterminism, BitwiseOnEverySimdPath) {
-  struct Guard {
-    exec::SimdPath saved = exec::simd_path();
-    ~Guard() { exec::set_simd_path(saved); }
-  } guard;
-  for (const Scene& scene :
-       {small_scene("mls", 2, "explicit", kFused), small_scene("apic", 3, "explicit", kFused),
-        small_scene("flip", 2, "explicit", kFused), material_scene(kFused)}) {
-    std::vector<Real> ref;
-    for (const exec::SimdPath path :
-         {exec::SimdPath::Baseline, exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
-      if (!exec::simd_path_supported(path)) {
-        std::printf("SIMD path %s: skipped\n", exec::simd_path_name(path));
-        continue;
-      }
-      exec::set_simd_path(path);
-      for (const exec::Space& space : {exec::Space(), exec::Space(exec::Backend::TBB, 2)}) {
-        MpmSolver s = build_solver(scene);
-        for (int i = 0; i < 12; ++i) s.step(space, s.stable_dt(space));
-        const std::vector<Real> st = state_bytes(s);
-        if (ref.empty()) {
-          ref = st;
-          continue;
-        }
-        ASSERT_EQ(st.size(), ref.size());
-        EXPECT_TRUE(bitwise_equal(st.data(), ref.data(), st.size()))
-            << exec::simd_path_name(path) << " on " << space.describe();
-      }
-    }
-  }
+  expect_bitwise_on_every_simd_path(kFused, 12);
 }
 
 // The particles are not re-sorted every substep: they stay in their bins (in their order) while
