@@ -122,40 +122,75 @@ inline void expect_plastic_flow_and_melting(const MpmSolver& s) {
   EXPECT_GT(melted, 10);
 }
 
-// The AVX2 and AVX-512 builds of the kernels give the baseline's bits (Serial and 2 TBB threads):
-// `steps` CFL substeps of each of the small MLS, APIC and FLIP scenes and the materials scene,
-// `simulation` added to each scene's simulation block (the transfer pass, the sort).
+// Run-time vector width (core/exec/simd.hpp): the kernels compiled for AVX2 and AVX-512 give
+// the baseline's state bit for bit, on Serial and on 2 TBB threads. Paths this CPU (or build)
+// lacks are skipped, saying so.
+struct SimdGuard {  // restores the path a test found
+  exec::SimdPath saved = exec::simd_path();
+  ~SimdGuard() { exec::set_simd_path(saved); }
+};
+
+// The state after `steps` substeps of `scene` on every supported path and two configurations,
+// compared with the baseline path on Serial.
+inline void expect_same_on_every_path(const Scene& scene, int steps) {
+  SimdGuard guard;
+  std::vector<Real> ref;
+  for (const exec::SimdPath path :
+       {exec::SimdPath::Baseline, exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
+    if (!exec::simd_path_supported(path)) {
+      std::printf("SIMD path %s: skipped (%s)\n", exec::simd_path_name(path),
+                  exec::simd_path_compiled(path) ? "this CPU lacks it" : "not in this build");
+      continue;
+    }
+    exec::set_simd_path(path);
+    for (const exec::Space& space : {exec::Space(), exec::Space(exec::Backend::TBB, 2)}) {
+      MpmSolver s = build_solver(scene);
+      for (int i = 0; i < steps; ++i) s.step(space, s.stable_dt(space));
+      const std::vector<Real> st = state_bytes(s);
+      if (ref.empty()) {
+        ref = st;
+        continue;
+      }
+      ASSERT_EQ(st.size(), ref.size());
+      EXPECT_TRUE(bitwise_equal(st.data(), ref.data(), st.size()))
+          << exec::simd_path_name(path) << " on " << space.describe();
+    }
+    if (path != exec::SimdPath::Baseline)
+      std::printf("SIMD path %s: bitwise the baseline's\n", exec::simd_path_name(path));
+  }
+}
+
+// The same for the small MLS, APIC and FLIP scenes and the materials scene, `simulation` added to
+// each scene's simulation block (the transfer pass, the sort), `steps` CFL substeps each.
 inline void expect_bitwise_on_every_simd_path(const std::string& simulation, int steps) {
-  struct Guard {
-    exec::SimdPath saved = exec::simd_path();
-    ~Guard() { exec::set_simd_path(saved); }
-  } guard;
   for (const Scene& scene :
        {small_scene("mls", 2, "explicit", simulation),
         small_scene("apic", 3, "explicit", simulation),
-        small_scene("flip", 2, "explicit", simulation), material_scene(simulation)}) {
-    std::vector<Real> ref;
-    for (const exec::SimdPath path :
-         {exec::SimdPath::Baseline, exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
-      if (!exec::simd_path_supported(path)) {
-        std::printf("SIMD path %s: skipped\n", exec::simd_path_name(path));
-        continue;
-      }
-      exec::set_simd_path(path);
-      for (const exec::Space& space : {exec::Space(), exec::Space(exec::Backend::TBB, 2)}) {
-        MpmSolver s = build_solver(scene);
-        for (int i = 0; i < steps; ++i) s.step(space, s.stable_dt(space));
-        const std::vector<Real> st = state_bytes(s);
-        if (ref.empty()) {
-          ref = st;
-          continue;
-        }
-        ASSERT_EQ(st.size(), ref.size());
-        EXPECT_TRUE(bitwise_equal(st.data(), ref.data(), st.size()))
-            << exec::simd_path_name(path) << " on " << space.describe();
-      }
-    }
+        small_scene("flip", 2, "explicit", simulation), material_scene(simulation)})
+    expect_same_on_every_path(scene, steps);
+}
+
+// A frame's start unprimes the bins and the grid (a checkpoint holds particles only): a run
+// unprimed at a substep is bitwise a fresh solver started from that substep's particles and
+// clock, `steps` CFL substeps later.
+inline void expect_unprimed_start_is_a_fresh_start(const Scene& scene, int steps) {
+  const exec::Space space(exec::Backend::TBB, 2);
+  MpmSolver a = build_solver(scene);
+  for (int i = 0; i < 4; ++i) a.step(space, a.stable_dt(space));
+  MpmSolver::Snapshot snap;
+  a.save(snap);
+  MpmSolver b = build_solver(scene);
+  b.restore(snap);
+  b.restore_clock(a.time(), a.step_count());
+  a.unprime();
+  for (int i = 0; i < steps; ++i) {
+    const Real dt = a.stable_dt(space);
+    a.step(space, dt);
+    b.step(space, dt);
   }
+  const std::vector<Real> sa = state_bytes(a), sb = state_bytes(b);
+  ASSERT_EQ(sa.size(), sb.size());
+  EXPECT_TRUE(bitwise_equal(sa.data(), sb.data(), sa.size()));
 }
 
 }  // namespace amalgam::test

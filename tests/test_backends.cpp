@@ -68,44 +68,7 @@ TEST(BackendDeterminism, ViscousFlipKeepsTheVelocityGradient) {
 
 // Run-time vector width (core/exec/simd.hpp): the kernels compiled for AVX2 and AVX-512 give
 // the baseline's state bit for bit, on Serial and on 2 TBB threads. Paths this CPU (or build)
-// lacks are skipped, saying so.
-namespace {
-struct SimdGuard {  // restores the path a test found
-  exec::SimdPath saved = exec::simd_path();
-  ~SimdGuard() { exec::set_simd_path(saved); }
-};
-
-// The state after `steps` substeps of `scene` on every supported path and two configurations,
-// compared with the baseline path on Serial.
-void expect_same_on_every_path(const Scene& scene, int steps) {
-  SimdGuard guard;
-  std::vector<Real> ref;
-  for (const exec::SimdPath path :
-       {exec::SimdPath::Baseline, exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
-    if (!exec::simd_path_supported(path)) {
-      std::printf("SIMD path %s: skipped (%s)\n", exec::simd_path_name(path),
-                  exec::simd_path_compiled(path) ? "this CPU lacks it" : "not in this build");
-      continue;
-    }
-    exec::set_simd_path(path);
-    for (const exec::Space& space : {exec::Space(), exec::Space(exec::Backend::TBB, 2)}) {
-      MpmSolver s = build_solver(scene);
-      for (int i = 0; i < steps; ++i) s.step(space, s.stable_dt(space));
-      const std::vector<Real> st = state_bytes(s);
-      if (ref.empty()) {
-        ref = st;
-        continue;
-      }
-      ASSERT_EQ(st.size(), ref.size());
-      EXPECT_TRUE(test::bitwise_equal(st.data(), ref.data(), st.size()))
-          << exec::simd_path_name(path) << " on " << space.describe();
-    }
-    if (path != exec::SimdPath::Baseline)
-      std::printf("SIMD path %s: bitwise the baseline's\n", exec::simd_path_name(path));
-  }
-}
-}  // namespace
-
+// lacks are skipped, saying so (expect_same_on_every_path, mpm_test_scenes.hpp).
 TEST(SimdPaths, EveryTransferAndOrderBitwiseOnEveryPath) {
   if (exec::supported_simd_paths().size() < 2)
     GTEST_SKIP() << "only the baseline path runs here: " << exec::simd_description();

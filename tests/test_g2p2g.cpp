@@ -213,22 +213,5 @@ TEST(G2P2GFallback, AParticlePastTheMarginRescattersLikeAPrimedStart) {
 // A frame's start unprimes the grid (a checkpoint holds particles only): a run unprimed at a
 // substep is bitwise a fresh solver started from that substep's particles and clock.
 TEST(G2P2GFallback, UnprimedStartIsAFreshStartFromTheParticles) {
-  const Scene scene = small_scene("apic", 2, "explicit", kFused);
-  const exec::Space space(exec::Backend::TBB, 2);
-  MpmSolver a = build_solver(scene);
-  for (int i = 0; i < 4; ++i) a.step(space, a.stable_dt(space));
-  MpmSolver::Snapshot snap;
-  a.save(snap);
-  MpmSolver b = build_solver(scene);
-  b.restore(snap);
-  b.restore_clock(a.time(), a.step_count());
-  a.unprime();
-  for (int i = 0; i < 4; ++i) {
-    const Real dt = a.stable_dt(space);
-    a.step(space, dt);
-    b.step(space, dt);
-  }
-  const std::vector<Real> sa = state_bytes(a), sb = state_bytes(b);
-  ASSERT_EQ(sa.size(), sb.size());
-  EXPECT_TRUE(bitwise_equal(sa.data(), sb.data(), sa.size()));
+  expect_unprimed_start_is_a_fresh_start(small_scene("apic", 2, "explicit", kFused), 4);
 }

@@ -140,24 +140,7 @@ TEST(LazySortRestart, AParticlePastTheMarginResortsLikeAnUnprimedStart) {
 // substep is bitwise a fresh solver started from that substep's particles and clock, and
 // different from the run that kept its bins (the bins' order is part of the rounding).
 TEST(LazySortRestart, UnprimedStartIsAFreshStartFromTheParticles) {
-  const Scene scene = small_scene("apic", 2, "explicit", kLazy);
-  const exec::Space space(exec::Backend::TBB, 2);
-  MpmSolver a = build_solver(scene);
-  for (int i = 0; i < 4; ++i) a.step(space, a.stable_dt(space));
-  MpmSolver::Snapshot snap;
-  a.save(snap);
-  MpmSolver b = build_solver(scene);
-  b.restore(snap);
-  b.restore_clock(a.time(), a.step_count());
-  a.unprime();
-  for (int i = 0; i < 8; ++i) {
-    const Real dt = a.stable_dt(space);
-    a.step(space, dt);
-    b.step(space, dt);
-  }
-  const std::vector<Real> sa = state_bytes(a), sb = state_bytes(b);
-  ASSERT_EQ(sa.size(), sb.size());
-  EXPECT_TRUE(bitwise_equal(sa.data(), sb.data(), sa.size()));
+  expect_unprimed_start_is_a_fresh_start(small_scene("apic", 2, "explicit", kLazy), 8);
 }
 
 // A particle moved out of its bin's dilated block after G2P (as a particle collision may push it):
