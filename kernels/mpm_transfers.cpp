@@ -687,6 +687,16 @@ void g2p2g_flush_impl(const exec::Space& space, const MpmGridView& g, const Real
   });
 }
 
+// Every active leaf li < g.nactive of g = the CH-lane dilated blocks listed for it (the two passes'
+// lanes between sorts; a distributed run's owned leaves, with other ranks' parts in import slots).
+template <int Order, int CH>
+void sum_dilated_leaves_impl(const exec::Space& space, const MpmGridView& g, const Real* blocks,
+                             const std::uint32_t* start, const std::uint32_t* items) {
+  exec::parallel_for(space, "mpm.p2g_sum", exec::Index(g.nactive), [&](exec::Index li) {
+    sum_dilated_leaf<Order, CH>(g, std::size_t(li), blocks, start, items);
+  });
+}
+
 // The two passes between sorts (MpmSolver's lazy sort): P2G of each bin into its dilated block
 // (CH = the two passes' lanes: 4, PIC/FLIP 8), all bins in one balanced loop; each active leaf is
 // summed (sum_dilated_leaf, the blocks in bin order) by the thread that completes the last block
@@ -958,6 +968,17 @@ void g2p_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGr
   dispatch<G2PDilated>(prm.order, prm.transfer, space, p, g, prm, far);
 }
 
+void sum_dilated_leaves(const exec::Space& space, const MpmGridView& g, int order, int ch,
+                        const Real* blocks, const std::uint32_t* start,
+                        const std::uint32_t* items) {
+  if (order == 3)
+    ch == 8 ? sum_dilated_leaves_impl<3, 8>(space, g, blocks, start, items)
+            : sum_dilated_leaves_impl<3, 4>(space, g, blocks, start, items);
+  else
+    ch == 8 ? sum_dilated_leaves_impl<2, 8>(space, g, blocks, start, items)
+            : sum_dilated_leaves_impl<2, 4>(space, g, blocks, start, items);
+}
+
 void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
   const bool flip = prm.transfer == Transfer::PicFlip;
   const bool force = flip || prm.split;  // b holds the force (PIC/FLIP, or the split scatter)
@@ -1038,8 +1059,8 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
 
 extern const MpmKernelTable mpm_kernels;
 const MpmKernelTable mpm_kernels = {
-    &grid_clear, &p2g,        &clear_node4, &p2g_positions, &grid_update, &grid_apply_colliders,
-    &g2p,        &p2g_blocks, &g2p2g,       &g2p2g_flush,   &p2g_dilated, &g2p_dilated};
+    &grid_clear, &p2g,   &clear_node4, &p2g_positions, &grid_update, &grid_apply_colliders, &g2p,
+    &p2g_blocks, &g2p2g, &g2p2g_flush, &p2g_dilated,   &g2p_dilated, &sum_dilated_leaves};
 
 }  // namespace AMALGAM_ISA
 
@@ -1067,6 +1088,40 @@ std::size_t dilated_block_reals(int order, int ch) {
 std::size_t p2g_block_reals(int order, int ch) {
   const std::size_t B = std::size_t(kLeafDim + order);
   return B * B * B * std::size_t(ch);
+}
+
+void dilated_part_range(int order, int t, int* n0, int* n1) {
+  const int B = kLeafDim + order + 2 * kG2P2GMargin;
+  const int d[3] = {t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1};
+  for (int a = 0; a < 3; ++a) {  // as sum_dilated_leaf
+    n0[a] = std::max(0, -d[a] * kLeafDim - kG2P2GMargin);
+    n1[a] = std::min(kLeafDim, B - d[a] * kLeafDim - kG2P2GMargin);
+  }
+}
+
+int dilated_part_nodes(int order, int t) {
+  int n0[3], n1[3];
+  dilated_part_range(order, t, n0, n1);
+  return (n1[0] - n0[0]) * (n1[1] - n0[1]) * (n1[2] - n0[2]);
+}
+
+void copy_dilated_part(Real* block, int order, int ch, int t, Real* part, bool to_block) {
+  const int B = kLeafDim + order + 2 * kG2P2GMargin, M = kG2P2GMargin;
+  const int d[3] = {t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1};
+  int n0[3], n1[3];
+  dilated_part_range(order, t, n0, n1);
+  const std::size_t bytes = std::size_t(ch) * sizeof(Real);
+  for (int i = n0[0]; i < n1[0]; ++i)
+    for (int j = n0[1]; j < n1[1]; ++j)
+      for (int k = n0[2]; k < n1[2]; ++k, part += ch) {
+        Real* b = block + (((d[0] * kLeafDim + i + M) * B + d[1] * kLeafDim + j + M) * B +
+                           d[2] * kLeafDim + k + M) *
+                              ch;
+        if (to_block)
+          std::memcpy(b, part, bytes);
+        else
+          std::memcpy(part, b, bytes);
+      }
 }
 
 void copy_block_part(const Real* block, int order, int ch, int t, Real* out) {

@@ -205,6 +205,18 @@ void p2g_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGr
                  const std::uint32_t* items, const std::int32_t* target, std::uint8_t* far);
 void g2p_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
                  const MpmStepParams& prm, std::uint8_t* far);
+// Every active leaf li < g.nactive (g.active_leaves) = the parts of the dilated blocks (ch lanes:
+// 4, or 8 with PIC/FLIP's force) listed for it (start / items as g2p2g_flush), in list order: the
+// sums of p2g_dilated without its scatter (a distributed run's owned leaves, solvers/
+// mpm_distributed.cpp: its bins' blocks and other ranks' parts copied into blocks of their own).
+void sum_dilated_leaves(const exec::Space& space, const MpmGridView& g, int order, int ch,
+                        const Real* blocks, const std::uint32_t* start, const std::uint32_t* items);
+// The part of a dilated block in the leaf at the bin's leaf + (t / 9 - 1, t / 3 % 3 - 1,
+// t % 3 - 1) (t = 0..26): its nodes n0 <= n < n1 of that leaf, their count, and the part copied
+// between a dilated block (ch lanes) and `part` (the nodes in leaf order, z fastest, ch each).
+void dilated_part_range(int order, int t, int* n0, int* n1);
+int dilated_part_nodes(int order, int t);
+void copy_dilated_part(Real* block, int order, int ch, int t, Real* part, bool to_block);
 
 // The kernels above for one instruction set: mpm_transfers.cpp is compiled once per vector width
 // (core/exec/simd.hpp), each copy in its namespace with one of these tables; the functions above
@@ -234,6 +246,8 @@ struct MpmKernelTable {
                       const std::int32_t*, std::uint8_t*);
   void (*g2p_dilated)(const exec::Space&, const MpmParticleView&, const MpmGridView&,
                       const MpmStepParams&, std::uint8_t*);
+  void (*sum_dilated_leaves)(const exec::Space&, const MpmGridView&, int, int, const Real*,
+                             const std::uint32_t*, const std::uint32_t*);
 };
 
 }  // namespace amalgam

@@ -77,6 +77,11 @@ void g2p_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGr
     throw std::logic_error("g2p_dilated: the grid view has no bin_nbr27");
   mpm().g2p_dilated(space, p, g, prm, far);
 }
+void sum_dilated_leaves(const exec::Space& space, const MpmGridView& g, int order, int ch,
+                        const Real* blocks, const std::uint32_t* start,
+                        const std::uint32_t* items) {
+  mpm().sum_dilated_leaves(space, g, order, ch, blocks, start, items);
+}
 // The material update's SVDs run a vector of particles at a time: the path's width. The particle
 // collisions run the baseline's code: only their half-space test is a loop across particles.
 void update_material_state(const exec::Space& space, const MpmParticleView& p,

@@ -33,45 +33,20 @@
 #include "core/errors.hpp"
 #include "core/geometry/level_set_collider.hpp"
 #include "core/math/bspline.hpp"
+#include "solvers/mpm_ranks.hpp"
 #include "solvers/mpm_solver.hpp"
 
 namespace amalgam {
 
+using mpm_dist::key_leaf;
+using mpm_dist::kPeerMargin;
+using mpm_dist::leaf_centre;
+using mpm_dist::leaf_key;
+
 namespace {
 constexpr double kImbalance = 1.25;  // max/mean particles per rank that triggers a repartition
 constexpr std::uint64_t kRepartitionGap = 16;  // substeps between repartitions at least
-// The exchange peers: the ranks whose cut boxes come within 1.5 leaves of this rank's (node
-// units, as the leaf centres). A leaf next to one of this rank's (its bins' +x/+y/+z neighbours,
-// a migrating particle's new leaf) has its centre within 1.25 leaves of an own leaf's centre
-// (leaf_centre moves centres by under a quarter leaf), so its owner is a peer.
-constexpr double kPeerMargin = 1.5 * kLeafDim;
 
-// A leaf coordinate as one 63-bit key whose order is the lexicographic (x, y, z) order of the
-// single process's bins (sparse_grid/binning.cpp).
-constexpr int kKeyBits = 21;
-constexpr std::int64_t kKeyBias = std::int64_t(1) << (kKeyBits - 1);
-std::uint64_t leaf_key(const Vec3i& l) {
-  return (std::uint64_t(l[0] + kKeyBias) << (2 * kKeyBits)) |
-         (std::uint64_t(l[1] + kKeyBias) << kKeyBits) | std::uint64_t(l[2] + kKeyBias);
-}
-Vec3i key_leaf(std::uint64_t k) {
-  const std::uint64_t mask = (std::uint64_t(1) << kKeyBits) - 1;
-  return Vec3i(int(std::int64_t((k >> (2 * kKeyBits)) & mask) - kKeyBias),
-               int(std::int64_t((k >> kKeyBits) & mask) - kKeyBias),
-               int(std::int64_t(k & mask) - kKeyBias));
-}
-// The point Zoltan partitions for a leaf: its centre in node units, moved by less than a quarter
-// leaf along each axis by a hash of the other two coordinates. RCB splits the points of one cut
-// plane between its two sides by weight, but the kept cut (Zoltan_LB_Point_Assign) puts the whole
-// plane on one side: with a lattice of leaf centres a rank got 80 % of jelly_drop's particles.
-// Moved, the leaves of a plane have different coordinates and the cut falls between them.
-void leaf_centre(const Vec3i& l, double* c) {
-  for (int a = 0; a < 3; ++a) {
-    const std::uint32_t h =
-        std::uint32_t(l[(a + 1) % 3]) * 73856093u ^ std::uint32_t(l[(a + 2) % 3]) * 19349663u;
-    c[a] = (l[a] + 0.5 + 0.25 * double((h >> 8) & 0xFFFF) / 65536.0) * kLeafDim;
-  }
-}
 int colour_of(const Vec3i& l) {
   return ((l[0] & 1) << 2) | ((l[1] & 1) << 1) | (l[2] & 1);
 }
@@ -109,84 +84,10 @@ Vec3i leaf_of_order(const Vec3& x, Real inv_dx) {
 }
 }  // namespace
 
-struct MpmSolver::Ranks {
-  dist::RcbCuts cuts;
-  std::unordered_map<std::uint64_t, int> owner_cache;  // leaf key -> rank, for these cuts
-  std::vector<int> peers;                              // cuts.neighbours(kPeerMargin)
-  std::vector<Vec3i> migrate_leaf;  // migrate's scratch: each particle's leaf and rank
-  std::vector<int> migrate_dest;
-  std::vector<std::uint32_t> migrate_movers;
-  bool bins_match = false;  // the particles are in the order of bins_ (the last sort)
-  std::int64_t count_most = 0, count_total = 0;  // particles per rank before the last migrate
-  std::vector<Vec3i> last_bin_leaves;
-  std::uint64_t sorts = 0, same_bin_leaves = 0;
-  std::uint64_t last_partition = 0;  // step of the last (re)partition
-  std::uint64_t repartitions = 0;
-  double balanced = 1;  // max/mean particles per rank right after the last partition
-  // Set-up: the most particles a rank held before distribute, of how many (the summary).
-  std::uint64_t set_up_most = 0, set_up_total = 0;
-  int force_every = 0;  // test hook: repartition every N substeps
-  // Until the first sort the particles are in the order they had on one process (frame 0, or
-  // the checkpoint's): two keys per particle whose order is that one (its index there, or a
-  // per-rank checkpoint's order keys). After it, (bin leaf, id) is that order.
-  bool sorted = false;
-  std::vector<std::uint64_t> presort;
-  // This substep's exchange plan.
-  std::vector<std::uint32_t> export_bins;  // local bins whose block reaches a ghost
-  struct Export {
-    int rank;
-    int t;
-    std::size_t offset;  // in Reals, in the send buffer of `rank`
-  };
-  std::vector<std::uint32_t> export_start;  // per export bin: its exports
-  std::vector<Export> exports;
-  std::vector<std::size_t> send_reals;  // per rank
-  std::vector<Vec3i> import_leaf;       // received parts: target leaf, block neighbour t, rank
-  std::vector<int> import_t, import_rank;
-  std::vector<std::vector<char>> received;
-  std::vector<P2GImport> imports;
-  std::array<std::uint32_t, 9> import_colour_start{};
-  // The export bins' P2G blocks, kept for the colour loop's flush (scattered once): per bin its
-  // slot in `kept` or -1.
-  std::vector<Real> kept;
-  std::vector<std::int32_t> kept_slot;
-  std::vector<std::int32_t> owned_active;
-  // The ghost node rows, by peer rank: (local leaf slot, mask of the block parts t = 1..7 read
-  // there), sorted by leaf key on both sides: what this rank sends (its leaves others read) and
-  // receives (its ghost leaves). Both sides know them from the plan's heads.
-  struct RowPart {
-    std::uint32_t slot;
-    std::uint32_t mask;
-  };
-  std::vector<std::vector<RowPart>> rows_send, rows_recv;
-  std::vector<std::size_t> rows_send_nodes, rows_recv_nodes;  // per rank
-  // Overlap (the exchanges travel while the interior works): the bins that reach no ghost leaf,
-  // scattered into `kept` while the partial sums travel and gathered (G2P) while the node rows
-  // do; the owned leaves whose rows others read first in the grid update's order.
-  std::vector<std::uint32_t> interior_bins;
-  std::vector<std::int32_t> update_order;
-  std::size_t row_leaves = 0;  // update_order[0, row_leaves): leaves in some rows_send
-  std::vector<std::vector<char>> p2g_out, rows_out;  // alive until their exchange starts again
-  dist::Comm::Pending p2g_pending, rows_pending;
-  std::vector<Real*> row_channels;  // the node4 arrays whose rows start_ghost_rows sent
-  bool g2p_interior_done = false;   // update_grid_velocities_distributed gathered interior_bins
-  // G2P over a subset of the bins (g2p_bins): their neighbour tables, particle ranges, leaves.
-  std::vector<std::array<std::int32_t, 8>> sub_nbr8;
-  std::vector<std::uint32_t> sub_start, sub_end;
-  std::vector<Vec3i> sub_leaf;
-  std::uint64_t halo_leaves = 0, halo_parts = 0;  // per substep, this rank (for the summary)
-
-  int owner(const Vec3i& l) {
-    const std::uint64_t k = leaf_key(l);
-    const auto it = owner_cache.find(k);
-    if (it != owner_cache.end()) return it->second;
-    double c[3];
-    leaf_centre(l, c);
-    const int r = cuts.owner(c);
-    owner_cache.emplace(k, r);
-    return r;
-  }
-};
+// The nodes of a ghost row: the plan's parts, dilated (re-sorting only when needed) or not.
+const std::vector<std::uint16_t>& MpmSolver::Ranks::row_nodes(int order, std::uint32_t mask) {
+  return dilated ? dilated_row_nodes(order, mask) : part_nodes(order, mask);
+}
 
 Vec3i MpmSolver::particle_leaf(const Vec3& x) const {
   const Real inv_dx = Real(1) / settings_.dx;
@@ -211,10 +112,6 @@ void MpmSolver::refuse_distributed() const {
   // be the single process's bits. (Variants that fall back to two passes on one process, e.g.
   // sleeping, run distributed as usual; ranks_ is not set yet here.)
   if (fused_eligible()) refuse("the fused G2P2G substep (simulation.transfer_pass \"fused\") is");
-  // Likewise re-sorting only when needed: one process sums each node's particles in the order
-  // of bins kept between sorts, and the ranks migrate and sort every substep.
-  if (sort_when_needed_eligible())
-    refuse("re-sorting only when needed (simulation.sort \"when_needed\") is");
 }
 
 // Every rank builds the field colliders around the blocks of all ranks' particles: the region
@@ -620,6 +517,7 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
   const int R = comm.size(), me = comm.rank(), order = settings_.order;
   const int ch = settings_.transfer == Transfer::PicFlip || fused_positions() ? 8 : 4;
   exec::ScopedRegion region(space.profiler(), "dist.plan");
+  rk.dilated = false;
   rk.export_bins.clear();
   rk.export_start.assign(1, 0);
   rk.exports.clear();
@@ -695,7 +593,7 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
         const std::int32_t slot = grid_.find_leaf(key_leaf(key) * kLeafDim);
         if (slot < 0) throw std::logic_error("MPM halo: a ghost row's leaf is not in the grid");
         out[std::size_t(q)].push_back({std::uint32_t(slot), mask});
-        nodes[std::size_t(q)] += part_nodes(order, mask).size();
+        nodes[std::size_t(q)] += part_nodes(order, mask).size();  // (the +x/+y/+z parts)
       }
     }
   };
@@ -858,18 +756,8 @@ void MpmSolver::grid_to_particle_distributed(const exec::Space& space, Real dt) 
 // and leaves.
 void MpmSolver::g2p_bins(const exec::Space& space, const std::vector<std::uint32_t>& list,
                          Real dt) {
-  Ranks& rk = *ranks_;
-  const MpmGridView g = grid_view();
-  rk.sub_nbr8.resize(list.size()), rk.sub_start.resize(list.size());
-  rk.sub_end.resize(list.size()), rk.sub_leaf.resize(list.size());
-  for (std::size_t k = 0; k < list.size(); ++k) {
-    const std::uint32_t b = list[k];
-    rk.sub_nbr8[k] = g.nbr8[b], rk.sub_start[k] = g.bin_start[b];
-    rk.sub_end[k] = g.end_of(b), rk.sub_leaf[k] = g.bin_leaf[b];
-  }
-  MpmGridView s = g;
-  s.nbr8 = rk.sub_nbr8.data(), s.bin_start = rk.sub_start.data();
-  s.bin_end = rk.sub_end.data(), s.bin_leaf = rk.sub_leaf.data(), s.nbins = list.size();
+  MpmGridView s = ranks_->sub_view(grid_view(), list);
+  s.nactive = grid_view().nactive;
   g2p(space, particle_view(), s, step_params(dt));
 }
 
@@ -896,7 +784,7 @@ void MpmSolver::start_ghost_rows(const exec::Space& space) {
     Real* o = reinterpret_cast<Real*>(out[q].data());
     for (const Ranks::RowPart& r : rk.rows_send[q])
       for (const Real* c : channel)
-        for (std::uint16_t n : part_nodes(settings_.order, r.mask)) {
+        for (std::uint16_t n : rk.row_nodes(settings_.order, r.mask)) {
           std::memcpy(o, c + (std::size_t(r.slot) * kLeafNodes + n) * 4, 4 * sizeof(Real));
           o += 4;
         }
@@ -926,7 +814,7 @@ void MpmSolver::finish_ghost_rows(const exec::Space& space) {
     const Real* i = reinterpret_cast<const Real*>(in[q].data());
     for (const Ranks::RowPart& r : rk.rows_recv[q])
       for (Real* c : channel)
-        for (std::uint16_t n : part_nodes(settings_.order, r.mask)) {
+        for (std::uint16_t n : rk.row_nodes(settings_.order, r.mask)) {
           std::memcpy(c + (std::size_t(r.slot) * kLeafNodes + n) * 4, i, 4 * sizeof(Real));
           i += 4;
         }

@@ -21,6 +21,7 @@
 // grids differ in rounding (the force's dt applied at the node, blocks summed in another order).
 #include <algorithm>
 
+#include "core/dist/comm.hpp"
 #include "kernels/material_update.hpp"
 #include "solvers/mpm_solver.hpp"
 
@@ -31,7 +32,7 @@ bool MpmSolver::fused_eligible() const {
 }
 
 bool MpmSolver::sort_when_needed_eligible() const {
-  return sorts_when_needed(settings_, ranks_ != nullptr);
+  return sorts_when_needed(settings_);
 }
 
 void MpmSolver::prime_grid(const exec::Space& space) {
@@ -104,20 +105,25 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
     return std::any_of(f.begin(), f.end(), [](std::uint8_t x) { return x != 0; });
   };
   bool sorted = false;
-  if (!primed_ || any(lazy_far_)) {
+  bool need = !primed_ || any(lazy_far_);
+  // Several ranks sort together, where one process would (solvers/mpm_lazy_distributed.cpp).
+  if (ranks_) need = lazy_sort_needed_distributed(space, need);
+  if (need) {
     if (primed_) ++lazy_resorts_;
     sort_particles(space);
     sorted = true;
   }
   const int ch = p2g_channels(settings_.transfer, false);
-  const std::size_t budget =
-      std::max(kG2P2GBlocksMinBudget, kG2P2GBlocksBytesPerParticle * particles_.size());
   // The dilated blocks of the sorted bins within the budget? Otherwise the sorted particles take
-  // the plain two passes this substep, and the next one sorts again.
+  // the plain two passes this substep, and the next one sorts again. On several ranks the budget
+  // of the whole run (every rank decides alike, as one process would).
   auto fits = [&] {
-    const std::size_t reals = bins_.count() * dilated_block_reals(settings_.order, ch);
+    std::uint64_t nb = bins_.count(), n = particles_.size();
+    if (ranks_) nb = dist::Comm::world().sum(nb), n = dist::Comm::world().sum(n);
+    const std::size_t budget = std::max(kG2P2GBlocksMinBudget, kG2P2GBlocksBytesPerParticle * n);
+    const std::size_t reals = nb * dilated_block_reals(settings_.order, ch);
     if (reals * sizeof(Real) > budget) return false;
-    if (p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);
+    if (!ranks_ && p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);
     return true;
   };
   auto plain_two_passes = [&] {
@@ -139,6 +145,15 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
   if (!fits()) {  // (kept bins always fit: they fitted when they were sorted)
     if (!sorted) sort_particles(space);
     return plain_two_passes();
+  }
+  if (ranks_) {
+    if (sorted) update_grid_lazy_distributed(space);
+    p2g_lazy_distributed(space, dt);
+    g2p_lazy_distributed(space, dt);  // the grid update, the ghost rows, G2P with far flags
+    collide_particles(space, dt);
+    if (material_update_) update_materials(space, dt);
+    primed_ = true;
+    return;
   }
   if (sorted) update_grid_fused(space);
   scatter();

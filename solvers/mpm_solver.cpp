@@ -20,10 +20,10 @@ bool fuses(const MpmSettings& s, bool distributed) {
          !s.sleep.enabled && !distributed;
 }
 
-bool sorts_when_needed(const MpmSettings& s, bool distributed) {
+bool sorts_when_needed(const MpmSettings& s) {
   MpmSettings f = s;
   f.fused = true;
-  return s.sort_when_needed && !s.fused && fuses(f, distributed);
+  return s.sort_when_needed && !s.fused && fuses(f, false);
 }
 
 GridChannels GridChannels::for_run(const MpmSettings& s, bool has_colliders, bool distributed) {

@@ -85,7 +85,7 @@ bool fuses(const MpmSettings& s, bool distributed);
 // Whether a run of these settings takes the two passes re-sorted only when needed: asked for, not
 // fused, and a variant that fuses (the same conditions: explicit, Eulerian, no particle domains
 // nor sleeping, one process).
-bool sorts_when_needed(const MpmSettings& s, bool distributed);
+bool sorts_when_needed(const MpmSettings& s);
 
 struct MpmDiagnostics {
   double kinetic = 0, elastic = 0;
@@ -368,6 +368,12 @@ class MpmSolver {
   void flush_fused_blocks(const exec::Space& space);    // the dilated blocks into the grid
   void update_grid_fused(const exec::Space& space);     // topology + tables of the sorted bins
   void step_sorted_when_needed(const exec::Space& space, Real dt);  // the two passes, lazy sort
+  // ... on several ranks (solvers/mpm_lazy_distributed.cpp): the collective sort decision, the
+  // dilated blocks' plan after a sort, P2G, and the grid update with G2P.
+  bool lazy_sort_needed_distributed(const exec::Space& space, bool need);
+  void update_grid_lazy_distributed(const exec::Space& space);
+  void p2g_lazy_distributed(const exec::Space& space, Real dt);
+  void g2p_lazy_distributed(const exec::Space& space, Real dt);
   std::vector<std::uint8_t> lazy_far_;  // per bin: a particle left its dilated block (G2P, P2G)
   std::uint64_t lazy_resorts_ = 0, lazy_unfit_ = 0;
   bool primed_ = false;
