@@ -125,7 +125,7 @@ void read_mpm_simulation(JsonObject& sim, Scene& s) {
   // The two passes re-sort the particles only when one leaves its bin's dilated block, where the
   // variant allows it (sorts_when_needed); docs/architecture.md.
   s.mpm.sort_when_needed =
-      sim.choice("sort", "every_substep", {"every_substep", "when_needed"}) == "when_needed";
+      sim.choice("sort", "when_needed", {"every_substep", "when_needed"}) == "when_needed";
   {
     JsonObject imp = sim.object("implicit");
     if (imp.has("tolerance") || imp.has("max_iterations") || imp.has("solver") ||

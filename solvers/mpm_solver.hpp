@@ -74,8 +74,9 @@ struct MpmSettings {
   // simulation.sort "when_needed": the two passes keep the bins of the last sort while every
   // particle's stencil fits its bin's dilated block, and re-sort only when one leaves it
   // (MpmSolver::step_sorted_when_needed, solvers/mpm_fused.cpp) where the variant allows it
-  // (sorts_when_needed); "every_substep": sort every substep.
-  bool sort_when_needed = false;
+  // (sorts_when_needed; on one process or several, solvers/mpm_lazy_distributed.cpp): the
+  // default; "every_substep": sort every substep.
+  bool sort_when_needed = true;
 };
 
 // Whether a run of these settings takes the fused substep (MpmSolver::step_fused): `fused` asked

@@ -6,7 +6,8 @@
 # checkpointed on 3 ranks resumes on 2 and on 1 (and a single-process checkpoint on 4 ranks) and
 # ends bitwise as the uninterrupted run; an interrupt on 4 ranks stops every rank with exit 130 and
 # a checkpoint that resumes bitwise on 3; a feature not distributed yet is refused (exit 3) with
-# its name, before any frame is written; a retried frame is retried on every rank alike; a scene
+# its name, before any frame is written; sorting every substep instead of only when needed (the
+# default) is bitwise on 1-4 ranks too; a retried frame is retried on every rank alike; a scene
 # with an emitter and a kill region runs bitwise on 1-4 ranks and resumes across rank counts.
 # Usage: dist_mpm_test.sh AMALGAM MPIEXEC SCENE SOURCES_SCENE RETRY_SCENE IMPLICIT_SCENE OUTDIR
 set -u
@@ -77,9 +78,16 @@ sed 's/"simulation": *{/"simulation": {"transfer_pass": "fused", /' "$scene" >"$
 grep -q '"transfer_pass": "fused"' "$out/fused.json" || { echo "could not make the fused scene"; exit 1; }
 refused 2 "$out/fused.json" "$out/fu" 'fused G2P2G substep (simulation.transfer_pass "fused") is not distributed yet' ||
   exit 1
-# So is re-sorting only when needed (one process sums the nodes in the order of kept bins).
-sed 's/"simulation": *{/"simulation": {"sort": "when_needed", /' "$scene" >"$out/lazy.json"
-grep -q '"sort": "when_needed"' "$out/lazy.json" || { echo "could not make the lazy-sort scene"; exit 1; }
-refused 2 "$out/lazy.json" "$out/ls" 're-sorting only when needed (simulation.sort "when_needed") is not distributed yet' ||
-  exit 1
-echo "distributed MPM: $all files bitwise identical on 1-4 ranks, 2x2 threads, with repartitions, resumed 3->2, 3->1 and 1->4 ranks and after an interrupt on 4; per-rank parts (--parts ranks) merged bitwise on 2 and 3 ranks and resumed 3->2, 3->1, 1->4, 2->3 and after an interrupt 3->2; with emitters and a kill region $(echo "$files" | wc -l) files on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1"
+# The runs above re-sort only when needed (the default, solvers/mpm_lazy_distributed.cpp); the
+# same scene sorted every substep (the plan of solvers/mpm_distributed.cpp, every substep) is
+# bitwise on 1-4 ranks too, and differs from the default (rounding: another summation order).
+top=$out sources_files=$files
+sed 's/"simulation": *{/"simulation": {"sort": "every_substep", /' "$scene" >"$top/every.json"
+grep -q '"sort": "every_substep"' "$top/every.json" || { echo "could not make the every-substep scene"; exit 1; }
+scene=$top/every.json out=$top/every
+reference 'frame_*.ply' 'frame_*.vdb' checkpoint.amck || exit 1
+ranks_match || exit 1
+cmp -s "$top/ref/checkpoint.amck" "$out/ref/checkpoint.amck" &&
+  { echo "sorting every substep gave the default's bits: the default did not re-sort only when needed"; exit 1; }
+out=$top files=$sources_files
+echo "distributed MPM: $all files bitwise identical on 1-4 ranks, 2x2 threads, with repartitions, resumed 3->2, 3->1 and 1->4 ranks and after an interrupt on 4; per-rank parts (--parts ranks) merged bitwise on 2 and 3 ranks and resumed 3->2, 3->1, 1->4, 2->3 and after an interrupt 3->2; with emitters and a kill region $(echo "$files" | wc -l) files on 1-4 ranks, 2x2 threads, resumed 3->2 and 3->1; sorted every substep: bitwise on 1-4 ranks and 2x2 threads"

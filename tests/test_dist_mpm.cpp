@@ -46,10 +46,13 @@ Collider floor() {
 
 // Two materials (a jelly blob and a snow blob) flying at each other with random affine velocity
 // fields over a frictional floor, a sphere collider falling on them.
-MpmSolver make_scene(Transfer t) {
+// sort_when_needed: re-sort only when needed (the default) or every substep.
+MpmSolver make_scene(Transfer t, bool sort_when_needed = true, int order = 2) {
   MpmSettings s;
   s.dx = Real(0.04);
   s.transfer = t;
+  s.order = order;
+  s.sort_when_needed = sort_when_needed;
   const Lame l = Lame::from_young_poisson(1e4, 0.3);
   MaterialParams jelly{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
   const Lame ls = Lame::from_young_poisson(4e4, 0.2);
@@ -177,23 +180,53 @@ TEST(DistMpm, HaloSumsEqualTheSingleProcessBitwise) {
   }
 }
 
+// Sorted every substep (the plan of every substep) and re-sorted only when needed (the plan kept
+// between sorts, solvers/mpm_lazy_distributed.cpp).
 TEST(DistMpm, MigrationAndRepartitionKeepEveryParticleOnceAndTheStateBitwise) {
   const dist::Comm& comm = dist::Comm::world();
-  ::setenv("AMALGAM_TEST_REPARTITION_EVERY", "7", 1);  // forced repartitions with migration
-  const exec::Space space(exec::Backend::TBB, 2);      // (OpenMP spins on oversubscribed cores)
-  MpmSolver ref = make_scene(Transfer::Mls), d = make_scene(Transfer::Mls);
-  const std::size_t n = ref.particles().size();
-  d.distribute(space);
-  ::unsetenv("AMALGAM_TEST_REPARTITION_EVERY");
-  expect_each_id_once(d, n);
-  std::size_t fewest = n;
-  step_both(space, ref, d, 40, &fewest);
-  if (comm.size() > 1) EXPECT_LT(fewest, n);            // the particles are split, not replicated
-  const std::string summary = d.distributed_summary();  // collective
-  if (comm.size() > 1) {
-    EXPECT_NE(summary.find(" repartitions"), std::string::npos);
+  for (bool lazy : {false, true}) {
+    SCOPED_TRACE(lazy ? "sort when needed" : "sort every substep");
+    ::setenv("AMALGAM_TEST_REPARTITION_EVERY", "7", 1);  // forced repartitions with migration
+    const exec::Space space(exec::Backend::TBB, 2);      // (OpenMP spins on oversubscribed cores)
+    MpmSolver ref = make_scene(Transfer::Mls, lazy), d = make_scene(Transfer::Mls, lazy);
+    const std::size_t n = ref.particles().size();
+    d.distribute(space);
+    ::unsetenv("AMALGAM_TEST_REPARTITION_EVERY");
+    expect_each_id_once(d, n);
+    std::size_t fewest = n;
+    step_both(space, ref, d, 40, &fewest);
+    if (comm.size() > 1) EXPECT_LT(fewest, n);            // the particles are split, not replicated
+    const std::string summary = d.distributed_summary();  // collective
+    if (comm.size() > 1) {
+      EXPECT_NE(summary.find(" repartitions"), std::string::npos);
+    }
+    expect_gathered_equal(d, ref);
   }
-  expect_gathered_equal(d, ref);
+}
+
+// Re-sorting only when needed on R ranks: every rank re-sorts at the substeps where the single
+// process does (the decision is reduced), between sorts no particle migrates and each owned node
+// sums its own and the other ranks' dilated-block parts in the single process's bin order: after
+// 40 substeps (MLS, APIC cubic, FLIP; a ball collider pushing particles) the gathered particles
+// are the single process's bits.
+TEST(DistMpm, SortWhenNeededResortsWhereOneProcessDoesAndStaysBitwise) {
+  const exec::Space space(exec::Backend::TBB, 2);
+  for (Transfer t : {Transfer::Mls, Transfer::Apic, Transfer::PicFlip}) {
+    SCOPED_TRACE(transfer_name(t));
+    const int order = t == Transfer::Apic ? 3 : 2;
+    MpmSolver ref = make_scene(t, true, order), d = make_scene(t, true, order);
+    const std::size_t n = ref.particles().size();
+    d.distribute(space);
+    ASSERT_TRUE(d.sort_when_needed_eligible());
+    std::size_t fewest = n;
+    for (int step = 0; step < 40; ++step) {
+      step_both(space, ref, d, 1, &fewest);
+      ASSERT_EQ(d.lazy_resorts(), ref.lazy_resorts()) << "substep " << step;
+    }
+    EXPECT_GT(ref.lazy_resorts(), 0u);
+    EXPECT_LT(ref.lazy_resorts(), 20u);
+    expect_gathered_equal(d, ref);
+  }
 }
 
 namespace {
