@@ -229,6 +229,30 @@ TEST(DistMpm, SortWhenNeededResortsWhereOneProcessDoesAndStaysBitwise) {
   }
 }
 
+// A particle moved out of its bin's dilated block between substeps (as a particle collision may
+// push one after G2P, whose far flags then miss it): the single process finds it in P2G and
+// re-sorts; the ranks find it before P2G (MpmSolver::lazy_sort_needed_distributed), re-sort at
+// the same substep and stay bitwise.
+TEST(DistMpm, SortWhenNeededFindsAParticleMovedAfterG2P) {
+  const exec::Space space(exec::Backend::TBB, 2);
+  MpmSolver ref = make_scene(Transfer::Mls), d = make_scene(Transfer::Mls);
+  d.distribute(space);
+  std::size_t fewest = ref.particles().size();
+  step_both(space, ref, d, 4, &fewest);
+  const std::uint64_t before = ref.lazy_resorts();
+  for (MpmSolver* s : {&ref, &d}) {  // particle id 17, wherever it is, 10 dx along +x
+    ParticleSet& ps = s->particles();
+    const std::int32_t* id = ps.int32(s->attributes().id);
+    for (std::size_t p = 0; p < ps.size(); ++p)
+      if (id[p] == 17) ps.vec3(s->attributes().x)[p] += Vec3(Real(0.4), 0, 0);
+  }
+  step_both(space, ref, d, 1, &fewest);
+  EXPECT_EQ(ref.lazy_resorts(), before + 1);  // found by the single process's P2G
+  EXPECT_EQ(d.lazy_resorts(), ref.lazy_resorts());
+  step_both(space, ref, d, 3, &fewest);
+  expect_gathered_equal(d, ref);
+}
+
 namespace {
 // A-ULMPM: two jelly blobs with their own configuration maps (adaptive with a tight criterion,
 // and Eulerian) thrown at each other over a floor, contact between them (separate, friction).
