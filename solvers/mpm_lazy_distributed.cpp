@@ -92,18 +92,18 @@ bool MpmSolver::lazy_sort_needed_distributed(const exec::Space& space, bool need
     const std::uint32_t* start = bins_.start.data();
     const Vec3i* leaf = bins_.leaf.data();
     need = exec::parallel_reduce(
-        space, "mpm.lazy_check", exec::Index(bins_.count()), 0,
-        [=](exec::Index b, int& out) {
-          const Vec3i origin = leaf[b] * kLeafDim - Vec3i::Constant(M);
-          for (std::uint32_t q = start[b]; q < start[b + 1] && !out; ++q)
-            for (int a = 0; a < 3; ++a) {  // as p2g_dilated's scatter and g2p_dilated's flag
-              const int d = (order == 3 ? BSpline<3>::base(x[q][a] * inv_dx)
-                                        : BSpline<2>::base(x[q][a] * inv_dx)) -
-                            origin[a];
-              out |= d < 0 || d + order >= B;
-            }
-        },
-        [](int a, int b) { return a | b; }) != 0;
+               space, "mpm.lazy_check", exec::Index(bins_.count()), 0,
+               [=](exec::Index b, int& out) {
+                 const Vec3i origin = leaf[b] * kLeafDim - Vec3i::Constant(M);
+                 for (std::uint32_t q = start[b]; q < start[b + 1] && !out; ++q)
+                   for (int a = 0; a < 3; ++a) {  // as p2g_dilated's scatter and g2p_dilated's flag
+                     const int d = (order == 3 ? BSpline<3>::base(x[q][a] * inv_dx)
+                                               : BSpline<2>::base(x[q][a] * inv_dx)) -
+                                   origin[a];
+                     out |= d < 0 || d + order >= B;
+                   }
+               },
+               [](int a, int b) { return a | b; }) != 0;
   }
   return dist::Comm::world().max(std::int64_t(need)) > 0;
 }
@@ -225,8 +225,7 @@ void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
     auto* first = by_leaf.data() + rk.sum_start[l];
     auto* last = by_leaf.data() + rk.sum_start[l + 1];
     std::sort(first, last);
-    for (auto* p = first; p != last; ++p)
-      rk.sum_items[std::size_t(p - by_leaf.data())] = p->second;
+    for (auto* p = first; p != last; ++p) rk.sum_items[std::size_t(p - by_leaf.data())] = p->second;
   }
   // The ghost rows, on both sides: the parts this rank's blocks reach in other ranks' leaves
   // (received) and those other ranks' blocks reach here (sent), merged per leaf, sorted by key.

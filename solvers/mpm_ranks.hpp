@@ -129,7 +129,7 @@ struct MpmSolver::Ranks {
   std::vector<Import> lazy_imports;  // in the order the ranks send them
   std::size_t lazy_slots = 0;        // block slots: local bins, then one per source bin
   std::vector<std::uint32_t> sum_start, sum_items;  // per owned active leaf: parts in bin order
-  std::vector<std::int32_t> no_target;  // all -1: p2g_dilated scatters without summing
+  std::vector<std::int32_t> no_target;              // all -1: p2g_dilated scatters without summing
   std::vector<std::uint8_t> sub_far;
   std::vector<std::array<std::int32_t, 27>> sub_nbr27;
   std::unordered_map<std::uint32_t, std::vector<std::uint16_t>> dilated_nodes[2];
