@@ -135,11 +135,11 @@ int bench_command(const std::vector<std::string>& args) {
   bool implicit = false;
   double fixed_dt = 0;
   try {
-    const Options o = parse_options(
-        args,
-        {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer", "--dt",
-         "--transfer-pass", "--sort", "--report", "--scale", "--warmup", "--cases", "--compare", "--commit"},
-        {"--help", "--implicit"});
+    const Options o = parse_options(args,
+                                    {"--particles", "--steps", "--reps", "--threads", "--backends",
+                                     "--transfer", "--dt", "--transfer-pass", "--sort", "--report",
+                                     "--scale", "--warmup", "--cases", "--compare", "--commit"},
+                                    {"--help", "--implicit"});
     if (o.flag("--help")) {
       std::cout << kBenchHelp;
       return kOk;
@@ -208,9 +208,9 @@ int bench_command(const std::vector<std::string>& args) {
   std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/"
             << int(std::lround(1 / so.dx)) << ", transfer=" << transfer_name(so.transfer)
             << ", transfer_pass=" << (so.fused ? "fused" : "two_pass")
-            << ", sort=" << sort_name(so.sort_when_needed)
-            << ", precision=" << real_name() << ", simd=" << exec::simd_description() << ", "
-            << steps << " substeps x " << reps << " reps (median, [min, max])\n";
+            << ", sort=" << sort_name(so.sort_when_needed) << ", precision=" << real_name()
+            << ", simd=" << exec::simd_description() << ", " << steps << " substeps x " << reps
+            << " reps (median, [min, max])\n";
   const Real dt = Real(1e-4);
   for (const auto backend : backends) {
     for (const int t : threads) {
@@ -268,7 +268,8 @@ int bench_command(const std::vector<std::string>& args) {
           "bytes_per_particle=%zu bytes_per_node=%.1f p2g_block_bytes_per_particle=%.1f simd=%s",
           exec::backend_name(backend), t, so.particles, sort_name(sort_when_needed), lazy_counts,
           median(rate), *std::min_element(rate.begin(), rate.end()),
-          *std::max_element(rate.begin(), rate.end()), ns({"mpm.p2g"}), ns({"mpm.g2p"}), ns({"mpm.g2p2g", "mpm.g2p2g_flush"}),
+          *std::max_element(rate.begin(), rate.end()), ns({"mpm.p2g"}), ns({"mpm.g2p"}),
+          ns({"mpm.g2p2g", "mpm.g2p2g_flush"}),
           ns({"bin.leaf_box", "bin.keys", "bin.radix_hist", "bin.radix_scatter",
               "particles.permute", "bin.find_runs"}),
           ns({"grid.topology"}), ns({"mpm.grid_clear", "mpm.grid_update"}), leaves, particle_bytes,
