@@ -107,16 +107,20 @@ void estimate_mpm(const SceneSpec& s, bool rest_positions, int ranks, RunEstimat
   MpmSolver probe(settings, s.materials, {}, s.heat_sources);
   if (rest_positions) probe.keep_rest_positions();
   const double dx = double(s.mpm.dx);
+  // The fused pass and the lazily sorted two passes scatter into dilated blocks.
+  const bool dilated = fuses(settings, ranks > 1) || sorts_when_needed(settings, ranks > 1);
   for (std::size_t k = 0; k < s.objects.size(); ++k) {
     const ObjectSpec& o = s.objects[k];
     const Vec3 centre = (o.min + o.max) / 2;
     const Real h = Real(dx / std::cbrt(double(o.particles_per_cell)));
     probe.add_particles({centre}, fastest_initial_velocity(o), Vec3::Zero(), centre, o.material,
                         h * h * h, o.temperature, o.configuration);
-    // Leaves (8 dx) over the bounding box widened by the stencil.
+    // Leaves (8 dx) over the bounding box widened by the stencil, and with the dilated blocks
+    // one more on the - side (update_grid_fused: the leaves the blocks' margin reaches).
     double leaves = 1;
     for (int a = 0; a < 3; ++a)
-      leaves *= std::ceil((double(o.max[a]) - double(o.min[a]) + 4 * dx) / (kLeafDim * dx)) + 1;
+      leaves *= std::ceil((double(o.max[a]) - double(o.min[a]) + 4 * dx) / (kLeafDim * dx)) +
+                (dilated ? 2 : 1);
     e.grid_leaves += leaves;
     // Bins: the leaves the bounding box itself overlaps.
     double bins = 1;

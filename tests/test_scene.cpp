@@ -450,15 +450,17 @@ TEST(Scene, ObjectSlicesInTurnAreTheWholeSample) {
   }
 }
 
-// The memory estimate counts P2G's blocks kept between substeps, one per bin: a box of 0.2 at
-// dx = 0.05 (leaves of 0.4) from 0.3 to 0.5 lies in 2 x 2 x 2 leaves, so 8 bins.
+// The memory estimate counts P2G's blocks kept between substeps, one per bin, and the leaves the
+// dilated blocks reach: a box from 0.3 to 0.55 at dx = 0.05 (leaves of 0.4) lies in 2 x 2 x 2
+// leaves, so 8 bins; the grid has the 3^3 leaves their stencils reach, 4^3 with the dilated
+// blocks (one more on the - side).
 namespace {
 Scene block_scene(const char* sort, const char* pass) {
   return parse_scene(std::string(R"({
   "simulation": {"dx": 0.05, "frames": 2, "sort": ")") +
                          sort + R"(", "transfer_pass": ")" + pass + R"("},
   "materials": {"jelly": {"density": 1000, "youngs_modulus": 1e4}},
-  "objects": [{"shape": "box", "min": [0.3,0.3,0.3], "max": [0.5,0.5,0.5], "material": "jelly"}]
+  "objects": [{"shape": "box", "min": [0.3,0.3,0.3], "max": [0.55,0.55,0.55], "material": "jelly"}]
 })",
                      "blocks.json");
 }
@@ -473,7 +475,11 @@ TEST(EstimateBlocks, WhenNeededAddsTheDilatedBlocks) {
   // MLS: 4 lanes; the plain (8 + 2)^3-node blocks, the dilated (10 + 2)^3-node ones.
   EXPECT_EQ(every.block_bytes, 8 * 1000 * 4 * real);
   EXPECT_EQ(lazy.block_bytes, 8 * 1728 * 4 * real);
-  EXPECT_EQ(lazy.bytes - every.bytes, lazy.block_bytes - every.block_bytes);
+  EXPECT_EQ(every.grid_leaves, 27);
+  EXPECT_EQ(lazy.grid_leaves, 64);
+  const double leaf =
+      double(build_solver(block_scene("every_substep", "two_pass")).grid().bytes_per_leaf());
+  EXPECT_EQ(lazy.bytes - every.bytes, lazy.block_bytes - every.block_bytes + (64 - 27) * leaf);
   EXPECT_EQ(lazy.block_bytes, 8 * double(dilated_block_reals(2, 4)) * real);
   // The fused pass's dilated blocks have 8 lanes.
   const RunEstimate fused = estimate_run(block_scene("every_substep", "fused"));
@@ -483,7 +489,8 @@ TEST(EstimateBlocks, WhenNeededAddsTheDilatedBlocks) {
             every.block_bytes);
 }
 
-// What the solver allocates after a few substeps, in each path: the estimate's bins and blocks.
+// What the solver allocates after a few substeps, in each path: the estimate's bins, blocks and
+// leaves.
 TEST(EstimateBlocks, MatchWhatTheSolverAllocates) {
   for (const auto& [sort, pass] :
        {std::pair{"every_substep", "two_pass"}, std::pair{"when_needed", "two_pass"},
@@ -495,5 +502,6 @@ TEST(EstimateBlocks, MatchWhatTheSolverAllocates) {
     for (int k = 0; k < 3; ++k) solver.step(space, solver.stable_dt(space));
     EXPECT_EQ(double(solver.bins().count()), e.bins) << sort << " " << pass;
     EXPECT_EQ(double(solver.p2g_block_bytes()), e.block_bytes) << sort << " " << pass;
+    EXPECT_EQ(double(solver.grid().leaf_count()), e.grid_leaves) << sort << " " << pass;
   }
 }
