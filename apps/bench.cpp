@@ -18,12 +18,16 @@ namespace {
 const char* kBenchHelp =
     "usage: amalgam bench [--particles N] [--steps S] [--reps R] [--threads LIST] [--backends LIST]\n"
     "                     [--transfer mls|apic|flip|pic] [--transfer-pass fused|two_pass]\n"
-    "                     [--implicit [--dt SECONDS]]\n"
+    "                     [--sort every_substep|when_needed] [--implicit [--dt SECONDS]]\n"
     "Runs the standard sphere scene (N particles, default 1e6, dx = 1/128, MLS, fixed corotated)\n"
     "for S timed substeps (default 10) after 2 warm-up substeps, R times (default 3), on each\n"
     "backend (default serial,openmp,tbb) and thread count (default 1,2), and prints one line per\n"
     "run with the median (min, max) particle-substeps per second and per-kernel ns per particle.\n"
     "--transfer-pass fused: one pass over the particles per substep (G2P2G; g2p2g_ns).\n"
+    "--sort (default: the scene default, simulation.sort): when_needed re-sorts the two passes'\n"
+    "particles only when one leaves its bin's dilated block; resorts= counts the timed substeps\n"
+    "that re-sorted, sort_unfit= those that sorted because the blocks exceeded their budget\n"
+    "(also printed for the fused pass, which always re-sorts when needed).\n"
     "--implicit: the same sphere stiffened to E = 1e7 with the implicit integrator, dx scaled so\n"
     "particles per cell stay those of 1e6 at 1/128, dt = 10x the explicit CFL step of that\n"
     "resolution (or --dt); adds CG iterations per substep (mean, max) and the solve's share.\n"
@@ -47,6 +51,9 @@ std::vector<std::string> split(const std::string& s) {
   std::string item;
   while (std::getline(ss, item, ',')) out.push_back(item);
   return out;
+}
+const char* sort_name(bool when_needed) {
+  return when_needed ? "when_needed" : "every_substep";
 }
 double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
@@ -128,17 +135,17 @@ int bench_command(const std::vector<std::string>& args) {
   bool implicit = false;
   double fixed_dt = 0;
   try {
-    const Options o = parse_options(
-        args,
-        {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer", "--dt",
-         "--transfer-pass", "--report", "--scale", "--warmup", "--cases", "--compare", "--commit"},
-        {"--help", "--implicit"});
+    const Options o = parse_options(args,
+                                    {"--particles", "--steps", "--reps", "--threads", "--backends",
+                                     "--transfer", "--dt", "--transfer-pass", "--sort", "--report",
+                                     "--scale", "--warmup", "--cases", "--compare", "--commit"},
+                                    {"--help", "--implicit"});
     if (o.flag("--help")) {
       std::cout << kBenchHelp;
       return kOk;
     }
     if (o.get("--report")) {
-      for (const char* k : {"--particles", "--transfer", "--dt", "--transfer-pass"})
+      for (const char* k : {"--particles", "--transfer", "--dt", "--transfer-pass", "--sort"})
         if (o.get(k)) throw std::invalid_argument(std::string(k) + " does not apply to --report");
       if (o.flag("--implicit"))
         throw std::invalid_argument("--implicit does not apply to --report");
@@ -182,6 +189,12 @@ int bench_command(const std::vector<std::string>& args) {
         throw std::invalid_argument("--transfer-pass expects fused or two_pass, got '" + *v + "'");
       so.fused = *v == "fused";
     }
+    if (auto* v = o.get("--sort")) {
+      if (*v != "every_substep" && *v != "when_needed")
+        throw std::invalid_argument("--sort expects every_substep or when_needed, got '" + *v +
+                                    "'");
+      so.sort_when_needed = *v == "when_needed";
+    }
     implicit = o.flag("--implicit");
     if (auto* v = o.get("--dt")) {
       if (!implicit) throw std::invalid_argument("--dt needs --implicit");
@@ -195,8 +208,9 @@ int bench_command(const std::vector<std::string>& args) {
   std::cout << "# amalgam bench: sphere, " << so.particles << " particles, dx=1/"
             << int(std::lround(1 / so.dx)) << ", transfer=" << transfer_name(so.transfer)
             << ", transfer_pass=" << (so.fused ? "fused" : "two_pass")
-            << ", precision=" << real_name() << ", simd=" << exec::simd_description() << ", "
-            << steps << " substeps x " << reps << " reps (median, [min, max])\n";
+            << ", sort=" << sort_name(so.sort_when_needed) << ", precision=" << real_name()
+            << ", simd=" << exec::simd_description() << ", " << steps << " substeps x " << reps
+            << " reps (median, [min, max])\n";
   const Real dt = Real(1e-4);
   for (const auto backend : backends) {
     for (const int t : threads) {
@@ -204,18 +218,32 @@ int bench_command(const std::vector<std::string>& args) {
       std::vector<double> rate;
       exec::Profiler prof;
       std::size_t leaves = 0, particle_bytes = 0, leaf_bytes = 0, block_bytes = 0;
+      bool sort_when_needed = false, lazy = false;
+      std::uint64_t resorts = 0, unfit = 0;  // in the timed substeps
       for (int r = 0; r < reps; ++r) {
         MpmSolver solver = make_bench_sphere(so);
         exec::Space warm(backend, t);
         for (int s = 0; s < 2; ++s) solver.step(warm, dt);
         exec::Profiler run_prof;
         exec::Space space(backend, t, &run_prof);
+        // Re-sorts of the lazy two passes or of the fused pass (the fused pass always re-sorts
+        // only when needed), and substeps whose dilated blocks exceeded their budget.
+        auto counts = [&] {
+          return solver.fused_eligible()
+                     ? std::make_pair(solver.fused_fallbacks(), solver.fused_unfused())
+                     : std::make_pair(solver.lazy_resorts(), solver.lazy_unfit());
+        };
+        const auto c0 = counts();
         const auto t0 = std::chrono::steady_clock::now();
         for (int s = 0; s < steps; ++s) solver.step(space, dt);
         const double sec =
             std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         rate.push_back(double(so.particles) * steps / sec);
         if (r == reps / 2) prof = run_prof;
+        sort_when_needed = solver.settings().sort_when_needed;
+        lazy = solver.fused_eligible() || solver.sort_when_needed_eligible();
+        resorts = counts().first - c0.first;
+        unfit = counts().second - c0.second;
         leaves = solver.grid().active_leaves().size();
         particle_bytes =
             solver.particles().bytes_per_particle() + solver.binning_bytes_per_particle();
@@ -228,15 +256,20 @@ int bench_command(const std::vector<std::string>& args) {
         for (auto* l : labels) s += prof.seconds(l);
         return s * per;
       };
-      char line[512];
+      char lazy_counts[96] = "";
+      if (lazy)
+        std::snprintf(lazy_counts, sizeof lazy_counts, " resorts=%llu sort_unfit=%llu",
+                      (unsigned long long)resorts, (unsigned long long)unfit);
+      char line[1024];
       std::snprintf(
           line, sizeof line,
-          "backend=%s threads=%d particles=%zu particle_substeps_per_s=%.4g min=%.4g max=%.4g "
-          "p2g_ns=%.1f g2p_ns=%.1f g2p2g_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f leaves=%zu "
+          "backend=%s threads=%d particles=%zu sort=%s%s particle_substeps_per_s=%.4g min=%.4g "
+          "max=%.4g p2g_ns=%.1f g2p_ns=%.1f g2p2g_ns=%.1f sort_ns=%.1f topology_ns=%.1f grid_ns=%.1f leaves=%zu "
           "bytes_per_particle=%zu bytes_per_node=%.1f p2g_block_bytes_per_particle=%.1f simd=%s",
-          exec::backend_name(backend), t, so.particles, median(rate),
-          *std::min_element(rate.begin(), rate.end()), *std::max_element(rate.begin(), rate.end()),
-          ns({"mpm.p2g"}), ns({"mpm.g2p"}), ns({"mpm.g2p2g", "mpm.g2p2g_flush"}),
+          exec::backend_name(backend), t, so.particles, sort_name(sort_when_needed), lazy_counts,
+          median(rate), *std::min_element(rate.begin(), rate.end()),
+          *std::max_element(rate.begin(), rate.end()), ns({"mpm.p2g"}), ns({"mpm.g2p"}),
+          ns({"mpm.g2p2g", "mpm.g2p2g_flush"}),
           ns({"bin.leaf_box", "bin.keys", "bin.radix_hist", "bin.radix_scatter",
               "particles.permute", "bin.find_runs"}),
           ns({"grid.topology"}), ns({"mpm.grid_clear", "mpm.grid_update"}), leaves, particle_bytes,

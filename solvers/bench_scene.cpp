@@ -14,6 +14,7 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   s.order = o.order;
   s.transfer = o.transfer;
   s.fused = o.fused;
+  s.sort_when_needed = o.sort_when_needed;
   s.implicit = o.implicit;
   s.configuration_maps = o.lagrangian;
   s.domains.enabled = o.domains;

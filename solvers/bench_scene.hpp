@@ -25,6 +25,9 @@ struct BenchSceneOptions {
   // domains (PIC/FLIP on linear weights; `transfer` and `order` unused); enrichment on.
   bool domains = false;
   bool fused = false;  // simulation.transfer_pass "fused" (G2P2G)
+  // simulation.sort "when_needed" (the two passes re-sort only when a particle leaves its bin's
+  // dilated block); the scene's default.
+  bool sort_when_needed = MpmSettings().sort_when_needed;
 };
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o);

@@ -8,6 +8,7 @@
 
 #include "core/errors.hpp"
 #include "core/geometry/triangle_mesh.hpp"
+#include "kernels/mpm_transfers.hpp"
 #include "solvers/mpm_solver.hpp"
 #include "solvers/pd_solver.hpp"
 
@@ -65,6 +66,33 @@ Vec3 fastest_initial_velocity(const ObjectSpec& o) {
   return far;
 }
 
+// P2G's blocks kept between substeps (MpmSolver::p2g_blocks_), one per bin, of the path these
+// settings take: the plain two passes' (8 + order)^3-node blocks, the fused pass's dilated
+// (10 + order)^3-node 8-lane blocks, the lazily sorted two passes' dilated blocks with the plain
+// lanes. A path whose blocks would exceed its budget runs without them (the colour phases) or
+// falls back to the plain ones. The budgets are MpmSolver's kP2GBlocks* and kG2P2GBlocks*
+// (private there; `EstimateBlocks.MatchWhatTheSolverAllocates` compares the two). Several ranks
+// keep their own blocks (sorting every substep: the bins that reach ghosts, and interior ones up
+// to a cap; re-sorting only when needed: every bin's dilated block plus one per other rank's bin
+// whose parts arrive, solvers/mpm_lazy_distributed.cpp): counted as one process's.
+double p2g_block_bytes(const MpmSettings& s, bool distributed, bool fused_positions, double bins,
+                       double particles) {
+  const double plain_budget = std::max(double(std::size_t(16) << 20), 64 * particles);
+  const double dilated_budget = std::max(double(std::size_t(64) << 20), 192 * particles);
+  const bool fused = fuses(s, distributed);
+  const double real = double(sizeof(Real));
+  const int ch = p2g_channels(s.transfer, fused || fused_positions);
+  double plain = bins * double(p2g_block_reals(s.order, ch)) * real;
+  if (plain > plain_budget) plain = 0;
+  double dilated = 0;
+  if (fused)
+    dilated = bins * double(g2p2g_block_reals(s.order)) * real;
+  else if (sorts_when_needed(s))
+    dilated = bins * double(dilated_block_reals(s.order, ch)) * real;
+  if (dilated > dilated_budget) dilated = 0;
+  return std::max(plain, dilated);  // the blocks only grow
+}
+
 // MPM: one particle per object, at its fastest initial velocity, in a solver of the scene's
 // settings and materials: its attribute layout gives the bytes per particle, its stable_dt the
 // first substep (wave speeds, speeds, viscosity and max_dt exactly as the run computes them).
@@ -80,17 +108,26 @@ void estimate_mpm(const SceneSpec& s, bool rest_positions, int ranks, RunEstimat
   MpmSolver probe(settings, s.materials, {}, s.heat_sources);
   if (rest_positions) probe.keep_rest_positions();
   const double dx = double(s.mpm.dx);
+  // The fused pass and the lazily sorted two passes scatter into dilated blocks.
+  const bool dilated = fuses(settings, ranks > 1) || sorts_when_needed(settings);
   for (std::size_t k = 0; k < s.objects.size(); ++k) {
     const ObjectSpec& o = s.objects[k];
     const Vec3 centre = (o.min + o.max) / 2;
     const Real h = Real(dx / std::cbrt(double(o.particles_per_cell)));
     probe.add_particles({centre}, fastest_initial_velocity(o), Vec3::Zero(), centre, o.material,
                         h * h * h, o.temperature, o.configuration);
-    // Leaves (8 dx) over the bounding box widened by the stencil.
+    // Leaves (8 dx) over the bounding box widened by the stencil, and with the dilated blocks
+    // one more on the - side (update_grid_fused: the leaves the blocks' margin reaches).
     double leaves = 1;
     for (int a = 0; a < 3; ++a)
-      leaves *= std::ceil((double(o.max[a]) - double(o.min[a]) + 4 * dx) / (kLeafDim * dx)) + 1;
+      leaves *= std::ceil((double(o.max[a]) - double(o.min[a]) + 4 * dx) / (kLeafDim * dx)) +
+                (dilated ? 2 : 1);
     e.grid_leaves += leaves;
+    // Bins: the leaves the bounding box itself overlaps.
+    double bins = 1;
+    for (int a = 0; a < 3; ++a)
+      bins *= std::ceil((double(o.max[a]) - double(o.min[a])) / (kLeafDim * dx)) + 1;
+    e.bins += bins;
   }
   for (const EmitterSpec& em : s.emitters) {  // emitted particles start at the emitter's velocity
     const Vec3 centre = (em.min + em.max) / 2;
@@ -107,7 +144,14 @@ void estimate_mpm(const SceneSpec& s, bool rest_positions, int ranks, RunEstimat
   const double particle_bytes = double(probe.particles().bytes_per_particle() +
                                        probe.particles().state_bytes_per_particle()) +  // snapshot
                                 double(MpmSolver::binning_bytes_per_particle());
-  e.bytes += e.particles * particle_bytes + e.grid_leaves * double(probe.grid().bytes_per_leaf());
+  // A-ULMPM with colliders or contact between objects rasterises the node positions in P2G's
+  // blocks (8 lanes; MpmSolver::fused_positions).
+  const bool positions = settings.configuration_maps &&
+                         (!s.colliders.empty() ||
+                          (s.mpm.contact.mode != ObjectContactMode::None && s.objects.size() > 1));
+  e.block_bytes = p2g_block_bytes(settings, ranks > 1, positions, e.bins, e.particles);
+  e.bytes += e.particles * particle_bytes + e.grid_leaves * double(probe.grid().bytes_per_leaf()) +
+             e.block_bytes;
 }
 
 // Peridynamics: a lattice block per material (interior particles with full horizons) in a solver

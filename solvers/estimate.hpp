@@ -15,7 +15,9 @@ struct RunEstimate {
   double particles = 0;    // from each object's shape and lattice (curved shapes: by volume)
   double grid_leaves = 0;  // MPM: 8^3-node leaves around the objects at the start
   double bonds = 0;        // peridynamics: directed bonds (lattice neighbours in the horizon)
+  double bins = 0;         // MPM: the sort's bins (leaves holding particles) at the start
   double bytes = 0;        // resident memory of the state (particles, grid or bonds, snapshot)
+  double block_bytes = 0;  // MPM: P2G's blocks kept between substeps, one per bin (in bytes)
   double bond_bytes = 0;   // peridynamics: the bonds' part of bytes (split across MPI ranks)
   double dt = 0;           // the first substep's stable step (s)
   double substeps_per_frame = 0;

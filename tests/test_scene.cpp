@@ -9,6 +9,8 @@
 #include "io/mesh.hpp"
 #include "io/tetmesh.hpp"
 #include "io/scene.hpp"
+#include "kernels/mpm_transfers.hpp"
+#include "solvers/estimate.hpp"
 #include "solvers/factory.hpp"
 
 using namespace amalgam;
@@ -445,5 +447,61 @@ TEST(Scene, ObjectSlicesInTurnAreTheWholeSample) {
           << s.file << " object " << k << ", " << parts << " parts";
       EXPECT_GE(nonempty, std::size_t(std::min(parts, 2))) << "one part holds everything";
     }
+  }
+}
+
+// The memory estimate counts P2G's blocks kept between substeps, one per bin, and the leaves the
+// dilated blocks reach: a box from 0.3 to 0.55 at dx = 0.05 (leaves of 0.4) lies in 2 x 2 x 2
+// leaves, so 8 bins; the grid has the 3^3 leaves their stencils reach, 4^3 with the dilated
+// blocks (one more on the - side).
+namespace {
+Scene block_scene(const char* sort, const char* pass) {
+  return parse_scene(std::string(R"({
+  "simulation": {"dx": 0.05, "frames": 2, "sort": ")") +
+                         sort + R"(", "transfer_pass": ")" + pass + R"("},
+  "materials": {"jelly": {"density": 1000, "youngs_modulus": 1e4}},
+  "objects": [{"shape": "box", "min": [0.3,0.3,0.3], "max": [0.55,0.55,0.55], "material": "jelly"}]
+})",
+                     "blocks.json");
+}
+}  // namespace
+
+TEST(EstimateBlocks, WhenNeededAddsTheDilatedBlocks) {
+  const RunEstimate every = estimate_run(block_scene("every_substep", "two_pass"));
+  const RunEstimate lazy = estimate_run(block_scene("when_needed", "two_pass"));
+  EXPECT_EQ(every.bins, 8);
+  EXPECT_EQ(lazy.bins, 8);
+  const double real = double(sizeof(Real));
+  // MLS: 4 lanes; the plain (8 + 2)^3-node blocks, the dilated (10 + 2)^3-node ones.
+  EXPECT_EQ(every.block_bytes, 8 * 1000 * 4 * real);
+  EXPECT_EQ(lazy.block_bytes, 8 * 1728 * 4 * real);
+  EXPECT_EQ(every.grid_leaves, 27);
+  EXPECT_EQ(lazy.grid_leaves, 64);
+  const double leaf =
+      double(build_solver(block_scene("every_substep", "two_pass")).grid().bytes_per_leaf());
+  EXPECT_EQ(lazy.bytes - every.bytes, lazy.block_bytes - every.block_bytes + (64 - 27) * leaf);
+  EXPECT_EQ(lazy.block_bytes, 8 * double(dilated_block_reals(2, 4)) * real);
+  // The fused pass's dilated blocks have 8 lanes.
+  const RunEstimate fused = estimate_run(block_scene("every_substep", "fused"));
+  EXPECT_EQ(fused.block_bytes, 8 * 1728 * 8 * real);
+  // Several ranks do not fuse: the plain blocks.
+  EXPECT_EQ(estimate_run(block_scene("every_substep", "fused"), false, 2).block_bytes,
+            every.block_bytes);
+}
+
+// What the solver allocates after a few substeps, in each path: the estimate's bins, blocks and
+// leaves.
+TEST(EstimateBlocks, MatchWhatTheSolverAllocates) {
+  for (const auto& [sort, pass] :
+       {std::pair{"every_substep", "two_pass"}, std::pair{"when_needed", "two_pass"},
+        std::pair{"every_substep", "fused"}}) {
+    const Scene scene = block_scene(sort, pass);
+    const RunEstimate e = estimate_run(scene);
+    MpmSolver solver = build_solver(scene);
+    const exec::Space space;
+    for (int k = 0; k < 3; ++k) solver.step(space, solver.stable_dt(space));
+    EXPECT_EQ(double(solver.bins().count()), e.bins) << sort << " " << pass;
+    EXPECT_EQ(double(solver.p2g_block_bytes()), e.block_bytes) << sort << " " << pass;
+    EXPECT_EQ(double(solver.grid().leaf_count()), e.grid_leaves) << sort << " " << pass;
   }
 }
