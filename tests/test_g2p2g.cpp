@@ -17,7 +17,7 @@ using namespace amalgam::test;
 
 namespace {
 const std::string kFused = R"(, "transfer_pass": "fused")";
-const std::string kTwoPass = R"(, "transfer_pass": "two_pass")";
+const std::string kTwoPass = R"(, "transfer_pass": "two_pass", "sort": "every_substep")";
 
 // Two elastic spheres meeting head-on, no gravity and no colliders: no external force.
 Scene free_scene(const std::string& transfer, int order) {
