@@ -70,15 +70,15 @@ Vec3 fastest_initial_velocity(const ObjectSpec& o) {
 // settings take: the plain two passes' (8 + order)^3-node blocks, the fused pass's dilated
 // (10 + order)^3-node 8-lane blocks, the lazily sorted two passes' dilated blocks with the plain
 // lanes. A path whose blocks would exceed its budget runs without them (the colour phases) or
-// falls back to the plain ones. The budgets are MpmSolver's kP2GBlocks* and kG2P2GBlocks*
-// (private there; `EstimateBlocks.MatchWhatTheSolverAllocates` compares the two). Several ranks
+// falls back to the plain ones. The budgets are MpmSolver's (p2g_blocks_budget,
+// dilated_blocks_budget; `EstimateBlocks.MatchWhatTheSolverAllocates` compares the two). Several ranks
 // keep their own blocks (sorting every substep: the bins that reach ghosts, and interior ones up
 // to a cap; re-sorting only when needed: every bin's dilated block plus one per other rank's bin
 // whose parts arrive, solvers/mpm_lazy_distributed.cpp): counted as one process's.
 double p2g_block_bytes(const MpmSettings& s, bool distributed, bool fused_positions, double bins,
                        double particles) {
-  const double plain_budget = std::max(double(std::size_t(16) << 20), 64 * particles);
-  const double dilated_budget = std::max(double(std::size_t(64) << 20), 192 * particles);
+  const double plain_budget = double(MpmSolver::p2g_blocks_budget(std::size_t(particles)));
+  const double dilated_budget = double(MpmSolver::dilated_blocks_budget(std::size_t(particles)));
   const bool fused = fuses(s, distributed);
   const double real = double(sizeof(Real));
   const int ch = p2g_channels(s.transfer, fused || fused_positions);

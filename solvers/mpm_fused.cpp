@@ -55,8 +55,7 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   const MpmGridView g = grid_view();  // with bin_nbr27 (update_grid_fused)
   grid_update(space, g, prm);
   const std::size_t reals = g.nbins * g2p2g_block_reals(settings_.order);
-  const std::size_t budget =
-      std::max(kG2P2GBlocksMinBudget, kG2P2GBlocksBytesPerParticle * particles_.size());
+  const std::size_t budget = dilated_blocks_budget(particles_.size());
   if (reals * sizeof(Real) > budget) {  // the dilated blocks would not fit: two passes
     g2p(space, particle_view(), g, prm);
     collide_particles(space, dt);
@@ -120,7 +119,7 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
   auto fits = [&] {
     std::uint64_t nb = bins_.count(), n = particles_.size();
     if (ranks_) nb = dist::Comm::world().sum(nb), n = dist::Comm::world().sum(n);
-    const std::size_t budget = std::max(kG2P2GBlocksMinBudget, kG2P2GBlocksBytesPerParticle * n);
+    const std::size_t budget = dilated_blocks_budget(n);
     const std::size_t reals = nb * dilated_block_reals(settings_.order, ch);
     if (reals * sizeof(Real) > budget) return false;
     if (!ranks_ && p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);

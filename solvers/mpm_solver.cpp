@@ -328,8 +328,7 @@ void MpmSolver::particle_to_grid(const exec::Space& space, Real dt) {
 Real* MpmSolver::p2g_blocks_for(std::size_t nbins, bool fused) {
   const std::size_t reals =
       nbins * p2g_block_reals(settings_.order, p2g_channels(settings_.transfer, fused));
-  const std::size_t budget =
-      std::max(kP2GBlocksMinBudget, kP2GBlocksBytesPerParticle * particles_.size());
+  const std::size_t budget = p2g_blocks_budget(particles_.size());
   if (reals * sizeof(Real) > budget) {
     std::vector<Real>().swap(p2g_blocks_);
     return nullptr;

@@ -19,6 +19,7 @@
 // material is viscous (viscosity stays explicit in the implicit integrator).
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <memory>
 #include <string>
@@ -241,6 +242,15 @@ class MpmSolver {
   // blocks over their memory budget).
   bool sort_when_needed_eligible() const;
   std::uint64_t lazy_resorts() const { return lazy_resorts_; }
+  // The bytes of P2G blocks a run of `particles` keeps at most (solvers/estimate.cpp counts
+  // them): the two passes' (8 + order)^3-node blocks, and the dilated blocks of the fused pass
+  // and of re-sorting only when needed. Over them the solver runs without the blocks.
+  static std::size_t p2g_blocks_budget(std::size_t particles) {
+    return std::max(std::size_t(16) << 20, std::size_t(64) * particles);
+  }
+  static std::size_t dilated_blocks_budget(std::size_t particles) {
+    return std::max(std::size_t(64) << 20, std::size_t(192) * particles);
+  }
   std::uint64_t lazy_unfit() const { return lazy_unfit_; }
 
   // The whole evolving state (particles, and the domain corners' positions), to retry a frame.
@@ -359,8 +369,6 @@ class MpmSolver {
   // P2G scratch: one block per bin (MpmGridView::blocks), within max(the minimum, the bytes per
   // particle below); over it P2G runs its colour phases (the same bits).
   std::vector<Real> p2g_blocks_;
-  static constexpr std::size_t kP2GBlocksMinBudget = std::size_t(16) << 20;
-  static constexpr std::size_t kP2GBlocksBytesPerParticle = 64;
   Real* p2g_blocks_for(std::size_t nbins, bool fused);
   // The fused substep (solvers/mpm_fused.cpp).
   void step_fused(const exec::Space& space, Real dt);
@@ -386,8 +394,6 @@ class MpmSolver {
   std::vector<std::int32_t> fused_target_;  // per (bin, t): the active leaf index or -1
   std::vector<std::uint32_t> fused_start_, fused_items_;  // per active leaf: its blocks' parts
   std::vector<std::uint32_t> fused_slot_cursor_;
-  static constexpr std::size_t kG2P2GBlocksMinBudget = std::size_t(64) << 20;
-  static constexpr std::size_t kG2P2GBlocksBytesPerParticle = 192;
   std::unique_ptr<MpmSleep> sleep_;
   std::unique_ptr<MpmImplicit> implicit_;
   std::unique_ptr<MpmAul> aul_;
