@@ -89,6 +89,85 @@ const std::vector<std::uint16_t>& MpmSolver::Ranks::row_nodes(int order, std::ui
   return dilated ? dilated_row_nodes(order, mask) : part_nodes(order, mask);
 }
 
+// The plan's heads (leaf xyz, part t) to their owners: the parts this rank receives.
+void MpmSolver::Ranks::exchange_heads(const std::vector<std::vector<std::int32_t>>& heads) {
+  const dist::Comm& comm = dist::Comm::world();
+  const int R = comm.size();
+  std::vector<std::vector<char>> hb(static_cast<std::size_t>(R));
+  for (int q = 0; q < R; ++q) hb[std::size_t(q)] = dist::as_bytes(heads[std::size_t(q)]);
+  const std::vector<std::vector<char>> in = comm.alltoall(hb, peers);
+  import_leaf.clear(), import_t.clear(), import_rank.clear();
+  for (int q = 0; q < R; ++q) {
+    const std::vector<std::int32_t> h = dist::from_bytes<std::int32_t>(in[std::size_t(q)]);
+    for (std::size_t k = 0; k + 3 < h.size(); k += 4) {
+      import_leaf.push_back(Vec3i(h[k], h[k + 1], h[k + 2]));
+      import_t.push_back(h[k + 3]);
+      import_rank.push_back(q);
+    }
+  }
+}
+
+// The rest of the plan once the exports, imports, owned leaves and topology are known: the ghost
+// rows on both sides (the parts this rank's blocks reach in other ranks' leaves, received; those
+// other ranks' blocks reach here, sent; per leaf merged, sorted by key: both sides know them from
+// the heads), the interior bins (reaching no ghost) and the grid update's order (the owned leaves
+// others read first, their rows travel meanwhile).
+void MpmSolver::Ranks::plan_rows(const SparseGrid& grid, const BinTable& bins, int order) {
+  const int R = dist::Comm::world().size();
+  auto offset = [&](int t) {  // part t's leaf from its bin's
+    return dilated ? Vec3i(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1) : offset_of(t);
+  };
+  std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>> recv_parts(
+      static_cast<std::size_t>(R)),
+      send_parts(static_cast<std::size_t>(R));
+  for (std::size_t k = 0; k < export_bins.size(); ++k)
+    for (std::uint32_t e = export_start[k]; e < export_start[k + 1]; ++e) {
+      const Export& x = exports[e];
+      recv_parts[std::size_t(x.rank)].push_back(
+          {leaf_key(bins.leaf[export_bins[k]] + offset(x.t)), 1u << x.t});
+    }
+  for (std::size_t i = 0; i < import_leaf.size(); ++i)
+    send_parts[std::size_t(import_rank[i])].push_back(
+        {leaf_key(import_leaf[i]), 1u << import_t[i]});
+  auto rows = [&](std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>>& parts,
+                  std::vector<std::vector<RowPart>>& out, std::vector<std::size_t>& nodes) {
+    out.assign(std::size_t(R), {});
+    nodes.assign(std::size_t(R), 0);
+    for (int q = 0; q < R; ++q) {
+      auto& v = parts[std::size_t(q)];
+      std::sort(v.begin(), v.end());
+      for (std::size_t i = 0; i < v.size();) {
+        std::uint32_t mask = 0;
+        const std::uint64_t key = v[i].first;
+        for (; i < v.size() && v[i].first == key; ++i) mask |= v[i].second;
+        const std::int32_t slot = grid.find_leaf(key_leaf(key) * kLeafDim);
+        if (slot < 0) throw std::logic_error("MPM halo: a ghost row's leaf is not in the grid");
+        out[std::size_t(q)].push_back({std::uint32_t(slot), mask});
+        nodes[std::size_t(q)] += row_nodes(order, mask).size();
+      }
+    }
+  };
+  rows(recv_parts, rows_recv, rows_recv_nodes);
+  rows(send_parts, rows_send, rows_send_nodes);
+  interior_bins.clear();
+  for (std::size_t b = 0, k = 0; b < bins.count(); ++b) {
+    if (k < export_bins.size() && export_bins[k] == b) {
+      ++k;
+      continue;
+    }
+    interior_bins.push_back(std::uint32_t(b));
+  }
+  std::vector<char> read(grid.leaf_coords().size(), 0);
+  for (const auto& v : rows_send)
+    for (const RowPart& r : v) read[r.slot] = 1;
+  update_order.clear();
+  for (int first = 1; first >= 0; --first) {
+    for (const std::int32_t li : owned_active)
+      if (read[std::size_t(li)] == first) update_order.push_back(li);
+    if (first) row_leaves = update_order.size();
+  }
+}
+
 Vec3i MpmSolver::particle_leaf(const Vec3& x) const {
   const Real inv_dx = Real(1) / settings_.dx;
   return settings_.order == 3 ? leaf_of_order<3>(x, inv_dx) : leaf_of_order<2>(x, inv_dx);
@@ -542,18 +621,7 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
       rk.export_start.push_back(std::uint32_t(rk.exports.size()));
     }
   }
-  std::vector<std::vector<char>> hb(static_cast<std::size_t>(R));
-  for (int q = 0; q < R; ++q) hb[std::size_t(q)] = dist::as_bytes(heads[std::size_t(q)]);
-  const std::vector<std::vector<char>> in = comm.alltoall(hb, rk.peers);
-  rk.import_leaf.clear(), rk.import_t.clear(), rk.import_rank.clear();
-  for (int q = 0; q < R; ++q) {
-    const std::vector<std::int32_t> h = dist::from_bytes<std::int32_t>(in[std::size_t(q)]);
-    for (std::size_t k = 0; k + 3 < h.size(); k += 4) {
-      rk.import_leaf.push_back(Vec3i(h[k], h[k + 1], h[k + 2]));
-      rk.import_t.push_back(h[k + 3]);
-      rk.import_rank.push_back(q);
-    }
-  }
+  rk.exchange_heads(heads);
   grid_.update_topology(space, bins_, &rk.import_leaf);
   // Owned active leaves: the active ones that are no ghost.
   std::sort(ghost_keys.begin(), ghost_keys.end());
@@ -565,61 +633,7 @@ void MpmSolver::update_grid_distributed(const exec::Space& space) {
     if (std::binary_search(ghost_keys.begin(), ghost_keys.end(), k)) continue;
     rk.owned_active.push_back(li);
   }
-  // The ghost rows' parts, on both sides from the heads: (leaf key, part bit) per rank, sorted,
-  // the bits of one leaf merged.
-  std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>> recv_parts(
-      static_cast<std::size_t>(R)),
-      send_parts(static_cast<std::size_t>(R));
-  for (std::size_t k = 0; k < rk.export_bins.size(); ++k)
-    for (std::uint32_t e = rk.export_start[k]; e < rk.export_start[k + 1]; ++e) {
-      const Ranks::Export& x = rk.exports[e];
-      recv_parts[std::size_t(x.rank)].push_back(
-          {leaf_key(bins_.leaf[rk.export_bins[k]] + offset_of(x.t)), 1u << x.t});
-    }
-  for (std::size_t i = 0; i < rk.import_leaf.size(); ++i)
-    send_parts[std::size_t(rk.import_rank[i])].push_back(
-        {leaf_key(rk.import_leaf[i]), 1u << rk.import_t[i]});
-  auto rows = [&](std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>>& parts,
-                  std::vector<std::vector<Ranks::RowPart>>& out, std::vector<std::size_t>& nodes) {
-    out.assign(std::size_t(R), {});
-    nodes.assign(std::size_t(R), 0);
-    for (int q = 0; q < R; ++q) {
-      auto& v = parts[std::size_t(q)];
-      std::sort(v.begin(), v.end());
-      for (std::size_t i = 0; i < v.size();) {
-        std::uint32_t mask = 0;
-        const std::uint64_t key = v[i].first;
-        for (; i < v.size() && v[i].first == key; ++i) mask |= v[i].second;
-        const std::int32_t slot = grid_.find_leaf(key_leaf(key) * kLeafDim);
-        if (slot < 0) throw std::logic_error("MPM halo: a ghost row's leaf is not in the grid");
-        out[std::size_t(q)].push_back({std::uint32_t(slot), mask});
-        nodes[std::size_t(q)] += part_nodes(order, mask).size();  // (the +x/+y/+z parts)
-      }
-    }
-  };
-  rows(recv_parts, rk.rows_recv, rk.rows_recv_nodes);
-  rows(send_parts, rk.rows_send, rk.rows_send_nodes);
-  // The overlap's split: bins that reach no ghost (the complement of export_bins, in bin order),
-  // and the owned leaves others read first.
-  rk.interior_bins.clear();
-  for (std::size_t b = 0, k = 0; b < bins_.count(); ++b) {
-    if (k < rk.export_bins.size() && rk.export_bins[k] == b) {
-      ++k;
-      continue;
-    }
-    rk.interior_bins.push_back(std::uint32_t(b));
-  }
-  {
-    std::vector<char> read(grid_.leaf_coords().size(), 0);
-    for (const auto& v : rk.rows_send)
-      for (const Ranks::RowPart& r : v) read[r.slot] = 1;
-    rk.update_order.clear();
-    for (int first = 1; first >= 0; --first) {
-      for (const std::int32_t li : rk.owned_active)
-        if (read[std::size_t(li)] == first) rk.update_order.push_back(li);
-      if (first) rk.row_leaves = rk.update_order.size();
-    }
-  }
+  rk.plan_rows(grid_, bins_, order);
   rk.halo_leaves = ghost_keys.size();
   rk.halo_parts = rk.exports.size();
   if (sleep_)

@@ -142,20 +142,8 @@ void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
       rk.export_start.push_back(std::uint32_t(rk.exports.size()));
     }
   }
-  std::vector<std::vector<char>> hb(static_cast<std::size_t>(R));
-  for (int q = 0; q < R; ++q) hb[std::size_t(q)] = dist::as_bytes(heads[std::size_t(q)]);
-  const std::vector<std::vector<char>> in = comm.alltoall(hb, rk.peers);
-  std::vector<Vec3i> import_leaf;
-  std::vector<int> import_t, import_rank;
-  for (int q = 0; q < R; ++q) {
-    const std::vector<std::int32_t> h = dist::from_bytes<std::int32_t>(in[std::size_t(q)]);
-    for (std::size_t k = 0; k + 3 < h.size(); k += 4) {
-      import_leaf.push_back(Vec3i(h[k], h[k + 1], h[k + 2]));
-      import_t.push_back(h[k + 3]);
-      import_rank.push_back(q);
-    }
-  }
-  fused_extra_.insert(fused_extra_.end(), import_leaf.begin(), import_leaf.end());
+  rk.exchange_heads(heads);
+  fused_extra_.insert(fused_extra_.end(), rk.import_leaf.begin(), rk.import_leaf.end());
   grid_.update_topology(space, bins_, &fused_extra_);
   fused_nbr27_.resize(nb);
   for (std::size_t b = 0; b < nb; ++b)
@@ -169,16 +157,9 @@ void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
       fused_slot_[std::size_t(li)] = std::int32_t(rk.owned_active.size());
       rk.owned_active.push_back(li);
     }
+  rk.plan_rows(grid_, bins_, order);  // the ghost rows, the interior bins, the update order
   // Block slots: the export bins', then the interior bins' (the order P2G scatters them), then
   // one per source bin of the imports (a bin's parts arrive together).
-  rk.interior_bins.clear();
-  for (std::size_t b = 0, k = 0; b < nb; ++b) {
-    if (k < rk.export_bins.size() && rk.export_bins[k] == b) {
-      ++k;
-      continue;
-    }
-    rk.interior_bins.push_back(std::uint32_t(b));
-  }
   rk.slot_bin = rk.export_bins;
   rk.slot_bin.insert(rk.slot_bin.end(), rk.interior_bins.begin(), rk.interior_bins.end());
   std::vector<std::uint32_t> bin_slot(nb);
@@ -198,15 +179,15 @@ void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
       parts.push_back({leaf_key(bins_.leaf[b]), bin_slot[b] << 5 | std::uint32_t(t)});
       parts_leaf.push_back(std::uint32_t(fused_slot_[std::size_t(li)]));
     }
-  for (std::size_t i = 0; i < import_leaf.size(); ++i) {
-    const int t = import_t[i];
-    const std::uint64_t source = leaf_key(import_leaf[i] - part_offset(t));
-    if (source != last_source || import_rank[i] != last_rank) ++slot;
-    last_source = source, last_rank = import_rank[i];
-    const std::int32_t li = grid_.find_leaf(import_leaf[i] * kLeafDim);
+  for (std::size_t i = 0; i < rk.import_leaf.size(); ++i) {
+    const int t = rk.import_t[i];
+    const std::uint64_t source = leaf_key(rk.import_leaf[i] - part_offset(t));
+    if (source != last_source || rk.import_rank[i] != last_rank) ++slot;
+    last_source = source, last_rank = rk.import_rank[i];
+    const std::int32_t li = grid_.find_leaf(rk.import_leaf[i] * kLeafDim);
     if (li < 0 || fused_slot_[std::size_t(li)] < 0)
       throw std::logic_error("MPM halo: an imported part's leaf is not an owned leaf here");
-    rk.lazy_imports.push_back({import_rank[i], t, li, slot - 1});
+    rk.lazy_imports.push_back({rk.import_rank[i], t, li, slot - 1});
     parts.push_back({source, (slot - 1) << 5 | std::uint32_t(t)});
     parts_leaf.push_back(std::uint32_t(fused_slot_[std::size_t(li)]));
   }
@@ -226,51 +207,6 @@ void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
     auto* last = by_leaf.data() + rk.sum_start[l + 1];
     std::sort(first, last);
     for (auto* p = first; p != last; ++p) rk.sum_items[std::size_t(p - by_leaf.data())] = p->second;
-  }
-  // The ghost rows, on both sides: the parts this rank's blocks reach in other ranks' leaves
-  // (received) and those other ranks' blocks reach here (sent), merged per leaf, sorted by key.
-  std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>> recv_parts(
-      static_cast<std::size_t>(R)),
-      send_parts(static_cast<std::size_t>(R));
-  for (std::size_t k = 0; k < rk.export_bins.size(); ++k)
-    for (std::uint32_t e = rk.export_start[k]; e < rk.export_start[k + 1]; ++e) {
-      const Ranks::Export& x = rk.exports[e];
-      recv_parts[std::size_t(x.rank)].push_back(
-          {leaf_key(bins_.leaf[rk.export_bins[k]] + part_offset(x.t)), 1u << x.t});
-    }
-  for (std::size_t i = 0; i < import_leaf.size(); ++i)
-    send_parts[std::size_t(import_rank[i])].push_back(
-        {leaf_key(import_leaf[i]), 1u << import_t[i]});
-  auto rows = [&](std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>>& by_rank,
-                  std::vector<std::vector<Ranks::RowPart>>& out, std::vector<std::size_t>& nodes) {
-    out.assign(std::size_t(R), {});
-    nodes.assign(std::size_t(R), 0);
-    for (int q = 0; q < R; ++q) {
-      auto& v = by_rank[std::size_t(q)];
-      std::sort(v.begin(), v.end());
-      for (std::size_t i = 0; i < v.size();) {
-        std::uint32_t mask = 0;
-        const std::uint64_t key = v[i].first;
-        for (; i < v.size() && v[i].first == key; ++i) mask |= v[i].second;
-        const std::int32_t li = grid_.find_leaf(mpm_dist::key_leaf(key) * kLeafDim);
-        if (li < 0) throw std::logic_error("MPM halo: a ghost row's leaf is not in the grid");
-        out[std::size_t(q)].push_back({std::uint32_t(li), mask});
-        nodes[std::size_t(q)] += rk.dilated_row_nodes(order, mask).size();
-      }
-    }
-  };
-  rows(recv_parts, rk.rows_recv, rk.rows_recv_nodes);
-  rows(send_parts, rk.rows_send, rk.rows_send_nodes);
-  {  // the owned leaves others read first in the grid update (their rows travel meanwhile)
-    std::vector<char> read(grid_.leaf_count(), 0);
-    for (const auto& v : rk.rows_send)
-      for (const Ranks::RowPart& r : v) read[r.slot] = 1;
-    rk.update_order.clear();
-    for (int first = 1; first >= 0; --first) {
-      for (const std::int32_t li : rk.owned_active)
-        if (read[std::size_t(li)] == first) rk.update_order.push_back(li);
-      if (first) rk.row_leaves = rk.update_order.size();
-    }
   }
   rk.no_target.assign(std::max(rk.export_bins.size(), rk.interior_bins.size()) * 27, -1);
   const std::size_t reals = rk.lazy_slots * dilated_block_reals(order, ch);

@@ -135,6 +135,10 @@ struct MpmSolver::Ranks {
   std::unordered_map<std::uint32_t, std::vector<std::uint16_t>> dilated_nodes[2];
   // The nodes of a leaf that the dilated parts in `mask` cover, in leaf offset order.
   const std::vector<std::uint16_t>& dilated_row_nodes(int order, std::uint32_t mask);
+  // The plan's heads to their owners (import_leaf, import_t, import_rank), and the plan's rows,
+  // interior bins and update order (solvers/mpm_distributed.cpp).
+  void exchange_heads(const std::vector<std::vector<std::int32_t>>& heads);
+  void plan_rows(const SparseGrid& grid, const BinTable& bins, int order);
   // The view of g over the listed bins (in the sub_ scratch), no active leaves.
   MpmGridView sub_view(const MpmGridView& g, const std::vector<std::uint32_t>& list);
   // The nodes of a ghost row's parts `mask`: dilated_row_nodes or the +x/+y/+z parts'.
