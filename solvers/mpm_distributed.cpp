@@ -737,13 +737,7 @@ void MpmSolver::update_grid_velocities_distributed(const exec::Space& space, Rea
   // after the whole update) nor A-ULMPM (the objects' coupling runs on the whole grid, ghosts
   // included, before G2P): those exchange after the whole update.
   if (!sleep_ && !aul_) {
-    g.active_leaves = rk.update_order.data();
-    g.nactive = rk.row_leaves;
-    grid_update(space, g, prm);
-    start_ghost_rows(space);
-    g.active_leaves = rk.update_order.data() + rk.row_leaves;
-    g.nactive = rk.update_order.size() - rk.row_leaves;
-    grid_update(space, g, prm);
+    update_owned_leaves_rows_first(space, g, prm);
     g2p_bins(space, rk.interior_bins, dt);
     rk.g2p_interior_done = true;
     finish_ghost_rows(space);
@@ -754,6 +748,21 @@ void MpmSolver::update_grid_velocities_distributed(const exec::Space& space, Rea
   grid_update(space, g, prm);
   if (sleep_) sleep_->pin_nodes(space, grid_, bins_, grid_.node4(0));  // own leaves: owned
   exchange_ghost_rows(space);
+}
+
+// The grid update of the owned leaves others read first, their node rows then sent
+// (start_ghost_rows), then of the other owned leaves: the caller gathers its interior bins while
+// the rows travel, then finish_ghost_rows.
+void MpmSolver::update_owned_leaves_rows_first(const exec::Space& space, MpmGridView g,
+                                               const MpmStepParams& prm) {
+  Ranks& rk = *ranks_;
+  g.active_leaves = rk.update_order.data();
+  g.nactive = rk.row_leaves;
+  grid_update(space, g, prm);
+  start_ghost_rows(space);
+  g.active_leaves = rk.update_order.data() + rk.row_leaves;
+  g.nactive = rk.update_order.size() - rk.row_leaves;
+  grid_update(space, g, prm);
 }
 
 void MpmSolver::grid_to_particle_distributed(const exec::Space& space, Real dt) {

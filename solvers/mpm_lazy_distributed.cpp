@@ -277,15 +277,8 @@ void MpmSolver::p2g_lazy_distributed(const exec::Space& space, Real dt) {
 // of the interior bins while the rows travel, then of the bins reading ghosts; far flags per bin.
 void MpmSolver::g2p_lazy_distributed(const exec::Space& space, Real dt) {
   Ranks& rk = *ranks_;
-  MpmGridView g = grid_view();
   const MpmStepParams prm = step_params(dt);
-  g.active_leaves = rk.update_order.data();
-  g.nactive = rk.row_leaves;
-  grid_update(space, g, prm);
-  start_ghost_rows(space);
-  g.active_leaves = rk.update_order.data() + rk.row_leaves;
-  g.nactive = rk.update_order.size() - rk.row_leaves;
-  grid_update(space, g, prm);
+  update_owned_leaves_rows_first(space, grid_view(), prm);
   lazy_far_.assign(bins_.count(), 0);
   auto gather = [&](const std::vector<std::uint32_t>& list) {
     const MpmGridView s = rk.sub_view(grid_view(), list);

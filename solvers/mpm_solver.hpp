@@ -332,6 +332,8 @@ class MpmSolver {
   void update_grid_velocities_distributed(const exec::Space& space, Real dt);
   void grid_to_particle_distributed(const exec::Space& space, Real dt);
   void g2p_bins(const exec::Space& space, const std::vector<std::uint32_t>& bins, Real dt);
+  void update_owned_leaves_rows_first(const exec::Space& space, MpmGridView g,
+                                      const MpmStepParams& prm);
   void start_ghost_rows(const exec::Space& space);
   void finish_ghost_rows(const exec::Space& space);
   void keep_owned_emitted(const exec::Space& space, std::size_t first);
