@@ -181,7 +181,7 @@ void MpmSolver::update_grid_fused(const exec::Space& space) {
       const Vec3i d(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1);
       if (d.minCoeff() < 0) fused_extra_.push_back(l + d);
     }
-  grid_.update_topology(space, bins_, &fused_extra_);
+  grid_.update_topology(space, bins_, &fused_extra_, topology_age());
   const std::size_t nb = bins_.count();
   fused_nbr27_.resize(nb);
   for (std::size_t b = 0; b < nb; ++b)
@@ -209,6 +209,12 @@ void MpmSolver::update_grid_fused(const exec::Space& space) {
       if (slot >= 0)
         fused_items_[at[std::size_t(slot)]++] = std::uint32_t(b << 5) | std::uint32_t(t);
     }
+}
+
+std::uint32_t MpmSolver::topology_age() {
+  const std::uint64_t age = steps_ > topology_step_ ? steps_ - topology_step_ : 1;
+  topology_step_ = steps_;
+  return std::uint32_t(std::min<std::uint64_t>(age, SparseGrid::kRetireAfter));
 }
 
 // Each active leaf sums the dilated blocks reaching it in bin order (g2p2g_flush; the tables of

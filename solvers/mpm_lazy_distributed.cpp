@@ -144,7 +144,7 @@ void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
   }
   rk.exchange_heads(heads);
   fused_extra_.insert(fused_extra_.end(), rk.import_leaf.begin(), rk.import_leaf.end());
-  grid_.update_topology(space, bins_, &fused_extra_);
+  grid_.update_topology(space, bins_, &fused_extra_, topology_age());
   fused_nbr27_.resize(nb);
   for (std::size_t b = 0; b < nb; ++b)
     fused_nbr27_[b] = grid_.nbr27()[std::size_t(grid_.nbr8()[b][0])];

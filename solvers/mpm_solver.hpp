@@ -396,6 +396,10 @@ class MpmSolver {
   std::vector<std::int32_t> fused_target_;  // per (bin, t): the active leaf index or -1
   std::vector<std::uint32_t> fused_start_, fused_items_;  // per active leaf: its blocks' parts
   std::vector<std::uint32_t> fused_slot_cursor_;
+  // The substeps since the last topology update of the kept bins (SparseGrid::update_topology's
+  // age: leaves retire after that many substeps unused, not that many sorts).
+  std::uint32_t topology_age();
+  std::uint64_t topology_step_ = 0;
   std::unique_ptr<MpmSleep> sleep_;
   std::unique_ptr<MpmImplicit> implicit_;
   std::unique_ptr<MpmAul> aul_;

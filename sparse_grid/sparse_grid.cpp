@@ -109,13 +109,14 @@ void SparseGrid::retire_idle_leaves() {
 }
 
 void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins,
-                                 const std::vector<Vec3i>* extra) {
+                                 const std::vector<Vec3i>* extra, std::uint32_t age) {
+  age = std::min(std::max<std::uint32_t>(age, 1), kRetireAfter);
   exec::ScopedRegion region(space.profiler(), "grid.topology");
   const size_t nb = bins.count();
   auto build = [&] {
     nbr8_.resize(nb);
-    for (auto& idle : leaf_idle_)  // one more update unused, unless a bin touches the leaf below
-      if (idle != kRetired) ++idle;
+    for (auto& idle : leaf_idle_)  // `age` more substeps unused, unless a bin touches it below
+      if (idle != kRetired) idle = std::min(idle + age, kRetireAfter);
     for (size_t b = 0; b < nb; ++b) {
       const Vec3i l = bins.leaf[b];
       for (int t = 0; t < 8; ++t) {
@@ -136,7 +137,7 @@ void SparseGrid::update_topology(const exec::Space& space, const BinTable& bins,
     clear_topology();
     build();
   }
-  if (++updates_ % kRetireAfter == 0) retire_idle_leaves();
+  if ((aged_ += age) >= kRetireAfter) aged_ = 0, retire_idle_leaves();
   grow_channels();
 
   active_.clear();

@@ -8,8 +8,8 @@
 // (SoA [leaf][512] channels for implicit-solver vectors belong here too, added with their solver.)
 // Topology per substep: for each bin, its leaf and the +x/+y/+z neighbours (the stencil reaches
 // at most base+3 <= 10 < 16). Only new leaves are created (serially), existing leaf indices stay
-// put. Leaves no bin has touched for kRetireAfter topology updates are retired (checked every
-// kRetireAfter updates): removed from the tree, their table slots kept for the next new leaves
+// put. Leaves no bin has touched for kRetireAfter substeps (topology updates weighted by their
+// `age`) are retired (checked every kRetireAfter substeps): removed from the tree, their table slots kept for the next new leaves
 // (lowest slot first), so a moving body's table stays at the size of what it occupies instead
 // of growing with everywhere it has been. When fewer than a quarter of the slots are in use the
 // table is rebuilt compactly in bin order.
@@ -53,9 +53,11 @@ class SparseGrid {
   // Activates the leaves the bins' stencils reach and rebuilds tables. Serial by design
   // (OpenVDB topology edits are not thread-safe); only new leaves are created.
   // `extra`: more leaves to activate though no bin here reaches them (a distributed run's leaves
-  // that only other ranks' particles reach: solvers/mpm_distributed.cpp).
+  // that only other ranks' particles reach: solvers/mpm_distributed.cpp). `age`: the substeps
+  // since the previous update (a caller that re-sorts only when needed updates every 11-40
+  // substeps): leaves retire after kRetireAfter substeps unused, not kRetireAfter updates.
   void update_topology(const exec::Space& space, const BinTable& bins,
-                       const std::vector<Vec3i>* extra = nullptr);
+                       const std::vector<Vec3i>* extra = nullptr, std::uint32_t age = 1);
 
   static constexpr std::uint32_t kRetireAfter = 32;
   // Slots of the leaf table (live leaves and retired slots awaiting reuse): the size of every
@@ -87,11 +89,11 @@ class SparseGrid {
   std::vector<Vec3i> leaf_coord_;
   std::vector<std::int32_t> active_;
   static constexpr std::uint32_t kRetired = ~std::uint32_t(0);
-  // Per slot: topology updates since a bin last touched the leaf (0: in use this update, i.e.
-  // active), or kRetired.
+  // Per slot: substeps since a bin last touched the leaf (0: in use this update, i.e. active),
+  // or kRetired.
   std::vector<std::uint32_t> leaf_idle_;
   std::vector<std::int32_t> free_;  // retired slots, highest first (reuse takes the lowest)
-  std::uint64_t updates_ = 0;
+  std::uint64_t aged_ = 0;          // substeps since the last retirement check
   std::vector<std::array<std::int32_t, 8>> nbr8_;
   std::vector<std::array<std::int32_t, 27>> nbr27_;
   std::vector<std::uint32_t> colour_bins_;

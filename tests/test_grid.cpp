@@ -182,6 +182,35 @@ TEST(SparseGrid, LeavesOfAMovingBodyAreRetiredAndTheirSlotsReused) {
   EXPECT_LT(slots.back(), std::size_t(4 * grid.active_leaves().size()));
 }
 
+// A caller that updates the topology only every few substeps (re-sorting only when needed) passes
+// the substeps since its last update: a leaf unused for kRetireAfter to 2 kRetireAfter substeps
+// is retired, however few updates that took (4 of age 16); updates of age 1 keep it for as many
+// updates.
+TEST(SparseGrid, LeavesRetireAfterSubstepsNotUpdates) {
+  const exec::Space s;
+  BinTable here, there;
+  here.start = {0, 1};
+  here.leaf = {Vec3i(0, 0, 0)};
+  there.start = {0, 1};
+  there.leaf = {Vec3i(10, 0, 0)};
+  for (std::uint32_t age : {std::uint32_t(1), SparseGrid::kRetireAfter / 2}) {
+    SCOPED_TRACE(age);
+    SparseGrid grid;
+    grid.update_topology(s, here, nullptr, age);
+    const std::int32_t li = grid.find_leaf(Vec3i(0, 0, 0));
+    ASSERT_GE(li, 0);
+    int updates = 0;
+    while (!grid.leaf_retired(std::size_t(li)) && updates < 100) {
+      grid.update_topology(s, there, nullptr, age);
+      ++updates;
+    }
+    // (retirement is checked every kRetireAfter substeps: a leaf goes within twice that)
+    EXPECT_GE(std::uint32_t(updates) * age, SparseGrid::kRetireAfter);
+    EXPECT_LE(std::uint32_t(updates) * age, 2 * SparseGrid::kRetireAfter);
+    EXPECT_LT(grid.find_leaf(Vec3i(0, 0, 0)), 0);
+  }
+}
+
 // The grid's OpenVDB tree is freed on the calling thread: OpenVDB's Tree::clear() (and the tree's
 // destructor) would free its nodes in a parallel loop on TBB's default arena, where a worker
 // joins outside the run's thread limit. Destroying grids of ~4 000 leaves takes no TBB worker.
