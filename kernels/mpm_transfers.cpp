@@ -678,21 +678,14 @@ void sum_dilated_leaf(const MpmGridView& g, std::size_t li, const Real* blocks,
   }
 }
 
-// Every active leaf of g (the next grid) = the fused pass's 8-lane dilated blocks listed for it.
-template <int Order>
-void g2p2g_flush_impl(const exec::Space& space, const MpmGridView& g, const Real* blocks,
-                      const std::uint32_t* start, const std::uint32_t* items) {
-  exec::parallel_for(space, "mpm.g2p2g_flush", exec::Index(g.nactive), [&](exec::Index li) {
-    sum_dilated_leaf<Order, 8>(g, std::size_t(li), blocks, start, items);
-  });
-}
-
 // Every active leaf li < g.nactive of g = the CH-lane dilated blocks listed for it (the two passes'
 // lanes between sorts; a distributed run's owned leaves, with other ranks' parts in import slots).
+// (The fused pass's flush, g2p2g_flush, is this with its 8 lanes.)
 template <int Order, int CH>
 void sum_dilated_leaves_impl(const exec::Space& space, const MpmGridView& g, const Real* blocks,
-                             const std::uint32_t* start, const std::uint32_t* items) {
-  exec::parallel_for(space, "mpm.p2g_sum", exec::Index(g.nactive), [&](exec::Index li) {
+                             const std::uint32_t* start, const std::uint32_t* items,
+                             const char* region = "mpm.p2g_sum") {
+  exec::parallel_for(space, region, exec::Index(g.nactive), [&](exec::Index li) {
     sum_dilated_leaf<Order, CH>(g, std::size_t(li), blocks, start, items);
   });
 }
@@ -951,9 +944,9 @@ void g2p2g(const exec::Space& space, const MpmParticleView& p, const MpmGridView
 void g2p2g_flush(const exec::Space& space, const MpmGridView& g, int order, const Real* blocks,
                  const std::uint32_t* start, const std::uint32_t* items) {
   if (order == 3)
-    g2p2g_flush_impl<3>(space, g, blocks, start, items);
+    sum_dilated_leaves_impl<3, 8>(space, g, blocks, start, items, "mpm.g2p2g_flush");
   else
-    g2p2g_flush_impl<2>(space, g, blocks, start, items);
+    sum_dilated_leaves_impl<2, 8>(space, g, blocks, start, items, "mpm.g2p2g_flush");
 }
 
 void p2g_dilated(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,

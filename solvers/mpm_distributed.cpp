@@ -89,6 +89,41 @@ const std::vector<std::uint16_t>& MpmSolver::Ranks::row_nodes(int order, std::ui
   return dilated ? dilated_row_nodes(order, mask) : part_nodes(order, mask);
 }
 
+Vec3i MpmSolver::Ranks::part_offset(int t) const {
+  return dilated ? Vec3i(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1) : offset_of(t);
+}
+
+// The parts of each bin's block in leaves other ranks own (exports, per export bin, and their
+// offsets in each rank's send buffer), their heads sent to the owners (exchange_heads).
+void MpmSolver::Ranks::plan_exports(const BinTable& bins, int order, int ch) {
+  const dist::Comm& comm = dist::Comm::world();
+  const int R = comm.size(), me = comm.rank(), parts = dilated ? 27 : 8;
+  export_bins.clear();
+  export_start.assign(1, 0);
+  exports.clear();
+  send_reals.assign(std::size_t(R), 0);
+  std::vector<std::vector<std::int32_t>> heads(
+      static_cast<std::size_t>(R));  // (leaf xyz, t) per part sent
+  for (std::size_t b = 0; b < bins.count(); ++b) {
+    bool any = false;
+    for (int t = 0; t < parts; ++t) {
+      const Vec3i l = bins.leaf[b] + part_offset(t);
+      const int o = owner(l);
+      if (o == me) continue;
+      any = true;
+      exports.push_back({o, t, send_reals[std::size_t(o)]});
+      send_reals[std::size_t(o)] +=
+          std::size_t((dilated ? dilated_part_nodes(order, t) : block_part_nodes(order, t)) * ch);
+      heads[std::size_t(o)].insert(heads[std::size_t(o)].end(), {l[0], l[1], l[2], t});
+    }
+    if (any) {
+      export_bins.push_back(std::uint32_t(b));
+      export_start.push_back(std::uint32_t(exports.size()));
+    }
+  }
+  exchange_heads(heads);
+}
+
 // The plan's heads (leaf xyz, part t) to their owners: the parts this rank receives.
 void MpmSolver::Ranks::exchange_heads(const std::vector<std::vector<std::int32_t>>& heads) {
   const dist::Comm& comm = dist::Comm::world();
@@ -114,9 +149,6 @@ void MpmSolver::Ranks::exchange_heads(const std::vector<std::vector<std::int32_t
 // others read first, their rows travel meanwhile).
 void MpmSolver::Ranks::plan_rows(const SparseGrid& grid, const BinTable& bins, int order) {
   const int R = dist::Comm::world().size();
-  auto offset = [&](int t) {  // part t's leaf from its bin's
-    return dilated ? Vec3i(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1) : offset_of(t);
-  };
   std::vector<std::vector<std::pair<std::uint64_t, std::uint32_t>>> recv_parts(
       static_cast<std::size_t>(R)),
       send_parts(static_cast<std::size_t>(R));
@@ -124,7 +156,7 @@ void MpmSolver::Ranks::plan_rows(const SparseGrid& grid, const BinTable& bins, i
     for (std::uint32_t e = export_start[k]; e < export_start[k + 1]; ++e) {
       const Export& x = exports[e];
       recv_parts[std::size_t(x.rank)].push_back(
-          {leaf_key(bins.leaf[export_bins[k]] + offset(x.t)), 1u << x.t});
+          {leaf_key(bins.leaf[export_bins[k]] + part_offset(x.t)), 1u << x.t});
     }
   for (std::size_t i = 0; i < import_leaf.size(); ++i)
     send_parts[std::size_t(import_rank[i])].push_back(
@@ -591,37 +623,17 @@ void MpmSolver::sort_distributed(const exec::Space& space) {
 // Which parts of which local blocks go to which rank, which parts come in, the owned leaves and
 // the halo: then the grid's topology with the leaves only other ranks' blocks reach.
 void MpmSolver::update_grid_distributed(const exec::Space& space) {
-  const dist::Comm& comm = dist::Comm::world();
   Ranks& rk = *ranks_;
-  const int R = comm.size(), me = comm.rank(), order = settings_.order;
+  const int order = settings_.order;
   const int ch = settings_.transfer == Transfer::PicFlip || fused_positions() ? 8 : 4;
   exec::ScopedRegion region(space.profiler(), "dist.plan");
   rk.dilated = false;
-  rk.export_bins.clear();
-  rk.export_start.assign(1, 0);
-  rk.exports.clear();
-  rk.send_reals.assign(std::size_t(R), 0);
-  std::vector<std::vector<std::int32_t>> heads(
-      static_cast<std::size_t>(R));  // (leaf xyz, t) per part sent
-  std::vector<std::uint64_t> ghost_keys;
-  for (std::size_t b = 0; b < bins_.count(); ++b) {
-    bool any = false;
-    for (int t = 0; t < 8; ++t) {
-      const Vec3i l = bins_.leaf[b] + offset_of(t);
-      const int o = rk.owner(l);
-      if (o == me) continue;
-      any = true;
-      rk.exports.push_back({o, t, rk.send_reals[std::size_t(o)]});
-      rk.send_reals[std::size_t(o)] += std::size_t(block_part_nodes(order, t) * ch);
-      heads[std::size_t(o)].insert(heads[std::size_t(o)].end(), {l[0], l[1], l[2], t});
-      ghost_keys.push_back(leaf_key(l));
-    }
-    if (any) {
-      rk.export_bins.push_back(std::uint32_t(b));
-      rk.export_start.push_back(std::uint32_t(rk.exports.size()));
-    }
-  }
-  rk.exchange_heads(heads);
+  rk.plan_exports(bins_, order, ch);
+  std::vector<std::uint64_t> ghost_keys;  // the leaves this rank's blocks reach on other ranks
+  for (std::size_t k = 0; k < rk.export_bins.size(); ++k)
+    for (std::uint32_t e = rk.export_start[k]; e < rk.export_start[k + 1]; ++e)
+      ghost_keys.push_back(
+          leaf_key(bins_.leaf[rk.export_bins[k]] + rk.part_offset(rk.exports[e].t)));
   grid_.update_topology(space, bins_, &rk.import_leaf);
   // Owned active leaves: the active ones that are no ghost.
   std::sort(ghost_keys.begin(), ghost_keys.end());
@@ -779,9 +791,7 @@ void MpmSolver::grid_to_particle_distributed(const exec::Space& space, Real dt) 
 // and leaves.
 void MpmSolver::g2p_bins(const exec::Space& space, const std::vector<std::uint32_t>& list,
                          Real dt) {
-  MpmGridView s = ranks_->sub_view(grid_view(), list);
-  s.nactive = grid_view().nactive;
-  g2p(space, particle_view(), s, step_params(dt));
+  g2p(space, particle_view(), ranks_->sub_view(grid_view(), list), step_params(dt));
 }
 
 // Owners' node rows (m, v) (and PIC/FLIP's (-, dv)) into the ghosts, the nodes G2P reads only

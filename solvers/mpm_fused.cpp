@@ -118,7 +118,11 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
   // of the whole run (every rank decides alike, as one process would).
   auto fits = [&] {
     std::uint64_t nb = bins_.count(), n = particles_.size();
-    if (ranks_) nb = dist::Comm::world().sum(nb), n = dist::Comm::world().sum(n);
+    if (ranks_) {
+      const std::vector<std::int64_t> all =
+          dist::Comm::world().sum(std::vector<std::int64_t>{std::int64_t(nb), std::int64_t(n)});
+      nb = std::uint64_t(all[0]), n = std::uint64_t(all[1]);
+    }
     const std::size_t budget = dilated_blocks_budget(n);
     const std::size_t reals = nb * dilated_block_reals(settings_.order, ch);
     if (reals * sizeof(Real) > budget) return false;
@@ -175,12 +179,7 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
 // the dilated gather, and per active leaf the parts of the blocks that reach it, in bin order
 // (serial: a few dozen table look-ups per bin), which every flush until the next sort uses.
 void MpmSolver::update_grid_fused(const exec::Space& space) {
-  fused_extra_.clear();
-  for (const Vec3i& l : bins_.leaf)
-    for (int t = 0; t < 27; ++t) {
-      const Vec3i d(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1);
-      if (d.minCoeff() < 0) fused_extra_.push_back(l + d);
-    }
+  dilated_extra_leaves(fused_extra_);
   grid_.update_topology(space, bins_, &fused_extra_, topology_age());
   const std::size_t nb = bins_.count();
   fused_nbr27_.resize(nb);
@@ -208,6 +207,17 @@ void MpmSolver::update_grid_fused(const exec::Space& space) {
       const std::int32_t slot = fused_target_[b * 27 + std::size_t(t)];
       if (slot >= 0)
         fused_items_[at[std::size_t(slot)]++] = std::uint32_t(b << 5) | std::uint32_t(t);
+    }
+}
+
+// The leaves the dilated blocks reach beyond each bin's nbr8 (kG2P2GMargin nodes on the - side
+// reach the -1 neighbours), which update_topology activates as extras.
+void MpmSolver::dilated_extra_leaves(std::vector<Vec3i>& out) const {
+  out.clear();
+  for (const Vec3i& l : bins_.leaf)
+    for (int t = 0; t < 27; ++t) {
+      const Vec3i d(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1);
+      if (d.minCoeff() < 0) out.push_back(l + d);
     }
 }
 

@@ -29,13 +29,6 @@ namespace amalgam {
 
 using mpm_dist::leaf_key;
 
-namespace {
-Vec3i part_offset(int t) {
-  return Vec3i(t / 9 - 1, t / 3 % 3 - 1, t % 3 - 1);
-}
-
-}  // namespace
-
 // The view of g over the listed bins only (their neighbour tables, particle ranges and leaves in
 // this scratch), no active leaves: p2g_dilated then scatters without summing.
 MpmGridView MpmSolver::Ranks::sub_view(const MpmGridView& g,
@@ -113,36 +106,13 @@ bool MpmSolver::lazy_sort_needed_distributed(const exec::Space& space, bool need
 void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
   const dist::Comm& comm = dist::Comm::world();
   Ranks& rk = *ranks_;
-  const int R = comm.size(), me = comm.rank(), order = settings_.order;
+  const int me = comm.rank(), order = settings_.order;
   const int ch = p2g_channels(settings_.transfer, false);
   exec::ScopedRegion region(space.profiler(), "dist.plan");
   rk.dilated = true;
   const std::size_t nb = bins_.count();
-  rk.export_bins.clear();
-  rk.export_start.assign(1, 0);
-  rk.exports.clear();
-  rk.send_reals.assign(std::size_t(R), 0);
-  std::vector<std::vector<std::int32_t>> heads(
-      static_cast<std::size_t>(R));  // (leaf xyz, t) per part sent
-  fused_extra_.clear();
-  for (std::size_t b = 0; b < nb; ++b) {
-    bool any = false;
-    for (int t = 0; t < 27; ++t) {
-      const Vec3i d = part_offset(t), l = bins_.leaf[b] + d;
-      if (d.minCoeff() < 0) fused_extra_.push_back(l);
-      const int o = rk.owner(l);
-      if (o == me) continue;
-      any = true;
-      rk.exports.push_back({o, t, rk.send_reals[std::size_t(o)]});
-      rk.send_reals[std::size_t(o)] += std::size_t(dilated_part_nodes(order, t) * ch);
-      heads[std::size_t(o)].insert(heads[std::size_t(o)].end(), {l[0], l[1], l[2], t});
-    }
-    if (any) {
-      rk.export_bins.push_back(std::uint32_t(b));
-      rk.export_start.push_back(std::uint32_t(rk.exports.size()));
-    }
-  }
-  rk.exchange_heads(heads);
+  rk.plan_exports(bins_, order, ch);
+  dilated_extra_leaves(fused_extra_);  // the - side leaves the blocks reach
   fused_extra_.insert(fused_extra_.end(), rk.import_leaf.begin(), rk.import_leaf.end());
   grid_.update_topology(space, bins_, &fused_extra_, topology_age());
   fused_nbr27_.resize(nb);
@@ -160,10 +130,11 @@ void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
   rk.plan_rows(grid_, bins_, order);  // the ghost rows, the interior bins, the update order
   // Block slots: the export bins', then the interior bins' (the order P2G scatters them), then
   // one per source bin of the imports (a bin's parts arrive together).
-  rk.slot_bin = rk.export_bins;
-  rk.slot_bin.insert(rk.slot_bin.end(), rk.interior_bins.begin(), rk.interior_bins.end());
   std::vector<std::uint32_t> bin_slot(nb);
-  for (std::size_t s = 0; s < nb; ++s) bin_slot[rk.slot_bin[s]] = std::uint32_t(s);
+  for (std::size_t k = 0; k < rk.export_bins.size(); ++k)
+    bin_slot[rk.export_bins[k]] = std::uint32_t(k);
+  for (std::size_t k = 0; k < rk.interior_bins.size(); ++k)
+    bin_slot[rk.interior_bins[k]] = std::uint32_t(rk.export_bins.size() + k);
   rk.lazy_imports.clear();
   std::uint32_t slot = std::uint32_t(nb);
   std::uint64_t last_source = ~std::uint64_t(0);
@@ -181,7 +152,7 @@ void MpmSolver::update_grid_lazy_distributed(const exec::Space& space) {
     }
   for (std::size_t i = 0; i < rk.import_leaf.size(); ++i) {
     const int t = rk.import_t[i];
-    const std::uint64_t source = leaf_key(rk.import_leaf[i] - part_offset(t));
+    const std::uint64_t source = leaf_key(rk.import_leaf[i] - rk.part_offset(t));
     if (source != last_source || rk.import_rank[i] != last_rank) ++slot;
     last_source = source, last_rank = rk.import_rank[i];
     const std::int32_t li = grid_.find_leaf(rk.import_leaf[i] * kLeafDim);

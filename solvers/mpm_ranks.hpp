@@ -119,7 +119,6 @@ struct MpmSolver::Ranks {
   // built for the dilated blocks at each sort and kept until the next. exports' t and the row
   // masks' bits are parts 0..26 of a dilated block (copy_dilated_part), not 0..7.
   bool dilated = false;
-  std::vector<std::uint32_t> slot_bin;  // block slot -> bin: export_bins, then interior_bins
   struct Import {
     int rank;
     int t;
@@ -135,9 +134,11 @@ struct MpmSolver::Ranks {
   std::unordered_map<std::uint32_t, std::vector<std::uint16_t>> dilated_nodes[2];
   // The nodes of a leaf that the dilated parts in `mask` cover, in leaf offset order.
   const std::vector<std::uint16_t>& dilated_row_nodes(int order, std::uint32_t mask);
-  // The plan's heads to their owners (import_leaf, import_t, import_rank), and the plan's rows,
+  // The plan's exports and heads to their owners (import_leaf, import_t, import_rank), and its rows,
   // interior bins and update order (solvers/mpm_distributed.cpp).
+  void plan_exports(const BinTable& bins, int order, int ch);
   void exchange_heads(const std::vector<std::vector<std::int32_t>>& heads);
+  Vec3i part_offset(int t) const;  // part t's leaf from its bin's (dilated: 27 parts, else 8)
   void plan_rows(const SparseGrid& grid, const BinTable& bins, int order);
   // The view of g over the listed bins (in the sub_ scratch), no active leaves.
   MpmGridView sub_view(const MpmGridView& g, const std::vector<std::uint32_t>& list);

@@ -399,6 +399,7 @@ class MpmSolver {
   // The substeps since the last topology update of the kept bins (SparseGrid::update_topology's
   // age: leaves retire after that many substeps unused, not that many sorts).
   std::uint32_t topology_age();
+  void dilated_extra_leaves(std::vector<Vec3i>& out) const;
   std::uint64_t topology_step_ = 0;
   std::unique_ptr<MpmSleep> sleep_;
   std::unique_ptr<MpmImplicit> implicit_;
