@@ -11,12 +11,14 @@
 
 namespace amalgam {
 namespace {
-// The spare's width in 32-bit words: a Mat3, so Mat3 attributes (C, F, F_lo) are gathered into it
-// and swapped, and the narrower ones copied back. A Vec3-wide spare (12 B instead of 36 in float)
-// gathers a Mat3 in three groups, re-reading it four times: measured, the sort took 1.9x main's
-// time and the whole substep 0.83x main's rate, against 1.3x and 0.99x with this width
-// (docs/benchmarks.md "Memory").
-constexpr int kSpareWords = 9 * int(sizeof(Real) / 4);
+// The spare's width in 32-bit words: a Vec3, so Vec3 attributes (x, x_lo, v) are gathered into
+// it and swapped, a Mat3 (C, F, F_lo) is gathered a Vec3-wide group at a time in four passes
+// (each copies the last group back while gathering the next) and a scalar is gathered and
+// copied back. A Mat3-wide spare (36 B instead of 12 in float) makes a permutation ~1.5x
+// faster; it paid while the particles were sorted every substep, not since they are sorted only
+// when one leaves its bin's dilated block (sort "when_needed", every ~10-40 substeps; measured
+// in docs/benchmarks.md "Memory").
+constexpr int kSpareWords = 3 * int(sizeof(Real) / 4);
 }  // namespace
 
 int ParticleSet::spare_words_per_particle() {

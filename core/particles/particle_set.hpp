@@ -2,14 +2,14 @@
 //
 // Each attribute is one contiguous array of `width` scalars per particle (Real or int32), so a
 // kernel receives plain pointers (`vec3("x")` is a Vec3*, `mat3("F")` a Mat3*). `permute` gathers
-// through ONE spare of spare_words_per_particle() 32-bit words (a Mat3's width): an attribute of
-// that width is gathered into the spare and the two are swapped; a narrower one (Vec3, scalars)
-// is gathered into it and copied back (a wider one a spare's width at a time, each group copied
-// back in the pass that gathers the next). ParticleBinning's sort keeps its keys, second buffers
-// and run flags in the same spare (spare_words), so the set and its sort need 36 B (the spare) +
-// 4 B (the permutation) per particle besides the state in float, where one spare per attribute
-// width and four sort words took 52 + 16 B (docs/benchmarks.md "Memory"). No allocation once
-// capacity is reached. Kernels must re-fetch attribute pointers after a permute, as before.
+// through ONE spare of spare_words_per_particle() 32-bit words (a Vec3's width): an attribute of
+// that width is gathered into the spare and the two are swapped; a narrower one (scalars) is
+// gathered into it and copied back, a wider one (Mat3) a spare's width at a time, each group
+// copied back in the pass that gathers the next. ParticleBinning's sort keeps its keys, second
+// buffers and run flags in the same spare (spare_words), so the set and its sort need 12 B (the
+// spare) + 4 B (the permutation) per particle besides the state in float, where one spare per
+// attribute width and four sort words took 52 + 16 B (docs/benchmarks.md "Memory"). No
+// allocation once capacity is reached. Kernels must re-fetch attribute pointers after a permute, as before.
 #pragma once
 
 #include <cstdint>
@@ -41,8 +41,6 @@ class ParticleSet {
   AttrType type(Id a) const { return attrs_[a].type; }
   int width(Id a) const { return attrs_[a].width; }
   // 32-bit words per particle of the spare (a Vec3: 3 in float, 6 in double; >= 3, as the
-  // binning's sort uses it for three words per particle).
-  // 32-bit words per particle of the spare (9 * sizeof(Real) / 4: a Mat3; at least 3, as the
   // binning's sort uses it for three words per particle).
   static int spare_words_per_particle();
   std::size_t bytes_per_particle() const;        // the attributes plus the permutation's spare
