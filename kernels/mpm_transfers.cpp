@@ -185,14 +185,19 @@ inline const Mat3& affine(const MpmParticleView& p, std::uint32_t q, const Mat3*
 
 // Scatters particles [q0, q1) into `blk` (node (0,0,0) at `origin`). Particles in batches of up
 // to W of one material: their stresses at once (one per vector lane, the values of one at a time:
-// MaterialParams::kirchhoff_lanes), then their scatter. A dilated block (M > 0: the fused G2P2G)
-// skips a particle whose stencil leaves it and returns false.
+// MaterialParams::kirchhoff_lanes), then their scatter. A dilated block (M > 0: the fused G2P2G
+// and the two passes between sorts) skips a particle whose stencil leaves it and returns false;
+// `reach` (optional, M > 0): the block nodes the scattered stencils reached, lo x, y, z and hi x, y,
+// z inclusive (B and -1 when none), found from the stencil bases the inside test computes anyway.
 template <int Order, Transfer T, bool L, bool P, bool S = false, int CH, int M>
 inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std::uint32_t q_begin,
-                          std::uint32_t q1, const MpmParticleView& p, const MpmStepParams& prm) {
+                          std::uint32_t q1, const MpmParticleView& p, const MpmStepParams& prm,
+                          std::array<std::int8_t, 6>* reach = nullptr) {
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt;
   constexpr int W = lanes::kN<Real>;
+  constexpr int kB = GridBlock<Order, CH, M>::B;
   bool inside = true;
+  int lo[3] = {kB, kB, kB}, hi[3] = {-1, -1, -1};
   // Without C (PIC/FLIP of materials without viscosity, MpmSolver::keeps_affine) the stress reads
   // no velocity gradient: zeros stand in for it, and PIC/FLIP's scatter has no affine term.
   Mat3 zero[W];
@@ -219,13 +224,18 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
       const std::uint32_t q = q0 + std::uint32_t(l);
       if constexpr (M > 0) {  // the stencil's nodes base .. base + Order inside the block?
         bool out = false;
+        int d[3];
         for (int a = 0; a < 3; ++a) {
-          const int d = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
-          out |= d < 0 || d + Order >= GridBlock<Order, CH, M>::B;
+          d[a] = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
+          out |= d[a] < 0 || d[a] + Order >= kB;
         }
         if (out) {
           inside = false;
           continue;
+        }
+        for (int a = 0; a < 3; ++a) {
+          lo[a] = std::min(lo[a], d[a]);
+          hi[a] = std::max(hi[a], d[a] + Order);
         }
       }
       if constexpr (!L) {
@@ -240,6 +250,11 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
     }
     q0 += std::uint32_t(n);
   }
+  if (reach)
+    for (int a = 0; a < 3; ++a) {
+      (*reach)[std::size_t(a)] = std::int8_t(lo[a]);
+      (*reach)[std::size_t(a) + 3] = std::int8_t(hi[a]);
+    }
   return inside;
 }
 
@@ -711,7 +726,6 @@ void p2g_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
   // Per bin, the block nodes its particles reach: between sorts mostly the bin's own footprint,
   // so the margin's slabs (zero) are not added into the leaves.
   std::vector<std::array<std::int8_t, 6>> box(g.nbins);
-  const Real inv_dx = Real(1) / prm.dx;
   exec::parallel_for(
       space, "mpm.p2g", exec::Index(g.nbins),
       [&](exec::Index bi) {
@@ -719,19 +733,9 @@ void p2g_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
         Blk blk;
         blk.clear();
         const Vec3i origin = g.bin_leaf[b] * kLeafDim - Vec3i::Constant(M);
+        // (a particle outside the block is neither scattered nor in the box: far, re-sorted)
         far[b] = !scatter_range<Order, T, false, false>(blk, origin, g.bin_start[b], g.end_of(b), p,
-                                                        prm);
-        int lo[3] = {Blk::B, Blk::B, Blk::B}, hi[3] = {-1, -1, -1};
-        for (std::uint32_t q = g.bin_start[b]; q < g.end_of(b); ++q)
-          for (int a = 0; a < 3; ++a) {
-            const int d = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
-            lo[a] = std::min(lo[a], d);
-            hi[a] = std::max(hi[a], d + Order);
-          }
-        for (int a = 0; a < 3; ++a) {  // a particle outside the block was not scattered (far)
-          box[b][std::size_t(a)] = std::int8_t(std::clamp(lo[a], 0, Blk::B));
-          box[b][std::size_t(a) + 3] = std::int8_t(std::clamp(hi[a], -1, Blk::B - 1));
-        }
+                                                        prm, &box[b]);
         std::memcpy(blocks + b * std::size_t(Blk::kSize), blk.data, sizeof(blk.data));
         for (int t = 0; t < 27; ++t) {
           const std::int32_t li = target[b * 27 + std::size_t(t)];
