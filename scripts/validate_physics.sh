@@ -108,10 +108,11 @@ rows = []
 def row(case, ref, value, tol, ok, how):
     rows.append(f"| {case} | {ref} | {value} | {tol} | {'pass' if ok else '**fail**'} | `{how}` |")
 for name, label in (("fidelity", "float"), ("fidelity_double", "double")):
-    for m in re.finditer(r"column at \(([^)]*)\): compression ([\d.e+-]+) m \(sd ([\d.e+-]+)\), "
-                         r"analytic ([\d.e+-]+) m, ([+-][\d.]+) %", read(name)):
-        where, c, sd, a, err = m.group(1), float(m.group(2)), float(m.group(3)), float(m.group(4)), float(m.group(5))
-        row(f"elastic column at rest, {label}, corner ({where})", f"ρg/E·(Hy − y²/2): {a:.4e} m",
+    for m in re.finditer(r"column at \(([^)]*)\)(, rest shape rotated)?: compression ([\d.e+-]+) m "
+                         r"\(sd ([\d.e+-]+)\), analytic ([\d.e+-]+) m, ([+-][\d.]+) %", read(name)):
+        where, turned = m.group(1), m.group(2) or ""
+        c, sd, a, err = float(m.group(3)), float(m.group(4)), float(m.group(5)), float(m.group(6))
+        row(f"elastic column at rest, {label}, corner ({where}){turned}", f"ρg/E·(Hy − y²/2): {a:.4e} m",
             f"{err:+.2f} % (sd {100 * sd / a:.2f} %, t = 2–3 s)", "2 %", abs(err) <= 2,
             f"test_fidelity ({label} build)")
 w = read("water")

@@ -100,8 +100,9 @@ ColumnResult settle_column(const Vec3d& floor, const Mat3& F0 = Mat3::Identity()
   r.measured = sum / samples;
   r.spread = std::sqrt(std::max(0.0, sq / samples - r.measured * r.measured));
   std::printf(
-      "column at (%.9g, %.9g, %.9g): compression %.6e m (sd %.2e), analytic %.6e m, %+.4f %%\n",
-      floor[0], floor[1], floor[2], r.measured, r.spread, r.analytic, 100 * r.error());
+      "column at (%.9g, %.9g, %.9g)%s: compression %.6e m (sd %.2e), analytic %.6e m, %+.4f %%\n",
+      floor[0], floor[1], floor[2], F0.isIdentity() ? "" : ", rest shape rotated", r.measured,
+      r.spread, r.analytic, 100 * r.error());
   return r;
 }
 
