@@ -468,6 +468,45 @@ TEST(Materials, KirchhoffOfABatchIsBitwiseThatOfOneParticle) {
   EXPECT_GT(compared, 1000);
 }
 
+// The diagnostics take the elastic energies of several particles at once (energy_lanes: the SVDs
+// one per vector lane). Every model, snow's per-particle hardening and a melting point crossed
+// inside a batch, inverted F included, must give bitwise the one-particle energy().
+TEST(Materials, EnergyOfABatchIsBitwiseThatOfOneParticle) {
+  constexpr int W = lanes::kN<Real>;
+  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  std::mt19937 rng(23);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  int compared = 0;
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
+    for (int melting = 0; melting < 2; ++melting) {
+      MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
+      m.bulk = Real(1e5);
+      if (melting)
+        m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
+      for (int t = 0; t < 200; ++t) {
+        const int n = 1 + t % W;
+        Mat3 F[W];
+        Real plastic[W], temperature[W], e[W];
+        for (int i = 0; i < n; ++i) {
+          F[i] = random_F(rng);
+          if (t % 5 == 0 && i == 0) F[i].col(2) *= Real(-1);  // inverted: the SVD fallback
+          plastic[i] =
+              m.model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
+          temperature[i] = Real(300 + 5 * u(rng));  // some lanes melted, some not
+        }
+        m.energy_lanes(F, plastic, temperature, e, n);
+        for (int i = 0; i < n; ++i) {
+          const Real one = m.energy(F[i], plastic[i], temperature[i]);
+          ASSERT_EQ(0, std::memcmp(&one, &e[i], sizeof(Real)))
+              << material_model_name(m.model) << " melting " << melting << " lane " << i << ": "
+              << one << " vs " << e[i];
+          ++compared;
+        }
+      }
+    }
+  EXPECT_GT(compared, 1000);
+}
+
 // The material update computes the SVDs that the plastic return mappings start from for several
 // particles at once (svd3_lanes) and passes them to project(F, plastic, svd): the projected F and
 // plastic state must be bitwise those of project(F, plastic, temperature), for every plastic

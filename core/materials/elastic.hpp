@@ -36,10 +36,11 @@ struct FixedCorotatedT {
   using V3 = Eigen::Matrix<T, 3, 1>;
   T mu, lambda;
 
-  T energy(const M3& F) const {
-    const Svd3<T> d = svd3(F);
-    const T J = d.sigma.prod();
-    return mu * (d.sigma - V3::Ones()).squaredNorm() + T(0.5) * lambda * (J - 1) * (J - 1);
+  T energy(const M3& F) const { return energy_sigma(svd3(F).sigma); }
+  // The same from F's singular values (MaterialParams::energy_lanes has several SVDs at once).
+  T energy_sigma(const V3& s) const {
+    const T J = s.prod();
+    return mu * (s - V3::Ones()).squaredNorm() + T(0.5) * lambda * (J - 1) * (J - 1);
   }
   M3 first_piola(const M3& F) const {
     const Svd3<T> d = svd3(F);
@@ -180,8 +181,9 @@ struct StvkHenckyT {
               std::log(std::max(std::abs(s[2]), kMinSigma)));
   }
   static T safe(T s) { return std::abs(s) >= kMinSigma ? s : std::copysign(kMinSigma, s); }
-  T energy(const M3& F) const {
-    const V3 e = log_strain(svd3(F).sigma);
+  T energy(const M3& F) const { return energy_sigma(svd3(F).sigma); }
+  T energy_sigma(const V3& s) const {  // the same from F's singular values
+    const V3 e = log_strain(s);
     const T tr = e.sum();
     return mu * e.squaredNorm() + T(0.5) * lambda * tr * tr;
   }

@@ -126,6 +126,27 @@ struct MaterialParams {
     }
     return Mat3::Zero();
   }
+  // energy() of n <= lanes::kN<Real> particles of this material, out[l] bitwise what
+  // energy(F[l], plastic[l], temperature[l]) gives: the SVD-based models (fixed corotated, snow,
+  // the StVK-Hencky family) take their SVDs at once, one particle per vector lane (svd3_lanes is
+  // bitwise svd3 lane by lane); the others, and a batch with a melted particle, one at a time.
+  void energy_lanes(const Mat3* F, const Real* plastic, const Real* temperature, Real* out,
+                    int n) const {
+    const bool hencky = model == MaterialModel::StvkHencky ||
+                        model == MaterialModel::DruckerPrager || model == MaterialModel::VonMises;
+    bool batch = hencky || model == MaterialModel::FixedCorotated || model == MaterialModel::Snow;
+    for (int l = 0; l < n && batch && melting; ++l) batch = !melted(temperature[l]);
+    if (!batch) {
+      for (int l = 0; l < n; ++l) out[l] = energy(F[l], plastic[l], temperature[l]);
+      return;
+    }
+    Svd3<Real> d[lanes::kN<Real>];
+    svd3_lanes(F, n, d);
+    for (int l = 0; l < n; ++l)
+      out[l] = hencky                         ? StvkHencky{mu, lambda}.energy_sigma(d[l].sigma)
+               : model == MaterialModel::Snow ? snow().elastic(plastic[l]).energy_sigma(d[l].sigma)
+                                              : FixedCorotated{mu, lambda}.energy_sigma(d[l].sigma);
+  }
   // Elastic strain energy density per reference volume.
   Real energy(const Mat3& F, Real plastic, Real temperature) const {
     if (melting && temperature >= melting_point) return liquid().energy(F);
