@@ -19,10 +19,23 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
   // Groups of kN consecutive particles (update_material_group: their SVDs at once).
   constexpr int kN = lanes::kN<Real>;
   const exec::Index n = exec::Index(p.n), groups = (n + kN - 1) / kN;
-  exec::parallel_for(space, "mpm.material_update", groups, [&](exec::Index g) {
-    const exec::Index i0 = g * kN;
-    update_material_group(p, prm, i0, std::min(n, i0 + kN));
-  });
+  if (!prm.check) {
+    exec::parallel_for(space, "mpm.material_update", groups, [&](exec::Index g) {
+      const exec::Index i0 = g * kN;
+      update_material_group(p, prm, i0, std::min(n, i0 + kN));
+    });
+    return;
+  }
+  // The substep's last particle pass: with the stability check of the updated particles.
+  *prm.check = exec::parallel_reduce(
+      space, "mpm.material_update", groups, StabilityCheck{},
+      [&](exec::Index g, StabilityCheck& acc) {
+        const exec::Index i0 = g * kN, i1 = std::min(n, i0 + kN);
+        update_material_group(p, prm, i0, i1);
+        for (exec::Index i = i0; i < i1; ++i)
+          check_particle(acc, i, p.v[i], p.F[i], prm.check_limits);
+      },
+      merge_checks);
 }
 
 namespace {
