@@ -577,11 +577,8 @@ void for_bins(const exec::Space& space, const char* label, std::size_t nbins,
 // (prm.collide) and the stability check (acc).
 inline void finish_bin(const MpmParticleView& p, const MpmStepParams& prm, std::uint32_t q0,
                        std::uint32_t q1, StabilityCheck* acc) {
-  if (prm.collide && prm.ncolliders > 0) {
-    const Real t_end = prm.time + prm.dt;
-    for (std::uint32_t q = q0; q < q1; ++q)
-      collide_particle(p, prm.colliders, prm.ncolliders, q, t_end);
-  }
+  if (prm.collide && prm.ncolliders > 0)
+    collide_range(p, prm.colliders, prm.ncolliders, q0, q1, prm.time + prm.dt);
   if (acc)
     for (std::uint32_t q = q0; q < q1; ++q)
       check_particle(*acc, q, p.v[q], p.F[q], prm.check_limits);
@@ -644,8 +641,7 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
                                           lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
                                           inv_dx, dt, alpha);
     }
-    for (std::uint32_t q = q0; prm.ncolliders > 0 && q < q1; ++q)
-      collide_particle(p, prm.colliders, prm.ncolliders, q, t_end);
+    if (prm.ncolliders > 0) collide_range(p, prm.colliders, prm.ncolliders, q0, q1, t_end);
     for (std::uint32_t q = q0; mu && q < q1; q += kN)
       update_material_group(p, *mu, q, std::min(q1, q + kN));
     for (std::uint32_t q = q0; acc && q < q1; ++q)

@@ -17,7 +17,7 @@ namespace amalgam {
 
 struct StabilityCheck {
   Real max_speed = 0;
-  Real max_wave = 0;   // largest particle wave speed when it depends on the plastic state
+  Real max_wave = 0;      // largest particle wave speed when it depends on the plastic state
   std::int64_t bad = -1;  // smallest index of a particle with a non-finite v or F, or runaway
   int what = 0;           // 1 velocity, 2 deformation gradient, 3 runaway speed
 };

@@ -32,15 +32,13 @@ struct Case {
 std::vector<Case> folding_cases() {
   std::vector<Case> out;
   for (const char* t : {"mls", "apic", "flip"})
-    for (const auto& [name, sim] : {std::pair<const char*, std::string>{"lazy", kLazy},
-                                    {"every", kEvery},
-                                    {"fused", kFused}})
+    for (const auto& [name, sim] :
+         {std::pair<const char*, std::string>{"lazy", kLazy}, {"every", kEvery}, {"fused", kFused}})
       out.push_back({std::string(t) + "_" + name, small_scene(t, 2, "explicit", sim)});
   out.push_back({"mls_order3_lazy", small_scene("mls", 3, "explicit", kLazy)});
   out.push_back({"apic_implicit", small_scene("apic", 2, "implicit")});
-  for (const auto& [name, sim] : {std::pair<const char*, std::string>{"lazy", kLazy},
-                                  {"every", kEvery},
-                                  {"fused", kFused}})
+  for (const auto& [name, sim] :
+       {std::pair<const char*, std::string>{"lazy", kLazy}, {"every", kEvery}, {"fused", kFused}})
     out.push_back({std::string("materials_") + name, material_scene(sim)});
   return out;
 }
@@ -89,9 +87,8 @@ TEST(FoldedStabilityCheck, SameDtAsTheSeparatePassOnEveryPath) {
 TEST(FoldedStabilityCheck, BlowUpNamesTheSameParticleOnEveryBackend) {
   const std::string slow = R"(, "max_speed": 3.2)";
   std::vector<Case> cases;
-  for (const auto& [name, sim] : {std::pair<const char*, std::string>{"lazy", kLazy},
-                                  {"every", kEvery},
-                                  {"fused", kFused}}) {
+  for (const auto& [name, sim] :
+       {std::pair<const char*, std::string>{"lazy", kLazy}, {"every", kEvery}, {"fused", kFused}}) {
     cases.push_back({std::string("nan_") + name, small_scene("mls", 2, "explicit", sim)});
     cases.push_back({std::string("speed_") + name, small_scene("apic", 2, "explicit", sim + slow)});
     cases.push_back({std::string("materials_nan_") + name, material_scene(sim)});
