@@ -32,8 +32,7 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
       [&](exec::Index g, StabilityCheck& acc) {
         const exec::Index i0 = g * kN, i1 = std::min(n, i0 + kN);
         update_material_group(p, prm, i0, i1);
-        for (exec::Index i = i0; i < i1; ++i)
-          check_particle(acc, i, p.v[i], p.F[i], prm.check_limits);
+        check_range(acc, i0, i1, p.v, p.F, prm.check_limits);
       },
       merge_checks);
 }

@@ -579,9 +579,7 @@ inline void finish_bin(const MpmParticleView& p, const MpmStepParams& prm, std::
                        std::uint32_t q1, StabilityCheck* acc) {
   if (prm.collide && prm.ncolliders > 0)
     collide_range(p, prm.colliders, prm.ncolliders, q0, q1, prm.time + prm.dt);
-  if (acc)
-    for (std::uint32_t q = q0; q < q1; ++q)
-      check_particle(*acc, q, p.v[q], p.F[q], prm.check_limits);
+  if (acc) check_range(*acc, q0, q1, p.v, p.F, prm.check_limits);
 }
 
 template <int Order, Transfer T, bool L>
@@ -644,8 +642,7 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
     if (prm.ncolliders > 0) collide_range(p, prm.colliders, prm.ncolliders, q0, q1, t_end);
     for (std::uint32_t q = q0; mu && q < q1; q += kN)
       update_material_group(p, *mu, q, std::min(q1, q + kN));
-    for (std::uint32_t q = q0; acc && q < q1; ++q)
-      check_particle(*acc, q, p.v[q], p.F[q], prm.check_limits);
+    if (acc) check_range(*acc, q0, q1, p.v, p.F, prm.check_limits);
     Out out;
     out.clear();
     far[b] = !scatter_range<Order, T, false, false, true>(out, origin - Vec3i::Constant(M), q0, q1,

@@ -52,6 +52,32 @@ inline void check_particle(StabilityCheck& acc, std::int64_t i, const Vec3& v, c
   }
 }
 
+// check_particle for particles [i0, i1) in order, with a fast path for the common particle (finite,
+// well below max_speed): its squared speed only, the largest square root taken once at the end.
+// The same result: IEEE sqrt is correctly rounded and monotonic, so the square root of the largest
+// |v|^2 is the largest |v| (v.norm() is sqrt(v.squaredNorm())), and a particle whose |v|^2 or F
+// is not finite, or whose |v|^2 exceeds a quarter of max_speed^2, takes check_particle itself.
+template <class Index>
+inline void check_range(StabilityCheck& acc, Index i0, Index i1, const Vec3* v, const Mat3* F,
+                        const StabilityLimits& lim) {
+  const Real slow = Real(0.25) * lim.max_speed * lim.max_speed;
+  Real most = 0;  // largest |v|^2 of the fast path
+  for (Index i = i0; i < i1; ++i) {
+    const Real s2 = v[i].squaredNorm();
+    if (!std::isfinite(s2 + F[i].sum()) || !(s2 <= slow)) {
+      check_particle(acc, std::int64_t(i), v[i], F[i], lim);
+      continue;
+    }
+    most = s2 > most ? s2 : most;
+  }
+  acc.max_speed = std::max(acc.max_speed, std::sqrt(most));
+  if (lim.plastic)
+    for (Index i = i0; i < i1; ++i) {
+      const MaterialParams& m = lim.materials[lim.material[i]];
+      acc.max_wave = std::max(acc.max_wave, m.wave_speed() * m.wave_speed_factor(lim.plastic[i]));
+    }
+}
+
 // Two partial checks in one: the same result in any order and grouping.
 inline StabilityCheck merge_checks(StabilityCheck a, const StabilityCheck& b) {
   if (b.bad >= 0 && (a.bad < 0 || b.bad < a.bad)) {
