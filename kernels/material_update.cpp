@@ -19,42 +19,32 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
   // Groups of kN consecutive particles (update_material_group: their SVDs at once).
   constexpr int kN = lanes::kN<Real>;
   const exec::Index n = exec::Index(p.n), groups = (n + kN - 1) / kN;
-  exec::parallel_for(space, "mpm.material_update", groups, [&](exec::Index g) {
-    const exec::Index i0 = g * kN;
-    update_material_group(p, prm, i0, std::min(n, i0 + kN));
-  });
+  if (!prm.check) {
+    exec::parallel_for(space, "mpm.material_update", groups, [&](exec::Index g) {
+      const exec::Index i0 = g * kN;
+      update_material_group(p, prm, i0, std::min(n, i0 + kN));
+    });
+    return;
+  }
+  // The substep's last particle pass: with the stability check of the updated particles.
+  *prm.check = exec::parallel_reduce(
+      space, "mpm.material_update", groups, StabilityCheck{},
+      [&](exec::Index g, StabilityCheck& acc) {
+        const exec::Index i0 = g * kN, i1 = std::min(n, i0 + kN);
+        update_material_group(p, prm, i0, i1);
+        check_range(acc, i0, i1, p.v, p.F, prm.check_limits);
+      },
+      merge_checks);
 }
-
-namespace {
-constexpr exec::Index kCollideChunk = 256;
-}  // namespace
 
 void collide_particles(const exec::Space& space, const MpmParticleView& p,
                        const Collider* colliders, int n, Real time) {
-  // Each particle meets the colliders in their order, as before; the loops are interchanged
-  // within a chunk of particles (colliders outer), so a half-space's test is one tight loop with
-  // its plane hoisted: phi = (x - c) . n, exactly Collider::phi's expression. Most particles are
-  // outside every collider and never reach collide_one.
+  // Chunks of kCollideChunk particles, each with the colliders outer (collide_range).
   const exec::Index chunks = (exec::Index(p.n) + kCollideChunk - 1) / kCollideChunk;
   const MpmParticleView pv = p;
   exec::parallel_for(space, "mpm.collide_particles", chunks, [=](exec::Index k) {
     const exec::Index i0 = k * kCollideChunk, i1 = std::min(exec::Index(pv.n), i0 + kCollideChunk);
-    for (int c = 0; c < n; ++c) {
-      const Collider& col = colliders[c];
-      if (time > col.until) continue;  // released: phi is kReleased everywhere
-      if (col.shape == ColliderShape::HalfSpace) {
-        const Vec3 o = col.origin + time * col.velocity, nrm = col.normal;
-        Real phi[kCollideChunk];  // a branch-free loop the compiler vectorises, then the few inside
-        for (exec::Index i = i0; i < i1; ++i) phi[i - i0] = (pv.x[i] - o).dot(nrm);
-        for (exec::Index i = i0; i < i1; ++i)
-          if (phi[i - i0] < 0) collide_one(pv, col, i, phi[i - i0], time);
-        continue;
-      }
-      for (exec::Index i = i0; i < i1; ++i) {
-        const Real phi = col.phi(pv.x[i], time);
-        if (phi < 0) collide_one(pv, col, i, phi, time);
-      }
-    }
+    collide_range(pv, colliders, n, i0, i1, time);
   });
 }
 

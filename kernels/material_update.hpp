@@ -28,6 +28,10 @@ struct MaterialUpdateParams {
   int nsources = 0;
   Real dt = 0;
   Real time = 0;  // time at the end of the substep
+  // When set, *check = the stability check of every particle after the update (the material
+  // update is then the substep's last particle pass), with check_limits.
+  StabilityCheck* check = nullptr;
+  StabilityLimits check_limits;
 };
 
 void update_material_state(const exec::Space& space, const MpmParticleView& p,

@@ -573,6 +573,30 @@ inline void gather_dilated(GridBlock<Order, CH, M>& blk, const MpmGridView& g, s
     }
 }
 
+// body(b, acc) for every bin b: acc is null, or (prm.check) the partial stability check the body
+// adds its particles to, reduced into *prm.check (the same value in any order: stability_check.hpp).
+template <class Body>
+void for_bins(const exec::Space& space, const char* label, std::size_t nbins,
+              const MpmStepParams& prm, Body&& body) {
+  if (!prm.check) {
+    exec::parallel_for(
+        space, label, exec::Index(nbins), [&](exec::Index b) { body(b, nullptr); }, 1);
+    return;
+  }
+  *prm.check = exec::parallel_reduce(
+      space, label, exec::Index(nbins), StabilityCheck{},
+      [&](exec::Index b, StabilityCheck& acc) { body(b, &acc); }, merge_checks, 1);
+}
+
+// The end of a bin's particle update in g2p and g2p_dilated: the particle collisions
+// (prm.collide) and the stability check (acc).
+inline void finish_bin(const MpmParticleView& p, const MpmStepParams& prm, std::uint32_t q0,
+                       std::uint32_t q1, StabilityCheck* acc) {
+  if (prm.collide && prm.ncolliders > 0)
+    collide_range(p, prm.colliders, prm.ncolliders, q0, q1, prm.time + prm.dt);
+  if (acc) check_range(*acc, q0, q1, p.v, p.F, prm.check_limits);
+}
+
 template <int Order, Transfer T, bool L>
 void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridView& g,
               const MpmStepParams& prm) {
@@ -580,26 +604,24 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
   using Blk = Block<Order, CH>;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
   auto lo = [](auto* a, std::uint32_t q) { return a ? a + q : nullptr; };
-  exec::parallel_for(
-      space, "mpm.g2p", exec::Index(g.nbins),
-      [&](exec::Index bi) {
-        const std::size_t b = std::size_t(bi);
-        Blk blk;
-        gather_bin(blk, g, b);
-        const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-        const std::uint32_t q1 = g.end_of(b);
-        for (std::uint32_t q = g.bin_start[b]; q < q1; ++q) {
-          if constexpr (L)
-            g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                             lo(p.C, q), p.F[q], nullptr, p.F_s + q, p.F_0s + q, dx,
-                                             inv_dx, dt, alpha);
-          else
-            g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                              lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr,
-                                              dx, inv_dx, dt, alpha);
-        }
-      },
-      1);
+  for_bins(space, "mpm.g2p", g.nbins, prm, [&](exec::Index bi, StabilityCheck* acc) {
+    const std::size_t b = std::size_t(bi);
+    Blk blk;
+    gather_bin(blk, g, b);
+    const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+    const std::uint32_t q0 = g.bin_start[b], q1 = g.end_of(b);
+    for (std::uint32_t q = q0; q < q1; ++q) {
+      if constexpr (L)
+        g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                         lo(p.C, q), p.F[q], nullptr, p.F_s + q, p.F_0s + q, dx,
+                                         inv_dx, dt, alpha);
+      else
+        g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                          lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
+                                          inv_dx, dt, alpha);
+    }
+    finish_bin(p, prm, q0, q1, acc);
+  });
 }
 
 // The fused G2P2G (Wang et al. 2020): per bin, one pass over its particles' data: gather from
@@ -619,32 +641,29 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
   const Real t_end = prm.time + prm.dt;
   constexpr int kN = lanes::kN<Real>;
   auto lo = [](auto* a, std::uint32_t q) { return a ? a + q : nullptr; };
-  exec::parallel_for(
-      space, "mpm.g2p2g", exec::Index(g.nbins),
-      [&](exec::Index bi) {
-        const std::size_t b = std::size_t(bi);
-        const Vec3i origin = g.bin_leaf[b] * kLeafDim;
-        const std::uint32_t q0 = g.bin_start[b], q1 = g.end_of(b);
-        {  // the particles moved up to M nodes since the bins were sorted: a dilated gather
-          GridBlock<Order, CH, M> in;
-          gather_dilated(in, g, b);
-          const Vec3i in_origin = origin - Vec3i::Constant(M);
-          for (std::uint32_t q = q0; q < q1; ++q)
-            g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                              lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr,
-                                              dx, inv_dx, dt, alpha);
-        }
-        for (std::uint32_t q = q0; prm.ncolliders > 0 && q < q1; ++q)
-          collide_particle(p, prm.colliders, prm.ncolliders, q, t_end);
-        for (std::uint32_t q = q0; mu && q < q1; q += kN)
-          update_material_group(p, *mu, q, std::min(q1, q + kN));
-        Out out;
-        out.clear();
-        far[b] = !scatter_range<Order, T, false, false, true>(out, origin - Vec3i::Constant(M), q0,
-                                                              q1, p, prm);
-        std::memcpy(blocks + b * std::size_t(Out::kSize), out.data, sizeof(out.data));
-      },
-      1);
+  for_bins(space, "mpm.g2p2g", g.nbins, prm, [&](exec::Index bi, StabilityCheck* acc) {
+    const std::size_t b = std::size_t(bi);
+    const Vec3i origin = g.bin_leaf[b] * kLeafDim;
+    const std::uint32_t q0 = g.bin_start[b], q1 = g.end_of(b);
+    {  // the particles moved up to M nodes since the bins were sorted: a dilated gather
+      GridBlock<Order, CH, M> in;
+      gather_dilated(in, g, b);
+      const Vec3i in_origin = origin - Vec3i::Constant(M);
+      for (std::uint32_t q = q0; q < q1; ++q)
+        g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                          lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
+                                          inv_dx, dt, alpha);
+    }
+    if (prm.ncolliders > 0) collide_range(p, prm.colliders, prm.ncolliders, q0, q1, t_end);
+    for (std::uint32_t q = q0; mu && q < q1; q += kN)
+      update_material_group(p, *mu, q, std::min(q1, q + kN));
+    if (acc) check_range(*acc, q0, q1, p.v, p.F, prm.check_limits);
+    Out out;
+    out.clear();
+    far[b] = !scatter_range<Order, T, false, false, true>(out, origin - Vec3i::Constant(M), q0, q1,
+                                                          p, prm);
+    std::memcpy(blocks + b * std::size_t(Out::kSize), out.data, sizeof(out.data));
+  });
 }
 
 // Active leaf li of g = the parts of the dilated blocks (CH lanes, margin kG2P2GMargin) listed for
@@ -756,27 +775,25 @@ void g2p_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
   using Blk = GridBlock<Order, CH, M>;
   const Real dx = prm.dx, inv_dx = Real(1) / prm.dx, dt = prm.dt, alpha = prm.flip_alpha;
   auto lo = [](auto* a, std::uint32_t q) { return a ? a + q : nullptr; };
-  exec::parallel_for(
-      space, "mpm.g2p", exec::Index(g.nbins),
-      [&](exec::Index bi) {
-        const std::size_t b = std::size_t(bi);
-        Blk in;
-        gather_dilated(in, g, b);
-        const Vec3i origin = g.bin_leaf[b] * kLeafDim - Vec3i::Constant(M);
-        bool out = false;
-        const std::uint32_t q1 = g.end_of(b);
-        for (std::uint32_t q = g.bin_start[b]; q < q1; ++q) {
-          g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                            lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
-                                            inv_dx, dt, alpha);
-          for (int a = 0; a < 3; ++a) {
-            const int d = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
-            out |= d < 0 || d + Order >= Blk::B;
-          }
-        }
-        far[b] = out;
-      },
-      1);
+  for_bins(space, "mpm.g2p", g.nbins, prm, [&](exec::Index bi, StabilityCheck* acc) {
+    const std::size_t b = std::size_t(bi);
+    Blk in;
+    gather_dilated(in, g, b);
+    const Vec3i origin = g.bin_leaf[b] * kLeafDim - Vec3i::Constant(M);
+    bool out = false;
+    const std::uint32_t q0 = g.bin_start[b], q1 = g.end_of(b);
+    for (std::uint32_t q = q0; q < q1; ++q) {
+      g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
+                                        lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
+                                        inv_dx, dt, alpha);
+      for (int a = 0; a < 3; ++a) {
+        const int d = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
+        out |= d < 0 || d + Order >= Blk::B;
+      }
+    }
+    far[b] = out;  // before the collisions: P2G finds a particle they pushed out
+    finish_bin(p, prm, q0, q1, acc);
+  });
 }
 
 template <template <int, Transfer> class Fn, class... Args>

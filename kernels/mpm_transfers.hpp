@@ -28,6 +28,7 @@
 #include "core/materials/material.hpp"
 #include "core/math/types.hpp"
 #include "core/geometry/colliders.hpp"
+#include "kernels/stability_check.hpp"
 #include "sparse_grid/binning.hpp"
 
 namespace amalgam {
@@ -140,6 +141,13 @@ struct MpmStepParams {
   // The split (dt-free) grid of the fused G2P2G (every transfer): P2G scatters (m, m v + m C o)
   // into a and the stress force (without dt) into b; grid_update forms (p + dt f) / m + dt g.
   bool split = false;
+  // g2p and g2p_dilated: each bin's particles then meet the colliders at time + dt
+  // (collide_particle, the particle collisions of collide_particles: the same bits), as in g2p2g.
+  bool collide = false;
+  // g2p, g2p_dilated and g2p2g: when set, *check = the stability check (kernels/
+  // stability_check.hpp) of every particle after the kernel's updates, with check_limits.
+  StabilityCheck* check = nullptr;
+  StabilityLimits check_limits;
 };
 
 // Zeroes the transfer channels of the active leaves.

@@ -79,5 +79,34 @@ inline void collide_particle(const MpmParticleView& p, const Collider* colliders
   }
 }
 
+// Particles [i0, i1) against every collider, each particle meeting them in their order
+// (collide_particle's result for each): the loops interchanged (colliders outer), in chunks of
+// kCollideChunk particles, so that a half-space's test is one tight loop with its plane hoisted:
+// phi = (x - c) . n, exactly Collider::phi's expression. Most particles are outside every collider
+// and never reach collide_one.
+constexpr exec::Index kCollideChunk = 256;
+inline void collide_range(const MpmParticleView& p, const Collider* colliders, int n,
+                          exec::Index i0, exec::Index i1, Real time) {
+  for (exec::Index c0 = i0; c0 < i1; c0 += kCollideChunk) {
+    const exec::Index c1 = std::min(i1, c0 + kCollideChunk);
+    for (int c = 0; c < n; ++c) {
+      const Collider& col = colliders[c];
+      if (time > col.until) continue;  // released: phi is kReleased everywhere
+      if (col.shape == ColliderShape::HalfSpace) {
+        const Vec3 o = col.origin + time * col.velocity, nrm = col.normal;
+        Real phi[kCollideChunk];  // a branch-free loop the compiler vectorises, then the few inside
+        for (exec::Index i = c0; i < c1; ++i) phi[i - c0] = (p.x[i] - o).dot(nrm);
+        for (exec::Index i = c0; i < c1; ++i)
+          if (phi[i - c0] < 0) collide_one(p, col, i, phi[i - c0], time);
+        continue;
+      }
+      for (exec::Index i = c0; i < c1; ++i) {
+        const Real phi = col.phi(p.x[i], time);
+        if (phi < 0) collide_one(p, col, i, phi, time);
+      }
+    }
+  }
+}
+
 }  // namespace AMALGAM_ISA
 }  // namespace amalgam

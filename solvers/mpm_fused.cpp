@@ -57,9 +57,8 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   const std::size_t reals = g.nbins * g2p2g_block_reals(settings_.order);
   const std::size_t budget = dilated_blocks_budget(particles_.size());
   if (reals * sizeof(Real) > budget) {  // the dilated blocks would not fit: two passes
-    g2p(space, particle_view(), g, prm);
-    collide_particles(space, dt);
-    if (material_update_) update_materials(space, dt);
+    g2p(space, particle_view(), g, g2p_params(prm));
+    after_g2p(space, dt);
     primed_ = false;
     ++fused_unfused_;
     return;
@@ -67,8 +66,11 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   if (p2g_blocks_.size() < reals) p2g_blocks_.resize(reals);
   fused_far_.assign(g.nbins, 0);
   const MaterialUpdateParams mu = material_params(dt);
+  prm.check = &folded_;  // the last particle pass of the substep
+  prm.check_limits = check_limits();
   g2p2g(space, particle_view(), g, prm, material_update_ ? &mu : nullptr, p2g_blocks_.data(),
         fused_far_.data());
+  fold_pending_ = true;
   // The particles stay in their bins, in their order, while every one's stencil lies inside its
   // bin's dilated block: the grid is then the blocks' sum over the same leaves. The first that
   // leaves it re-sorts them (every 11-40 substeps in the scenes measured, docs/benchmarks.md):
@@ -78,6 +80,8 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
     update_grid_fused(space);
     prime_grid(space);  // the split P2G of the re-sorted particles (the same state)
     ++fused_fallbacks_;
+    // The maxima hold for any order; a bad particle's index does not: stable_dt finds it again.
+    if (folded_.bad >= 0) fold_pending_ = false;
   } else {
     flush_fused_blocks(space);
   }
@@ -133,9 +137,11 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
     update_grid(space);
     particle_to_grid(space, dt);
     update_grid_velocities(space, dt);
-    grid_to_particle(space, dt);
-    collide_particles(space, dt);
-    if (material_update_) update_materials(space, dt);
+    if (folds_check())
+      g2p(space, particle_view(), grid_view(), g2p_params(step_params(dt)));
+    else
+      grid_to_particle(space, dt);
+    after_g2p(space, dt);
     lazy_far_.clear();
     primed_ = false;
     ++lazy_unfit_;
@@ -168,9 +174,8 @@ void MpmSolver::step_sorted_when_needed(const exec::Space& space, Real dt) {
     scatter();
   }
   update_grid_velocities(space, dt);
-  g2p_dilated(space, particle_view(), grid_view(), step_params(dt), lazy_far_.data());
-  collide_particles(space, dt);
-  if (material_update_) update_materials(space, dt);
+  g2p_dilated(space, particle_view(), grid_view(), g2p_params(step_params(dt)), lazy_far_.data());
+  after_g2p(space, dt);  // (G2P ran the particle collisions and the check, unless this does)
   primed_ = true;
 }
 

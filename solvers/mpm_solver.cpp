@@ -201,6 +201,7 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
     add_particles(emitted_x_, e.velocity, Vec3::Zero(), Vec3::Zero(), e.material, h * h * h,
                   e.temperature);
     sources_.emitted += std::int64_t(emitted_x_.size());
+    folded_at_ = kNotFolded;  // new particles: stable_dt checks them all
   }
   // Distributed: every rank emits alike (same ids) and keeps what falls in its own leaves.
   if (ranks_ && particles_.size() > before) keep_owned_emitted(space, before);
@@ -218,6 +219,7 @@ void MpmSolver::emit_and_kill(const exec::Space& space, double t0, double t1) {
   sources_.killed += std::int64_t(killed);
   if (kept_.size() == n) return;
   primed_ = false;
+  folded_at_ = kNotFolded;  // the particles' indices change
   particles_.compact(space, kept_.data(), kept_.size());
   if (ranks_) compact_bins(kept_);
 }
@@ -384,6 +386,46 @@ void MpmSolver::update_materials(const exec::Space& space, Real dt) {
   update_material_state(space, particle_view(), material_params(dt));
 }
 
+bool MpmSolver::folds_check() const {
+  return !ranks_ && !aul_ && !enriched_ && !sleep_;
+}
+
+StabilityLimits MpmSolver::check_limits() const {
+  StabilityLimits lim;
+  lim.max_speed = settings_.max_speed;
+  if (hardening_) {
+    lim.materials = materials_.data();
+    lim.material = particles_.int32(attr_.material);
+    lim.plastic = particles_.real(attr_.plastic);
+  }
+  return lim;
+}
+
+MpmStepParams MpmSolver::g2p_params(MpmStepParams prm) {
+  if (!folds_check()) return prm;
+  prm.collide = true;
+  if (!material_update_) {
+    prm.check = &folded_;
+    prm.check_limits = check_limits();
+    fold_pending_ = true;
+  }
+  return prm;
+}
+
+void MpmSolver::after_g2p(const exec::Space& space, Real dt) {
+  if (!folds_check()) {
+    collide_particles(space, dt);
+    if (material_update_) update_materials(space, dt);
+    return;
+  }
+  if (!material_update_) return;  // G2P ran the collisions and the check
+  MaterialUpdateParams mu = material_params(dt);
+  mu.check = &folded_;
+  mu.check_limits = check_limits();
+  update_material_state(space, particle_view(), mu);
+  fold_pending_ = true;
+}
+
 void MpmSolver::step(const exec::Space& space, Real dt) {
   if (!(dt > 0) || !std::isfinite(dt)) {
     std::ostringstream os;
@@ -397,6 +439,7 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
   else
     prepare_colliders(colliders_, particles_.vec3(attr_.x), particles_.size(), settings_.dx,
                       Real(time_) + dt, space);
+  fold_pending_ = false;
   if (enriched_) {
     enriched_->step(space, *this, dt);  // particle domains: their own substep (Algorithm 1)
   } else if (fused_eligible()) {
@@ -414,66 +457,38 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
     update_grid_velocities(space, dt);
     if (implicit_) implicit_->solve_grid_velocities(space, *this, dt);
     if (aul_) aul_->couple_objects(space, *this, dt);
-    grid_to_particle(space, dt);
-    collide_particles(space, dt);
-    if (material_update_) {
-      update_materials(space, dt);
-      if (aul_) aul_->keep_split(space, particles_, attr_.F);
+    if (folds_check()) {  // the collisions and the stability check in the last particle pass
+      g2p(space, particle_view(), grid_view(), g2p_params(step_params(dt)));
+      after_g2p(space, dt);
+    } else {
+      grid_to_particle(space, dt);
+      collide_particles(space, dt);
+      if (material_update_) {
+        update_materials(space, dt);
+        if (aul_) aul_->keep_split(space, particles_, attr_.F);
+      }
     }
   }
   const double t0 = time_;
   time_ += double(dt);
   ++steps_;
   ++state_version_;
+  folded_at_ = fold_pending_ ? state_version_ : kNotFolded;
   if (!emitters_.empty() || settings_.kill.enabled()) emit_and_kill(space, t0, time_);
 }
-
-namespace {
-struct SpeedCheck {
-  Real max_speed = 0;
-  Real max_wave = 0;     // largest particle wave speed when it depends on the plastic state
-  exec::Index bad = -1;  // first particle with a non-finite v or F, or a runaway speed
-  int what = 0;          // 1 velocity, 2 deformation gradient, 3 runaway speed
-};
-}  // namespace
 
 Real MpmSolver::stable_dt(const exec::Space& space) const {
   const Vec3* v = particles_.vec3(attr_.v);
   const Mat3* F = particles_.mat3(attr_.F);
   const Real limit = settings_.max_speed;
-  const Real* plastic = hardening_ ? particles_.real(attr_.plastic) : nullptr;
-  const std::int32_t* mat = particles_.int32(attr_.material);
-  const MaterialParams* mats = materials_.data();
-  const SpeedCheck chk = exec::parallel_reduce(
-      space, "mpm.cfl_check", exec::Index(particles_.size()), SpeedCheck{},
-      [=](exec::Index i, SpeedCheck& acc) {
-        const Real s = v[i].norm();
-        int what = 0;
-        if (!std::isfinite(s))
-          what = 1;
-        else if (!F[i].allFinite())
-          what = 2;
-        else if (s > limit)
-          what = 3;
-        if (what && acc.bad < 0) {
-          acc.bad = i;
-          acc.what = what;
-        }
-        if (s > acc.max_speed) acc.max_speed = s;
-        if (plastic) {
-          const MaterialParams& m = mats[mat[i]];
-          acc.max_wave = std::max(acc.max_wave, m.wave_speed() * m.wave_speed_factor(plastic[i]));
-        }
-      },
-      [](SpeedCheck a, const SpeedCheck& b) {
-        if (a.bad < 0 && b.bad >= 0) {
-          a.bad = b.bad;
-          a.what = b.what;
-        }
-        a.max_speed = std::max(a.max_speed, b.max_speed);
-        a.max_wave = std::max(a.max_wave, b.max_wave);
-        return a;
-      });
+  StabilityCheck chk = folded_;
+  if (folded_at_ != state_version_) {  // not folded into the last particle pass: a pass of its own
+    const StabilityLimits lim = check_limits();
+    chk = exec::parallel_reduce(
+        space, "mpm.cfl_check", exec::Index(particles_.size()), StabilityCheck{},
+        [=](exec::Index i, StabilityCheck& acc) { check_particle(acc, i, v[i], F[i], lim); },
+        merge_checks);
+  }
   // Distributed: the guard's verdict and the speeds are reduced exactly (a flag, maxima), and
   // every rank throws the message of the first rank that found a bad particle.
   const dist::Comm& comm = dist::Comm::world();

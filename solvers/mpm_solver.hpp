@@ -131,7 +131,11 @@ class MpmSolver {
   MpmSolver(MpmSolver&&) noexcept;
   MpmSolver& operator=(MpmSolver&&) noexcept;
 
-  ParticleSet& particles() { return particles_; }
+  // Writable particles: stable_dt then checks them again in a pass of its own (folded_check).
+  ParticleSet& particles() {
+    folded_at_ = kNotFolded;
+    return particles_;
+  }
   const ParticleSet& particles() const { return particles_; }
   const MpmAttributes& attributes() const { return attr_; }
   // Whether particles of these settings and materials carry the affine matrix C
@@ -203,7 +207,17 @@ class MpmSolver {
 
   // Largest stable substep (CFL). Also the stability guard: throws SimulationError naming the
   // step, particle and quantity if any velocity or F is not finite or a speed exceeds max_speed.
+  // Its per-particle part (kernels/stability_check.hpp) comes from the last substep's last
+  // particle pass when that pass computed it (folds_check) and the particles have not changed
+  // since; otherwise (the first substep, after a restore, emission or kill, a write through
+  // particles(), and the variants that do not fold it) from a pass of its own: the same values.
   Real stable_dt(const exec::Space& space) const;
+  // Whether the substeps fold the stability check into their last particle pass (G2P with the
+  // particle collisions, G2P2G or the material update): one process, no A-ULMPM, particle
+  // domains nor sleeping (whose later passes change v or F).
+  bool folds_check() const;
+  // Whether stable_dt would now take the folded check (tests).
+  bool has_folded_check() const { return folded_at_ == state_version_; }
   // One substep of length dt.
   void step(const exec::Space& space, Real dt);
   MpmDiagnostics diagnostics(const exec::Space& space) const;  // every rank's (collective)
@@ -375,9 +389,22 @@ class MpmSolver {
   // The fused substep (solvers/mpm_fused.cpp).
   void step_fused(const exec::Space& space, Real dt);
   MaterialUpdateParams material_params(Real dt) const;  // update_materials' parameters
-  void prime_grid(const exec::Space& space);            // the split P2G of the sorted particles
-  void flush_fused_blocks(const exec::Space& space);    // the dilated blocks into the grid
-  void update_grid_fused(const exec::Space& space);     // topology + tables of the sorted bins
+  // The stability check folded into the substep's last particle pass (folds_check): its value,
+  // the state_version_ it holds for (kNotFolded: none), and whether this substep computed it.
+  static constexpr std::uint64_t kNotFolded = ~std::uint64_t(0);
+  StabilityCheck folded_;
+  std::uint64_t folded_at_ = kNotFolded;
+  bool fold_pending_ = false;
+  StabilityLimits check_limits() const;
+  // G2P's parameters when the check folds: the particle collisions in G2P, and the check there
+  // unless the material update runs after it.
+  MpmStepParams g2p_params(MpmStepParams prm);
+  // After G2P: the particle collisions (when G2P did not run them) and the material update
+  // (with the check when it folds).
+  void after_g2p(const exec::Space& space, Real dt);
+  void prime_grid(const exec::Space& space);          // the split P2G of the sorted particles
+  void flush_fused_blocks(const exec::Space& space);  // the dilated blocks into the grid
+  void update_grid_fused(const exec::Space& space);   // topology + tables of the sorted bins
   void step_sorted_when_needed(const exec::Space& space, Real dt);  // the two passes, lazy sort
   // ... on several ranks (solvers/mpm_lazy_distributed.cpp): the collective sort decision, the
   // dilated blocks' plan after a sort, P2G, and the grid update with G2P.
