@@ -223,13 +223,8 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
     for (int l = 0; l < n; ++l) {
       const std::uint32_t q = q0 + std::uint32_t(l);
       if constexpr (M > 0) {  // the stencil's nodes base .. base + Order inside the block?
-        bool out = false;
         int d[3];
-        for (int a = 0; a < 3; ++a) {
-          d[a] = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
-          out |= d[a] < 0 || d[a] + Order >= kB;
-        }
-        if (out) {
+        if (!stencil_in_block<Order>(p.x[q], inv_dx, origin, kB, d)) {
           inside = false;
           continue;
         }
@@ -786,10 +781,8 @@ void g2p_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
       g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
                                         lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
                                         inv_dx, dt, alpha);
-      for (int a = 0; a < 3; ++a) {
-        const int d = BSpline<Order>::base(p.x[q][a] * inv_dx) - origin[a];
-        out |= d < 0 || d + Order >= Blk::B;
-      }
+      int d[3];
+      out |= !stencil_in_block<Order>(p.x[q], inv_dx, origin, Blk::B, d);
     }
     far[b] = out;  // before the collisions: P2G finds a particle they pushed out
     finish_bin(p, prm, q0, q1, acc);

@@ -76,12 +76,14 @@ void MpmSolver::step_fused(const exec::Space& space, Real dt) {
   // leaves it re-sorts them (every 11-40 substeps in the scenes measured, docs/benchmarks.md):
   // a function of the state, so every backend and thread count re-sorts at the same substeps.
   if (std::any_of(fused_far_.begin(), fused_far_.end(), [](auto f) { return f; })) {
+    if (folded_.bad >= 0) {  // a particle blew up in this pass (its position may be NaN): not
+      primed_ = false;       // binned; the next stable_dt reports it (the check of this pass)
+      return;
+    }
     sort_particles(space);
     update_grid_fused(space);
     prime_grid(space);  // the split P2G of the re-sorted particles (the same state)
     ++fused_fallbacks_;
-    // The maxima hold for any order; a bad particle's index does not: stable_dt finds it again.
-    if (folded_.bad >= 0) fold_pending_ = false;
   } else {
     flush_fused_blocks(space);
   }

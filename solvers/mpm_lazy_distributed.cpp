@@ -88,13 +88,10 @@ bool MpmSolver::lazy_sort_needed_distributed(const exec::Space& space, bool need
                space, "mpm.lazy_check", exec::Index(bins_.count()), 0,
                [=](exec::Index b, int& out) {
                  const Vec3i origin = leaf[b] * kLeafDim - Vec3i::Constant(M);
+                 int d[3];  // as p2g_dilated's scatter and g2p_dilated's flag
                  for (std::uint32_t q = start[b]; q < start[b + 1] && !out; ++q)
-                   for (int a = 0; a < 3; ++a) {  // as p2g_dilated's scatter and g2p_dilated's flag
-                     const int d = (order == 3 ? BSpline<3>::base(x[q][a] * inv_dx)
-                                               : BSpline<2>::base(x[q][a] * inv_dx)) -
-                                   origin[a];
-                     out |= d < 0 || d + order >= B;
-                   }
+                   out = !(order == 3 ? stencil_in_block<3>(x[q], inv_dx, origin, B, d)
+                                      : stencil_in_block<2>(x[q], inv_dx, origin, B, d));
                },
                [](int a, int b) { return a | b; }) != 0;
   }

@@ -59,6 +59,36 @@ TEST(BSpline, CubicPartitionOfUnityAndLinearReproduction) {
   check_weights<3>();
 }
 
+// The far flags between sorts test positions right after the pass that moved them: inside exactly
+// when every stencil node lies in the block; a non-finite or absurd position (a particle that blew
+// up, not yet reported) is outside with its base clamped to +-2^30 cells, never converted to int
+// out of range (the sanitizer suite's UBSan reports that).
+TEST(BSpline, StencilInBlockAndPositionsThatBlewUp) {
+  const Real dx = Real(0.1), inv_dx = 1 / dx;
+  const Vec3i origin(8, -16, 0);
+  constexpr int B = 14;
+  int d[3];
+  for (int i = -40; i < 300; ++i) {  // one axis swept across the block, the others inside
+    const Real s = Real(i) / 16;
+    const Vec3 x(s * dx, Real(-10.3) * dx, Real(5.7) * dx);
+    const int base = BSpline<2>::base(x[0] * inv_dx);
+    const bool in = base >= origin[0] && base + 2 < origin[0] + B;
+    EXPECT_EQ(stencil_in_block<2>(x, inv_dx, origin, B, d), in) << s;
+    EXPECT_EQ(d[0], base - origin[0]);
+    EXPECT_EQ(d[1], BSpline<2>::base(Real(-10.3)) - origin[1]);
+  }
+  const Real inf = std::numeric_limits<Real>::infinity();
+  const Real nan = std::numeric_limits<Real>::quiet_NaN();
+  for (const Real bad : {nan, inf, -inf, Real(1e30), Real(-1e30)}) {
+    const Vec3 x(bad, Real(1), Real(1));
+    EXPECT_FALSE(stencil_in_block<3>(x, inv_dx, origin, B, d)) << bad;
+    if (bad > 0)  // clamped to +2^30 cells, not wrapped to a negative int
+      EXPECT_GT(d[0], (1 << 29));
+    else  // -2^30 (NaN too)
+      EXPECT_LT(d[0], -(1 << 29));
+  }
+}
+
 namespace {
 void expect_rotation(const Mat3& R, double tol) {
   EXPECT_LT(double((R.transpose() * R - Mat3::Identity()).norm()), tol);

@@ -48,6 +48,14 @@ Vec3d to_d(const openvdb::Vec3s& v) {
 // interpolant's own one-sided gradient tilts it by up to a voxel's slope).
 template <class TreeT, class V>
 V sample_tree(const TreeT& tree, const Vec3d& g, Vec3d* grad_index) {
+  // A point beyond 2^30 voxels or not finite (a particle that blew up in the pass that moved it,
+  // before the stability check reports it) reads the background: no out-of-range float-to-int
+  // conversion (undefined behaviour).
+  constexpr double kFar = double(1 << 30);
+  if (!(std::abs(g[0]) < kFar && std::abs(g[1]) < kFar && std::abs(g[2]) < kFar)) {
+    if (grad_index) grad_index->setZero();
+    return to_d(tree.background());
+  }
   openvdb::tree::ValueAccessor<const TreeT, false> acc(tree);
   const Vec3d fl(std::floor(g[0]), std::floor(g[1]), std::floor(g[2]));
   const Coord c0{int(fl[0]), int(fl[1]), int(fl[2])};

@@ -110,4 +110,24 @@ struct Stencil {
   }
 };
 
+// Does particle x's stencil (nodes base .. base + Order per axis) lie inside the block of B nodes
+// per axis whose first node is origin? d = base - origin per axis. Position checks right after the
+// pass that moved the particles (the far flags between sorts) see a particle that blew up in it
+// before the stability check reports it: x / dx is clamped to +-2^30 cells first (NaN to -2^30;
+// exact for every real position), so such a particle is outside, not an out-of-range float-to-int
+// conversion (undefined behaviour).
+template <int Order>
+inline bool stencil_in_block(const Vec3& x, Real inv_dx, const Vec3i& origin, int B, int d[3]) {
+  constexpr Real kFar = Real(1 << 30);
+  bool in = true;
+  for (int a = 0; a < 3; ++a) {
+    Real xs = x[a] * inv_dx;
+    xs = xs > -kFar ? xs : -kFar;  // (NaN > -kFar is false)
+    xs = xs < kFar ? xs : kFar;
+    d[a] = BSpline<Order>::base(xs) - origin[a];
+    in &= d[a] >= 0 && d[a] + Order < B;
+  }
+  return in;
+}
+
 }  // namespace amalgam
