@@ -986,6 +986,22 @@ void sum_dilated_leaves(const exec::Space& space, const MpmGridView& g, int orde
             : sum_dilated_leaves_impl<2, 4>(space, g, blocks, start, items);
 }
 
+// The colliders (bit c) that may constrain a node of the leaf whose first node is node0: not those
+// whose phi over the leaf's box of nodes stays above node_tolerance's largest value there
+// (Collider::phi_at_least), for which Collider::project returns at once at every node. Lagrangian
+// node positions (A-ULMPM) or more than 64 colliders: all of them.
+static std::uint64_t leaf_colliders(const MpmStepParams& prm, const Vec3i& node0, bool lagrangian,
+                                    Real t) {
+  if (lagrangian || prm.ncolliders > 64) return ~std::uint64_t(0);
+  const Vec3 lo = node0.cast<Real>() * prm.dx;  // as the nodes' x_i = (node0 + ijk) dx
+  const Vec3 hi = (node0 + Vec3i::Constant(kLeafDim - 1)).cast<Real>() * prm.dx;
+  const double tol = double(node_tolerance(lo.cwiseAbs().cwiseMax(hi.cwiseAbs()), prm.dx));
+  std::uint64_t m = 0;
+  for (int c = 0; c < prm.ncolliders; ++c)
+    if (!(prm.colliders[c].phi_at_least(lo, hi, t) > tol)) m |= std::uint64_t(1) << c;
+  return m;
+}
+
 void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
   const bool flip = prm.transfer == Transfer::PicFlip;
   const bool force = flip || prm.split;  // b holds the force (PIC/FLIP, or the split scatter)
@@ -997,6 +1013,8 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
     const Vec3i node0 = g.leaf_coord[leaf] * kLeafDim;
     Real* la = g.a + leaf * kLeafNodes * 4;
     Real* lb = force ? g.b + leaf * kLeafNodes * 4 : nullptr;
+    const std::uint64_t near =
+        prm.ncolliders > 0 ? leaf_colliders(prm, node0, g.q != nullptr, t_end) : 0;
     for (int i = 0; i < kLeafDim; ++i)
       for (int j = 0; j < kLeafDim; ++j)
         for (int k = 0; k < kLeafDim; ++k) {
@@ -1012,14 +1030,14 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
           const Vec3 v_old(n[1] * inv_m, n[2] * inv_m, n[3] * inv_m);
           Vec3 v = v_old + dv_gravity;
           if (force) v += (dt * inv_m) * Vec3(lb[o + 1], lb[o + 2], lb[o + 3]);
-          if (prm.ncolliders > 0) {
+          if (near) {
             Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
             if (g.q) {  // Lagrangian: the node's current position q_i (A-ULMPM eq. 12)
               const Real* qn = g.q + leaf * kLeafNodes * 4 + o;
               if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
             }
             for (int c = 0; c < prm.ncolliders; ++c)
-              prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
+              if (near >> c & 1) prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
           }
           n[1] = v[0];
           n[2] = v[1];
@@ -1042,6 +1060,7 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
     const Vec3i node0 = g.leaf_coord[leaf] * kLeafDim;
     Real* la = g.a + leaf * kLeafNodes * 4;
     Real* lb = g.b ? g.b + leaf * kLeafNodes * 4 : nullptr;
+    const std::uint64_t near = leaf_colliders(prm, node0, g.q != nullptr, t_end);
     for (int i = 0; i < kLeafDim; ++i)
       for (int j = 0; j < kLeafDim; ++j)
         for (int k = 0; k < kLeafDim; ++k) {
@@ -1055,7 +1074,7 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
             if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
           }
           for (int c = 0; c < prm.ncolliders; ++c)
-            prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
+            if (near >> c & 1) prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
           for (int c = 0; c < 3; ++c) {
             n[1 + c] = v[c];
             if (lb) lb[leaf_offset(i, j, k) * 4 + 1 + c] += v[c] - v0[c];

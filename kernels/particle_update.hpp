@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "core/exec/simd.hpp"
 #include "core/math/lanes.hpp"
@@ -79,31 +80,50 @@ inline void collide_particle(const MpmParticleView& p, const Collider* colliders
   }
 }
 
+// The box of positions x[i0 .. i1) (a NaN coordinate is left out: its phi is never < 0).
+inline void position_box(const Vec3* x, exec::Index i0, exec::Index i1, Vec3& lo, Vec3& hi) {
+  lo = Vec3::Constant(std::numeric_limits<Real>::infinity());
+  hi = -lo;
+  for (exec::Index i = i0; i < i1; ++i)
+    for (int a = 0; a < 3; ++a) {
+      lo[a] = x[i][a] < lo[a] ? x[i][a] : lo[a];
+      hi[a] = x[i][a] > hi[a] ? x[i][a] : hi[a];
+    }
+}
+
 // Particles [i0, i1) against every collider, each particle meeting them in their order
 // (collide_particle's result for each): the loops interchanged (colliders outer), in chunks of
 // kCollideChunk particles, so that a half-space's test is one tight loop with its plane hoisted:
 // phi = (x - c) . n, exactly Collider::phi's expression. Most particles are outside every collider
-// and never reach collide_one.
+// and never reach collide_one; a collider the chunk's box of positions lies clear of
+// (Collider::phi_at_least > 0: no particle's phi below 0) is skipped for the chunk, and the box is
+// taken again after a collider moved some of them.
 constexpr exec::Index kCollideChunk = 256;
 inline void collide_range(const MpmParticleView& p, const Collider* colliders, int n,
                           exec::Index i0, exec::Index i1, Real time) {
   for (exec::Index c0 = i0; c0 < i1; c0 += kCollideChunk) {
     const exec::Index c1 = std::min(i1, c0 + kCollideChunk);
+    Vec3 lo, hi;
+    bool boxed = false;
     for (int c = 0; c < n; ++c) {
       const Collider& col = colliders[c];
       if (time > col.until) continue;  // released: phi is kReleased everywhere
+      if (!boxed) position_box(p.x, c0, c1, lo, hi), boxed = true;
+      if (col.phi_at_least(lo, hi, time) > 0) continue;
+      bool moved = false;
       if (col.shape == ColliderShape::HalfSpace) {
         const Vec3 o = col.origin + time * col.velocity, nrm = col.normal;
         Real phi[kCollideChunk];  // a branch-free loop the compiler vectorises, then the few inside
         for (exec::Index i = c0; i < c1; ++i) phi[i - c0] = (p.x[i] - o).dot(nrm);
         for (exec::Index i = c0; i < c1; ++i)
-          if (phi[i - c0] < 0) collide_one(p, col, i, phi[i - c0], time);
-        continue;
+          if (phi[i - c0] < 0) collide_one(p, col, i, phi[i - c0], time), moved = true;
+      } else {
+        for (exec::Index i = c0; i < c1; ++i) {
+          const Real phi = col.phi(p.x[i], time);
+          if (phi < 0) collide_one(p, col, i, phi, time), moved = true;
+        }
       }
-      for (exec::Index i = c0; i < c1; ++i) {
-        const Real phi = col.phi(p.x[i], time);
-        if (phi < 0) collide_one(p, col, i, phi, time);
-      }
+      boxed = !moved;
     }
   }
 }

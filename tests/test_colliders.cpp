@@ -6,12 +6,17 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <cstring>
+#include <limits>
 #include <random>
+#include <vector>
 
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
 #include "core/geometry/colliders.hpp"
 #include "core/exec/exec.hpp"
+#include "kernels/mpm_transfers.hpp"
+#include "kernels/particle_update.hpp"
 
 using namespace amalgam;
 
@@ -220,4 +225,109 @@ TEST(MeshCollider, BlockLandsOnMeshBox) {
   EXPECT_GT(centre, 0.5);
   EXPECT_LT(centre, 0.7);
   std::remove(obj.c_str());
+}
+
+// Collider::phi_at_least: below phi as computed at every point of the box (corners, faces,
+// inside), rounding included, for every analytic shape, moving or not, near the origin and far
+// from it; and above 0 for a box well clear of the collider (so kernels skip it there).
+TEST(Colliders, PhiAtLeastBoundsEveryPointOfTheBox) {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1, 1);
+  int useful = 0, cases = 0;
+  for (int trial = 0; trial < 3000; ++trial) {
+    const double at = (trial % 3 == 0) ? 0 : (trial % 3 == 1 ? 7 : 3000);  // where the box sits
+    const double size = std::pow(10.0, 2 * u(rng) - 1);                    // 0.01 .. 10
+    Vec3 lo, hi;
+    for (int a = 0; a < 3; ++a) {
+      lo[a] = Real(at + 2 * size * u(rng));
+      hi[a] = lo[a] + Real(size * (1 + u(rng)) / 2);
+    }
+    Collider c;
+    c.shape = trial % 4 == 0   ? ColliderShape::Sphere
+              : trial % 4 == 1 ? ColliderShape::Box
+                               : ColliderShape::HalfSpace;
+    c.normal = Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng))).normalized();
+    if (trial % 5 == 0) c.normal = Vec3::UnitY();
+    c.radius = Real(size * (1 + u(rng)));
+    c.half_extent = Vec3(Real(size), Real(size / 2), Real(size * 2));
+    c.velocity = trial % 2 ? Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng))) : Vec3::Zero();
+    const Real t = Real(0.5 + 0.5 * u(rng));
+    // The collider's surface through a corner of the box (phi = 0 there up to rounding), or near
+    // it, or well away from it.
+    const Vec3 corner((trial & 1) ? lo[0] : hi[0], (trial & 2) ? lo[1] : hi[1],
+                      (trial & 4) ? lo[2] : hi[2]);
+    const double shift = (trial / 8) % 3 == 0 ? 0 : (trial / 8) % 3 == 1 ? 1e-6 : 5 * size;
+    c.origin = corner - t * c.velocity - Real(shift) * c.normal;
+    if (c.shape == ColliderShape::Sphere) c.origin -= c.radius * c.normal;
+    if (c.shape == ColliderShape::Box) c.origin -= c.half_extent.cwiseProduct(c.normal);
+    const double bound = c.phi_at_least(lo, hi, t);
+    ++cases;
+    if (bound > 0) ++useful;
+    for (int k = 0; k < 64; ++k) {
+      Vec3 x;
+      for (int a = 0; a < 3; ++a)
+        x[a] = k < 8    ? ((k >> a & 1) ? hi[a] : lo[a])  // the corners
+               : k < 16 ? (a == k % 3 ? lo[a] : Real(lo[a] + (hi[a] - lo[a]) * (0.5 + u(rng) / 2)))
+                        : Real(lo[a] + (hi[a] - lo[a]) * (0.5 + u(rng) / 2));
+      for (int a = 0; a < 3; ++a) x[a] = std::min(std::max(x[a], lo[a]), hi[a]);
+      ASSERT_GE(double(c.phi(x, t)), bound) << "trial " << trial << " point " << k;
+    }
+  }
+  EXPECT_GT(useful, cases / 4) << "the bound should clear boxes well away from the collider";
+  Collider mesh;
+  mesh.shape = ColliderShape::Mesh;
+  EXPECT_EQ(mesh.phi_at_least(Vec3::Zero(), Vec3::Ones(), 0),
+            -std::numeric_limits<double>::infinity());
+  Collider gone = floor_at(10, BoundaryType::Slip, 0);  // the box is below it, but it let go
+  gone.until = 1;
+  EXPECT_GT(gone.phi_at_least(Vec3::Zero(), Vec3::Ones(), 2), 0);
+  EXPECT_LT(gone.phi_at_least(Vec3::Zero(), Vec3::Ones(), 0.5), 0);
+}
+
+// collide_range (a chunk's box skips the colliders it lies clear of) gives the bits of
+// collide_particle particle by particle: particles straddling walls, a sphere, a box and a moving
+// plane, the compensated low parts, chunks in and out of reach, one NaN position.
+TEST(Colliders, RangeWithSkippedCollidersIsBitwiseEachParticle) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<Real> u(0, 1);
+  const std::size_t n = 3000;
+  std::vector<Vec3> x(n), v(n), xlo(n), x2, v2, xlo2;
+  for (std::size_t i = 0; i < n; ++i) {  // sorted along x (as bins are): most chunks far away
+    const Real s = Real(i) / Real(n);
+    x[i] = Vec3(Real(-0.1) + Real(1.2) * s, Real(-0.05) + Real(0.3) * u(rng), u(rng));
+    v[i] = Vec3(u(rng) - Real(0.5), u(rng) - Real(0.5), u(rng) - Real(0.5));
+    xlo[i] = Vec3::Constant(Real(1e-9) * u(rng));
+  }
+  x[1234][1] = std::numeric_limits<Real>::quiet_NaN();
+  std::vector<Collider> cols;
+  cols.push_back(floor_at(Real(0.05), BoundaryType::Separate, Real(0.4)));
+  Collider wall = floor_at(0, BoundaryType::Slip, 0);
+  wall.normal = Vec3::UnitX();
+  cols.push_back(wall);
+  wall.origin = Vec3(1, 0, 0), wall.normal = -Vec3::UnitX(), wall.velocity = Vec3(-1, 0, 0);
+  cols.push_back(wall);
+  Collider ball;
+  ball.shape = ColliderShape::Sphere, ball.origin = Vec3(Real(0.5), 0, Real(0.5));
+  ball.radius = Real(0.1), ball.boundary = BoundaryType::Sticky;
+  cols.push_back(ball);
+  Collider box;
+  box.shape = ColliderShape::Box, box.origin = Vec3(Real(0.8), Real(0.1), Real(0.2));
+  box.half_extent = Vec3(Real(0.05), Real(0.05), Real(0.1));
+  cols.push_back(box);
+  x2 = x, v2 = v, xlo2 = xlo;
+  const Real time = Real(0.02);
+  MpmParticleView a{x.data(), v.data(), nullptr, nullptr, nullptr, nullptr, n};
+  a.x_lo = xlo.data();
+  MpmParticleView b{x2.data(), v2.data(), nullptr, nullptr, nullptr, nullptr, n};
+  b.x_lo = xlo2.data();
+  isa_baseline::collide_range(a, cols.data(), int(cols.size()), 0, exec::Index(n), time);
+  for (std::size_t i = 0; i < n; ++i)
+    isa_baseline::collide_particle(b, cols.data(), int(cols.size()), exec::Index(i), time);
+  for (std::size_t i = 0; i < n; ++i) {
+    ASSERT_EQ(std::memcmp(&x[i], &x2[i], sizeof(Vec3)), 0) << i;
+    ASSERT_EQ(std::memcmp(&v[i], &v2[i], sizeof(Vec3)), 0) << i;
+    ASSERT_EQ(std::memcmp(&xlo[i], &xlo2[i], sizeof(Vec3)), 0) << i;
+  }
+  EXPECT_GE(std::count_if(v.begin(), v.end(), [](const Vec3& w) { return w.isZero(); }), 1)
+      << "the sticky ball held some particles";
 }

@@ -203,6 +203,43 @@ struct Collider {
     }
     return 1;
   }
+  // A number that phi(x, t), as computed above, is at least for every x in the box [lo, hi]
+  // (rounding included: the exact bound less 8 float epsilons of the terms' magnitudes), so a
+  // kernel skips the collider for a block of particles or nodes whose box bounds it above the
+  // test's threshold, with the same bits as testing each. Analytic shapes; -infinity (no bound)
+  // for meshes and level sets.
+  double phi_at_least(const Vec3& lo, const Vec3& hi, Real t) const {
+    if (t > until) return double(kReleased);
+    if (shape == ColliderShape::Mesh) return -std::numeric_limits<double>::infinity();
+    const Vec3 c = origin + t * velocity;  // (as phi computes it)
+    const double eps = 8 * double(std::numeric_limits<Real>::epsilon());
+    double scale = 0, sq = 0, worst = -std::numeric_limits<double>::infinity(), plane = 0;
+    for (int a = 0; a < 3; ++a) {
+      const double l = double(lo[a]) - double(c[a]), h = double(hi[a]) - double(c[a]);
+      const double far = std::max(std::abs(double(lo[a])), std::abs(double(hi[a])));
+      const double gap = l > 0 ? l : h < 0 ? -h : 0;  // distance from c to [lo, hi] on this axis
+      switch (shape) {
+        case ColliderShape::HalfSpace:  // the corner least along the normal
+          plane += double(normal[a]) * (normal[a] >= 0 ? l : h);
+          scale += (far + std::abs(double(c[a]))) * std::abs(double(normal[a]));
+          break;
+        case ColliderShape::Sphere:
+          sq += gap * gap;
+          scale += far + std::abs(double(c[a]));
+          break;
+        default:  // Box: phi >= max over axes of |x - c| - half_extent
+          worst = std::max(worst, gap - double(half_extent[a]));
+          scale += far + std::abs(double(c[a])) + std::abs(double(half_extent[a]));
+          break;
+      }
+    }
+    const double exact = shape == ColliderShape::HalfSpace ? plane
+                         : shape == ColliderShape::Sphere  ? std::sqrt(sq) - double(radius)
+                                                           : worst;
+    if (shape == ColliderShape::Sphere) scale += std::abs(double(radius));
+    return exact - eps * scale;
+  }
+
   // Outward unit normal of the collider surface nearest to x.
   Vec3 outward_normal(const Vec3& x, Real t) const {
     const Vec3 c = origin + t * velocity;
