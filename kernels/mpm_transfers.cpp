@@ -781,8 +781,7 @@ void g2p_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
       g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
                                         lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
                                         inv_dx, dt, alpha);
-      int d[3];
-      out |= !stencil_in_block<Order>(p.x[q], inv_dx, origin, Blk::B, d);
+      out |= !stencil_in_block<Order>(p.x[q], inv_dx, origin, Blk::B, nullptr);
     }
     far[b] = out;  // before the collisions: P2G finds a particle they pushed out
     finish_bin(p, prm, q0, q1, acc);

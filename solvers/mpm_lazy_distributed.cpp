@@ -88,10 +88,10 @@ bool MpmSolver::lazy_sort_needed_distributed(const exec::Space& space, bool need
                space, "mpm.lazy_check", exec::Index(bins_.count()), 0,
                [=](exec::Index b, int& out) {
                  const Vec3i origin = leaf[b] * kLeafDim - Vec3i::Constant(M);
-                 int d[3];  // as p2g_dilated's scatter and g2p_dilated's flag
+                 // as p2g_dilated's scatter and g2p_dilated's flag
                  for (std::uint32_t q = start[b]; q < start[b + 1] && !out; ++q)
-                   out = !(order == 3 ? stencil_in_block<3>(x[q], inv_dx, origin, B, d)
-                                      : stencil_in_block<2>(x[q], inv_dx, origin, B, d));
+                   out = !(order == 3 ? stencil_in_block<3>(x[q], inv_dx, origin, B, nullptr)
+                                      : stencil_in_block<2>(x[q], inv_dx, origin, B, nullptr));
                },
                [](int a, int b) { return a | b; }) != 0;
   }

@@ -29,7 +29,9 @@ template <>
 struct BSpline<1> {
   static constexpr int kNodes = 2;
   static constexpr Real kDinvScale = 0;  // not an APIC/MLS stencil
-  static int base(Real xs) { return ifloor(xs); }
+  static constexpr int kDrop = 0;        // base = floor(floor_arg(xs)) - kDrop
+  static Real floor_arg(Real xs) { return xs; }
+  static int base(Real xs) { return ifloor(floor_arg(xs)) - kDrop; }
   // fx = x/dx - base in [0, 1): hat function omega(x) = 1 - |x| (eq. 3).
   static void eval(Real fx, Real* w, Real* dw) {
     w[0] = 1 - fx;
@@ -43,7 +45,9 @@ template <>
 struct BSpline<2> {
   static constexpr int kNodes = 3;
   static constexpr Real kDinvScale = 4;  // D_p^{-1} = 4 / dx^2
-  static int base(Real xs) { return ifloor(xs - Real(0.5)); }
+  static constexpr int kDrop = 0;
+  static Real floor_arg(Real xs) { return xs - Real(0.5); }
+  static int base(Real xs) { return ifloor(floor_arg(xs)) - kDrop; }
   // fx = x/dx - base in [0.5, 1.5); weights and d w / d(x/dx).
   static void eval(Real fx, Real* w, Real* dw) {
     const Real a = Real(1.5) - fx, b = fx - 1, c = fx - Real(0.5);
@@ -60,7 +64,9 @@ template <>
 struct BSpline<3> {
   static constexpr int kNodes = 4;
   static constexpr Real kDinvScale = 3;  // D_p^{-1} = 3 / dx^2
-  static int base(Real xs) { return ifloor(xs) - 1; }
+  static constexpr int kDrop = 1;
+  static Real floor_arg(Real xs) { return xs; }
+  static int base(Real xs) { return ifloor(floor_arg(xs)) - kDrop; }
   // fx = x/dx - base in [1, 2).
   static void eval(Real fx, Real* w, Real* dw) {
     const Real d0 = 2 - fx;  // distance-complement for node 0: |d| in [1,2)
@@ -111,22 +117,23 @@ struct Stencil {
 };
 
 // Does particle x's stencil (nodes base .. base + Order per axis) lie inside the block of B nodes
-// per axis whose first node is origin? d = base - origin per axis. Position checks right after the
-// pass that moved the particles (the far flags between sorts) see a particle that blew up in it
-// before the stability check reports it: x / dx is clamped to +-2^30 cells first (NaN to -2^30;
-// exact for every real position), so such a particle is outside, not an out-of-range float-to-int
-// conversion (undefined behaviour).
+// per axis whose first node is origin? If so, d = base - origin per axis (d may be null). Decided
+// in floating point before any conversion (floor(y) >= o exactly when y >= o, o an integer), so a
+// position that blew up in the pass that moved it (NaN, infinite or far: the far flags run before
+// the stability check reports it) is outside, never an out-of-range float-to-int conversion
+// (undefined behaviour); for every other position the same answer as comparing base itself.
 template <int Order>
-inline bool stencil_in_block(const Vec3& x, Real inv_dx, const Vec3i& origin, int B, int d[3]) {
-  constexpr Real kFar = Real(1 << 30);
+inline bool stencil_in_block(const Vec3& x, Real inv_dx, const Vec3i& origin, int B, int* d) {
+  using S = BSpline<Order>;
+  Real y[3];
   bool in = true;
   for (int a = 0; a < 3; ++a) {
-    Real xs = x[a] * inv_dx;
-    xs = xs > -kFar ? xs : -kFar;  // (NaN > -kFar is false)
-    xs = xs < kFar ? xs : kFar;
-    d[a] = BSpline<Order>::base(xs) - origin[a];
-    in &= d[a] >= 0 && d[a] + Order < B;
+    y[a] = S::floor_arg(x[a] * inv_dx);
+    const Real lo = Real(origin[a] + S::kDrop);  // base >= origin and base + Order < origin + B
+    in &= y[a] >= lo && y[a] < lo + Real(B - Order);
   }
+  if (in && d)
+    for (int a = 0; a < 3; ++a) d[a] = ifloor(y[a]) - S::kDrop - origin[a];
   return in;
 }
 
