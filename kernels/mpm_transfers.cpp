@@ -988,7 +988,7 @@ void sum_dilated_leaves(const exec::Space& space, const MpmGridView& g, int orde
 // The colliders (bit c) that may constrain a node of the leaf whose first node is node0: not those
 // whose phi over the leaf's box of nodes stays above node_tolerance's largest value there
 // (Collider::phi_at_least), for which Collider::project returns at once at every node. Lagrangian
-// node positions (A-ULMPM) or more than 64 colliders: all of them.
+// node positions (A-ULMPM) or more than 64 colliders: all of them (callers test c >= 64 first).
 static std::uint64_t leaf_colliders(const MpmStepParams& prm, const Vec3i& node0, bool lagrangian,
                                     Real t) {
   if (lagrangian || prm.ncolliders > 64) return ~std::uint64_t(0);
@@ -1036,7 +1036,8 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
               if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
             }
             for (int c = 0; c < prm.ncolliders; ++c)
-              if (near >> c & 1) prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
+              if (c >= 64 || (near >> c & 1))
+                prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
           }
           n[1] = v[0];
           n[2] = v[1];
@@ -1073,7 +1074,8 @@ void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
             if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
           }
           for (int c = 0; c < prm.ncolliders; ++c)
-            if (near >> c & 1) prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
+            if (c >= 64 || (near >> c & 1))
+              prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
           for (int c = 0; c < 3; ++c) {
             n[1 + c] = v[c];
             if (lb) lb[leaf_offset(i, j, k) * 4 + 1 + c] += v[c] - v0[c];

@@ -9,6 +9,7 @@
 #include <cstring>
 #include <limits>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include "io/scene.hpp"
@@ -330,4 +331,44 @@ TEST(Colliders, RangeWithSkippedCollidersIsBitwiseEachParticle) {
   }
   EXPECT_GE(std::count_if(v.begin(), v.end(), [](const Vec3& w) { return w.isZero(); }), 1)
       << "the sticky ball held some particles";
+}
+
+// More colliders than the grid update's 64-bit mask of those near a leaf: the 65th (the floor)
+// still holds the block, with the same bits whichever of the others lie clear of every leaf (64
+// far walls first, then the floor; against the floor alone plus the 64 far walls after it).
+TEST(Colliders, MoreThanSixtyFourCollidersAllAct) {
+  auto scene = [](bool floor_first) {
+    std::string walls;
+    for (int k = 0; k < 64; ++k)
+      walls += R"({"type": "half_space", "point": [0, )" + std::to_string(-1 - k) +
+               R"(, 0], "normal": [0, 1, 0]},)";
+    const std::string floor =
+        R"({"type": "half_space", "point": [0, 0.1, 0], "normal": [0, 1, 0], "friction": 0.5},)";
+    std::string all = floor_first ? floor + walls : walls + floor;
+    all.pop_back();
+    return parse_scene(R"({"simulation": {"dx": 0.05, "frames": 1, "max_dt": 2e-3},
+      "materials": {"j": {"model": "fixed_corotated", "density": 1000, "youngs_modulus": 1e4,
+                          "poisson_ratio": 0.3}},
+      "objects": [{"shape": "box", "min": [0.3, 0.15, 0.3], "max": [0.6, 0.45, 0.6],
+                   "material": "j", "velocity": [0, -2, 0]}],
+      "colliders": [)" + all +
+                           "]}",
+                       "inline.json");
+  };
+  const exec::Space space;
+  MpmSolver last = build_solver(scene(false)), first = build_solver(scene(true));
+  for (int i = 0; i < 150; ++i) {
+    last.step(space, Real(2e-3));
+    first.step(space, Real(2e-3));
+  }
+  const auto& pa = std::as_const(last).particles();
+  const auto& pb = std::as_const(first).particles();
+  const Vec3* xa = pa.vec3(last.attributes().x);
+  const Vec3* xb = pb.vec3(first.attributes().x);
+  double ymin = 1e9;
+  for (std::size_t p = 0; p < pa.size(); ++p) {
+    ymin = std::min(ymin, double(xa[p][1]));
+    ASSERT_EQ(std::memcmp(&xa[p], &xb[p], sizeof(Vec3)), 0) << p;
+  }
+  EXPECT_GT(ymin, 0.1 - 0.05) << "the 65th collider, the floor, held the block";
 }
