@@ -10,6 +10,7 @@
 #include "core/exec/simd.hpp"
 #include "core/errors.hpp"
 #include "solvers/bench_scene.hpp"
+#include "io/scene.hpp"
 #include "solvers/mpm_implicit.hpp"
 
 namespace amalgam::cli {
@@ -19,6 +20,7 @@ const char* kBenchHelp =
     "usage: amalgam bench [--particles N] [--steps S] [--reps R] [--threads LIST] [--backends LIST]\n"
     "                     [--transfer mls|apic|flip|pic] [--transfer-pass fused|two_pass]\n"
     "                     [--sort every_substep|when_needed] [--implicit [--dt SECONDS]]\n"
+    "                     [--like SCENE]\n"
     "Runs the standard sphere scene (N particles, default 1e6, dx = 1/128, MLS, fixed corotated)\n"
     "for S timed substeps (default 10) after 2 warm-up substeps, R times (default 3), on each\n"
     "backend (default serial,openmp,tbb) and thread count (default 1,2), and prints one line per\n"
@@ -31,6 +33,10 @@ const char* kBenchHelp =
     "--implicit: the same sphere stiffened to E = 1e7 with the implicit integrator, dx scaled so\n"
     "particles per cell stay those of 1e6 at 1/128, dt = 10x the explicit CFL step of that\n"
     "resolution (or --dt); adds CG iterations per substep (mean, max) and the solve's share.\n"
+    "--like SCENE: the sphere made like an MPM scene's first object: its material, particles per\n"
+    "cell (dx from them and N), and the scene's transfer, order, transfer_pass and sort (options\n"
+    "given beside it win); dt = min(1e-4 s, the scene settings' CFL step at the start). The\n"
+    "scene's rate against this one is its overheads alone (docs/benchmarks.md).\n"
     "\n"
     "usage: amalgam bench --report DIR [--scale X] [--reps R] [--steps S] [--warmup W]\n"
     "                     [--threads LIST] [--backends LIST] [--cases LIST] [--compare CSV]\n"
@@ -58,6 +64,28 @@ const char* sort_name(bool when_needed) {
 double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
   return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
+}
+
+// --like SCENE: so made like the MPM scene's first object (material, particles per cell) and its
+// transfer settings; returns "SCENE (material NAME, PPC per cell)". Throws InputError (an
+// unreadable scene, or one that is not MPM or has no object).
+std::string like_scene(const std::string& path, BenchSceneOptions& so) {
+  const Scene scene = load_scene(path);
+  if (scene.method != Method::Mpm || scene.objects.empty())
+    throw InputError(path + ": --like needs an MPM scene with at least one object");
+  const ObjectSpec& obj = scene.objects.front();
+  const MpmSettings& s = scene.mpm;
+  so.transfer = s.transfer;
+  so.order = s.order;
+  so.fused = s.fused;
+  so.sort_when_needed = s.sort_when_needed;
+  so.material = scene.materials.at(std::size_t(obj.material));
+  const double r = 0.3, ppc = obj.particles_per_cell;  // the sphere's radius (bench_scene.cpp)
+  so.dx = Real(std::cbrt(ppc * 4.0 / 3.0 * M_PI * r * r * r / double(so.particles)));
+  const std::string name = std::size_t(obj.material) < scene.material_names.size()
+                               ? scene.material_names[std::size_t(obj.material)]
+                               : std::to_string(obj.material);
+  return path + " (material " + name + ", " + std::to_string(obj.particles_per_cell) + " per cell)";
 }
 
 // The implicit integrator on the stiff sphere: CG iterations per substep and where time goes.
@@ -134,18 +162,21 @@ int bench_command(const std::vector<std::string>& args) {
   std::vector<exec::Backend> backends = exec::available_backends();
   bool implicit = false;
   double fixed_dt = 0;
+  std::string like;  // --like: "SCENE (material NAME)" for the header line
   try {
-    const Options o = parse_options(args,
-                                    {"--particles", "--steps", "--reps", "--threads", "--backends",
-                                     "--transfer", "--dt", "--transfer-pass", "--sort", "--report",
-                                     "--scale", "--warmup", "--cases", "--compare", "--commit"},
-                                    {"--help", "--implicit"});
+    const Options o =
+        parse_options(args,
+                      {"--particles", "--steps", "--reps", "--threads", "--backends", "--transfer",
+                       "--dt", "--transfer-pass", "--sort", "--report", "--scale", "--warmup",
+                       "--cases", "--compare", "--commit", "--like"},
+                      {"--help", "--implicit"});
     if (o.flag("--help")) {
       std::cout << kBenchHelp;
       return kOk;
     }
     if (o.get("--report")) {
-      for (const char* k : {"--particles", "--transfer", "--dt", "--transfer-pass", "--sort"})
+      for (const char* k :
+           {"--particles", "--transfer", "--dt", "--transfer-pass", "--sort", "--like"})
         if (o.get(k)) throw std::invalid_argument(std::string(k) + " does not apply to --report");
       if (o.flag("--implicit"))
         throw std::invalid_argument("--implicit does not apply to --report");
@@ -164,6 +195,15 @@ int bench_command(const std::vector<std::string>& args) {
       throw std::invalid_argument("unexpected argument " + o.positional[0]);
     if (auto* v = o.get("--particles"))
       so.particles = size_t(parse_int("--particles", *v, 1000, 200000000));
+    if (auto* v = o.get("--like")) {
+      if (o.flag("--implicit")) throw std::invalid_argument("--like does not apply to --implicit");
+      try {
+        like = like_scene(*v, so);
+      } catch (const InputError& e) {
+        std::cerr << "amalgam bench: " << e.what() << "\n";
+        return kBadInput;
+      }
+    }
     if (auto* v = o.get("--steps")) steps = parse_int("--steps", *v, 1, 100000);
     if (auto* v = o.get("--reps")) reps = parse_int("--reps", *v, 1, 1000);
     if (auto* v = o.get("--threads")) {
@@ -210,8 +250,13 @@ int bench_command(const std::vector<std::string>& args) {
             << ", transfer_pass=" << (so.fused ? "fused" : "two_pass")
             << ", sort=" << sort_name(so.sort_when_needed) << ", precision=" << real_name()
             << ", simd=" << exec::simd_description() << ", " << steps << " substeps x " << reps
-            << " reps (median, [min, max])\n";
-  const Real dt = Real(1e-4);
+            << " reps (median, [min, max])";
+  Real dt = Real(1e-4);
+  if (!like.empty()) {
+    dt = std::min(dt, make_bench_sphere(so).stable_dt(exec::Space()));
+    std::cout << ", like=" << like << ", order=" << so.order << ", dt=" << dt;
+  }
+  std::cout << "\n";
   for (const auto backend : backends) {
     for (const int t : threads) {
       if (backend == exec::Backend::Serial && t != 1) continue;

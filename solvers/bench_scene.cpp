@@ -19,10 +19,14 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   s.configuration_maps = o.lagrangian;
   s.domains.enabled = o.domains;
   MaterialParams m;
-  const Lame l = Lame::from_young_poisson(o.youngs_modulus, 0.3);
-  m.mu = l.mu;
-  m.lambda = l.lambda;
-  m.density = 1000;
+  if (o.material) {
+    m = *o.material;
+  } else {
+    const Lame l = Lame::from_young_poisson(o.youngs_modulus, 0.3);
+    m.mu = l.mu;
+    m.lambda = l.lambda;
+    m.density = 1000;
+  }
   Collider floor;
   floor.origin = Vec3(0, Real(0.15), 0);
   floor.normal = Vec3::UnitY();

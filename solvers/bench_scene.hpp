@@ -4,6 +4,7 @@
 #pragma once
 
 #include <memory>
+#include <optional>
 
 #include "solvers/mpm_solver.hpp"
 
@@ -28,6 +29,9 @@ struct BenchSceneOptions {
   // simulation.sort "when_needed" (the two passes re-sort only when a particle leaves its bin's
   // dilated block); the scene's default.
   bool sort_when_needed = MpmSettings().sort_when_needed;
+  // The sphere's material (`amalgam bench --like SCENE`: the scene's first object's); unset, the
+  // fixed-corotated jelly of youngs_modulus, Poisson 0.3, density 1000.
+  std::optional<MaterialParams> material;
 };
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o);
