@@ -11,6 +11,7 @@
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <sstream>
 #include <stdexcept>
 
@@ -59,8 +60,8 @@ const char* kRunHelp =
     "exchange names it and the ranks it did not hear from, and ends the job (exit 1).\n"
     "--resume continues a run from a checkpoint of the same scene, bitwise identically to an\n"
     "uninterrupted run (frames may be raised to extend it).\n"
-    "Defaults: --backend openmp (threads: plain std::threads, for ThreadSanitizer runs), --threads "
-    "=\n"
+    "Defaults: --backend tbb for MPM scenes, openmp for peridynamics (the faster of the two for\n"
+    "each, docs/benchmarks.md; threads: plain std::threads, for ThreadSanitizer runs), --threads =\n"
     "the CPUs this process may run on (its affinity: all cores, or a rank's share under mpirun),\n"
     "--out = the scene's output.directory,\n"
     "--frames = the scene's simulation.frames, --checkpoint-every = output.checkpoint_every.\n";
@@ -118,9 +119,21 @@ RunEstimate estimate_of(const Scene& scene) {
   }
 }
 
-exec::Space make_space(const Options& o, exec::Profiler* prof) {
-  exec::Backend b = exec::Backend::OpenMP;
-  if (const auto* s = o.get("--backend")) b = exec::parse_backend(*s);
+// The default backend is the one measured fastest for the method on the reference machine
+// (docs/benchmarks.md, "All four scenes"): TBB for MPM (its idle workers leave the cores to the
+// output thread; OpenMP's spin at every pass's end), OpenMP for peridynamics. Every backend gives
+// the same bits.
+exec::Backend default_backend(Method m) {
+  return m == Method::Peridynamics ? exec::Backend::OpenMP : exec::Backend::TBB;
+}
+
+// --backend when given (a usage error before the scene is read), else none.
+std::optional<exec::Backend> chosen_backend(const Options& o) {
+  if (const auto* s = o.get("--backend")) return exec::parse_backend(*s);
+  return std::nullopt;
+}
+
+exec::Space make_space(const Options& o, exec::Backend b, exec::Profiler* prof) {
   const int usable = exec::usable_threads();
   int threads = usable;
   if (const auto* s = o.get("--threads")) threads = parse_int("--threads", *s, 1, 4096);
@@ -170,10 +183,12 @@ int run_command(const std::vector<std::string>& args) {
   std::signal(SIGINT, on_signal_during_setup);
   std::signal(SIGTERM, on_signal_during_setup);
   try {
-    const exec::Space space = make_space(o, &profiler);
+    const std::optional<exec::Backend> backend = chosen_backend(o);
     set_phase("reading scene file " + o.positional[0]);
     const auto t_read = std::chrono::steady_clock::now();
     Scene scene = load_scene(o.positional[0]);
+    const exec::Space space =
+        make_space(o, backend.value_or(default_backend(scene.method)), &profiler);
     if (const auto* f = o.get("--frames")) scene.frames = parse_int("--frames", *f, 1, kMaxFrames);
     RunSettings rs;
     rs.out_dir = o.get("--out") ? *o.get("--out") : scene.output.directory;
