@@ -12,12 +12,12 @@ echo "$info" | grep -Eq '^hardware threads: [0-9]+ \(this process may use 1\)$' 
 # Default thread count on one CPU: one thread, no warning.
 log=$(taskset -c 0 "$amalgam" run "$scene" --frames 1 --out "$out/d" 2>&1) ||
   { echo "$log"; echo "run on one CPU failed"; exit 1; }
-echo "$log" | grep -q "backend openmp x1," || { echo "$log"; echo "default threads on one CPU is not 1"; exit 1; }
+echo "$log" | grep -q "backend tbb x1," || { echo "$log"; echo "default threads on one CPU is not 1"; exit 1; }
 echo "$log" | grep -q "warning" && { echo "$log"; echo "unexpected warning"; exit 1; }
 # Two threads asked for on one CPU: they run (the user asked) and the warning says why it is slow.
 log=$(taskset -c 0 "$amalgam" run "$scene" --frames 1 --threads 2 --out "$out/t" 2>&1) ||
   { echo "$log"; echo "run with 2 threads on one CPU failed"; exit 1; }
-echo "$log" | grep -q "backend openmp x2," || { echo "$log"; echo "--threads 2 not honoured"; exit 1; }
+echo "$log" | grep -q "backend tbb x2," || { echo "$log"; echo "--threads 2 not honoured"; exit 1; }
 echo "$log" | grep -q "amalgam: warning: 2 threads but this process may run on 1 CPU (its affinity mask)" ||
   { echo "$log"; echo "no warning for more threads than CPUs"; exit 1; }
 # The same run on all CPUs (when there are 2 or more) warns of nothing.
