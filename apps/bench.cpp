@@ -33,10 +33,11 @@ const char* kBenchHelp =
     "--implicit: the same sphere stiffened to E = 1e7 with the implicit integrator, dx scaled so\n"
     "particles per cell stay those of 1e6 at 1/128, dt = 10x the explicit CFL step of that\n"
     "resolution (or --dt); adds CG iterations per substep (mean, max) and the solve's share.\n"
-    "--like SCENE: the sphere made like an MPM scene's first object: its material, particles per\n"
-    "cell (dx from them and N), and the scene's transfer, order, transfer_pass and sort (options\n"
-    "given beside it win); dt = min(1e-4 s, the scene settings' CFL step at the start). The\n"
-    "scene's rate against this one is its overheads alone (docs/benchmarks.md).\n"
+    "--like SCENE: the sphere made like an MPM scene's first object: its material (at the\n"
+    "object's temperature), particles per cell (dx from them and N), and the scene's transfer,\n"
+    "order, transfer_pass and sort (options given beside it win); dt = min(1e-4 s, the scene\n"
+    "settings' CFL step at the start). The scene's rate against this one is what the scene adds\n"
+    "to its material's cost (docs/benchmarks.md, \"All four scenes\").\n"
     "\n"
     "usage: amalgam bench --report DIR [--scale X] [--reps R] [--steps S] [--warmup W]\n"
     "                     [--threads LIST] [--backends LIST] [--cases LIST] [--compare CSV]\n"
@@ -80,6 +81,7 @@ std::string like_scene(const std::string& path, BenchSceneOptions& so) {
   so.fused = s.fused;
   so.sort_when_needed = s.sort_when_needed;
   so.material = scene.materials.at(std::size_t(obj.material));
+  so.temperature = obj.temperature;
   const double r = 0.3, ppc = obj.particles_per_cell;  // the sphere's radius (bench_scene.cpp)
   so.dx = Real(std::cbrt(ppc * 4.0 / 3.0 * M_PI * r * r * r / double(so.particles)));
   const std::string name = std::size_t(obj.material) < scene.material_names.size()

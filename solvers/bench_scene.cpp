@@ -56,9 +56,10 @@ MpmSolver make_bench_sphere(const BenchSceneOptions& o) {
   if (o.lagrangian && o.objects == 2) {
     std::vector<Vec3> halves[2];
     for (const Vec3& p : x) halves[p[0] < Real(0.5) ? 0 : 1].push_back(p);
-    for (const auto& h : halves) solver.add_particles(h, v0, omega, centre, 0, vol, 0, o.policy);
+    for (const auto& h : halves)
+      solver.add_particles(h, v0, omega, centre, 0, vol, o.temperature, o.policy);
   } else {
-    solver.add_particles(x, v0, omega, centre, 0, vol, 0, o.policy);
+    solver.add_particles(x, v0, omega, centre, 0, vol, o.temperature, o.policy);
   }
   return solver;
 }

@@ -32,6 +32,7 @@ struct BenchSceneOptions {
   // The sphere's material (`amalgam bench --like SCENE`: the scene's first object's); unset, the
   // fixed-corotated jelly of youngs_modulus, Poisson 0.3, density 1000.
   std::optional<MaterialParams> material;
+  Real temperature = 0;  // the particles' initial temperature, K (--like: the object's)
 };
 
 MpmSolver make_bench_sphere(const BenchSceneOptions& o);
