@@ -164,7 +164,7 @@ int bench_command(const std::vector<std::string>& args) {
   std::vector<exec::Backend> backends = exec::available_backends();
   bool implicit = false;
   double fixed_dt = 0;
-  std::string like;  // --like: "SCENE (material NAME)" for the header line
+  std::string like;  // --like: like_scene's description, for the header line
   try {
     const Options o =
         parse_options(args,
