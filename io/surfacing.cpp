@@ -126,12 +126,15 @@ void fill_enclosed_voids(FloatGrid& field, float w) {
   for (auto leaf = probe->tree().cbeginLeaf(); leaf; ++leaf)  // the band and its dilation
     for (auto v = leaf->cbeginValueAll(); v; ++v)
       if (*v > 0.0f) fill(v.getCoord());
-  // positive tiles: a void wider than a leaf beyond the band; tiles outside the region skipped
+  // Positive tiles: a void wider than a leaf beyond the band. A tile is one connected region of
+  // one value, so the flood leaves it whole inside the region or whole outside: a tile inside
+  // becomes an inside tile (a large void costs no voxels).
   for (auto t = probe->tree().cbeginValueOff(); t; ++t) {
     if (!t.isTileValue() || *t <= 0.0f) continue;
     const openvdb::CoordBBox box = t.getBoundingBox();
-    if (!inside.isValueOn(box.min()) && !inside.isValueOn(box.max())) continue;
-    for (auto c = box.begin(); c; ++c) fill(*c);
+    if (!inside.isValueOn(box.min())) continue;
+    field.tree().fill(box, -w, false);
+    out.clear();
   }
 }
 
