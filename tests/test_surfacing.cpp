@@ -414,6 +414,47 @@ TEST(Surfacing, SmoothFillsEnclosedVoidsAndKeepsOpenTunnels) {
   }
 }
 
+// Degenerate frames the smooth method must get through: one particle, two particles a kilometre
+// apart, a single-layer sheet, a dense clump (every particle within a voxel). Each writes a level
+// set whose active values are finite and within the band (|phi| <= 3 voxels), with the background
+// +3 voxels, and the velocity grid alongside it.
+TEST(Surfacing, SmoothDegenerateFramesStayLevelSets) {
+  std::vector<std::pair<const char*, Cloud>> cases;
+  Cloud one, far, sheet, clump;
+  one.add(Vec3(0.5, 0.5, 0.5), Vec3(1, 0, 0));
+  far.add(Vec3(0.5, 0.5, 0.5), Vec3(1, 0, 0));
+  far.add(Vec3(1000.5, 0.5, 0.5), Vec3(0, 1, 0));
+  for (int i = 0; i < 40; ++i)
+    for (int k = 0; k < 40; ++k)
+      sheet.add(Vec3(Real(0.3 + i * kH), Real(0.5), Real(0.3 + k * kH)), Vec3(0, 0, 0));
+  for (int i = 0; i < 500; ++i)
+    clump.add(
+        Vec3(Real(0.5 + 1e-4 * (i % 7)), Real(0.5 + 1e-4 * (i % 5)), Real(0.5 + 1e-4 * (i % 3))),
+        Vec3(0, 0, 1));
+  cases = {{"one", one}, {"far", far}, {"sheet", sheet}, {"clump", clump}};
+  for (const auto& [name, cloud] : cases) {
+    SCOPED_TRACE(name);
+    SurfacingSpec s = spec(SurfacingMethod::Smooth);
+    s.mesh = SurfaceMeshFormat::Ply;
+    const std::string dir = temp_dir("degenerate");
+    const SurfacingStats st = write_surfacing(dir + "/s", cloud.fields(), kH, s, exec::Space());
+    EXPECT_EQ(st.particles, cloud.x.size());
+    const auto grids = read_grids(dir + "/s.vdb");
+    const auto sdf = grid_named(*grids, "surface");
+    ASSERT_TRUE(sdf);
+    const float w = float(3 * s.voxel_size);
+    EXPECT_FLOAT_EQ(sdf->background(), w);
+    long bad = 0, inside = 0;
+    for (auto it = sdf->cbeginValueOn(); it; ++it) {
+      if (!std::isfinite(*it) || std::abs(*it) > w * 1.0001f) ++bad;
+      if (*it < 0) ++inside;
+    }
+    EXPECT_EQ(bad, 0);
+    if (std::string(name) == "sheet" || std::string(name) == "clump") EXPECT_GT(inside, 0);
+    EXPECT_TRUE(std::filesystem::exists(dir + "/s.ply"));
+  }
+}
+
 // The files are the same bytes with 1 and 2 threads (every OpenVDB tool under the thread limit;
 // the file UUID derived from the content), for both methods, with filters and a PLY mesh.
 TEST(Surfacing, FilesAreIdenticalWithOneAndTwoThreads) {
