@@ -14,8 +14,10 @@
 #include <openvdb/tools/PointIndexGrid.h>
 #include <openvdb/tools/VolumeToMesh.h>
 
+#include <algorithm>
 #include <cmath>
 #include <mutex>
+#include <sstream>
 
 #include "core/errors.hpp"
 #include "io/vdb_file.hpp"
@@ -248,11 +250,35 @@ SurfaceMesh mesh_of(const FloatGrid& surface, const Vec3SGrid& v, double adaptiv
   return m;
 }
 
+// Throws InputError naming `where` when a particle cannot be surfaced: a non-finite position or
+// velocity, or a position whose voxel index at `voxel` leaves OpenVDB's 32-bit coordinates (kept
+// below 2^30, so that the band and the filters' dilation stay inside them too).
+void check_indexable(const Particles& q, double voxel, const std::string& where) {
+  const double reach = std::ldexp(1.0, 30) * voxel;
+  for (std::size_t i = 0; i < q.P.size(); ++i) {
+    const openvdb::Vec3R& x = q.P[i];
+    const Vec3s& u = q.v[i];
+    std::ostringstream os;
+    if (!std::isfinite(x[0]) || !std::isfinite(x[1]) || !std::isfinite(x[2]))
+      os << where << ": particle " << i << " has a non-finite position";
+    else if (!std::isfinite(u[0]) || !std::isfinite(u[1]) || !std::isfinite(u[2]))
+      os << where << ": particle " << i << " has a non-finite velocity";
+    else if (std::max({std::abs(x[0]), std::abs(x[1]), std::abs(x[2])}) >= reach)
+      os << where << ": particle " << i << " at (" << x[0] << ", " << x[1] << ", " << x[2]
+         << ") m is beyond OpenVDB's coordinates at the surfacing voxel_size " << voxel
+         << " m (|x| / voxel_size must stay below 2^30)";
+    else
+      continue;
+    throw InputError(os.str());
+  }
+}
+
 // Surfaces `q` and writes the files; runs every OpenVDB tool under the space's thread limit.
 SurfacingStats surface_and_write(const std::string& base, const Particles& q, double spacing,
                                  const SurfacingSpec& s, const exec::Space& space) {
   if (!(s.voxel_size > 0) || !std::isfinite(s.voxel_size))
     throw InputError(base + ".vdb: surfacing voxel_size must be a positive number");
+  check_indexable(q, s.voxel_size, base + ".vdb");
   SurfacingStats st;
   st.particles = q.P.size();
   const double radius = surfacing_radius(s, spacing);
@@ -349,6 +375,8 @@ SurfacingStats surface_vdb_points_file(const std::string& input, const std::stri
   if (!error.empty()) throw InputError(input + ": cannot read VDB points: " + error);
   SurfacingSpec resolved = s;  // unset sizes from the points' voxel (the run's dx for MPM)
   if (!(resolved.voxel_size > 0)) resolved.voxel_size = 0.5 * points_voxel;
+  if (resolved.voxel_size > 0 && std::isfinite(resolved.voxel_size))
+    check_indexable(q, resolved.voxel_size, input);  // the file's fault, named as such
   return surface_and_write(base, q, spacing > 0 ? spacing : 0.5 * points_voxel, resolved, space);
 }
 

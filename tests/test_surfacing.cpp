@@ -12,6 +12,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <map>
 #include <sstream>
 
@@ -453,6 +454,51 @@ TEST(Surfacing, SmoothDegenerateFramesStayLevelSets) {
     if (std::string(name) == "sheet" || std::string(name) == "clump") EXPECT_GT(inside, 0);
     EXPECT_TRUE(std::filesystem::exists(dir + "/s.ply"));
   }
+}
+
+// Particles OpenVDB cannot index are bad input, named, before anything is written: a non-finite
+// position or velocity, or a position whose voxel index at this voxel size leaves OpenVDB's
+// 32-bit coordinates (here 2·10^7 m at 1 cm). Nothing is left behind.
+TEST(Surfacing, PositionsOutsideVdbRangeAreInputErrors) {
+  const Real nan = std::numeric_limits<Real>::quiet_NaN();
+  const struct {
+    const char* name;
+    Vec3 x, v;
+    const char* message;
+  } cases[] = {{"nan position", Vec3(0.5, nan, 0.5), Vec3(0, 0, 0), "non-finite"},
+               {"inf velocity", Vec3(0.5, 0.5, 0.5), Vec3(0, 0, INFINITY), "non-finite"},
+               {"far", Vec3(0.5, 2e7, 0.5), Vec3(0, 0, 0), "voxel_size"}};
+  for (const auto& k : cases) {
+    SCOPED_TRACE(k.name);
+    Cloud cloud = lattice_ball(Vec3d(0.5, 0.5, 0.5), 0.05, kH);
+    cloud.add(k.x, k.v);
+    const std::string dir = temp_dir("range");
+    for (const SurfacingMethod m : {SurfacingMethod::Smooth, SurfacingMethod::Spheres}) {
+      try {
+        write_surfacing(dir + "/s", cloud.fields(), kH, spec(m), exec::Space());
+        ADD_FAILURE() << "accepted";
+      } catch (const InputError& e) {
+        const std::string what = e.what();
+        EXPECT_NE(what.find(dir + "/s.vdb"), std::string::npos) << what;
+        EXPECT_NE(what.find(k.message), std::string::npos) << what;
+      }
+      EXPECT_TRUE(std::filesystem::is_empty(dir)) << "a file was left behind";
+    }
+  }
+  // From a points file (amalgam surface): the file is named, not the output.
+  Cloud cloud = lattice_ball(Vec3d(0.5, 0.5, 0.5), 0.05, kH);
+  cloud.add(Vec3(0.5, 0.5, 0.5), Vec3(0, std::numeric_limits<Real>::infinity(), 0));
+  const std::string dir = temp_dir("range_file");
+  write_vdb_points(dir + "/frame_0001.vdb", cloud.fields(), kDx, VdbPrecision::Full, exec::Space());
+  try {
+    surface_vdb_points_file(dir + "/frame_0001.vdb", dir + "/s", kH, spec(SurfacingMethod::Smooth),
+                            exec::Space());
+    ADD_FAILURE() << "accepted";
+  } catch (const InputError& e) {
+    EXPECT_NE(std::string(e.what()).find(dir + "/frame_0001.vdb: particle"), std::string::npos)
+        << e.what();
+  }
+  EXPECT_FALSE(std::filesystem::exists(dir + "/s.vdb"));
 }
 
 // The files are the same bytes with 1 and 2 threads (every OpenVDB tool under the thread limit;
