@@ -258,17 +258,20 @@ void check_indexable(const Particles& q, double voxel, const std::string& where)
   for (std::size_t i = 0; i < q.P.size(); ++i) {
     const openvdb::Vec3R& x = q.P[i];
     const Vec3s& u = q.v[i];
-    std::ostringstream os;
-    if (!std::isfinite(x[0]) || !std::isfinite(x[1]) || !std::isfinite(x[2]))
-      os << where << ": particle " << i << " has a non-finite position";
-    else if (!std::isfinite(u[0]) || !std::isfinite(u[1]) || !std::isfinite(u[2]))
-      os << where << ": particle " << i << " has a non-finite velocity";
-    else if (std::max({std::abs(x[0]), std::abs(x[1]), std::abs(x[2])}) >= reach)
-      os << where << ": particle " << i << " at (" << x[0] << ", " << x[1] << ", " << x[2]
+    const bool x_ok = std::isfinite(x[0]) && std::isfinite(x[1]) && std::isfinite(x[2]);
+    const bool v_ok = std::isfinite(u[0]) && std::isfinite(u[1]) && std::isfinite(u[2]);
+    const bool near = x_ok && std::max({std::abs(x[0]), std::abs(x[1]), std::abs(x[2])}) < reach;
+    if (x_ok && v_ok && near) continue;
+    std::ostringstream os;  // only for the particle at fault
+    os << where << ": particle " << i;
+    if (!x_ok)
+      os << " has a non-finite position";
+    else if (!v_ok)
+      os << " has a non-finite velocity";
+    else
+      os << " at (" << x[0] << ", " << x[1] << ", " << x[2]
          << ") m is beyond OpenVDB's coordinates at the surfacing voxel_size " << voxel
          << " m (|x| / voxel_size must stay below 2^30)";
-    else
-      continue;
     throw InputError(os.str());
   }
 }
