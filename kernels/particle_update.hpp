@@ -17,14 +17,15 @@ namespace amalgam {
 namespace AMALGAM_ISA {
 
 // Material update of particles [i0, i1), at most lanes::kN of them: heat sources, then each
-// particle's projection; the SVDs that the plastic return mappings start from are computed for
-// the group at once, one particle per vector lane (svd3_lanes, bitwise each particle's svd3).
+// particle's projection; the SVDs that the plastic return mappings start from, and the cube
+// roots of the fluid's F reset, are computed for the group at once, one particle per vector lane
+// (svd3_lanes, detail::cube_root_lanes: bitwise each particle's svd3 and cube_root).
 inline void update_material_group(const MpmParticleView& p, const MaterialUpdateParams& prm,
                                   exec::Index i0, exec::Index i1) {
   constexpr int kN = lanes::kN<Real>;
-  Real temperature[kN];
+  Real temperature[kN], J[kN], root[kN];
   Mat3 F[kN];
-  int lane_of[kN], m = 0;
+  int lane_of[kN], m = 0, r = 0;
   for (exec::Index i = i0; i < i1; ++i) {
     Real& ti = temperature[i - i0];
     ti = p.temperature ? p.temperature[i] : Real(0);
@@ -36,15 +37,27 @@ inline void update_material_group(const MpmParticleView& p, const MaterialUpdate
       }
       p.temperature[i] = ti;
     }
-    const bool svd = prm.materials[p.material[i]].project_takes_svd(ti);
+    const MaterialParams& mat = prm.materials[p.material[i]];
+    if (mat.project_is_reset(ti)) {  // WeaklyCompressibleT::reset's J, its root below
+      lane_of[i - i0] = kN + r;
+      J[r++] = std::max(p.F[i].determinant(), WeaklyCompressibleT<Real>::kMinJ);
+      continue;
+    }
+    const bool svd = mat.project_takes_svd(ti);
     lane_of[i - i0] = svd ? m : -1;
     if (svd) F[m++] = p.F[i];
   }
   Svd3<Real> d[kN];
   if (m > 0) svd3_lanes(F, m, d);
+  if (r > 0) detail::cube_root_lanes(J, root, r);
   for (exec::Index i = i0; i < i1; ++i) {
     const MaterialParams& mat = prm.materials[p.material[i]];
     const int l = lane_of[i - i0];
+    if (l >= kN) {  // the fluid's reset, F <- J^{1/3} I
+      p.F[i] = root[l - kN] * Mat3::Identity();
+      if (p.F_lo) p.F_lo[i].setZero();
+      continue;
+    }
     Real plastic = p.plastic ? p.plastic[i] : Real(0);
     if (l >= 0 ? mat.project(p.F[i], plastic, d[l])
                : mat.project(p.F[i], plastic, temperature[i - i0])) {

@@ -4,8 +4,11 @@
 
 #include <filesystem>
 #include <fstream>
+#include <limits>
+#include <random>
 
 #include "core/exec/simd.hpp"
+#include "kernels/material_update.hpp"
 #include "io/scene.hpp"
 #include "solvers/factory.hpp"
 #include "mpm_test_scenes.hpp"
@@ -64,6 +67,73 @@ TEST(BackendDeterminism, ViscousFlipKeepsTheVelocityGradient) {
   const Scene scene = material_scene(R"(, "transfer": "flip")");
   EXPECT_GE(build_solver(scene).attributes().C, 0);
   run_everywhere(scene, 12, [](const MpmSolver&) {});
+}
+
+// The material update takes a group's SVDs and the fluid resets' cube roots a vector of
+// particles at a time (update_material_group): on every path and configuration each particle
+// gets bitwise what its own MaterialParams::project gives, in groups mixing water, snow, sand
+// and a melting solid (lanes melted and not), with J far from 1, negative, huge (std::cbrt's
+// fallback) and NaN among them; the low parts of the projected F are cleared.
+TEST(SimdPaths, MaterialUpdateIsEachParticlesProjection) {
+  SimdGuard guard;
+  std::vector<MaterialParams> mats(4);
+  mats[0].model = MaterialModel::Fluid, mats[0].bulk = Real(2e5), mats[0].viscosity = Real(0.01);
+  mats[1].model = MaterialModel::Snow, mats[1].mu = Real(4e4), mats[1].lambda = Real(6e4);
+  mats[2].model = MaterialModel::DruckerPrager, mats[2].mu = Real(4e4), mats[2].lambda = Real(6e4);
+  mats[2].friction_alpha = Real(0.4);
+  mats[3].mu = Real(4e4), mats[3].lambda = Real(6e4), mats[3].melting = true;
+  mats[3].melting_point = 300, mats[3].liquid_bulk = Real(1e4);
+  const std::size_t n = 1003;
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<double> u(-0.3, 0.3);
+  std::vector<Mat3> F(n), F_lo(n);
+  std::vector<Real> plastic(n), temperature(n);
+  std::vector<std::int32_t> material(n);
+  std::vector<Vec3> x(n, Vec3::Zero()), v(n, Vec3::Zero());
+  for (std::size_t i = 0; i < n;) {  // runs of 1-12 particles of one material
+    const int m = int(rng() % 4), len = 1 + int(rng() % 12);
+    for (int k = 0; k < len && i < n; ++k, ++i) material[i] = m;
+  }
+  for (std::size_t i = 0; i < n; ++i) {
+    F[i] = Mat3::Identity();
+    for (int e = 0; e < 9; ++e) F[i](e) += Real(u(rng));
+    if (i % 17 == 0) F[i] *= Real(4);          // J far above 1
+    if (i % 23 == 0) F[i].col(0) *= Real(-1);  // inverted: J < 0, clamped
+    if (i % 101 == 0) F[i] *= Real(1e11);      // J ~ 1e33: std::cbrt's range
+    if (i == 500) F[i](1, 1) = std::numeric_limits<Real>::quiet_NaN();
+    F_lo[i] = Mat3::Constant(Real(1e-9));
+    plastic[i] = mats[std::size_t(material[i])].initial_plastic();
+    temperature[i] = Real(300 + 10 * u(rng));  // the melting solid: some lanes melted
+  }
+  // The reference: one particle at a time.
+  std::vector<Mat3> F_ref = F, lo_ref = F_lo;
+  std::vector<Real> pl_ref = plastic;
+  int resets = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    const MaterialParams& m = mats[std::size_t(material[i])];
+    resets += m.project_is_reset(temperature[i]);
+    if (m.project(F_ref[i], pl_ref[i], temperature[i])) lo_ref[i].setZero();
+  }
+  EXPECT_GT(resets, 200);
+  std::vector<Real> volume(n, Real(1e-6));
+  for (const exec::SimdPath path : exec::supported_simd_paths()) {
+    exec::set_simd_path(path);
+    for (const Config& c : all_configs()) {
+      SCOPED_TRACE(std::string(exec::simd_path_name(path)) + " " + c.name());
+      std::vector<Mat3> F2 = F, lo2 = F_lo;
+      std::vector<Real> pl2 = plastic, t2 = temperature;
+      MpmParticleView p{x.data(), v.data(), nullptr, F2.data(), volume.data(), material.data(), n};
+      p.F_lo = lo2.data(), p.plastic = pl2.data(), p.temperature = t2.data();
+      MaterialUpdateParams prm;
+      prm.materials = mats.data(), prm.dt = Real(1e-4);
+      update_material_state(exec::Space(c.backend, c.threads), p, prm);
+      for (std::size_t i = 0; i < n; ++i) {
+        ASSERT_TRUE(bitwise_equal(F2[i].data(), F_ref[i].data(), 9)) << "particle " << i;
+        ASSERT_TRUE(bitwise_equal(lo2[i].data(), lo_ref[i].data(), 9)) << "particle " << i;
+        ASSERT_TRUE(bitwise_equal(&pl2[i], &pl_ref[i], 1)) << "particle " << i;
+      }
+    }
+  }
 }
 
 // Run-time vector width (core/exec/simd.hpp): the kernels compiled for AVX2 and AVX-512 give

@@ -79,10 +79,19 @@ struct MaterialParams {
   // kirchhoff() of n <= lanes::kN<Real> particles of this material, tau[l] bitwise what
   // kirchhoff(F[l], L[l], plastic[l], temperature[l]) gives. The fixed corotated models (also
   // snow's elasticity) take the rotations of all n at once, one particle per vector lane (P2G's
-  // hot spot), the StVK-Hencky ones (also sand and von Mises) their SVDs; the neo-Hookean and
-  // fluid models, and any batch with a melted particle, go one particle at a time.
+  // hot spot), the StVK-Hencky ones (also sand and von Mises) their SVDs, the fluid its
+  // pressures; the neo-Hookean model, and any batch with a melted particle, go one particle at
+  // a time.
   void kirchhoff_lanes(const Mat3* F, const Mat3* L, const Real* plastic, const Real* temperature,
                        Mat3* tau, int n) const {
+    if (model == MaterialModel::Fluid && !melting) {
+      Real J[lanes::kN<Real>], pr[lanes::kN<Real>];
+      for (int l = 0; l < n; ++l) J[l] = F[l].determinant();
+      const WeaklyCompressibleT<Real> f = fluid();
+      f.pressure_lanes(J, pr, n);
+      for (int l = 0; l < n; ++l) tau[l] = f.kirchhoff(J[l], pr[l], L[l]);
+      return;
+    }
     const bool hencky = model == MaterialModel::StvkHencky ||
                         model == MaterialModel::DruckerPrager || model == MaterialModel::VonMises;
     bool batch = hencky || model == MaterialModel::FixedCorotated || model == MaterialModel::Snow;
@@ -220,6 +229,12 @@ struct MaterialParams {
       default:
         return false;
     }
+  }
+  // Whether project() is the fluid's F reset (a fluid, or a melted particle), so a caller can
+  // take the cube roots of several particles at once (detail::cube_root_lanes) and set
+  // F = J^{1/3} I itself: bitwise the same.
+  bool project_is_reset(Real temperature) const {
+    return model == MaterialModel::Fluid || melted(temperature);
   }
   // Whether project() begins with the SVD of F (the return mappings of the plastic solids), so a
   // caller can compute the SVDs of several particles at once (svd3_lanes) and pass them in.
