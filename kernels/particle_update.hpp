@@ -38,9 +38,9 @@ inline void update_material_group(const MpmParticleView& p, const MaterialUpdate
       p.temperature[i] = ti;
     }
     const MaterialParams& mat = prm.materials[p.material[i]];
-    if (mat.project_is_reset(ti)) {  // WeaklyCompressibleT::reset's J, its root below
+    if (mat.project_is_reset(ti)) {  // WeaklyCompressibleT::reset: its J here, its root below
       lane_of[i - i0] = kN + r;
-      J[r++] = std::max(p.F[i].determinant(), WeaklyCompressibleT<Real>::kMinJ);
+      J[r++] = WeaklyCompressibleT<Real>::reset_J(p.F[i]);
       continue;
     }
     const bool svd = mat.project_takes_svd(ti);

@@ -79,14 +79,6 @@ inline void cube_root_lanes(const T* J, T* c, int n) {
   for (int l = 0; l < n; ++l) c[l] = cube_root_in_range(J[l]) ? T(g[l]) : std::cbrt(J[l]);
 }
 
-// J^{-n} - 1 for an integer n >= 1 without pow and without the cancellation of forming
-// J^{-n} first: near J = 1 (|J - 1| max(n, 2) < 1) from d = J - 1 (exact there, Sterbenz), with
-// e_k = (1 + d)^k - 1 combined by squaring as e_{a+b} = e_a + e_b + e_a e_b (no cancellation:
-// the terms share their sign but for the small product) and J^{-n} - 1 = -e_n / (1 + e_n);
-// elsewhere from J^n by squaring, 1 / J^n - 1, then at least 1 - e^{-1} from zero. Float,
-// against double over J in [0.01, 5] and J within 1e-3 of 1: worst relative error 4.3e-7 for
-// n = 7 (1.0e-6 for n = 20); powf(J, -n) - 1 loses the difference as J -> 1 (worst 0.14 for
-// n = 7: rounded near 1, J^{-n} keeps few of its bits).
 // inverse_power_minus_one's two forms, on a scalar or a vector of lanes (S).
 template <class S>
 inline S inverse_power_minus_one_near(S d, int n) {
@@ -118,15 +110,24 @@ inline S inverse_power_minus_one_far(S J, int n) {
   }
   return 1 / r - 1;
 }
-template <class T>
-inline bool inverse_power_near(T d, int n) {
-  return std::abs(d) * T(std::max(n, 2)) < T(1);
+// Which form: |d| max(n, 2) < 1 (a bool for a scalar, a mask for a vector of lanes).
+template <class T, class S>
+inline auto inverse_power_near(S d, int n) {
+  return (d < 0 ? -d : d) * T(std::max(n, 2)) < T(1);
 }
+// J^{-n} - 1 for an integer n >= 1 without pow and without the cancellation of forming
+// J^{-n} first: near J = 1 (|J - 1| max(n, 2) < 1) from d = J - 1 (exact there, Sterbenz), with
+// e_k = (1 + d)^k - 1 combined by squaring as e_{a+b} = e_a + e_b + e_a e_b (no cancellation:
+// the terms share their sign but for the small product) and J^{-n} - 1 = -e_n / (1 + e_n);
+// elsewhere from J^n by squaring, 1 / J^n - 1, then at least 1 - e^{-1} from zero. Float,
+// against double over J in [0.01, 5] and J within 1e-3 of 1: worst relative error 4.3e-7 for
+// n = 7 (1.0e-6 for n = 20); powf(J, -n) - 1 loses the difference as J -> 1 (worst 0.14 for
+// n = 7: rounded near 1, J^{-n} keeps few of its bits).
 template <class T>
 inline T inverse_power_minus_one(T J, int n) {
   const T d = J - T(1);
-  return inverse_power_near(d, n) ? inverse_power_minus_one_near(d, n)
-                                  : inverse_power_minus_one_far(J, n);
+  return inverse_power_near<T>(d, n) ? inverse_power_minus_one_near(d, n)
+                                     : inverse_power_minus_one_far(J, n);
 }
 
 }  // namespace detail
@@ -161,7 +162,7 @@ struct WeaklyCompressibleT {
     for (int l = 0; l < n; ++l) j[l] = std::max(J[l], kMinJ);
     const int m = int(gamma);
     const V d = j - T(1);
-    const auto near = (d < 0 ? -d : d) * T(std::max(m, 2)) < T(1);
+    const auto near = detail::inverse_power_near<T>(d, m);
     const V ratio = near ? detail::inverse_power_minus_one_near(d, m)
                          : detail::inverse_power_minus_one_far(j, m);
     const V out = (bulk / gamma) * ratio;
@@ -215,10 +216,11 @@ struct WeaklyCompressibleT {
   }
   // F <- J^{1/3} I. Returns true (F always changes unless already isotropic).
   static bool reset(M3& F) {
-    const T J = std::max(F.determinant(), kMinJ);
-    F = detail::cube_root(J) * M3::Identity();
+    F = detail::cube_root(reset_J(F)) * M3::Identity();
     return true;
   }
+  // The J whose cube root reset() takes (update_material_group takes a group's roots at once).
+  static T reset_J(const M3& F) { return std::max(F.determinant(), kMinJ); }
 };
 
 }  // namespace amalgam
