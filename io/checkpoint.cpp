@@ -35,6 +35,11 @@ constexpr char kOptionalAttribute[] = "rest";
 // file written by a run that kept it (an older binary's PIC/FLIP run) is read by one that does
 // not with C skipped (it was never read); a run that needs C refuses a file without it.
 constexpr char kAffineAttribute[] = "C";
+// F's low part: a run whose materials are all fluids keeps none (MpmSolver::keeps_F_low_part). A
+// file written by a run that kept it (an older binary's) is read by one that does not with F_lo
+// skipped (such a run's low parts are zero at every substep's end); a run that keeps it reads a
+// file without it with F_lo zero, as a file from before version 4.
+constexpr char kLowPartAttribute[] = "F_lo";
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -180,9 +185,15 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
   const bool rest = ps.find(kOptionalAttribute) >= 0;
   const bool affine = ps.find(kAffineAttribute) >= 0;
   const bool skip_affine = !pd && !affine;
+  const int low_part = pd ? -1 : ps.find(kLowPartAttribute);
+  const bool skip_low_part = !pd && low_part < 0;
+  const bool low_part_optional =
+      low_part >= 0 && std::find(missing.begin(), missing.end(), low_part) == missing.end();
   const std::uint32_t expected = std::uint32_t(ps.attribute_count()) - nmissing + ndropped;
-  const std::uint32_t fewest = expected - (rest ? 1 : 0) - (affine ? 1 : 0);
-  const std::uint32_t most = expected + (rest ? 0 : 1) + (skip_affine ? 1 : 0);
+  const std::uint32_t fewest =
+      expected - (rest ? 1 : 0) - (affine ? 1 : 0) - (low_part_optional ? 1 : 0);
+  const std::uint32_t most =
+      expected + (rest ? 0 : 1) + (skip_affine ? 1 : 0) + (skip_low_part ? 1 : 0);
   if (nattr < fewest || nattr > most)
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
                      " particle attributes, expected " + std::to_string(expected));
@@ -216,8 +227,10 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
       r.take(size_t(n) * 4 * words, "attribute data");
       continue;
     }
-    if (skip_affine && name == kAffineAttribute && a < 0 && type == std::uint32_t(AttrType::Real) &&
-        width == 9 && words == std::uint32_t(9 * sizeof(Real) / 4)) {
+    if (((skip_affine && name == kAffineAttribute) ||
+         (skip_low_part && name == kLowPartAttribute)) &&
+        a < 0 && type == std::uint32_t(AttrType::Real) && width == 9 &&
+        words == std::uint32_t(9 * sizeof(Real) / 4)) {
       r.take(size_t(n) * 4 * words, "attribute data");
       continue;
     }
@@ -234,6 +247,10 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
   }
   for (int a = 0; a < ps.attribute_count(); ++a) {
     if (read[std::size_t(a)]) continue;
+    if (a == low_part) {  // zero below, as the low parts of a file from before version 4
+      missing.push_back(a);
+      continue;
+    }
     if (ps.name(a) == kAffineAttribute && !pd)
       throw InputError(path + ": checkpoint has no particle attribute '" + ps.name(a) +
                        "' (the affine velocity matrix this run's APIC/MLS transfer or viscous "

@@ -51,7 +51,7 @@ DomainParticleView MpmEnriched::particle_view(MpmSolver& mpm) {
   if (a.temperature >= 0) v.temperature = ps.real(a.temperature);
   if (a.C >= 0) v.C = ps.mat3(a.C);
   v.x_lo = ps.vec3(a.x_lo);
-  v.F_lo = ps.mat3(a.F_lo);
+  if (a.F_lo >= 0) v.F_lo = ps.mat3(a.F_lo);
   return v;
 }
 

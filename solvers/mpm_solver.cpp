@@ -44,6 +44,12 @@ bool MpmSolver::keeps_affine(const MpmSettings& s, const std::vector<MaterialPar
   return false;
 }
 
+bool MpmSolver::keeps_F_low_part(const std::vector<MaterialParams>& materials) {
+  for (const MaterialParams& m : materials)
+    if (m.model != MaterialModel::Fluid) return true;
+  return materials.empty();
+}
+
 MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials,
                      std::vector<Collider> colliders, std::vector<HeatSource> heat_sources)
     : settings_(settings),
@@ -63,7 +69,8 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
     material_update_ |= m.needs_state_update();
   }
   material_update_ |= melting && !heat_sources_.empty();
-  attr_ = MpmAttributes::add_to(particles_, plastic, melting, keeps_affine(settings_, materials_));
+  attr_ = MpmAttributes::add_to(particles_, plastic, melting, keeps_affine(settings_, materials_),
+                                keeps_F_low_part(materials_));
   if (settings_.domains.enabled) {
     if (settings_.configuration_maps)
       throw InputError("particle domains and configuration maps (A-ULMPM) cannot be combined");
@@ -233,7 +240,7 @@ MpmParticleView MpmSolver::particle_view() {
                     particles_.int32(attr_.material),
                     particles_.size()};
   v.x_lo = particles_.vec3(attr_.x_lo);
-  v.F_lo = particles_.mat3(attr_.F_lo);
+  if (attr_.F_lo >= 0) v.F_lo = particles_.mat3(attr_.F_lo);
   if (attr_.plastic >= 0) v.plastic = particles_.real(attr_.plastic);
   if (attr_.temperature >= 0) v.temperature = particles_.real(attr_.temperature);
   if (aul_) aul_->fill_view(v, particles_);

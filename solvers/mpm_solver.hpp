@@ -144,6 +144,12 @@ class MpmSolver {
   // particle domains too. PIC/FLIP (and particle domains, which transfer by PIC/FLIP) without a
   // viscous material neither read nor write it.
   static bool keeps_affine(const MpmSettings& s, const std::vector<MaterialParams>& materials);
+  // Whether particles of these materials carry F's low part F_lo (core/math/types.hpp:
+  // add_compensated). Not when every material is a fluid: the material update resets every fluid
+  // particle's F to J^{1/3} I and zeroes its low part each substep (WeaklyCompressibleT::reset;
+  // kernels/particle_update.hpp), J read from F alone, so the low part is zero whenever G2P adds
+  // to F and nothing reads it: without it F takes the same values, bit for bit.
+  static bool keeps_F_low_part(const std::vector<MaterialParams>& materials);
   // Gives every particle the attribute `rest` (MpmAttributes::rest), its current position, and
   // every particle added later (emitters) its position at emission. Idempotent.
   void keep_rest_positions();

@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <cmath>
+#include <algorithm>
 #include <cstring>
 #include <fstream>
 #include <limits>
@@ -425,6 +426,93 @@ TEST(Checkpoint, RestPositionsTravelWithTheirParticles) {
             positions(e.solver(), e.solver().attributes().x));
   std::remove(with.c_str());
   std::remove(without.c_str());
+}
+
+// A run whose materials are all fluids keeps no low part of F (MpmSolver::keeps_F_low_part). A
+// checkpoint an older binary wrote for such a run holds F_lo after F (zero: the fluid's reset
+// clears it every substep): it is read with F_lo skipped and resumes bitwise as the run that
+// wrote it. A run that keeps F_lo reads a file without it with the low parts zero.
+TEST(Checkpoint, FLowPartSkippedForFluidsAndZeroWhereAbsent) {
+  std::string water_text = kScene;
+  water_text.replace(water_text.find("\"youngs_modulus\": 1e4"), 21,
+                     "\"model\": \"fluid\", \"bulk_modulus\": 2e5");
+  const Scene water = parse_scene(water_text, "water.json");
+  const exec::Space space(exec::Backend::TBB, 2);
+  MpmSimulation a(build_solver(water)), b(build_solver(water));
+  ASSERT_LT(a.solver().attributes().F_lo, 0);
+  for (int i = 0; i < 5; ++i) a.advance(space, a.stable_dt(space));
+  const std::string path = tmp_path("water.amck"), old = tmp_path("water_old.amck");
+  write_checkpoint(path, a, 2, water.fingerprint);
+  const std::string now = slurp(path);
+  EXPECT_EQ(attribute_data_at(now, "F_lo"), std::string::npos);
+  std::uint64_t n;
+  std::memcpy(&n, now.data() + kCountAt, 8);
+  std::string rec;  // as the older binary wrote it: "F_lo", 9 zero Reals a particle, after F
+  auto put32 = [&](std::uint32_t v) { rec.append(reinterpret_cast<const char*>(&v), 4); };
+  put32(4);
+  rec += "F_lo";
+  put32(0);  // AttrType::Real
+  put32(9);
+  put32(std::uint32_t(9 * sizeof(Real) / 4));
+  rec.append(std::size_t(n) * sizeof(Mat3), '\0');
+  std::string d = now;
+  std::uint32_t nattr;
+  std::memcpy(&nattr, d.data() + kCountAt + 8, 4);
+  ++nattr;
+  std::memcpy(d.data() + kCountAt + 8, &nattr, 4);
+  d.insert(attribute_data_at(d, "F") + std::size_t(n) * sizeof(Mat3), rec);
+  spit(old, resealed(d));
+  ASSERT_NE(attribute_data_at(slurp(old), "F_lo"), std::string::npos);
+  read_checkpoint(old, b, water.fingerprint);
+  const ParticleSet &pa = a.solver().particles(), &pb = b.solver().particles();
+  ASSERT_EQ(pa.attribute_count(), pb.attribute_count());
+  auto same = [](const ParticleSet& p, const ParticleSet& q) {
+    for (int at = 0; at < p.attribute_count(); ++at)
+      if (std::memcmp(p.words(at), q.words(at), p.size() * 4 * size_t(p.words_per_particle(at))) !=
+          0)
+        return p.name(at);
+    return std::string();
+  };
+  EXPECT_EQ(same(pa, pb), "");
+  for (int i = 0; i < 5; ++i) {
+    a.advance(space, a.stable_dt(space));
+    b.advance(space, b.stable_dt(space));
+  }
+  EXPECT_EQ(same(pa, pb), "");  // resumed bitwise
+
+  // A jelly run's checkpoint without F_lo: read with F_lo zero, everything else as written.
+  const Scene jelly = parse_scene(kScene, "s.json");
+  MpmSimulation j(build_solver(jelly)), r(build_solver(jelly));
+  const int lo = j.solver().attributes().F_lo;
+  ASSERT_GE(lo, 0);
+  for (int i = 0; i < 5; ++i) j.advance(space, j.stable_dt(space));
+  const ParticleSet& pj = j.solver().particles();
+  const Mat3* jl = pj.mat3(lo);
+  ASSERT_TRUE(std::any_of(jl, jl + pj.size(), [](const Mat3& m) { return !m.isZero(0); }))
+      << "the jelly's F should have low parts to drop";
+  write_checkpoint(path, j, 2, jelly.fingerprint);
+  std::string e = slurp(path);
+  const std::size_t lo_data = attribute_data_at(e, "F_lo");
+  ASSERT_NE(lo_data, std::string::npos);
+  const std::size_t lo_record = lo_data - (4 + 4 + 12);  // name length, "F_lo", type, width, words
+  e.erase(lo_record, lo_data - lo_record + pj.size() * sizeof(Mat3));
+  std::memcpy(&nattr, e.data() + kCountAt + 8, 4);
+  --nattr;
+  std::memcpy(e.data() + kCountAt + 8, &nattr, 4);
+  spit(old, resealed(e));
+  read_checkpoint(old, r, jelly.fingerprint);
+  const ParticleSet& pr = r.solver().particles();
+  for (int at = 0; at < pj.attribute_count(); ++at) {
+    if (at == lo) continue;
+    EXPECT_EQ(std::memcmp(pj.words(at), pr.words(at),
+                          pj.size() * 4 * size_t(pj.words_per_particle(at))),
+              0)
+        << pj.name(at);
+  }
+  const Mat3* rl = pr.mat3(lo);
+  EXPECT_TRUE(std::all_of(rl, rl + pr.size(), [](const Mat3& m) { return m.isZero(0); }));
+  std::remove(path.c_str());
+  std::remove(old.c_str());
 }
 
 // PIC/FLIP runs of materials without viscosity keep no affine matrix C (MpmSolver::keeps_affine).

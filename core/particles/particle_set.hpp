@@ -100,20 +100,22 @@ class ParticleSet {
 // exist (id >= 0) when a material of the scene needs them (else -1), so elastic scenes do not
 // sort or store them. So does C (`affine`): the affine velocity matrix APIC and MLS transfer,
 // which is also the velocity gradient a viscous stress reads; a PIC/FLIP run of materials without
-// viscosity has none (MpmSolver::keeps_affine: 36 B less per particle in float).
+// viscosity has none (MpmSolver::keeps_affine: 36 B less per particle in float). So does F_lo
+// (`F_low`): a run whose materials are all fluids, whose F is reset to J^{1/3} I with a zero low
+// part every substep, has none (MpmSolver::keeps_F_low_part: 36 B less per particle in float).
 struct MpmAttributes {
   // id: stable particle number; x_lo, F_lo: the low parts of x + x_lo and F + F_lo
-  // (core/math/types.hpp: add_compensated). No mass: a particle's mass is
+  // (core/math/types.hpp: add_compensated; F_lo may be -1, above). No mass: a particle's mass is
   // materials[material].density * volume0 (particle_mass), the float product add_particles
   // stored until checkpoint version 8, so recomputing it is bitwise the stored value.
-  ParticleSet::Id x, x_lo, v, F, F_lo, volume0, material, id;
+  ParticleSet::Id x, x_lo, v, F, F_lo = -1, volume0, material, id;
   ParticleSet::Id C = -1, plastic = -1, temperature = -1;
   // rest: the position a particle had when it was made (set-up or emission; Houdini's `rest`),
   // only when the output asks for it (MpmSolver::keep_rest_positions). An attribute like any
   // other: sorted, migrated between ranks and checkpointed with its particle.
   ParticleSet::Id rest = -1;
   static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false,
-                              bool affine = true);
+                              bool affine = true, bool F_low = true);
   static MpmAttributes find_in(const ParticleSet& ps);
 };
 
