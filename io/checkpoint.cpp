@@ -40,6 +40,10 @@ constexpr char kAffineAttribute[] = "C";
 // skipped (such a run's low parts are zero at every substep's end); a run that keeps it reads a
 // file without it with F_lo zero, as a file from before version 4.
 constexpr char kLowPartAttribute[] = "F_lo";
+// A run whose materials are all fluids keeps J = det F instead of F (MpmSolver::keeps_J_only). A
+// file written by a run that kept F (an older binary's) is read by one that keeps J with
+// J = det F, the J its next substep's stress would have read from F.
+constexpr char kVolumeAttribute[] = "J";
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -189,6 +193,8 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
   const bool skip_low_part = !pd && low_part < 0;
   const bool low_part_optional =
       low_part >= 0 && std::find(missing.begin(), missing.end(), low_part) == missing.end();
+  const int volume = pd ? -1 : ps.find(kVolumeAttribute);
+  const bool F_to_J = volume >= 0 && ps.find("F") < 0;
   const std::uint32_t expected = std::uint32_t(ps.attribute_count()) - nmissing + ndropped;
   const std::uint32_t fewest =
       expected - (rest ? 1 : 0) - (affine ? 1 : 0) - (low_part_optional ? 1 : 0);
@@ -232,6 +238,20 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
         a < 0 && type == std::uint32_t(AttrType::Real) && width == 9 &&
         words == std::uint32_t(9 * sizeof(Real) / 4)) {
       r.take(size_t(n) * 4 * words, "attribute data");
+      continue;
+    }
+    if (F_to_J && name == "F" && a < 0 && type == std::uint32_t(AttrType::Real) && width == 9 &&
+        words == std::uint32_t(9 * sizeof(Real) / 4)) {
+      const char* src = r.take(size_t(n) * 4 * words, "attribute data");
+      if (read[std::size_t(volume)])
+        throw InputError(path + ": checkpoint attributes 'F' and 'J' both hold the volume ratio");
+      Real* J = ps.real(volume);
+      for (std::size_t i = 0; i < std::size_t(n); ++i) {
+        Mat3 F;
+        std::memcpy(F.data(), src + i * sizeof(Mat3), sizeof(Mat3));
+        J[i] = F.determinant();
+      }
+      read[std::size_t(volume)] = 1;
       continue;
     }
     if (a < 0 || type != std::uint32_t(ps.type(a)) || width != std::uint32_t(ps.width(a)) ||

@@ -32,7 +32,7 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
       [&](exec::Index g, StabilityCheck& acc) {
         const exec::Index i0 = g * kN, i1 = std::min(n, i0 + kN);
         update_material_group(p, prm, i0, i1);
-        check_range(acc, i0, i1, p.v, p.F, prm.check_limits);
+        check_particles(acc, i0, i1, p, prm.check_limits);
       },
       merge_checks);
 }

@@ -219,7 +219,10 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
       }
     }
     const MaterialParams& mat = prm.materials[p.material[q0]];
-    mat.kirchhoff_lanes(p.F + q0, L ? Lv : p.C ? p.C + q0 : zero, plastic, temperature, tau, n);
+    if (!L && p.J)  // the particles keep J alone (MpmParticleView::J): every material a fluid
+      mat.fluid_kirchhoff_lanes(p.J + q0, p.C ? p.C + q0 : zero, tau, n);
+    else
+      mat.kirchhoff_lanes(p.F + q0, L ? Lv : p.C ? p.C + q0 : zero, plastic, temperature, tau, n);
     for (int l = 0; l < n; ++l) {
       const std::uint32_t q = q0 + std::uint32_t(l);
       if constexpr (M > 0) {  // the stencil's nodes base .. base + Order inside the block?
@@ -409,15 +412,16 @@ void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const M
 
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
 // L (Lagrangian mode): the stencil sits at the reference position xs and F_s, F_0s are updated
-// (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F. flatten: as p2g_particle.
+// (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F, or, where the particles keep
+// J alone (F null), J <- det(I + dt grad v) J. flatten: as p2g_particle.
 // C: APIC/MLS's affine matrix (never null); PIC/FLIP stores grad v in it when the particles
 // keep one (a viscous stress reads it), else C is null and nothing is stored.
 template <int Order, Transfer T, int CH, bool L, int M = 0>
 __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>& blk,
                                                   const Vec3i& origin, const Vec3& xs, Vec3& x,
-                                                  Vec3* x_lo, Vec3& v, Mat3* C, Mat3& F, Mat3* F_lo,
-                                                  Mat3* Fs, const Mat3* F0s, Real dx, Real inv_dx,
-                                                  Real dt, Real alpha) {
+                                                  Vec3* x_lo, Vec3& v, Mat3* C, Mat3* Fp,
+                                                  Mat3* F_lo, Real* J, Mat3* Fs, const Mat3* F0s,
+                                                  Real dx, Real inv_dx, Real dt, Real alpha) {
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
@@ -496,8 +500,26 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
     for (int a = 0; a < 3; ++a)
       for (int c = 0; c < 3; ++c) grad_v(c, a) = Gcol[a][c + 1];
     *Fs += dt * grad_v;  // A-ULMPM eq. 30: F^{s(n+1)} = F^{sn} + dt grad_s v
-    F = *Fs * *F0s;      // eq. 32: F^{0(n+1)} = F^{s(n+1)} F^{0s}
+    *Fp = *Fs * *F0s;    // eq. 32: F^{0(n+1)} = F^{s(n+1)} F^{0s}
+  } else if (J) {
+    // det of F <- (I + A) F with A = dt grad v: J <- J + J e, e = det(I + A) - 1 = tr A + (the
+    // principal 2x2 minors of A) + det A (Cayley-Hamilton), every term small, so J keeps the
+    // digits of its change (forming 1 + e first would round e to float's spacing around 1).
+    // Clamped at the fluid's kMinJ, as the F reset clamped the J it took the cube root of.
+    Real a[3][3];
+    for (int c = 0; c < 3; ++c)
+      for (int k = 0; k < 3; ++k) a[c][k] = dt * Gcol[k][c + 1];
+    const Real m2 = (a[0][0] * a[1][1] - a[0][1] * a[1][0]) +
+                    (a[0][0] * a[2][2] - a[0][2] * a[2][0]) +
+                    (a[1][1] * a[2][2] - a[1][2] * a[2][1]);
+    const Real det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) -
+                     a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) +
+                     a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
+    const Real e = (a[0][0] + a[1][1] + a[2][2]) + (m2 + det);
+    const Real j = *J + *J * e;
+    *J = j > WeaklyCompressibleT<Real>::kMinJ ? j : WeaklyCompressibleT<Real>::kMinJ;
   } else {
+    Mat3& F = *Fp;
     // F <- F + dt (grad v) F: the increment's column j is dt sum_a g_a F(a, j), on 4-lane
     // columns. It is added to F itself (compensated when F has a low part): forming
     // I + dt grad v first would round 1 + dt g to float's uneven spacing around 1 (6e-8 below,
@@ -589,7 +611,7 @@ inline void finish_bin(const MpmParticleView& p, const MpmStepParams& prm, std::
                        std::uint32_t q1, StabilityCheck* acc) {
   if (prm.collide && prm.ncolliders > 0)
     collide_range(p, prm.colliders, prm.ncolliders, q0, q1, prm.time + prm.dt);
-  if (acc) check_range(*acc, q0, q1, p.v, p.F, prm.check_limits);
+  if (acc) check_particles(*acc, q0, q1, p, prm.check_limits);
 }
 
 template <int Order, Transfer T, bool L>
@@ -608,12 +630,12 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
     for (std::uint32_t q = q0; q < q1; ++q) {
       if constexpr (L)
         g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                         lo(p.C, q), p.F[q], nullptr, p.F_s + q, p.F_0s + q, dx,
-                                         inv_dx, dt, alpha);
+                                         lo(p.C, q), p.F + q, nullptr, nullptr, p.F_s + q,
+                                         p.F_0s + q, dx, inv_dx, dt, alpha);
       else
         g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                          lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
-                                          inv_dx, dt, alpha);
+                                          lo(p.C, q), lo(p.F, q), lo(p.F_lo, q), lo(p.J, q),
+                                          nullptr, nullptr, dx, inv_dx, dt, alpha);
     }
     finish_bin(p, prm, q0, q1, acc);
   });
@@ -646,13 +668,13 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
       const Vec3i in_origin = origin - Vec3i::Constant(M);
       for (std::uint32_t q = q0; q < q1; ++q)
         g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                          lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
-                                          inv_dx, dt, alpha);
+                                          lo(p.C, q), lo(p.F, q), lo(p.F_lo, q), lo(p.J, q),
+                                          nullptr, nullptr, dx, inv_dx, dt, alpha);
     }
     if (prm.ncolliders > 0) collide_range(p, prm.colliders, prm.ncolliders, q0, q1, t_end);
     for (std::uint32_t q = q0; mu && q < q1; q += kN)
       update_material_group(p, *mu, q, std::min(q1, q + kN));
-    if (acc) check_range(*acc, q0, q1, p.v, p.F, prm.check_limits);
+    if (acc) check_particles(*acc, q0, q1, p, prm.check_limits);
     Out out;
     out.clear();
     far[b] = !scatter_range<Order, T, false, false, true>(out, origin - Vec3i::Constant(M), q0, q1,
@@ -779,8 +801,8 @@ void g2p_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
     const std::uint32_t q0 = g.bin_start[b], q1 = g.end_of(b);
     for (std::uint32_t q = q0; q < q1; ++q) {
       g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                        lo(p.C, q), p.F[q], lo(p.F_lo, q), nullptr, nullptr, dx,
-                                        inv_dx, dt, alpha);
+                                        lo(p.C, q), lo(p.F, q), lo(p.F_lo, q), lo(p.J, q), nullptr,
+                                        nullptr, dx, inv_dx, dt, alpha);
       out |= !stencil_in_block<Order>(p.x[q], inv_dx, origin, Blk::B, nullptr);
     }
     far[b] = out;  // before the collisions: P2G finds a particle they pushed out

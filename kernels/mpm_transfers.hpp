@@ -42,7 +42,7 @@ struct MpmParticleView {
   Vec3* x;  // positions x + x_lo (below); kernels read x
   Vec3* v;
   Mat3* C;  // null for PIC/FLIP of inviscid materials (nothing reads it; kernels pass zeros)
-  Mat3* F;
+  Mat3* F;  // null where the particles keep J alone (below)
   const Real* volume0;  // mass: MaterialParams::mass(volume0) of the particle's material
   const std::int32_t* material;
   std::size_t n;
@@ -50,6 +50,9 @@ struct MpmParticleView {
   // (kernel tests). A-ULMPM's F is F_s F_0s and has no low part.
   Vec3* x_lo = nullptr;
   Mat3* F_lo = nullptr;
+  // J = det F instead of F (MpmSolver::keeps_J_only: every material a fluid, explicit, Eulerian):
+  // G2P takes J <- det(I + dt grad v) J, the stress reads J, and nothing resets F.
+  Real* J = nullptr;
   Real* plastic = nullptr;      // per-particle plastic scalar, if any material has one
   Real* temperature = nullptr;  // per-particle temperature (K), if any material melts
   // Adaptively updated Lagrangian mode (A-ULMPM Sec. 5), on when X_ref is set: weights and
@@ -60,6 +63,16 @@ struct MpmParticleView {
   Mat3* F_s = nullptr;
   const Mat3* F_0s = nullptr;
 };
+
+// check_range (kernels/stability_check.hpp) of particles [i0, i1) of p, on F or J.
+template <class Index>
+inline void check_particles(StabilityCheck& acc, Index i0, Index i1, const MpmParticleView& p,
+                            const StabilityLimits& lim) {
+  if (p.J)
+    check_range(acc, i0, i1, p.v, p.J, lim);
+  else
+    check_range(acc, i0, i1, p.v, p.F, lim);
+}
 
 // Distributed P2G (solvers/mpm_distributed.cpp): the part of another rank's bin block that falls
 // in leaf `leaf` of this rank, the block's neighbour t (0..7: +x, +y, +z by bit, as nbr8), its

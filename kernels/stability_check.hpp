@@ -31,13 +31,28 @@ struct StabilityLimits {
   const Real* plastic = nullptr;           // per particle (with materials)
 };
 
-inline void check_particle(StabilityCheck& acc, std::int64_t i, const Vec3& v, const Mat3& F,
+// The particle's deformation: F, or J alone (MpmParticleView::J), checked the same way.
+inline bool all_finite(const Mat3& F) {
+  return F.allFinite();
+}
+inline bool all_finite(Real J) {
+  return std::isfinite(J);
+}
+inline Real entry_sum(const Mat3& F) {
+  return F.sum();
+}
+inline Real entry_sum(Real J) {
+  return J;
+}
+
+template <class D>  // Mat3 or Real
+inline void check_particle(StabilityCheck& acc, std::int64_t i, const Vec3& v, const D& F,
                            const StabilityLimits& lim) {
   const Real s = v.norm();
   int what = 0;
   if (!std::isfinite(s))
     what = 1;
-  else if (!F.allFinite())
+  else if (!all_finite(F))
     what = 2;
   else if (s > lim.max_speed)
     what = 3;
@@ -57,14 +72,14 @@ inline void check_particle(StabilityCheck& acc, std::int64_t i, const Vec3& v, c
 // The same result: IEEE sqrt is correctly rounded and monotonic, so the square root of the largest
 // |v|^2 is the largest |v| (v.norm() is sqrt(v.squaredNorm())), and a particle whose |v|^2 or F
 // is not finite, or whose |v|^2 exceeds a quarter of max_speed^2, takes check_particle itself.
-template <class Index>
-inline void check_range(StabilityCheck& acc, Index i0, Index i1, const Vec3* v, const Mat3* F,
+template <class Index, class D>  // D: Mat3 or Real (J)
+inline void check_range(StabilityCheck& acc, Index i0, Index i1, const Vec3* v, const D* F,
                         const StabilityLimits& lim) {
   const Real slow = Real(0.25) * lim.max_speed * lim.max_speed;
   Real most = 0;  // largest |v|^2 of the fast path
   for (Index i = i0; i < i1; ++i) {
     const Real s2 = v[i].squaredNorm();
-    if (!std::isfinite(s2 + F[i].sum()) || !(s2 <= slow)) {
+    if (!std::isfinite(s2 + entry_sum(F[i])) || !(s2 <= slow)) {
       check_particle(acc, std::int64_t(i), v[i], F[i], lim);
       continue;
     }

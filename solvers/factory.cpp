@@ -72,7 +72,8 @@ void apply_fields(const ObjectSpec& obj, MpmSolver& solver, std::size_t first, d
   Vec3* lo = ps.vec3(a.x_lo);
   Vec3* v = ps.vec3(a.v);
   Mat3* C = a.C >= 0 ? ps.mat3(a.C) : nullptr;  // PIC/FLIP without viscosity: no C
-  Mat3* F = ps.mat3(a.F);
+  Mat3* F = a.F >= 0 ? ps.mat3(a.F) : nullptr;
+  Real* J = a.J >= 0 ? ps.real(a.J) : nullptr;  // fluids keeping J alone: J = det F
   const double h = 1e-3 * dx;
   for (std::size_t p = first; p < ps.size(); ++p) {
     const Vec3d X = x[p].cast<double>() + lo[p].cast<double>();
@@ -84,7 +85,9 @@ void apply_fields(const ObjectSpec& obj, MpmSolver& solver, std::size_t first, d
       const Vec3d y = X + field_at(*obj.displacement_field, X);
       x[p] = y.cast<Real>();
       lo[p] = (y - x[p].cast<double>()).cast<Real>();
-      F[p] = Mat3::Identity() + field_gradient(*obj.displacement_field, X, h);
+      const Mat3 Fp = Mat3::Identity() + field_gradient(*obj.displacement_field, X, h);
+      if (F) F[p] = Fp;
+      if (J) J[p] = Fp.determinant();
     }
   }
 }

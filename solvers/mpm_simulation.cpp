@@ -30,12 +30,16 @@ std::vector<float> mpm_von_mises(const ParticleSet& ps, const MpmAttributes& a,
                                  const exec::Space& space) {
   const std::size_t n = ps.size();
   std::vector<float> out(n);
-  const Mat3* F = ps.mat3(a.F);
   const std::int32_t* mat = ps.int32(a.material);
   const Real* plastic = a.plastic >= 0 ? ps.real(a.plastic) : nullptr;
   const Real* temp = a.temperature >= 0 ? ps.real(a.temperature) : nullptr;
   const MaterialParams* m = materials.data();
   float* o = out.data();
+  if (a.F < 0) {  // fluids keeping J alone: tau = -J p(J) I, no deviatoric part without viscosity
+    std::fill(out.begin(), out.end(), 0.0f);
+    return out;
+  }
+  const Mat3* F = ps.mat3(a.F);
   exec::parallel_for(space, "output.vonmises", exec::Index(n), [=](exec::Index i) {
     const Mat3 tau = m[mat[i]].kirchhoff(F[i], Mat3::Zero(), plastic ? plastic[i] : Real(0),
                                          temp ? temp[i] : Real(0));
@@ -57,16 +61,19 @@ PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, con
   using T = PointAttribute::Type;
   const std::size_t n = ps.size();
   PointAttribute out{name, T::Float, {}, {}};
-  const Mat3* F = ps.mat3(a.F);
+  const Mat3* F = a.F >= 0 ? ps.mat3(a.F) : nullptr;
+  const Real* J = a.J >= 0 ? ps.real(a.J) : nullptr;  // fluids keeping J alone: F = J^{1/3} I
   if (name == "F") {
     out.type = T::Mat3;
     out.f.resize(9 * n);
-    for (std::size_t i = 0; i < n; ++i)
+    for (std::size_t i = 0; i < n; ++i) {
+      const Mat3 Fi = F ? F[i] : Mat3(detail::cube_root(J[i]) * Mat3::Identity());
       for (int r = 0; r < 3; ++r)
-        for (int c = 0; c < 3; ++c) out.f[9 * i + std::size_t(3 * r + c)] = float(F[i](r, c));
+        for (int c = 0; c < 3; ++c) out.f[9 * i + std::size_t(3 * r + c)] = float(Fi(r, c));
+    }
   } else if (name == "J") {
     out.f.resize(n);
-    for (std::size_t i = 0; i < n; ++i) out.f[i] = float(F[i].determinant());
+    for (std::size_t i = 0; i < n; ++i) out.f[i] = float(F ? F[i].determinant() : J[i]);
   } else if (name == "Jp") {
     out.f = real_values(ps, a.plastic, "plastic state");
   } else if (name == "temperature") {

@@ -50,6 +50,13 @@ bool MpmSolver::keeps_F_low_part(const std::vector<MaterialParams>& materials) {
   return materials.empty();
 }
 
+bool MpmSolver::keeps_J_only(const MpmSettings& s, const std::vector<MaterialParams>& materials) {
+  if (materials.empty() || s.implicit || s.configuration_maps || s.domains.enabled) return false;
+  for (const MaterialParams& m : materials)
+    if (m.model != MaterialModel::Fluid || m.melting) return false;
+  return true;
+}
+
 MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials,
                      std::vector<Collider> colliders, std::vector<HeatSource> heat_sources)
     : settings_(settings),
@@ -69,8 +76,10 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
     material_update_ |= m.needs_state_update();
   }
   material_update_ |= melting && !heat_sources_.empty();
+  const bool J_only = keeps_J_only(settings_, materials_);
+  if (J_only) material_update_ = false;  // the update was the fluid's F reset: nothing to do on J
   attr_ = MpmAttributes::add_to(particles_, plastic, melting, keeps_affine(settings_, materials_),
-                                keeps_F_low_part(materials_));
+                                keeps_F_low_part(materials_), J_only);
   if (settings_.domains.enabled) {
     if (settings_.configuration_maps)
       throw InputError("particle domains and configuration maps (A-ULMPM) cannot be combined");
@@ -152,7 +161,8 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
   Vec3* px = particles_.vec3(attr_.x);
   Vec3* pv = particles_.vec3(attr_.v);
   Mat3* pC = attr_.C >= 0 ? particles_.mat3(attr_.C) : nullptr;
-  Mat3* pF = particles_.mat3(attr_.F);
+  Mat3* pF = attr_.F >= 0 ? particles_.mat3(attr_.F) : nullptr;
+  Real* pJ = attr_.J >= 0 ? particles_.real(attr_.J) : nullptr;
   Real* pV = particles_.real(attr_.volume0);
   std::int32_t* pmat = particles_.int32(attr_.material);
   std::int32_t* pid = particles_.int32(attr_.id);
@@ -167,7 +177,8 @@ void MpmSolver::add_particles(const std::vector<Vec3>& x, const Vec3& v0, const 
     px[p] = x[i];
     pv[p] = v0 + omega.cross(x[i] - centre);
     if (pC) pC[p] = W;
-    pF[p] = Mat3::Identity();
+    if (pF) pF[p] = Mat3::Identity();
+    if (pJ) pJ[p] = 1;
     pV[p] = volume_per_particle;
     pmat[p] = material;
     pid[p] = std::int32_t(next_id_ + ids.offset + std::int64_t(i));
@@ -235,12 +246,13 @@ MpmParticleView MpmSolver::particle_view() {
   MpmParticleView v{particles_.vec3(attr_.x),
                     particles_.vec3(attr_.v),
                     attr_.C >= 0 ? particles_.mat3(attr_.C) : nullptr,
-                    particles_.mat3(attr_.F),
+                    attr_.F >= 0 ? particles_.mat3(attr_.F) : nullptr,
                     particles_.real(attr_.volume0),
                     particles_.int32(attr_.material),
                     particles_.size()};
   v.x_lo = particles_.vec3(attr_.x_lo);
   if (attr_.F_lo >= 0) v.F_lo = particles_.mat3(attr_.F_lo);
+  if (attr_.J >= 0) v.J = particles_.real(attr_.J);
   if (attr_.plastic >= 0) v.plastic = particles_.real(attr_.plastic);
   if (attr_.temperature >= 0) v.temperature = particles_.real(attr_.temperature);
   if (aul_) aul_->fill_view(v, particles_);
@@ -486,14 +498,20 @@ void MpmSolver::step(const exec::Space& space, Real dt) {
 
 Real MpmSolver::stable_dt(const exec::Space& space) const {
   const Vec3* v = particles_.vec3(attr_.v);
-  const Mat3* F = particles_.mat3(attr_.F);
+  const Mat3* F = attr_.F >= 0 ? particles_.mat3(attr_.F) : nullptr;
+  const Real* J = attr_.J >= 0 ? particles_.real(attr_.J) : nullptr;
   const Real limit = settings_.max_speed;
   StabilityCheck chk = folded_;
   if (folded_at_ != state_version_) {  // not folded into the last particle pass: a pass of its own
     const StabilityLimits lim = check_limits();
     chk = exec::parallel_reduce(
         space, "mpm.cfl_check", exec::Index(particles_.size()), StabilityCheck{},
-        [=](exec::Index i, StabilityCheck& acc) { check_particle(acc, i, v[i], F[i], lim); },
+        [=](exec::Index i, StabilityCheck& acc) {
+          if (J)
+            check_particle(acc, i, v[i], J[i], lim);
+          else
+            check_particle(acc, i, v[i], F[i], lim);
+        },
         merge_checks);
   }
   // Distributed: the guard's verdict and the speeds are reduced exactly (a flag, maxima), and
@@ -583,7 +601,8 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
     double vmax = 0;
   };
   const Vec3* v = particles_.vec3(attr_.v);
-  const Mat3* F = particles_.mat3(attr_.F);
+  const Mat3* F = attr_.F >= 0 ? particles_.mat3(attr_.F) : nullptr;
+  const Real* J = attr_.J >= 0 ? particles_.real(attr_.J) : nullptr;  // fluids only: F absent
   const Real* V0 = particles_.real(attr_.volume0);
   const std::int32_t* mat = particles_.int32(attr_.material);
   const MaterialParams* mats = materials_.data();
@@ -603,7 +622,9 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
           if (plastic) pl[i - q0] = plastic[i];
           if (temp) tp[i - q0] = temp[i];
         }
-        for (std::size_t r0 = q0, r1; r0 < q1; r0 = r1) {
+        if (J)  // the fluid's energy density of J (energy(F) is that of det F)
+          for (std::size_t i = q0; i < q1; ++i) e[i - q0] = mats[mat[i]].fluid().energy_of_J(J[i]);
+        for (std::size_t r0 = q0, r1; r0 < q1 && F; r0 = r1) {
           for (r1 = r0 + 1; r1 < q1 && mat[r1] == mat[r0];) ++r1;
           mats[mat[r0]].energy_lanes(F + r0, pl + (r0 - q0), tp + (r0 - q0), e + (r0 - q0),
                                      int(r1 - r0));

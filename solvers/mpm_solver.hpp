@@ -150,6 +150,12 @@ class MpmSolver {
   // kernels/particle_update.hpp), J read from F alone, so the low part is zero whenever G2P adds
   // to F and nothing reads it: without it F takes the same values, bit for bit.
   static bool keeps_F_low_part(const std::vector<MaterialParams>& materials);
+  // Whether particles of these settings and materials keep J = det F instead of F: every material
+  // a fluid (not melting), explicit, Eulerian, no particle domains. A fluid's stress reads J
+  // alone, so F = J^{1/3} I was all it kept (the F reset); G2P updates J <- det(I + dt grad v) J
+  // (kernels/mpm_transfers.cpp, g2p_particle) and no material update pass runs: 32 B less per
+  // particle than F in float. The output's F of such a particle is J^{1/3} I.
+  static bool keeps_J_only(const MpmSettings& s, const std::vector<MaterialParams>& materials);
   // Gives every particle the attribute `rest` (MpmAttributes::rest), its current position, and
   // every particle added later (emitters) its position at emission. Idempotent.
   void keep_rest_positions();

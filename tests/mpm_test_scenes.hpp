@@ -38,11 +38,33 @@ inline Scene small_scene(const std::string& transfer, int order,
   return parse_scene(text, "inline.json");
 }
 
+// Water (and, `second`, a second fluid) falling in a tank against a wall and a ball: a run that
+// keeps J alone (MpmSolver::keeps_J_only) with every collider type its G2P meets.
+inline Scene water_scene(const std::string& transfer, const std::string& simulation = "",
+                         const std::string& second = "") {
+  const std::string text = R"({
+    "simulation": {"dx": 0.04, "transfer": ")" +
+                           transfer + R"(", "frames": 1, "max_dt": 4e-3)" + simulation + R"(},
+    "materials": {"water": {"model": "fluid", "density": 1000, "bulk_modulus": 2e5, "gamma": 7, "viscosity": 0.01},
+                  "oil": {"model": "fluid", "density": 800, "bulk_modulus": 1e5)" +
+                           second + R"(}},
+    "objects": [
+      {"shape": "box", "min": [0.3, 0.3, 0.3], "max": [0.6, 0.6, 0.5], "material": "water", "velocity": [0, -2, 0],
+       "angular_velocity": [1, 2, 3]},
+      {"shape": "sphere", "center": [0.5, 0.8, 0.45], "radius": 0.12, "material": "oil", "velocity": [0.5, -3, 0]}],
+    "colliders": [
+      {"type": "half_space", "point": [0, 0.25, 0], "normal": [0, 1, 0], "boundary": "separate", "friction": 0.3},
+      {"type": "sphere", "center": [0.45, 0.2, 0.4], "radius": 0.1, "boundary": "slip", "velocity": [0, 0.5, 0]},
+      {"type": "box", "center": [0.7, 0.3, 0.4], "half_extent": [0.05, 0.2, 0.3], "boundary": "slip"}]
+  })";
+  return parse_scene(text, "inline.json");
+}
+
 inline std::vector<Real> state_bytes(const MpmSolver& s) {
   std::vector<Real> out;
   const auto& ps = s.particles();
   const auto& a = s.attributes();
-  for (auto id : {a.x, a.x_lo, a.v, a.C, a.F, a.F_lo, a.plastic, a.temperature})
+  for (auto id : {a.x, a.x_lo, a.v, a.C, a.F, a.F_lo, a.J, a.plastic, a.temperature})
     if (id >= 0) out.insert(out.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
   return out;
 }

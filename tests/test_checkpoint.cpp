@@ -428,39 +428,65 @@ TEST(Checkpoint, RestPositionsTravelWithTheirParticles) {
   std::remove(without.c_str());
 }
 
-// A run whose materials are all fluids keeps no low part of F (MpmSolver::keeps_F_low_part). A
-// checkpoint an older binary wrote for such a run holds F_lo after F (zero: the fluid's reset
-// clears it every substep): it is read with F_lo skipped and resumes bitwise as the run that
-// wrote it. A run that keeps F_lo reads a file without it with the low parts zero.
-TEST(Checkpoint, FLowPartSkippedForFluidsAndZeroWhereAbsent) {
+// A run whose materials are all fluids keeps J = det F alone, no F nor its low part F_lo
+// (MpmSolver::keeps_J_only). A checkpoint an older binary wrote for such a run holds F and F_lo
+// where the run has J: it is read with J = det F and F_lo skipped, and (F = diag(J, 1, 1) here,
+// whose determinant is J exactly) resumes bitwise as the run that wrote J. A run that keeps F_lo
+// reads a file without it with the low parts zero.
+TEST(Checkpoint, FluidFileWithFReadAsJAndLowPartZeroWhereAbsent) {
   std::string water_text = kScene;
   water_text.replace(water_text.find("\"youngs_modulus\": 1e4"), 21,
                      "\"model\": \"fluid\", \"bulk_modulus\": 2e5");
+  water_text.replace(water_text.find("\"velocity\": [0,-1,0]"), 20,
+                     "\"velocity\": [0,-1,0], \"angular_velocity\": [1,2,3]");
+  // Sorted every substep: a run that keeps its bins between sorts re-sorts at a frame's start,
+  // which advance() alone does not make (the CLI's restart tests cover that).
+  water_text.replace(water_text.find("\"frames\": 2"), 11,
+                     "\"frames\": 2, \"sort\": \"every_substep\"");
   const Scene water = parse_scene(water_text, "water.json");
   const exec::Space space(exec::Backend::TBB, 2);
   MpmSimulation a(build_solver(water)), b(build_solver(water));
   ASSERT_LT(a.solver().attributes().F_lo, 0);
+  ASSERT_LT(a.solver().attributes().F, 0);
+  const int jid = a.solver().attributes().J;
+  ASSERT_GE(jid, 0);
   for (int i = 0; i < 5; ++i) a.advance(space, a.stable_dt(space));
   const std::string path = tmp_path("water.amck"), old = tmp_path("water_old.amck");
   write_checkpoint(path, a, 2, water.fingerprint);
   const std::string now = slurp(path);
   EXPECT_EQ(attribute_data_at(now, "F_lo"), std::string::npos);
+  EXPECT_EQ(attribute_data_at(now, "F"), std::string::npos);
   std::uint64_t n;
   std::memcpy(&n, now.data() + kCountAt, 8);
-  std::string rec;  // as the older binary wrote it: "F_lo", 9 zero Reals a particle, after F
+  const Real* J = a.solver().particles().real(jid);
+  ASSERT_TRUE(std::any_of(J, J + n, [](Real j) { return j != 1; }));
+  // As the older binary wrote it: "F" and "F_lo" (9 Reals a particle each) where "J" is.
+  std::string rec;
   auto put32 = [&](std::uint32_t v) { rec.append(reinterpret_cast<const char*>(&v), 4); };
-  put32(4);
-  rec += "F_lo";
-  put32(0);  // AttrType::Real
-  put32(9);
-  put32(std::uint32_t(9 * sizeof(Real) / 4));
+  auto header = [&](const std::string& name) {
+    put32(std::uint32_t(name.size()));
+    rec += name;
+    put32(0);  // AttrType::Real
+    put32(9);
+    put32(std::uint32_t(9 * sizeof(Real) / 4));
+  };
+  header("F");
+  for (std::uint64_t i = 0; i < n; ++i) {
+    Mat3 F = Mat3::Identity();
+    F(0, 0) = J[i];
+    rec.append(reinterpret_cast<const char*>(F.data()), sizeof(Mat3));
+  }
+  header("F_lo");
   rec.append(std::size_t(n) * sizeof(Mat3), '\0');
   std::string d = now;
+  const std::size_t j_data = attribute_data_at(d, "J");
+  ASSERT_NE(j_data, std::string::npos);
+  const std::size_t j_record = j_data - (4 + 1 + 12);  // name length, "J", type, width, words
+  d.replace(j_record, j_data - j_record + std::size_t(n) * sizeof(Real), rec);
   std::uint32_t nattr;
   std::memcpy(&nattr, d.data() + kCountAt + 8, 4);
-  ++nattr;
+  ++nattr;  // F and F_lo for J
   std::memcpy(d.data() + kCountAt + 8, &nattr, 4);
-  d.insert(attribute_data_at(d, "F") + std::size_t(n) * sizeof(Mat3), rec);
   spit(old, resealed(d));
   ASSERT_NE(attribute_data_at(slurp(old), "F_lo"), std::string::npos);
   read_checkpoint(old, b, water.fingerprint);
@@ -479,6 +505,24 @@ TEST(Checkpoint, FLowPartSkippedForFluidsAndZeroWhereAbsent) {
     b.advance(space, b.stable_dt(space));
   }
   EXPECT_EQ(same(pa, pb), "");  // resumed bitwise
+
+  // A file holding both F and J: refused by name.
+  std::string both = d;
+  both.insert(attribute_data_at(both, "v") + std::size_t(n) * sizeof(Vec3),
+              now.substr(attribute_data_at(now, "J") - (4 + 1 + 12),
+                         4 + 1 + 12 + std::size_t(n) * sizeof(Real)));
+  std::memcpy(&nattr, both.data() + kCountAt + 8, 4);
+  ++nattr;
+  std::memcpy(both.data() + kCountAt + 8, &nattr, 4);
+  spit(old, resealed(both));
+  MpmSimulation c(build_solver(water));
+  try {
+    read_checkpoint(old, c, water.fingerprint);
+    ADD_FAILURE() << "a fluid run read a checkpoint holding both F and J";
+  } catch (const InputError& err) {
+    EXPECT_NE(std::string(err.what()).find(old + ": checkpoint attribute"), std::string::npos)
+        << err.what();
+  }
 
   // A jelly run's checkpoint without F_lo: read with F_lo zero, everything else as written.
   const Scene jelly = parse_scene(kScene, "s.json");
@@ -504,9 +548,9 @@ TEST(Checkpoint, FLowPartSkippedForFluidsAndZeroWhereAbsent) {
   const ParticleSet& pr = r.solver().particles();
   for (int at = 0; at < pj.attribute_count(); ++at) {
     if (at == lo) continue;
-    EXPECT_EQ(std::memcmp(pj.words(at), pr.words(at),
-                          pj.size() * 4 * size_t(pj.words_per_particle(at))),
-              0)
+    EXPECT_EQ(
+        std::memcmp(pj.words(at), pr.words(at), pj.size() * 4 * size_t(pj.words_per_particle(at))),
+        0)
         << pj.name(at);
   }
   const Mat3* rl = pr.mat3(lo);

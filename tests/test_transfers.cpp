@@ -251,8 +251,8 @@ INSTANTIATE_TEST_SUITE_P(AllTransfers, KernelDeterminism,
 // F's low part exists only where a particle's F accumulates over substeps: a run whose materials
 // are all fluids resets every particle's F to J^{1/3} I, low part zero, each substep, so keeps
 // none (36 B less per particle in float) and takes the same values bit for bit. Checked against
-// the same water run made to keep F_lo by a second material no particle uses, over APIC and MLS,
-// the two passes and the fused substep.
+// the same water run made to keep F_lo by a second material no particle uses, over APIC and MLS
+// (implicit: an explicit all-fluid run keeps no F at all, FluidJ below).
 TEST(FLowPart, KeptOnlyWhereAMaterialIsNotAFluid) {
   const Lame l = Lame::from_young_poisson(1e4, 0.3);
   const MaterialParams elastic{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
@@ -260,7 +260,8 @@ TEST(FLowPart, KeptOnlyWhereAMaterialIsNotAFluid) {
   water.bulk = Real(2e5), water.viscosity = Real(0.01);
   MaterialParams wax = elastic;  // a solid that melts still accumulates F below its melting point
   wax.melting = true, wax.melting_point = 320, wax.liquid_bulk = Real(1e4);
-  const MpmSettings plain;
+  MpmSettings plain;  // implicit: F kept (an explicit all-fluid run keeps J alone)
+  plain.implicit = true;
   auto keeps = [&](const std::vector<MaterialParams>& m) {
     EXPECT_EQ(MpmSolver::keeps_F_low_part(m), MpmSolver(plain, m, {}).attributes().F_lo >= 0);
     return MpmSolver::keeps_F_low_part(m);
@@ -275,39 +276,126 @@ TEST(FLowPart, KeptOnlyWhereAMaterialIsNotAFluid) {
             9 * sizeof(Real));
 
   const exec::Space space(exec::Backend::TBB, 2);
-  for (const Transfer t : {Transfer::Apic, Transfer::Mls})
+  for (const Transfer t : {Transfer::Apic, Transfer::Mls}) {
+    MpmSettings s;
+    s.dx = Real(0.05), s.transfer = t, s.implicit = true;
+    s.gravity = Vec3(0, Real(-9.8), 0);
+    MpmSolver lean(s, {water}, {}), kept(s, {water, elastic}, {});
+    ASSERT_LT(lean.attributes().F_lo, 0);
+    ASSERT_GE(kept.attributes().F_lo, 0);
+    std::mt19937 rng(5);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    std::vector<Vec3> x;
+    for (int i = 0; i < 4000; ++i)
+      x.push_back(Vec3(Real(0.5 + 0.2 * u(rng)), Real(0.5 + 0.15 * u(rng)), Real(0.2 * u(rng))));
+    for (MpmSolver* m : {&lean, &kept})
+      m->add_particles(x, Vec3(Real(0.3), Real(-0.2), Real(0.1)), Vec3(1, 2, 3),
+                       Vec3::Constant(Real(0.5)), 0, Real(1e-5));
+    for (int k = 0; k < 40; ++k) {  // water at 2e5 Pa: ~1e-4 s is stable at dx = 0.05
+      lean.step(space, Real(1e-4));
+      kept.step(space, Real(1e-4));
+    }
+    const std::size_t n = lean.particles().size();
+    ASSERT_EQ(kept.particles().size(), n);
+    for (const char* name : {"x", "x_lo", "v", "C", "F"}) {
+      const ParticleSet &pa = lean.particles(), &pb = kept.particles();
+      EXPECT_TRUE(test::bitwise_equal(pa.real(pa.id(name)), pb.real(pb.id(name)),
+                                      n * std::size_t(pa.width(pa.id(name)))))
+          << name << ", " << transfer_name(t);
+    }
+    // kept's low parts: every entry zero after the last substep's reset.
+    const Mat3* lo = kept.particles().mat3(kept.attributes().F_lo);
+    for (std::size_t i = 0; i < n; ++i) ASSERT_TRUE(lo[i].isZero(0)) << i;
+    // ... and the values moved: the test compares something.
+    EXPECT_NE(lean.particles().vec3(lean.attributes().x)[0], x[0]);
+  }
+}
+
+// A run whose materials are all fluids (explicit, Eulerian, no particle domains) keeps J alone:
+// no F, no F_lo (68 B less per particle in float), no material update pass; G2P takes
+// J <- det(I + dt grad v) J. Against the same water made to keep F (the F reset to J^{1/3} I each
+// substep) by a second material no particle uses: the same motion to rounding, over APIC, MLS and
+// FLIP, the two passes and fused.
+TEST(FluidJ, KeptInsteadOfFWhereEveryMaterialIsAFluid) {
+  const Lame l = Lame::from_young_poisson(1e4, 0.3);
+  const MaterialParams elastic{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
+  MaterialParams water{MaterialModel::Fluid, 0, 0, 1000};
+  water.bulk = Real(2e5), water.viscosity = Real(0.01);
+  MaterialParams oil = water;
+  oil.density = 800, oil.gamma = Real(1.5);
+  MaterialParams molten = water;
+  molten.melting = true;
+  auto only_J = [](const MpmSettings& s, const std::vector<MaterialParams>& m) {
+    const MpmSolver solver(s, m, {});
+    const bool J = solver.attributes().J >= 0;
+    EXPECT_EQ(J, solver.attributes().F < 0);
+    EXPECT_EQ(J, MpmSolver::keeps_J_only(s, m));
+    if (J) EXPECT_FALSE(solver.has_material_update());
+    return J;
+  };
+  const MpmSettings plain;
+  MpmSettings implicit, aul;
+  implicit.implicit = true;
+  aul.configuration_maps = true;
+  EXPECT_TRUE(only_J(plain, {water}));
+  EXPECT_TRUE(only_J(plain, {water, oil}));
+  EXPECT_FALSE(only_J(plain, {water, elastic}));
+  EXPECT_FALSE(only_J(plain, {molten}));
+  EXPECT_FALSE(only_J(implicit, {water}));
+  EXPECT_FALSE(only_J(aul, {water}));
+  EXPECT_EQ(MpmSolver(plain, {water, elastic}, {}).particles().bytes_per_particle() -
+                MpmSolver(plain, {water}, {}).particles().bytes_per_particle(),
+            17 * sizeof(Real));
+
+  const exec::Space space(exec::Backend::TBB, 2);
+  for (const Transfer t : {Transfer::Apic, Transfer::Mls, Transfer::PicFlip})
     for (const bool fused : {false, true}) {
+      SCOPED_TRACE(std::string(transfer_name(t)) + (fused ? " fused" : " two passes"));
       MpmSettings s;
       s.dx = Real(0.05), s.transfer = t, s.fused = fused;
       s.gravity = Vec3(0, Real(-9.8), 0);
-      MpmSolver lean(s, {water}, {}), kept(s, {water, elastic}, {});
-      ASSERT_LT(lean.attributes().F_lo, 0);
-      ASSERT_GE(kept.attributes().F_lo, 0);
+      MpmSolver lean(s, {water, oil}, {}), kept(s, {water, oil, elastic}, {});
+      ASSERT_GE(lean.attributes().J, 0);
+      ASSERT_GE(kept.attributes().F, 0);
       std::mt19937 rng(5);
       std::uniform_real_distribution<double> u(-1.0, 1.0);
-      std::vector<Vec3> x;
-      for (int i = 0; i < 4000; ++i)
+      std::vector<Vec3> x, y;
+      for (int i = 0; i < 4000; ++i) {
         x.push_back(Vec3(Real(0.5 + 0.2 * u(rng)), Real(0.5 + 0.15 * u(rng)), Real(0.2 * u(rng))));
-      for (MpmSolver* m : {&lean, &kept})
+        y.push_back(x.back() + Vec3(Real(0.5), 0, 0));
+      }
+      for (MpmSolver* m : {&lean, &kept}) {
         m->add_particles(x, Vec3(Real(0.3), Real(-0.2), Real(0.1)), Vec3(1, 2, 3),
                          Vec3::Constant(Real(0.5)), 0, Real(1e-5));
-      for (int k = 0; k < 40; ++k) {  // water at 2e5 Pa: ~1e-4 s is stable at dx = 0.05
+        m->add_particles(y, Vec3(Real(-0.3), Real(-0.1), Real(0.2)), Vec3(-2, 1, 0),
+                         Vec3(Real(1), Real(0.5), 0), 1, Real(1e-5));
+      }
+      for (int k = 0; k < 200; ++k) {  // water at 2e5 Pa: ~1e-4 s is stable at dx = 0.05
         lean.step(space, Real(1e-4));
         kept.step(space, Real(1e-4));
       }
-      const std::size_t n = lean.particles().size();
-      ASSERT_EQ(kept.particles().size(), n);
-      for (const char* name : {"x", "x_lo", "v", "C", "F"}) {
-        const ParticleSet &pa = lean.particles(), &pb = kept.particles();
-        EXPECT_TRUE(test::bitwise_equal(pa.real(pa.id(name)), pb.real(pb.id(name)),
-                                        n * std::size_t(pa.width(pa.id(name)))))
-            << name << ", " << transfer_name(t) << (fused ? " fused" : " two passes");
+      const ParticleSet &pa = lean.particles(), &pb = kept.particles();
+      const std::size_t n = pa.size();
+      ASSERT_EQ(pb.size(), n);
+      const Vec3 *xa = pa.vec3(lean.attributes().x), *xb = pb.vec3(kept.attributes().x);
+      const Real* Ja = pa.real(lean.attributes().J);
+      const Mat3* Fb = pb.mat3(kept.attributes().F);
+      const std::int32_t *ida = pa.int32(lean.attributes().id),
+                         *idb = pb.int32(kept.attributes().id);
+      std::vector<std::size_t> at(n);  // the runs may have sorted their particles differently
+      for (std::size_t i = 0; i < n; ++i) at[std::size_t(idb[i])] = i;
+      double dx_most = 0, dJ_most = 0, J_lo = 1, J_hi = 1;
+      for (std::size_t i = 0; i < n; ++i) {
+        const std::size_t k = at[std::size_t(ida[i])];
+        dx_most = std::max(dx_most, double((xa[i] - xb[k]).norm()));
+        dJ_most = std::max(dJ_most, std::abs(double(Ja[i]) - double(Fb[k].determinant())));
+        J_lo = std::min(J_lo, double(Ja[i])), J_hi = std::max(J_hi, double(Ja[i]));
       }
-      // kept's low parts: every entry zero after the last substep's reset.
-      const Mat3* lo = kept.particles().mat3(kept.attributes().F_lo);
-      for (std::size_t i = 0; i < n; ++i) ASSERT_TRUE(lo[i].isZero(0)) << i;
-      // ... and the values moved: the test compares something.
-      EXPECT_NE(lean.particles().vec3(lean.attributes().x)[0], x[0]);
+      std::printf("%s%s: max |x_J - x_F| = %.3g dx, max |J - det F| = %.3g, J in [%.6f, %.6f]\n",
+                  transfer_name(t), fused ? " fused" : "", dx_most / 0.05, dJ_most, J_lo, J_hi);
+      EXPECT_GT(J_hi - J_lo, 1e-3);  // the fluids compressed and expanded: J did change
+      EXPECT_LT(dx_most, 1e-4 * 0.05);
+      EXPECT_LT(dJ_most, 1e-4);
     }
 }
 

@@ -169,8 +169,9 @@ struct WeaklyCompressibleT {
     for (int l = 0; l < n; ++l) p[l] = out[l];
   }
   T dpressure_dJ(T J) const { return J > kMinJ ? -bulk * std::pow(J, -gamma - T(1)) : T(0); }
-  T energy(const M3& F) const {
-    const T J = std::max(F.determinant(), kMinJ);
+  T energy(const M3& F) const { return energy_of_J(F.determinant()); }
+  T energy_of_J(T J) const {
+    J = std::max(J, kMinJ);
     // -int_1^J K/gamma (j^-gamma - 1) dj; gamma = 1 is the logarithmic limit.
     const T a = std::abs(gamma - T(1)) < T(1e-9)
                     ? std::log(J)

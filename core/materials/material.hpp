@@ -85,11 +85,9 @@ struct MaterialParams {
   void kirchhoff_lanes(const Mat3* F, const Mat3* L, const Real* plastic, const Real* temperature,
                        Mat3* tau, int n) const {
     if (model == MaterialModel::Fluid && !melting) {
-      Real J[lanes::kN<Real>], pr[lanes::kN<Real>];
+      Real J[lanes::kN<Real>];
       for (int l = 0; l < n; ++l) J[l] = F[l].determinant();
-      const WeaklyCompressibleT<Real> f = fluid();
-      f.pressure_lanes(J, pr, n);
-      for (int l = 0; l < n; ++l) tau[l] = f.kirchhoff(J[l], pr[l], L[l]);
+      fluid_kirchhoff_lanes(J, L, tau, n);
       return;
     }
     const bool hencky = model == MaterialModel::StvkHencky ||
@@ -116,6 +114,14 @@ struct MaterialParams {
     if (viscosity > 0)
       for (int l = 0; l < n; ++l)
         tau[l] += (F[l].determinant() * viscosity) * (L[l] + L[l].transpose());
+  }
+  // kirchhoff_lanes of n <= lanes::kN<Real> particles of this fluid (model Fluid) from their
+  // J = det F alone (the fluid's stress reads nothing else of F).
+  void fluid_kirchhoff_lanes(const Real* J, const Mat3* L, Mat3* tau, int n) const {
+    Real pr[lanes::kN<Real>];
+    const WeaklyCompressibleT<Real> f = fluid();
+    f.pressure_lanes(J, pr, n);
+    for (int l = 0; l < n; ++l) tau[l] = f.kirchhoff(J[l], pr[l], L[l]);
   }
   // The elastic Kirchhoff stress of a solid model (fluids: zero).
   Mat3 solid_kirchhoff(const Mat3& F, Real plastic) const {

@@ -176,14 +176,19 @@ void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, st
 }
 
 MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperature, bool affine,
-                                    bool F_low) {
+                                    bool F_low, bool volume_only) {
   MpmAttributes m;
   m.x = ps.add("x", AttrType::Real, 3);
   m.x_lo = ps.add("x_lo", AttrType::Real, 3);
   m.v = ps.add("v", AttrType::Real, 3);
   if (affine) m.C = ps.add("C", AttrType::Real, 9);
-  m.F = ps.add("F", AttrType::Real, 9);
-  if (F_low) m.F_lo = ps.add("F_lo", AttrType::Real, 9);
+  if (volume_only) {
+    m.F = -1;
+    m.J = ps.add("J", AttrType::Real, 1);
+  } else {
+    m.F = ps.add("F", AttrType::Real, 9);
+    if (F_low) m.F_lo = ps.add("F_lo", AttrType::Real, 9);
+  }
   m.volume0 = ps.add("volume0", AttrType::Real, 1);
   m.material = ps.add("material", AttrType::Int32, 1);
   m.id = ps.add("id", AttrType::Int32, 1);
@@ -198,7 +203,8 @@ MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
   m.x_lo = ps.id("x_lo");
   m.v = ps.id("v");
   m.C = ps.find("C");
-  m.F = ps.id("F");
+  m.F = ps.find("F");
+  m.J = ps.find("J");
   m.F_lo = ps.find("F_lo");
   m.volume0 = ps.id("volume0");
   m.material = ps.id("material");

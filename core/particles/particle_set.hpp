@@ -103,6 +103,8 @@ class ParticleSet {
 // viscosity has none (MpmSolver::keeps_affine: 36 B less per particle in float). So does F_lo
 // (`F_low`): a run whose materials are all fluids, whose F is reset to J^{1/3} I with a zero low
 // part every substep, has none (MpmSolver::keeps_F_low_part: 36 B less per particle in float).
+// Such a run, explicit and Eulerian, keeps no F at all but its determinant J (`volume_only`:
+// MpmSolver::keeps_J_only; F = -1, J >= 0): a fluid's state is its volume ratio.
 struct MpmAttributes {
   // id: stable particle number; x_lo, F_lo: the low parts of x + x_lo and F + F_lo
   // (core/math/types.hpp: add_compensated; F_lo may be -1, above). No mass: a particle's mass is
@@ -110,12 +112,13 @@ struct MpmAttributes {
   // stored until checkpoint version 8, so recomputing it is bitwise the stored value.
   ParticleSet::Id x, x_lo, v, F, F_lo = -1, volume0, material, id;
   ParticleSet::Id C = -1, plastic = -1, temperature = -1;
+  ParticleSet::Id J = -1;  // J = det F where the run keeps J instead of F (F = -1)
   // rest: the position a particle had when it was made (set-up or emission; Houdini's `rest`),
   // only when the output asks for it (MpmSolver::keep_rest_positions). An attribute like any
   // other: sorted, migrated between ranks and checkpointed with its particle.
   ParticleSet::Id rest = -1;
   static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false,
-                              bool affine = true, bool F_low = true);
+                              bool affine = true, bool F_low = true, bool volume_only = false);
   static MpmAttributes find_in(const ParticleSet& ps);
 };
 
