@@ -19,6 +19,7 @@
 #include "core/exec/exec.hpp"
 #include "core/exec/simd.hpp"
 #include "core/math/types.hpp"
+#include "kernels/peak_flops.hpp"
 #include "solvers/bench_suite.hpp"
 #include "io/plot.hpp"
 #include "io/writers.hpp"
@@ -79,6 +80,43 @@ double triad_gb_per_s(const exec::Space& space) {
   }
   return best;
 }
+
+// Arithmetic peak of the kernels' code on the current SIMD path (kernels/peak_flops.cpp:
+// independent multiply-add chains, multiply and add separate as the kernels compile), GFLOP/s,
+// best of 5 after one untimed pass.
+double peak_gflops(const exec::Space& space) {
+  const int chunks = 64 * space.threads(), iters = 1 << 15;
+  std::vector<Real> sink(std::size_t(chunks), Real(0));
+  double best = 0;
+  for (int r = 0; r < 6; ++r) {
+    const auto t0 = std::chrono::steady_clock::now();
+    const double flops = peak_flops_run(space, chunks, iters, sink.data());
+    const double s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    if (r > 0) best = std::max(best, flops / s / 1e9);
+  }
+  return best;
+}
+
+// The roofline of the report's main kernels: floating-point operations and bytes from memory per
+// item (particle-substep or directed bond), counted by hand from the source, float build. The
+// count, line by line, and what the bytes include: docs/roofline.md. A kernel that changes must
+// change its row there and here (the section says the count's commit).
+struct RooflineCost {
+  const char* case_name;
+  const char* region;  // the profiler region (exec::parallel_for label) that times it
+  double flops, bytes;
+};
+constexpr char kRooflineCounted[] = "39f9e91";
+// MPM: the particle attributes read and written (no write-allocate, as the triad counts) plus the
+// dilated grid blocks amortised over a bin's ~1,450 particles; stress at one polar iteration (the
+// timed window's). PD (the case's plastic + fracture configuration, AVX2): the bond arrays
+// streamed plus the rows' per-particle traffic; the neighbours' records come from cache.
+const RooflineCost kRoofline[] = {
+    {"mpm_mls", "mpm.p2g", 814, 104 + 42},     {"mpm_mls", "mpm.g2p", 921, 240 + 19},
+    {"mpm_apic", "mpm.p2g", 1408, 104 + 42},   {"mpm_apic", "mpm.g2p", 1365, 240 + 19},
+    {"mpm_flip", "mpm.p2g", 1398, 68 + 84},    {"mpm_flip", "mpm.g2p", 1299, 216 + 38},
+    {"peridynamics", "pd.dilatation", 59, 26}, {"peridynamics", "pd.forces", 63, 39},
+};
 
 std::string read_first(const std::string& path, const std::string& key) {
   std::ifstream in(path);
@@ -302,9 +340,70 @@ std::vector<KernelRow> top_kernels(const Result& r) {
   return out;
 }
 
+// The roofline section: the ceilings of each thread count, and each counted kernel's floor (the
+// larger of its bytes at the triad bandwidth and its flops at the arithmetic peak: the physical
+// limit of that kernel on this machine) against its profiler region's time, Serial and the
+// fastest 2-thread configuration.
+std::string roofline_md(const std::vector<Result>& all, const std::map<int, double>& bandwidth,
+                        const std::map<int, double>& peak) {
+  std::ostringstream md;
+  md << "## Roofline: each kernel against this machine's ceilings\n\n"
+     << "Ceilings measured in this run: memory bandwidth (the STREAM triad above) and arithmetic "
+        "peak (`kernels/peak_flops.cpp`: independent multiply-add chains on the vectors of the "
+        "SIMD path above, a multiply and an add as the kernels are compiled, without FMA "
+        "contraction); the ridge point is where a kernel's flops per byte make the two take the "
+        "same time.\n\n| threads | bandwidth | arithmetic peak | ridge point |\n|---:|---:|---:|---:|\n";
+  for (const auto& [t, gb] : bandwidth) {
+    const auto p = peak.find(t);
+    const double gf = p != peak.end() ? p->second : 0;
+    md << "| " << t << " | " << fmt("%.1f", gb) << " GB/s | " << fmt("%.1f", gf) << " GFLOP/s | "
+       << fmt("%.1f", gb > 0 ? gf / gb : 0) << " flop/B |\n";
+  }
+  md << "\nPer kernel: flops and bytes moved per item (particle-substep or directed bond) counted "
+        "by hand from the source at "
+     << kRooflineCounted
+     << " (float; docs/roofline.md has the count line by line; +-10 % on flops, +-30 % on the "
+        "grid's share of the bytes). *floor*: the larger of bytes / bandwidth and flops / peak, the physical limit "
+        "of the kernel on this machine at that thread count; *bound*: which of the two it is; "
+        "*measured*: the kernel's profiler region, ns per item; *x floor*: measured / floor.\n\n"
+     << "| case | kernel | flops/item | bytes/item | flop/B | bound | floor, 1 thread | serial x1 "
+        "| x floor | floor, 2 threads | fastest x2 | x floor |\n"
+     << "|---|---|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|\n";
+  const auto floor_ns = [&](const RooflineCost& k, int t) {
+    const auto b = bandwidth.find(t);
+    const auto p = peak.find(t);
+    const double mem = b != bandwidth.end() && b->second > 0 ? k.bytes / b->second : 0;
+    const double fl = p != peak.end() && p->second > 0 ? k.flops / p->second : 0;
+    return std::pair<double, bool>(std::max(mem, fl), fl > mem);
+  };
+  for (const RooflineCost& k : kRoofline) {
+    const auto [serial, best2] = serial_and_best2(all, k.case_name);
+    if (!serial && !best2) continue;
+    const auto measured = [&](const Result* r) {
+      if (r)
+        for (const KernelRow& row : r->kernels)
+          if (row.label == k.region) return row.ns_per_item;
+      return 0.0;
+    };
+    const auto [f1, compute1] = floor_ns(k, 1);
+    const auto [f2, compute2] = floor_ns(k, 2);
+    const double m1 = measured(serial), m2 = measured(best2);
+    const auto cell = [](double v, const char* f) { return v > 0 ? fmt(f, v) : std::string("-"); };
+    md << "| " << k.case_name << " | " << k.region << " | " << fmt("%.0f", k.flops) << " | "
+       << fmt("%.0f", k.bytes) << " | " << fmt("%.1f", k.flops / k.bytes) << " | "
+       << (compute2 || (f2 == 0 && compute1) ? "compute" : "memory") << " | " << cell(f1, "%.1f")
+       << " | " << cell(m1, "%.1f") << " | " << cell(f1 > 0 && m1 > 0 ? m1 / f1 : 0, "%.1f")
+       << " | " << cell(f2, "%.1f") << " | " << cell(m2, "%.1f") << " ("
+       << (best2 ? best2->config.name() : std::string("-")) << ") | "
+       << cell(f2 > 0 && m2 > 0 ? m2 / f2 : 0, "%.1f") << " |\n";
+  }
+  md << "\n";
+  return md.str();
+}
+
 std::string report_md(const std::vector<Result>& all, const std::vector<BenchCase>& cases,
                       const ReportOptions& o, const std::vector<Config>& configs,
-                      const std::map<int, double>& bandwidth,
+                      const std::map<int, double>& bandwidth, const std::map<int, double>& peak,
                       const std::map<std::string, Previous>* prev, double wall_seconds) {
   std::ostringstream md;
   std::time_t now = std::time(nullptr);
@@ -335,6 +434,9 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
      << "| STREAM triad | ";
   for (const auto& [t, gb] : bandwidth)
     md << t << " thread" << (t > 1 ? "s" : "") << ": " << fmt("%.1f", gb) << " GB/s; ";
+  md << " |\n| arithmetic peak | ";
+  for (const auto& [t, gf] : peak)
+    md << t << " thread" << (t > 1 ? "s" : "") << ": " << fmt("%.1f", gf) << " GFLOP/s; ";
   md << " |\n| wall time | " << fmt("%.0f", wall_seconds) << " s |\n\n";
   md << "**Method.** Each case is built once per configuration (same seed, same state), stepped "
      << o.warmup << " times untimed, then timed in " << o.reps
@@ -398,6 +500,8 @@ std::string report_md(const std::vector<Result>& all, const std::vector<BenchCas
       if (r == best2 && serial == best2) break;
     }
   }
+
+  md << roofline_md(all, bandwidth, peak);
 
   if (prev) {
     int within = 0, total = 0;
@@ -534,6 +638,13 @@ int bench_report(const Options& opts) {
     std::cout << "bench report: STREAM triad, " << t << " thread(s): " << fmt("%.1f", bandwidth[t])
               << " GB/s" << std::endl;
   }
+  std::map<int, double> peak;
+  for (int t : o.threads) {
+    const exec::Backend b = t == 1 ? exec::Backend::Serial : exec::Backend::OpenMP;
+    if (exec::Space(b, t).threads() == t) peak[t] = peak_gflops(exec::Space(b, t));
+    std::cout << "bench report: arithmetic peak (" << exec::simd_path_name(exec::simd_path())
+              << "), " << t << " thread(s): " << fmt("%.1f", peak[t]) << " GFLOP/s" << std::endl;
+  }
   std::vector<Result> all;
   for (const BenchCase& bc : cases) {
     const auto c0 = std::chrono::steady_clock::now();
@@ -556,8 +667,8 @@ int bench_report(const Options& opts) {
   write_file(dir / "kernels.csv", kernels_csv(all));
   write_png((dir / "scaling.png").string(), scaling_plot(all, cases, configs));
   write_png((dir / "breakdown.png").string(), breakdown_plot(all, cases));
-  write_file(dir / "report.md",
-             report_md(all, cases, o, configs, bandwidth, prev.empty() ? nullptr : &prev, wall));
+  write_file(dir / "report.md", report_md(all, cases, o, configs, bandwidth, peak,
+                                          prev.empty() ? nullptr : &prev, wall));
   std::cout << "bench report: " << (dir / "report.md").string() << " (" << fmt("%.0f", wall)
             << " s)" << std::endl;
   return kOk;

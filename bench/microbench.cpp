@@ -16,6 +16,7 @@
 #include "core/math/svd3.hpp"
 #include "solvers/bench_scene.hpp"
 #include "solvers/pd_bench_block.hpp"
+#include "kernels/peak_flops.hpp"
 #include "kernels/implicit_mpm.hpp"
 #include "kernels/particle_domains.hpp"
 #include "solvers/pd_solver.hpp"
@@ -438,32 +439,20 @@ void BM_StreamTriad(benchmark::State& st) {
   set_items(st, size_t(n), 12);
 }
 
-// Arithmetic peak of the code this build generates: 48 independent multiply-add chains of Real
-// per item, which the portable build compiles to SSE (4 floats per instruction, separate multiply
-// and add: no FMA without -march). Items are flops (2 per multiply-add); one item per core-ns
-// is 1 GFLOP/s. Per backend, 1 and 2 threads (each chunk its own chains).
+// Arithmetic peak of the code the kernels run: independent multiply-add chains on the current
+// SIMD path's vectors (kernels/peak_flops.cpp, compiled per instruction set; a multiply and a
+// separate add: no FMA contraction). Items are flops; one item per core-ns is 1 GFLOP/s. Per
+// backend, 1 and 2 threads (each chunk its own chains).
 void BM_PeakFlops(benchmark::State& st) {
   const exec::Space space = space_of(st);
-  constexpr int kLanes = 48,
-                kIters = 16384;  // 12 SSE vectors in flight: covers the 3+3-cycle latency
-  const exec::Index chunks = 256;
-  std::vector<Real> sink(size_t(chunks) * kLanes);
+  const int chunks = 256, iters = 16384;
+  std::vector<Real> sink(static_cast<std::size_t>(chunks));
+  double flops = 0;
   for (auto _ : st) {
-    exec::parallel_for(
-        space, "bench.flops", chunks,
-        [&](exec::Index c) {
-          Real acc[kLanes];
-          for (int l = 0; l < kLanes; ++l)
-            acc[l] = Real(1) + Real(l) * Real(1e-3) + Real(c) * Real(1e-6);
-          const Real m = Real(0.999999), a = Real(1e-7);
-          for (int it = 0; it < kIters; ++it)
-            for (int l = 0; l < kLanes; ++l) acc[l] = acc[l] * m + a;
-          for (int l = 0; l < kLanes; ++l) sink[size_t(c) * kLanes + size_t(l)] = acc[l];
-        },
-        1);
+    flops += peak_flops_run(space, chunks, iters, sink.data());
     benchmark::DoNotOptimize(sink.data());
   }
-  st.SetItemsProcessed(std::int64_t(st.iterations()) * chunks * kLanes * kIters * 2);
+  st.SetItemsProcessed(std::int64_t(flops));
 }
 
 // Peridynamics: a 40^3 lattice block (64 000 particles, delta = 3.015 lc: 122 bonds in the bulk,

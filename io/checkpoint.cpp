@@ -37,8 +37,8 @@ constexpr char kOptionalAttribute[] = "rest";
 constexpr char kAffineAttribute[] = "C";
 // F's low part: a run whose materials are all fluids keeps none (MpmSolver::keeps_F_low_part). A
 // file written by a run that kept it (an older binary's) is read by one that does not with F_lo
-// skipped (such a run's low parts are zero at every substep's end); a run that keeps it reads a
-// file without it with F_lo zero, as a file from before version 4.
+// skipped (such a run's low parts are zero at every substep's end); a run that keeps it refuses
+// a file of version >= 4 without it (no binary writes one), naming the attribute.
 constexpr char kLowPartAttribute[] = "F_lo";
 // A run whose materials are all fluids keeps J = det F instead of F (MpmSolver::keeps_J_only). A
 // file written by a run that kept F (an older binary's) is read by one that keeps J with
@@ -191,13 +191,10 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
   const bool skip_affine = !pd && !affine;
   const int low_part = pd ? -1 : ps.find(kLowPartAttribute);
   const bool skip_low_part = !pd && low_part < 0;
-  const bool low_part_optional =
-      low_part >= 0 && std::find(missing.begin(), missing.end(), low_part) == missing.end();
   const int volume = pd ? -1 : ps.find(kVolumeAttribute);
   const bool F_to_J = volume >= 0 && ps.find("F") < 0;
   const std::uint32_t expected = std::uint32_t(ps.attribute_count()) - nmissing + ndropped;
-  const std::uint32_t fewest =
-      expected - (rest ? 1 : 0) - (affine ? 1 : 0) - (low_part_optional ? 1 : 0);
+  const std::uint32_t fewest = expected - (rest ? 1 : 0) - (affine ? 1 : 0);
   const std::uint32_t most =
       expected + (rest ? 0 : 1) + (skip_affine ? 1 : 0) + (skip_low_part ? 1 : 0);
   if (nattr < fewest || nattr > most)
@@ -262,15 +259,17 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
     const char* src = r.take(bytes, "attribute data");
     if (bytes > 0) std::memcpy(ps.words(a), src, bytes);
     if (read[std::size_t(a)])
-      throw InputError(path + ": checkpoint attribute '" + name + "' appears twice");
+      throw InputError(path +
+                       (a == volume && F_to_J
+                            ? ": checkpoint attributes 'F' and 'J' both hold the volume ratio"
+                            : ": checkpoint attribute '" + name + "' appears twice"));
     read[std::size_t(a)] = 1;
   }
   for (int a = 0; a < ps.attribute_count(); ++a) {
     if (read[std::size_t(a)]) continue;
-    if (a == low_part) {  // zero below, as the low parts of a file from before version 4
-      missing.push_back(a);
-      continue;
-    }
+    if (a == low_part)  // no binary since version 4 writes a file without F_lo for a run keeping it
+      throw InputError(path + ": checkpoint has no particle attribute '" + ps.name(a) +
+                       "' (the low part of F this run keeps for its solid materials)");
     if (ps.name(a) == kAffineAttribute && !pd)
       throw InputError(path + ": checkpoint has no particle attribute '" + ps.name(a) +
                        "' (the affine velocity matrix this run's APIC/MLS transfer or viscous "

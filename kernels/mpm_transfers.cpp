@@ -501,23 +501,11 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
       for (int c = 0; c < 3; ++c) grad_v(c, a) = Gcol[a][c + 1];
     *Fs += dt * grad_v;  // A-ULMPM eq. 30: F^{s(n+1)} = F^{sn} + dt grad_s v
     *Fp = *Fs * *F0s;    // eq. 32: F^{0(n+1)} = F^{s(n+1)} F^{0s}
-  } else if (J) {
-    // det of F <- (I + A) F with A = dt grad v: J <- J + J e, e = det(I + A) - 1 = tr A + (the
-    // principal 2x2 minors of A) + det A (Cayley-Hamilton), every term small, so J keeps the
-    // digits of its change (forming 1 + e first would round e to float's spacing around 1).
-    // Clamped at the fluid's kMinJ, as the F reset clamped the J it took the cube root of.
+  } else if (J) {        // det of F <- (I + dt grad v) F, F itself not kept
     Real a[3][3];
     for (int c = 0; c < 3; ++c)
       for (int k = 0; k < 3; ++k) a[c][k] = dt * Gcol[k][c + 1];
-    const Real m2 = (a[0][0] * a[1][1] - a[0][1] * a[1][0]) +
-                    (a[0][0] * a[2][2] - a[0][2] * a[2][0]) +
-                    (a[1][1] * a[2][2] - a[1][2] * a[2][1]);
-    const Real det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) -
-                     a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) +
-                     a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
-    const Real e = (a[0][0] + a[1][1] + a[2][2]) + (m2 + det);
-    const Real j = *J + *J * e;
-    *J = j > WeaklyCompressibleT<Real>::kMinJ ? j : WeaklyCompressibleT<Real>::kMinJ;
+    *J = WeaklyCompressibleT<Real>::advance_J(*J, a);
   } else {
     Mat3& F = *Fp;
     // F <- F + dt (grad v) F: the increment's column j is dt sum_a g_a F(a, j), on 4-lane

@@ -6,11 +6,13 @@
 #include "core/exec/simd.hpp"
 #include "kernels/material_update.hpp"
 #include "kernels/mpm_transfers.hpp"
+#include "kernels/peak_flops.hpp"
 
 namespace amalgam {
 
 AMALGAM_SIMD_DECLARE(MpmKernelTable, mpm_kernels)
 AMALGAM_SIMD_DECLARE(MaterialKernelTable, material_kernels)
+AMALGAM_SIMD_DECLARE(PeakFlopsTable, peak_flops_kernels)
 
 namespace {
 const MpmKernelTable& mpm() {
@@ -91,6 +93,9 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
 void collide_particles(const exec::Space& space, const MpmParticleView& p,
                        const Collider* colliders, int n, Real time) {
   isa_baseline::material_kernels.collide_particles(space, p, colliders, n, time);
+}
+double peak_flops_run(const exec::Space& space, int chunks, int iters, Real* sink) {
+  return AMALGAM_SIMD_PICK(peak_flops_kernels).run(space, chunks, iters, sink);
 }
 
 }  // namespace amalgam

@@ -523,6 +523,9 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
       many ? comm.max(std::vector<double>{double(chk.bad >= 0), double(chk.max_wave),
                                           double(chk.max_speed)})
            : std::vector<double>{};
+  // A run keeping J alone (keeps_J_only) has no F to name.
+  const char* deformation_what = attr_.J >= 0 ? "has a non-finite volume ratio J = det F"
+                                              : "has a non-finite deformation gradient F";
   if (many && most[0] > 0) {
     std::string msg;
     if (chk.bad >= 0)
@@ -530,7 +533,7 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
             std::to_string(particles_.int32(attr_.id)[chk.bad]) + " (rank " +
             std::to_string(comm.rank()) + ") " +
             (chk.what == 1   ? "has a non-finite velocity"
-             : chk.what == 2 ? "has a non-finite deformation gradient F"
+             : chk.what == 2 ? deformation_what
                              : "moves above the stability limit max_speed") +
             "; the simulation blew up (reduce cfl or max_dt, or check material stiffness)";
     std::vector<std::size_t> sizes;
@@ -548,7 +551,7 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
     if (chk.what == 1)
       os << "has a non-finite velocity (" << vb.transpose() << ")";
     else if (chk.what == 2)
-      os << "has a non-finite deformation gradient F";
+      os << deformation_what;
     else
       os << "moves at " << vb.norm() << " m/s, above the stability limit max_speed = " << limit
          << " m/s";

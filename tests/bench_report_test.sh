@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # amalgam bench --report end to end on tiny cases: the files, one CSV row per case x
 # configuration with finite positive throughputs and min <= median <= max, the report's sections,
-# PNG signatures, the repeatability section of a --compare run, and usage errors.
+# PNG signatures, the roofline section, the repeatability section of a --compare run, and usage errors.
 # usage: bench_report_test.sh AMALGAM OUTDIR
 set -euo pipefail
 amalgam="$1"
@@ -30,6 +30,18 @@ for s in "## Summary" "## mpm_mls: explicit MPM, MLS, quadratic" "## peridynamic
   grep -q "$s" "$out/b/report.md" || fail "report.md lacks '$s'"
 done
 grep -q "| commit | abc123 |" "$out/a/report.md" || fail "report.md lacks the commit"
+# The roofline: a positive measured peak per thread count, and each counted kernel of the cases run
+# with its flops, bytes, floors and measured times (numbers, not dashes).
+grep -q "## Roofline: each kernel against this machine's ceilings" "$out/b/report.md" || fail "no roofline section"
+for t in 1 2; do
+  grep -Eq "^\| $t \| [0-9.]+ GB/s \| [1-9][0-9.]* GFLOP/s \| [0-9.]+ flop/B \|$" "$out/b/report.md" ||
+    fail "no ceilings for $t thread(s)"
+done
+for k in 'mpm_mls \| mpm\.p2g' 'mpm_mls \| mpm\.g2p' 'peridynamics \| pd\.dilatation' 'peridynamics \| pd\.forces'; do
+  grep -Eq "^\| $k \| [1-9][0-9]* \| [1-9][0-9]* \| [0-9.]+ \| (memory|compute) \| [0-9.]+ \| [0-9.]+ \| [0-9.]+ \| [0-9.]+ \| [0-9.]+ \(openmp x2\) \| [0-9.]+ \|$" \
+    "$out/b/report.md" || fail "no roofline row for '$k'"
+done
+if grep -q "mpm_apic | mpm.p2g" "$out/b/report.md"; then fail "a roofline row for a case not run"; fi
 if grep -q "## Repeatability" "$out/a/report.md"; then fail "a run without --compare has a repeatability section"; fi
 # usage errors: exit 2 with the reason
 set +e

@@ -430,10 +430,12 @@ TEST(Checkpoint, RestPositionsTravelWithTheirParticles) {
 
 // A run whose materials are all fluids keeps J = det F alone, no F nor its low part F_lo
 // (MpmSolver::keeps_J_only). A checkpoint an older binary wrote for such a run holds F and F_lo
-// where the run has J: it is read with J = det F and F_lo skipped, and (F = diag(J, 1, 1) here,
-// whose determinant is J exactly) resumes bitwise as the run that wrote J. A run that keeps F_lo
-// reads a file without it with the low parts zero.
-TEST(Checkpoint, FluidFileWithFReadAsJAndLowPartZeroWhereAbsent) {
+// where the run has J: it is read with J = det F and F_lo skipped, and resumes bitwise as the
+// run that wrote J (whose J is set to det F of the F written, F full and non-symmetric: a reader
+// taking a diagonal entry, the diagonal's product or anything but the determinant fails). A file
+// with both F and J, in either order, is refused; so is a file without F_lo read by a run keeping
+// it (no binary writes one).
+TEST(Checkpoint, FluidFileWithFReadAsJAndLowPartRefusedWhereAbsent) {
   std::string water_text = kScene;
   water_text.replace(water_text.find("\"youngs_modulus\": 1e4"), 21,
                      "\"model\": \"fluid\", \"bulk_modulus\": 2e5");
@@ -458,8 +460,21 @@ TEST(Checkpoint, FluidFileWithFReadAsJAndLowPartZeroWhereAbsent) {
   EXPECT_EQ(attribute_data_at(now, "F"), std::string::npos);
   std::uint64_t n;
   std::memcpy(&n, now.data() + kCountAt, 8);
-  const Real* J = a.solver().particles().real(jid);
+  Real* J = a.solver().particles().real(jid);
   ASSERT_TRUE(std::any_of(J, J + n, [](Real j) { return j != 1; }));
+  // Each particle's F: its J's shape, sheared and rotated a little (every entry non-zero, F not
+  // symmetric); a's J becomes det F, the value the reader must compute.
+  std::vector<Mat3> Fs(static_cast<std::size_t>(n));
+  for (std::uint64_t i = 0; i < n; ++i) {
+    Mat3 F = Mat3::Identity() * std::cbrt(J[i]);
+    for (int k = 0; k < 9; ++k)
+      F(k) += Real(0.004) * Real(int((i * 7 + std::uint64_t(k) * 5) % 11) - 5);
+    Fs[std::size_t(i)] = F;
+    J[i] = F.determinant();
+    ASSERT_NE(J[i], F(0, 0) * F(1, 1) * F(2, 2)) << i;
+  }
+  write_checkpoint(path, a, 2, water.fingerprint);
+  const std::string now_F = slurp(path);
   // As the older binary wrote it: "F" and "F_lo" (9 Reals a particle each) where "J" is.
   std::string rec;
   auto put32 = [&](std::uint32_t v) { rec.append(reinterpret_cast<const char*>(&v), 4); };
@@ -471,14 +486,10 @@ TEST(Checkpoint, FluidFileWithFReadAsJAndLowPartZeroWhereAbsent) {
     put32(std::uint32_t(9 * sizeof(Real) / 4));
   };
   header("F");
-  for (std::uint64_t i = 0; i < n; ++i) {
-    Mat3 F = Mat3::Identity();
-    F(0, 0) = J[i];
-    rec.append(reinterpret_cast<const char*>(F.data()), sizeof(Mat3));
-  }
+  for (const Mat3& F : Fs) rec.append(reinterpret_cast<const char*>(F.data()), sizeof(Mat3));
   header("F_lo");
   rec.append(std::size_t(n) * sizeof(Mat3), '\0');
-  std::string d = now;
+  std::string d = now_F;
   const std::size_t j_data = attribute_data_at(d, "J");
   ASSERT_NE(j_data, std::string::npos);
   const std::size_t j_record = j_data - (4 + 1 + 12);  // name length, "J", type, width, words
@@ -506,55 +517,62 @@ TEST(Checkpoint, FluidFileWithFReadAsJAndLowPartZeroWhereAbsent) {
   }
   EXPECT_EQ(same(pa, pb), "");  // resumed bitwise
 
-  // A file holding both F and J: refused by name.
-  std::string both = d;
-  both.insert(attribute_data_at(both, "v") + std::size_t(n) * sizeof(Vec3),
-              now.substr(attribute_data_at(now, "J") - (4 + 1 + 12),
-                         4 + 1 + 12 + std::size_t(n) * sizeof(Real)));
-  std::memcpy(&nattr, both.data() + kCountAt + 8, 4);
-  ++nattr;
-  std::memcpy(both.data() + kCountAt + 8, &nattr, 4);
-  spit(old, resealed(both));
-  MpmSimulation c(build_solver(water));
-  try {
-    read_checkpoint(old, c, water.fingerprint);
-    ADD_FAILURE() << "a fluid run read a checkpoint holding both F and J";
-  } catch (const InputError& err) {
-    EXPECT_NE(std::string(err.what()).find(old + ": checkpoint attribute"), std::string::npos)
-        << err.what();
+  // A file holding both F and J, J before F or after F_lo: refused by name.
+  const std::string J_record = now.substr(attribute_data_at(now, "J") - (4 + 1 + 12),
+                                          4 + 1 + 12 + std::size_t(n) * sizeof(Real));
+  for (const bool J_first : {true, false}) {
+    std::string both = d;
+    both.insert(J_first ? attribute_data_at(both, "v") + std::size_t(n) * sizeof(Vec3)
+                        : attribute_data_at(both, "F_lo") + std::size_t(n) * sizeof(Mat3),
+                J_record);
+    std::memcpy(&nattr, both.data() + kCountAt + 8, 4);
+    ++nattr;
+    std::memcpy(both.data() + kCountAt + 8, &nattr, 4);
+    spit(old, resealed(both));
+    MpmSimulation c(build_solver(water));
+    try {
+      read_checkpoint(old, c, water.fingerprint);
+      ADD_FAILURE() << "a fluid run read a checkpoint holding both F and J";
+    } catch (const InputError& err) {
+      EXPECT_NE(std::string(err.what())
+                    .find(old + ": checkpoint attributes 'F' and 'J' both hold the volume ratio"),
+                std::string::npos)
+          << err.what();
+    }
   }
 
-  // A jelly run's checkpoint without F_lo: read with F_lo zero, everything else as written.
+  // A jelly run's checkpoint without F_lo: refused (the attribute count, or F_lo by name when
+  // the count allows an optional attribute's absence).
   const Scene jelly = parse_scene(kScene, "s.json");
-  MpmSimulation j(build_solver(jelly)), r(build_solver(jelly));
+  MpmSimulation j(build_solver(jelly));
   const int lo = j.solver().attributes().F_lo;
   ASSERT_GE(lo, 0);
   for (int i = 0; i < 5; ++i) j.advance(space, j.stable_dt(space));
-  const ParticleSet& pj = j.solver().particles();
-  const Mat3* jl = pj.mat3(lo);
-  ASSERT_TRUE(std::any_of(jl, jl + pj.size(), [](const Mat3& m) { return !m.isZero(0); }))
-      << "the jelly's F should have low parts to drop";
-  write_checkpoint(path, j, 2, jelly.fingerprint);
-  std::string e = slurp(path);
-  const std::size_t lo_data = attribute_data_at(e, "F_lo");
-  ASSERT_NE(lo_data, std::string::npos);
-  const std::size_t lo_record = lo_data - (4 + 4 + 12);  // name length, "F_lo", type, width, words
-  e.erase(lo_record, lo_data - lo_record + pj.size() * sizeof(Mat3));
-  std::memcpy(&nattr, e.data() + kCountAt + 8, 4);
-  --nattr;
-  std::memcpy(e.data() + kCountAt + 8, &nattr, 4);
-  spit(old, resealed(e));
-  read_checkpoint(old, r, jelly.fingerprint);
-  const ParticleSet& pr = r.solver().particles();
-  for (int at = 0; at < pj.attribute_count(); ++at) {
-    if (at == lo) continue;
-    EXPECT_EQ(
-        std::memcmp(pj.words(at), pr.words(at), pj.size() * 4 * size_t(pj.words_per_particle(at))),
-        0)
-        << pj.name(at);
+  for (const bool rest : {false, true}) {
+    MpmSimulation r(build_solver(jelly));
+    if (rest) j.keep_rest_positions(), r.keep_rest_positions();
+    write_checkpoint(path, j, 2, jelly.fingerprint);
+    std::string e = slurp(path);
+    const std::size_t lo_data = attribute_data_at(e, "F_lo");
+    ASSERT_NE(lo_data, std::string::npos);
+    const std::size_t lo_record =
+        lo_data - (4 + 4 + 12);  // name length, "F_lo", type, width, words
+    e.erase(lo_record, lo_data - lo_record + j.solver().particles().size() * sizeof(Mat3));
+    std::memcpy(&nattr, e.data() + kCountAt + 8, 4);
+    --nattr;
+    std::memcpy(e.data() + kCountAt + 8, &nattr, 4);
+    spit(old, resealed(e));
+    try {
+      read_checkpoint(old, r, jelly.fingerprint);
+      ADD_FAILURE() << "a jelly run read a checkpoint without F_lo";
+    } catch (const InputError& err) {
+      const std::string what = err.what();
+      EXPECT_NE(what.find(old + (rest ? ": checkpoint has no particle attribute 'F_lo'"
+                                      : ": checkpoint has ")),
+                std::string::npos)
+          << what;
+    }
   }
-  const Mat3* rl = pr.mat3(lo);
-  EXPECT_TRUE(std::all_of(rl, rl + pr.size(), [](const Mat3& m) { return m.isZero(0); }));
   std::remove(path.c_str());
   std::remove(old.c_str());
 }

@@ -217,6 +217,52 @@ TEST(Materials, FluidResetCubeRootIsCorrectlyRounded) {
   EXPECT_EQ(F, (float(std::cbrt(double(J))) * Eigen::Matrix3f::Identity()).eval());
 }
 
+// A fluid run keeping J alone advances it as det((I + A) F) = det(I + A) J (A = dt grad v) from
+// the small terms of det(I + A) - 1 (WeaklyCompressibleT::advance_J). In float against the
+// double product, over |A| from 1e-7 (a substep at rest) to 0.1 (a CFL-limited splash): within
+// one ulp of the result; dropping the 2x2 minors or det A is off by ~|A|^2 or |A|^3 (above a
+// float ulp of J for |A| >= 1e-2). The clamp: never below kMinJ, a NaN kept for the guard.
+TEST(Materials, FluidVolumeRatioAdvancesAsDetOfTheUpdate) {
+  using W = WeaklyCompressibleT<float>;
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (const double scale : {1e-7, 1e-5, 1e-3, 1e-2, 0.1}) {
+    double worst = 0, worst_no_m2 = 0, worst_no_det = 0;
+    for (int t = 0; t < 20000; ++t) {
+      const float J = float(0.7 + 0.6 * (u(rng) + 1) / 2);
+      float a[3][3], z[3][3] = {};
+      Mat3d A;
+      for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c) A(r, c) = a[r][c] = float(scale * u(rng));
+      const double want = double(J) * (Mat3d::Identity() + A).determinant();
+      const double ulp = std::nextafter(float(want), 2.0f) - float(want);
+      worst = std::max(worst, std::abs(double(W::advance_J(J, a)) - want) / ulp);
+      // What the terms left out would have cost: 2x2 minors sum m2, det A.
+      const double tr = A.trace(), det = A.determinant();
+      const double m2 = (A(0, 0) * A(1, 1) - A(0, 1) * A(1, 0)) +
+                        (A(0, 0) * A(2, 2) - A(0, 2) * A(2, 0)) +
+                        (A(1, 1) * A(2, 2) - A(1, 2) * A(2, 1));
+      EXPECT_NEAR(double(J) * (1 + tr + m2 + det), want, 1e-12);  // Cayley-Hamilton
+      worst_no_m2 = std::max(worst_no_m2, std::abs(double(J) * m2) / ulp);
+      worst_no_det = std::max(worst_no_det, std::abs(double(J) * det) / ulp);
+      EXPECT_EQ(W::advance_J(J, z), J);
+    }
+    std::printf("|A| <= %.0e: worst %.3f ulp; m2 alone %.3g ulp, det A alone %.3g ulp\n", scale,
+                worst, worst_no_m2, worst_no_det);
+    EXPECT_LE(worst, 1.0) << "scale " << scale;
+    if (scale >= 1e-2) EXPECT_GT(worst_no_m2, 10.0) << "scale " << scale;
+    if (scale >= 0.1) EXPECT_GT(worst_no_det, 10.0) << "scale " << scale;
+  }
+  float squash[3][3] = {{-0.9f, 0, 0}, {0, 0, 0}, {0, 0, 0}};
+  EXPECT_EQ(W::advance_J(0.05f, squash), W::kMinJ);  // 0.005 clamped
+  EXPECT_EQ(W::advance_J(W::kMinJ, squash), W::kMinJ);
+  const float grow[3][3] = {{0.5f, 0, 0}, {0, 0, 0}, {0, 0, 0}};
+  EXPECT_EQ(W::advance_J(W::kMinJ, grow), 1.5f * W::kMinJ);  // leaves the clamp when expanding
+  EXPECT_TRUE(std::isnan(W::advance_J(std::nanf(""), grow)));
+  squash[1][2] = std::nanf("");
+  EXPECT_TRUE(std::isnan(W::advance_J(1.0f, squash)));
+}
+
 // The Tait pressure of an integer gamma by products (detail::inverse_power_minus_one), against
 // the double pow: a few float ulps relative to p everywhere, in particular as J -> 1, where
 // powf(J, -gamma) - 1 cancels (worst 0.14 relative for gamma = 7 on the same J); a non-integer

@@ -5,6 +5,7 @@
 
 #include <random>
 
+#include "solvers/mpm_simulation.hpp"
 #include "solvers/mpm_solver.hpp"
 #include "sparse_grid/sparse_grid.hpp"
 #include "test_util.hpp"
@@ -397,6 +398,102 @@ TEST(FluidJ, KeptInsteadOfFWhereEveryMaterialIsAFluid) {
       EXPECT_LT(dx_most, 1e-4 * 0.05);
       EXPECT_LT(dJ_most, 1e-4);
     }
+}
+
+// The paths around a run keeping J alone, against the same water made to keep F by an unused
+// elastic material: an inviscid PIC/FLIP run (no C either), and APIC with sleeping blocks (a
+// still pool falls asleep while two blobs of water collide above it). The motion, the output's F
+// (J^{1/3} I), J and von Mises (zero: the pressure is isotropic), and the elastic energy
+// (WeaklyCompressibleT::energy_of_J against energy(F)) agree to rounding.
+TEST(FluidJ, OutputsEnergyInviscidFlipAndSleepAsTheRunKeepingF) {
+  const Lame l = Lame::from_young_poisson(1e4, 0.3);
+  const MaterialParams elastic{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
+  MaterialParams water{MaterialModel::Fluid, 0, 0, 1000};
+  water.bulk = Real(2e5);
+  const exec::Space space(exec::Backend::TBB, 2);
+  for (const Transfer t : {Transfer::PicFlip, Transfer::Apic}) {
+    const bool sleep = t == Transfer::Apic;
+    SCOPED_TRACE(transfer_name(t));
+    MpmSettings s;
+    s.dx = Real(0.05), s.transfer = t, s.gravity = Vec3::Zero();
+    s.sleep.enabled = sleep;
+    s.sleep.time = Real(0.005);
+    MpmSolver lean(s, {water}, {}), kept(s, {water, elastic}, {});
+    ASSERT_GE(lean.attributes().J, 0);
+    ASSERT_GE(kept.attributes().F, 0);
+    EXPECT_EQ(lean.attributes().C >= 0, t == Transfer::Apic);  // inviscid PIC/FLIP: no C
+    std::mt19937 rng(9);
+    std::uniform_real_distribution<double> u(0.0, 1.0);
+    // The pool in the leaves (0.4 m) of y = 0, the blobs two leaves above: the pool sleeps.
+    std::vector<Vec3> pool, left, right;
+    for (int i = 0; i < 3000; ++i)
+      pool.push_back(Vec3(Real(0.2 + 0.6 * u(rng)), Real(0.1 + 0.2 * u(rng)), Real(0.3 * u(rng))));
+    for (int i = 0; i < 400; ++i) {
+      left.push_back(Vec3(Real(0.2 + 0.1 * u(rng)), Real(1.25 + 0.1 * u(rng)), Real(0.1 * u(rng))));
+      right.push_back(left.back() + Vec3(Real(0.2), 0, 0));
+    }
+    for (MpmSolver* m : {&lean, &kept}) {
+      m->add_particles(pool, Vec3::Zero(), Vec3::Zero(), Vec3::Zero(), 0, Real(1e-5));
+      m->add_particles(left, Vec3(Real(3), 0, 0), Vec3::Zero(), Vec3::Zero(), 0, Real(1e-5));
+      m->add_particles(right, Vec3(Real(-3), 0, 0), Vec3::Zero(), Vec3::Zero(), 0, Real(1e-5));
+    }
+    for (int k = 0; k < 300; ++k) {
+      lean.step(space, Real(1e-4));
+      kept.step(space, Real(1e-4));
+    }
+    if (sleep) {
+      ASSERT_TRUE(lean.sleep() && kept.sleep());
+      const std::size_t asleep = lean.sleep()->sleeping(lean.particles());
+      std::printf("%zu of %zu particles asleep\n", asleep, lean.particles().size());
+      EXPECT_EQ(asleep, pool.size());  // the pool, and no blob particle
+      EXPECT_EQ(asleep, kept.sleep()->sleeping(kept.particles()));
+    }
+    const ParticleSet &pa = lean.particles(), &pb = kept.particles();
+    const std::size_t n = pa.size();
+    ASSERT_EQ(pb.size(), n);
+    const std::int32_t *ida = pa.int32(lean.attributes().id), *idb = pb.int32(kept.attributes().id);
+    std::vector<std::size_t> at(n);
+    for (std::size_t i = 0; i < n; ++i) at[std::size_t(idb[i])] = i;
+    const Vec3 *xa = pa.vec3(lean.attributes().x), *xb = pb.vec3(kept.attributes().x);
+    const PointFields fa = mpm_point_fields(pa, lean.attributes(), lean.materials(),
+                                            {"F", "J", "vonmises"}, space),
+                      fb = mpm_point_fields(pb, kept.attributes(), kept.materials(),
+                                            {"F", "J", "vonmises"}, space);
+    ASSERT_EQ(fa.attributes.size(), 3u);
+    ASSERT_EQ(fb.attributes.size(), 3u);
+    double dx_most = 0, dF_most = 0, dJ_most = 0, J_lo = 1, J_hi = 1, vm_most = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+      const std::size_t k = at[std::size_t(ida[i])];
+      dx_most = std::max(dx_most, double((xa[i] - xb[k]).norm()));
+      for (int e = 0; e < 9; ++e)
+        dF_most = std::max(dF_most, std::abs(double(fa.attributes[0].f[9 * i + std::size_t(e)]) -
+                                             double(fb.attributes[0].f[9 * k + std::size_t(e)])));
+      const double Ja = fa.attributes[1].f[i];
+      dJ_most = std::max(dJ_most, std::abs(Ja - double(fb.attributes[1].f[k])));
+      J_lo = std::min(J_lo, Ja), J_hi = std::max(J_hi, Ja);
+      // F = J^{1/3} I: off-diagonal zero, the diagonal's cube J.
+      const float* F = &fa.attributes[0].f[9 * i];
+      EXPECT_EQ(F[1], 0.0f);
+      EXPECT_EQ(F[0], F[4]);
+      EXPECT_NEAR(double(F[0]) * F[0] * F[0], Ja, 4e-7 * Ja);
+      EXPECT_EQ(fa.attributes[2].f[i], 0.0f);
+      vm_most = std::max(vm_most, double(std::abs(fb.attributes[2].f[k])));
+    }
+    const MpmDiagnostics da = lean.diagnostics(space), db = kept.diagnostics(space);
+    std::printf(
+        "%s: max |x_J - x_F| = %.3g dx, |F| %.3g, |J| %.3g, J in [%.6f, %.6f], von Mises "
+        "of the F run <= %.3g Pa, elastic energy %.6g J vs %.6g J\n",
+        transfer_name(t), dx_most / 0.05, dF_most, dJ_most, J_lo, J_hi, vm_most, da.elastic,
+        db.elastic);
+    EXPECT_GT(J_hi - J_lo, 1e-3);
+    EXPECT_LT(dx_most, 1e-4 * 0.05);
+    EXPECT_LT(dF_most, 1e-4);
+    EXPECT_LT(dJ_most, 1e-4);
+    EXPECT_LT(vm_most, 1e-3 * water.bulk);  // the F run's isotropic stress, to rounding
+    EXPECT_GT(da.elastic, 0);
+    EXPECT_NEAR(da.elastic, db.elastic, 1e-3 * db.elastic);
+    EXPECT_NEAR(da.kinetic, db.kinetic, 1e-4 * db.kinetic);
+  }
 }
 
 // C (the affine matrix) exists only where it is read: APIC and MLS transfer it, a viscous stress

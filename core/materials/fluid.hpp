@@ -222,6 +222,21 @@ struct WeaklyCompressibleT {
   }
   // The J whose cube root reset() takes (update_material_group takes a group's roots at once).
   static T reset_J(const M3& F) { return std::max(F.determinant(), kMinJ); }
+  // J = det F after F <- (I + A) F, A = dt grad v (row-major a[row][col]), for a run that keeps
+  // J alone (MpmSolver::keeps_J_only): J <- J + J e with e = det(I + A) - 1 = tr A + (the
+  // principal 2x2 minors of A) + det A (Cayley-Hamilton). Every term is small, so J keeps the
+  // digits of its change (forming 1 + e first would round e to float's spacing around 1).
+  // Clamped at kMinJ as reset_J clamps F's J; std::max keeps a NaN (the stability check then
+  // names the particle) where a comparison would turn it into kMinJ.
+  static T advance_J(T J, const T (&a)[3][3]) {
+    const T m2 = (a[0][0] * a[1][1] - a[0][1] * a[1][0]) + (a[0][0] * a[2][2] - a[0][2] * a[2][0]) +
+                 (a[1][1] * a[2][2] - a[1][2] * a[2][1]);
+    const T det = a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1]) -
+                  a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0]) +
+                  a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]);
+    const T e = (a[0][0] + a[1][1] + a[2][2]) + (m2 + det);
+    return std::max(J + J * e, kMinJ);
+  }
 };
 
 }  // namespace amalgam
