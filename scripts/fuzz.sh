@@ -36,10 +36,10 @@ seed() {  # seed TARGET: the corpus directory, seeded once
       printf '\000v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n' > "$dir/obj_0"
       printf '\002ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 4\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n' > "$dir/ply_0"
       printf '\003solid t\nfacet normal 0 0 0\nouter loop\nvertex 0 0 0\nvertex 0 1 0\nvertex 1 0 0\nendloop\nendfacet\nfacet normal 0 0 0\nouter loop\nvertex 0 0 0\nvertex 1 0 0\nvertex 0 0 1\nendloop\nendfacet\nendsolid t\n' > "$dir/stl_0" ;;
-    fuzz_checkpoint)  # real checkpoints of the target's four cases, written by the target itself
+    fuzz_checkpoint)  # real checkpoints of the target's five cases, written by the target itself
       local tmp
       tmp="$(mktemp -d)"
-      for k in 0 1 2 3; do printf "\\$(printf '%03o' "$k")" > "$tmp/case_$k"; done
+      for k in 0 1 2 3 4; do printf "\\$(printf '%03o' "$k")" > "$tmp/case_$k"; done
       FUZZ_CHECKPOINT_SEEDS="$dir" "$build/tests/$1" -runs=0 "$tmp" > /dev/null 2>&1 || true
       rm -rf "$tmp" ;;
   esac

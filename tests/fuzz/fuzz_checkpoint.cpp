@@ -1,10 +1,11 @@
 // libFuzzer target for checkpoint reading: any byte string given to `--resume` must either load
 // into the simulation or be rejected with an InputError; a crash, a sanitizer report, another
 // exception or a large allocation is a bug. The first byte chooses the simulation (explicit MPM,
-// A-ULMPM, enriched MPM, peridynamics); the rest is the file, whose scene fingerprint and
+// A-ULMPM, enriched MPM, peridynamics, and explicit MPM of a fluid alone, which keeps J instead of
+// F: MpmSolver::keeps_J_only); the rest is the file, whose scene fingerprint and
 // checksum are rewritten to match before reading, so the fuzzer gets past the checksum into the
 // header, attribute and section parsing (a hostile writer can seal its file too). Seeds: real
-// checkpoints of the four scenes (scripts/fuzz.sh writes them). Build and run: docs/fuzzing.md.
+// checkpoints of the five scenes (scripts/fuzz.sh writes them). Build and run: docs/fuzzing.md.
 #include <unistd.h>
 
 #include <cstddef>
@@ -21,7 +22,8 @@
 #include "solvers/factory.hpp"
 
 namespace {
-const char* const kScenes[4] = {
+constexpr int kCases = 5;
+const char* const kScenes[kCases] = {
     R"({"simulation": {"dx": 0.1}, "materials": {"m": {"density": 1000, "youngs_modulus": 1e4}},
         "objects": [{"shape": "box", "min": [0.4,0.4,0.4], "max": [0.6,0.6,0.6], "material": "m"}]})",
     R"({"simulation": {"dx": 0.1}, "materials": {"m": {"density": 1000, "youngs_modulus": 1e4}},
@@ -34,7 +36,10 @@ const char* const kScenes[4] = {
     R"({"simulation": {"method": "peridynamics", "dx": 0.01},
         "materials": {"g": {"model": "peridynamic", "density": 2200, "youngs_modulus": 1e7,
                             "critical_stretch": 0.01}},
-        "objects": [{"shape": "box", "min": [0,0,0], "max": [0.04,0.04,0.04], "material": "g"}]})"};
+        "objects": [{"shape": "box", "min": [0,0,0], "max": [0.04,0.04,0.04], "material": "g"}]})",
+    R"({"simulation": {"dx": 0.1},
+        "materials": {"w": {"model": "fluid", "density": 1000, "bulk_modulus": 2e5}},
+        "objects": [{"shape": "box", "min": [0.4,0.4,0.4], "max": [0.6,0.6,0.6], "material": "w"}]})"};
 
 struct Case {
   amalgam::Scene scene;
@@ -42,7 +47,7 @@ struct Case {
 };
 
 Case& case_of(int k) {
-  static std::unique_ptr<Case> cases[4];
+  static std::unique_ptr<Case> cases[kCases];
   if (!cases[k]) {
     cases[k] = std::make_unique<Case>();
     cases[k]->scene = amalgam::parse_scene(kScenes[k], "fuzz.json");
@@ -62,7 +67,7 @@ Case& case_of(int k) {
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
   if (size == 0) return 0;
-  const int k = data[0] % 4;
+  const int k = data[0] % kCases;
   Case& c = case_of(k);
   std::string d(reinterpret_cast<const char*>(data) + 1, size - 1);
   if (d.size() >= 37) std::memcpy(d.data() + 21, &c.scene.fingerprint, 8);
