@@ -3,7 +3,12 @@
 #include <algorithm>
 #include <cstring>
 #include <memory>
+#include <type_traits>
 #include <vector>
+
+#if defined(__AVX512F__)
+#include <immintrin.h>
+#endif
 
 #include "core/exec/simd.hpp"
 #include "core/math/bspline.hpp"
@@ -66,6 +71,36 @@ inline int one_material_run(const std::int32_t* material, std::uint32_t q0, std:
   while (n < most && material[q0 + std::uint32_t(n)] == material[q0]) ++n;
   return n;
 }
+
+#if defined(__AVX512F__)
+// P2G's nodes k = 0 .. N-1 of one (i, j) row at once on AVX-512 (float, CH = 4, N <= 4): the
+// block's row holds them contiguously, 4N floats, one 16-lane register with the lanes past 4N
+// masked off. Lane 4k + c computes exactly what node k's lane c computes in the 4-lane loop (the
+// same multiplies and adds in the same order, no contraction), so the bits are those of every
+// other path; what changes is the instruction count: one masked load, add and store per row
+// instead of N of each.
+struct NodeRows16 {
+  __m512 wz, dwz, z;  // (w_k), (dw_k), zk[k] per 4 lanes
+  __mmask16 mask;
+};
+inline __m512 quads16(const simd::V4* q, int n) {
+  __m512 r = _mm512_setzero_ps();
+  if (n > 0) r = _mm512_insertf32x4(r, (__m128)q[0], 0);
+  if (n > 1) r = _mm512_insertf32x4(r, (__m128)q[1], 1);
+  if (n > 2) r = _mm512_insertf32x4(r, (__m128)q[2], 2);
+  if (n > 3) r = _mm512_insertf32x4(r, (__m128)q[3], 3);
+  return r;
+}
+// The 4 lanes in every quad (the masked form: GCC 12's unmasked one warns of its undefined source).
+inline __m512 bcast16(__m128 q) {
+  return _mm512_maskz_broadcast_f32x4(__mmask16(0xFFFF), q);
+}
+inline __m512 splat_quads16(const Real* s, int n) {
+  simd::V4 q[4];
+  for (int k = 0; k < n; ++k) q[k] = simd::V4{s[k], s[k], s[k], s[k]};
+  return quads16(q, n);
+}
+#endif
 
 // Per-particle P2G contribution into a block whose node (0,0,0) is `origin` (pure: no grid).
 // P (A-ULMPM, MLS/APIC only, CH = 8): lanes 4-7 also receive the node-position scatter of
@@ -139,6 +174,42 @@ __attribute__((flatten)) inline void p2g_particle(GridBlock<Order, CH, M>& blk, 
   if constexpr (kAffineForce)
     for (int k = 0; k < N; ++k) qk[k] = q2 * ((Real(k) - st.fx[2]) * dx);
   const V4 g0c = simd::col4(G, 0), g1c = simd::col4(G, 1), g2c = simd::col4(G, 2);
+#if defined(__AVX512F__)
+  constexpr bool kRows16 = std::is_same_v<Real, float> && CH == 4 && N <= 4 && !P && !S &&
+                           (T == Transfer::Mls || T == Transfer::Apic);
+  if constexpr (kRows16) {
+    NodeRows16 nr;
+    nr.wz = splat_quads16(st.w[2], N);
+    nr.dwz = splat_quads16(st.dw[2], N);
+    nr.z = quads16(zk, N);
+    nr.mask = __mmask16((1u << (4 * N)) - 1u);
+    const __m512 mv16 = bcast16((__m128)mv);
+    const __m512 a0_16 = bcast16((__m128)a0);
+    const __m512 a1_16 = bcast16((__m128)a1);
+    for (int i = 0; i < N; ++i) {
+      const Real oi = (Real(i) - st.fx[0]) * dx;
+      const __m512 ai = _mm512_add_ps(mv16, _mm512_mul_ps(a0_16, _mm512_set1_ps(oi)));
+      for (int j = 0; j < N; ++j) {
+        const Real oj = (Real(j) - st.fx[1]) * dx;
+        const __m512 aij = _mm512_add_ps(ai, _mm512_mul_ps(a1_16, _mm512_set1_ps(oj)));
+        const Real wx = st.w[0][i], wy = st.w[1][j], wij = wx * wy;
+        Real* row = blk.data + GridBlock<Order, CH, M>::at(l[0] + i, l[1] + j, l[2]);
+        const __m512 w = _mm512_mul_ps(_mm512_set1_ps(wij), nr.wz);
+        __m512 mom = _mm512_mul_ps(w, _mm512_add_ps(aij, nr.z));
+        if constexpr (kGrad) {
+          const V4 g0 = g0c * (st.dw[0][i] * wy) + g1c * (wx * st.dw[1][j]);
+          const V4 g1 = g2c * wij;
+          const __m512 t = _mm512_add_ps(_mm512_mul_ps(nr.wz, bcast16((__m128)g0)),
+                                         _mm512_mul_ps(nr.dwz, bcast16((__m128)g1)));
+          mom = _mm512_sub_ps(mom, t);
+        }
+        _mm512_mask_storeu_ps(row, nr.mask,
+                              _mm512_add_ps(_mm512_maskz_loadu_ps(nr.mask, row), mom));
+      }
+    }
+    return;
+  }
+#endif
   for (int i = 0; i < N; ++i) {
     const Real oi = (Real(i) - st.fx[0]) * dx;
     const V4 ai = mv + a0 * oi;

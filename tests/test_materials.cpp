@@ -250,8 +250,12 @@ TEST(Materials, FluidVolumeRatioAdvancesAsDetOfTheUpdate) {
     std::printf("|A| <= %.0e: worst %.3f ulp; m2 alone %.3g ulp, det A alone %.3g ulp\n", scale,
                 worst, worst_no_m2, worst_no_det);
     EXPECT_LE(worst, 1.0) << "scale " << scale;
-    if (scale >= 1e-2) EXPECT_GT(worst_no_m2, 10.0) << "scale " << scale;
-    if (scale >= 0.1) EXPECT_GT(worst_no_det, 10.0) << "scale " << scale;
+    if (scale >= 1e-2) {
+      EXPECT_GT(worst_no_m2, 10.0) << "scale " << scale;
+    }
+    if (scale >= 0.1) {
+      EXPECT_GT(worst_no_det, 10.0) << "scale " << scale;
+    }
   }
   float squash[3][3] = {{-0.9f, 0, 0}, {0, 0, 0}, {0, 0, 0}};
   EXPECT_EQ(W::advance_J(0.05f, squash), W::kMinJ);  // 0.005 clamped
