@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <cstring>
 #include <memory>
-#include <type_traits>
 #include <vector>
 
 #if defined(__AVX512F__)
@@ -72,7 +71,7 @@ inline int one_material_run(const std::int32_t* material, std::uint32_t q0, std:
   return n;
 }
 
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) && !defined(AMALGAM_REAL_DOUBLE)  // float only: 16 floats
 // P2G's nodes k = 0 .. N-1 of one (i, j) row at once on AVX-512 (float, CH = 4, N <= 4): the
 // block's row holds them contiguously, 4N floats, one 16-lane register with the lanes past 4N
 // masked off. Lane 4k + c computes exactly what node k's lane c computes in the 4-lane loop (the
@@ -174,9 +173,9 @@ __attribute__((flatten)) inline void p2g_particle(GridBlock<Order, CH, M>& blk, 
   if constexpr (kAffineForce)
     for (int k = 0; k < N; ++k) qk[k] = q2 * ((Real(k) - st.fx[2]) * dx);
   const V4 g0c = simd::col4(G, 0), g1c = simd::col4(G, 1), g2c = simd::col4(G, 2);
-#if defined(__AVX512F__)
-  constexpr bool kRows16 = std::is_same_v<Real, float> && CH == 4 && N <= 4 && !P && !S &&
-                           (T == Transfer::Mls || T == Transfer::Apic);
+#if defined(__AVX512F__) && !defined(AMALGAM_REAL_DOUBLE)
+  constexpr bool kRows16 =
+      CH == 4 && N <= 4 && !P && !S && (T == Transfer::Mls || T == Transfer::Apic);
   if constexpr (kRows16) {
     NodeRows16 nr;
     nr.wz = splat_quads16(st.w[2], N);
