@@ -631,19 +631,17 @@ int bench_report(const Options& opts) {
   const std::vector<Config> configs = configs_of(o);
   const auto t0 = std::chrono::steady_clock::now();
 
-  std::map<int, double> bandwidth;
+  // The roofline's ceilings per thread count: the triad's bandwidth and the arithmetic peak.
+  std::map<int, double> bandwidth, peak;
   for (int t : o.threads) {
-    const exec::Backend b = t == 1 ? exec::Backend::Serial : exec::Backend::OpenMP;
-    if (exec::Space(b, t).threads() == t) bandwidth[t] = triad_gb_per_s(exec::Space(b, t));
+    const exec::Space space(t == 1 ? exec::Backend::Serial : exec::Backend::OpenMP, t);
+    if (space.threads() == t) {
+      bandwidth[t] = triad_gb_per_s(space);
+      peak[t] = peak_gflops(space);
+    }
     std::cout << "bench report: STREAM triad, " << t << " thread(s): " << fmt("%.1f", bandwidth[t])
-              << " GB/s" << std::endl;
-  }
-  std::map<int, double> peak;
-  for (int t : o.threads) {
-    const exec::Backend b = t == 1 ? exec::Backend::Serial : exec::Backend::OpenMP;
-    if (exec::Space(b, t).threads() == t) peak[t] = peak_gflops(exec::Space(b, t));
-    std::cout << "bench report: arithmetic peak (" << exec::simd_path_name(exec::simd_path())
-              << "), " << t << " thread(s): " << fmt("%.1f", peak[t]) << " GFLOP/s" << std::endl;
+              << " GB/s; arithmetic peak (" << exec::simd_path_name(exec::simd_path())
+              << "): " << fmt("%.1f", peak[t]) << " GFLOP/s" << std::endl;
   }
   std::vector<Result> all;
   for (const BenchCase& bc : cases) {
