@@ -101,6 +101,75 @@ inline __m512 splat_quads16(const Real* s, int n) {
 }
 #endif
 
+// One row of a block's stencil, nodes k = 0 .. N-1 of (i, j): L = N * CH contiguous Reals, held
+// in the path's widest vectors (AVX-512 float: 16 lanes, the last masked; AVX float: 8 lanes and a
+// 4-lane tail; otherwise 4-lane V4s). G2P accumulates whole rows lane by lane (lane 4q + c is
+// quad q's channel c), every lane with the same multiplies and adds on every path, so the bits
+// are the paths' common ones and only the instruction count differs.
+template <int L>
+struct RowLanes {
+  static_assert(L % 4 == 0, "whole 4-lane quads");
+#if defined(__AVX512F__) && !defined(AMALGAM_REAL_DOUBLE)
+  static constexpr int W = 16;
+#elif defined(__AVX__) && !defined(AMALGAM_REAL_DOUBLE)
+  static constexpr int W = 8;
+#else
+  static constexpr int W = 4;
+#endif
+  template <int N, int = 0>
+  struct Vec {
+    typedef Real type __attribute__((vector_size(N * sizeof(Real))));
+  };
+  template <int D>
+  struct Vec<4, D> {  // simd::V4: two SSE2 halves in the double build without AVX
+    using type = simd::V4;
+  };
+  using VW = typename Vec<W>::type;
+  static constexpr int C = L / W, kTail = L % W;  // full vectors, then kTail (< W) lanes
+  static constexpr int kTailV = kTail == 0 ? 0 : 1;
+  // AVX-512: the tail is one masked 16-lane vector; AVX: a V4 (L % 8 is 0 or 4).
+  static_assert(W != 8 || kTail % 4 == 0, "AVX tail: one V4");
+  VW v[C + (W == 16 ? kTailV : 0)];
+  simd::V4 t[W == 8 ? kTailV : 0];
+
+  static RowLanes load(const Real* p) {
+    RowLanes r;
+    for (int c = 0; c < C; ++c) {
+      if constexpr (W == 4)
+        r.v[c] = simd::load4(p + c * W);
+      else
+        std::memcpy(static_cast<void*>(&r.v[c]), p + c * W, sizeof(VW));
+    }
+    if constexpr (kTail > 0) {
+#if defined(__AVX512F__) && !defined(AMALGAM_REAL_DOUBLE)
+      r.v[C] = (VW)_mm512_maskz_loadu_ps(__mmask16((1u << kTail) - 1u), p + C * W);
+#else
+      r.t[0] = simd::load4(p + C * W);
+#endif
+    }
+    return r;
+  }
+  // *this = s r, and *this += s r (a multiply, then an add, per lane).
+  void set_scaled(Real s, const RowLanes& r) {
+    for (int c = 0; c < C + (W == 16 ? kTailV : 0); ++c) v[c] = s * r.v[c];
+    if constexpr (W == 8 && kTail > 0) t[0] = s * r.t[0];
+  }
+  void add_scaled(Real s, const RowLanes& r) {
+    for (int c = 0; c < C + (W == 16 ? kTailV : 0); ++c) v[c] += s * r.v[c];
+    if constexpr (W == 8 && kTail > 0) t[0] += s * r.t[0];
+  }
+  // Lanes 4q .. 4q + 3.
+  simd::V4 quad(int q) const {
+    const int c = (4 * q) / W, e = (4 * q) % W;
+    if constexpr (W == 4) {
+      return v[q];
+    } else {
+      if (W == 8 && c == C) return t[0];
+      return simd::V4{v[c][e], v[c][e + 1], v[c][e + 2], v[c][e + 3]};
+    }
+  }
+};
+
 // Per-particle P2G contribution into a block whose node (0,0,0) is `origin` (pure: no grid).
 // P (A-ULMPM, MLS/APIC only, CH = 8): lanes 4-7 also receive the node-position scatter of
 // p2g_positions, w (m, m (xq + Fq o)) with the same stencil (xq = x_p, Fq = F_s; o = X_i - X_p).
@@ -495,52 +564,78 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;
-  // Hierarchical sums over k, then j, then i (4 lanes per node, the grid's (m, v) rows):
-  //   S = sum w v;  S_a = sum w v idx_a  ->  B.col(a) = sum w v o_a = dx (S_a - fx_a S)  (MLS, APIC)
-  //   D_a = sum v dw/dx_a                ->  grad v = [D_0 D_1 D_2]                  (APIC, PIC/FLIP)
-  //   dV = sum w dv                                                                  (FLIP)
+  // Hierarchical sums over j, then i, of whole stencil rows (RowLanes: node k's 4 or 8 lanes, the
+  // grid's (m, v) rows, side by side), then over k of their nodes' quads. One order on every path.
   constexpr bool kB = (T != Transfer::PicFlip), kGrad = (T != Transfer::Mls),
                  kFlip = (T == Transfer::PicFlip);
   using simd::V4;
-  V4 S{}, Si{}, Sj{}, Sk{}, D0{}, D1{}, D2{}, dV{};
+  using Row = RowLanes<N * CH>;
+  Row P{}, Pi{}, Pj{}, Pd0{},
+      Pd1{};  // sums over (i, j) of a row's lanes: w_i w_j r, i w_i w_j r, ...
   for (int i = 0; i < N; ++i) {
-    V4 Ti{}, Tj{}, Tk{}, Tdy{}, Tdz{}, TdV{};
+    Row Q{}, Qj{}, Qd{};  // over j of row (i, j): w_j r, j w_j r, dw_j r
     for (int j = 0; j < N; ++j) {
-      V4 U{}, Uk{}, Ud{}, UdV{};
-      const Real* row = blk.data + GridBlock<Order, CH, M>::at(l[0] + i, l[1] + j, l[2]);
-      for (int k = 0; k < N; ++k) {
-        const V4 vk = simd::load4(row + k * CH);
-        U += st.w[2][k] * vk;
-        if constexpr (kB)
-          if (k > 0) Uk += (Real(k) * st.w[2][k]) * vk;  // the k = 0 term is +-0
-        if constexpr (kGrad) Ud += st.dw[2][k] * vk;
-        if constexpr (kFlip) UdV += st.w[2][k] * simd::load4(row + k * CH + 4);
+      const Row r = Row::load(blk.data + GridBlock<Order, CH, M>::at(l[0] + i, l[1] + j, l[2]));
+      const Real wy = st.w[1][j];
+      if (j == 0) {
+        Q.set_scaled(wy, r);
+        if constexpr (kGrad) Qd.set_scaled(st.dw[1][j], r);
+      } else {
+        Q.add_scaled(wy, r);
+        if constexpr (kGrad) Qd.add_scaled(st.dw[1][j], r);
+        if constexpr (kB) {  // the j = 0 term is +-0
+          if (j == 1)
+            Qj.set_scaled(wy, r);
+          else
+            Qj.add_scaled(Real(j) * wy, r);
+        }
       }
-      const Real wy = st.w[1][j], jwy = Real(j) * wy, dwy = st.dw[1][j];
-      Ti += wy * U;
-      if constexpr (kB) {
-        if (j > 0) Tj += jwy * U;
-        Tk += wy * Uk;
-      }
-      if constexpr (kGrad) {
-        Tdy += dwy * U;
-        Tdz += wy * Ud;
-      }
-      if constexpr (kFlip) TdV += wy * UdV;
     }
-    const Real wx = st.w[0][i], iwx = Real(i) * wx, dwx = st.dw[0][i];
-    S += wx * Ti;
+    const Real wx = st.w[0][i], dwx = st.dw[0][i];
+    if (i == 0) {
+      P.set_scaled(wx, Q);
+      if constexpr (kB) Pj.set_scaled(wx, Qj);
+      if constexpr (kGrad) Pd0.set_scaled(dwx, Q), Pd1.set_scaled(wx, Qd);
+    } else {
+      P.add_scaled(wx, Q);
+      if constexpr (kB) {
+        if (i == 1)
+          Pi.set_scaled(wx, Q);
+        else
+          Pi.add_scaled(Real(i) * wx, Q);
+        Pj.add_scaled(wx, Qj);
+      }
+      if constexpr (kGrad) Pd0.add_scaled(dwx, Q), Pd1.add_scaled(wx, Qd);
+    }
+  }
+  // Then over k, node k's quads (CH = 8: quad 2k is (m, v), 2k + 1 PIC/FLIP's (-, dv)):
+  //   S = sum w v;  S_a = sum w v idx_a  ->  B.col(a) = sum w v o_a = dx (S_a - fx_a S)  (MLS, APIC)
+  //   D_a = sum v dw/dx_a                ->  grad v = [D_0 D_1 D_2]                  (APIC, PIC/FLIP)
+  //   dV = sum w dv                                                                  (FLIP)
+  constexpr int QK = CH / 4;
+  V4 S = st.w[2][0] * P.quad(0), Si{}, Sj{}, Sk{}, D0{}, D1{}, D2{}, dV{};
+  if constexpr (kB) Si = st.w[2][0] * Pi.quad(0), Sj = st.w[2][0] * Pj.quad(0);
+  if constexpr (kGrad) {
+    D0 = st.w[2][0] * Pd0.quad(0), D1 = st.w[2][0] * Pd1.quad(0);
+    D2 = st.dw[2][0] * P.quad(0);
+  }
+  if constexpr (kFlip) dV = st.w[2][0] * P.quad(1);
+  for (int k = 1; k < N; ++k) {
+    const Real wz = st.w[2][k];
+    const V4 pk = P.quad(QK * k);
+    S += wz * pk;
     if constexpr (kB) {
-      if (i > 0) Si += iwx * Ti;
-      Sj += wx * Tj;
-      Sk += wx * Tk;
+      Si += wz * Pi.quad(QK * k), Sj += wz * Pj.quad(QK * k);
+      if (k == 1)
+        Sk = wz * pk;
+      else
+        Sk += (Real(k) * wz) * pk;
     }
     if constexpr (kGrad) {
-      D0 += dwx * Ti;
-      D1 += wx * Tdy;
-      D2 += wx * Tdz;
+      D0 += wz * Pd0.quad(QK * k), D1 += wz * Pd1.quad(QK * k);
+      D2 += st.dw[2][k] * pk;
     }
-    if constexpr (kFlip) dV += wx * TdV;
+    if constexpr (kFlip) dV += wz * P.quad(QK * k + 1);
   }
   // Lane 0 summed the nodes' masses (unused); velocity component c is lane c + 1, and the
   // matrices below are 4-lane columns with row c in lane c + 1.
