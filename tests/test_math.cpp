@@ -101,6 +101,43 @@ TEST(BSpline, StencilInBlockAndPositionsThatBlewUp) {
   check_stencil_in_block<3>();
 }
 
+// Stencil::at computes the three axes in the lanes of one vector: the same operations as the
+// axis-by-axis form, so the same bits (base, fx, weights, derivatives) for every order, at
+// positions swept across cells (either side of the floor's integers, where truncation rounds up
+// for negative coordinates), far from the origin and at cell boundaries to the last ulp.
+template <int Order>
+void check_stencil_lanes() {
+  std::mt19937 rng(7);
+  std::uniform_real_distribution<float> u(-1, 1);
+  const Real dx = Real(0.013), inv_dx = 1 / dx;
+  std::vector<Vec3> xs;
+  for (int i = -3 * 64; i <= 3 * 64; ++i) {
+    const Real s = Real(i) / 64 * dx;
+    xs.emplace_back(s, -s, s + Real(0.5) * dx);
+  }
+  for (int i = 0; i < 2000; ++i)
+    xs.emplace_back(Real(u(rng)) * 50, Real(u(rng)) * 1e-3f, Real(u(rng)) * 3e3f);
+  for (int c = -4; c <= 4; ++c)  // the floor's edges: (c + 1/2) dx for quadratic, c dx otherwise
+    for (const Real e : {Real(c), Real(c) + Real(0.5)}) {
+      const Real y = e * dx;
+      for (const Real z : {std::nextafter(y, Real(-1e9)), y, std::nextafter(y, Real(1e9))})
+        xs.emplace_back(z, -z, z * 3);
+    }
+  for (const Vec3& x : xs) {
+    const Stencil<Order> a = Stencil<Order>::at(x, inv_dx),
+                         b = Stencil<Order>::at_scalar(x, inv_dx);
+    ASSERT_EQ(a.base, b.base) << x.transpose();
+    ASSERT_EQ(std::memcmp(a.fx.data(), b.fx.data(), sizeof(Real) * 3), 0) << x.transpose();
+    ASSERT_EQ(std::memcmp(a.w, b.w, sizeof(a.w)), 0) << x.transpose();
+    ASSERT_EQ(std::memcmp(a.dw, b.dw, sizeof(a.dw)), 0) << x.transpose();
+  }
+}
+TEST(BSpline, StencilLanesAreTheAxisByAxisFormBitwise) {
+  check_stencil_lanes<1>();
+  check_stencil_lanes<2>();
+  check_stencil_lanes<3>();
+}
+
 namespace {
 void expect_rotation(const Mat3& R, double tol) {
   EXPECT_LT(double((R.transpose() * R - Mat3::Identity()).norm()), tol);

@@ -10,6 +10,7 @@
 
 #include <cmath>
 
+#include "core/math/simd4.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam {
@@ -30,14 +31,19 @@ struct BSpline<1> {
   static constexpr int kNodes = 2;
   static constexpr Real kDinvScale = 0;  // not an APIC/MLS stencil
   static constexpr int kDrop = 0;        // base = floor(floor_arg(xs)) - kDrop
-  static Real floor_arg(Real xs) { return xs; }
+  template <class T>
+  static T floor_arg(T xs) {
+    return xs;
+  }
   static int base(Real xs) { return ifloor(floor_arg(xs)) - kDrop; }
-  // fx = x/dx - base in [0, 1): hat function omega(x) = 1 - |x| (eq. 3).
-  static void eval(Real fx, Real* w, Real* dw) {
-    w[0] = 1 - fx;
+  // fx = x/dx - base in [0, 1): hat function omega(x) = 1 - |x| (eq. 3). T: Real, or simd::V4
+  // (one axis per lane, the same operations).
+  template <class T>
+  static void eval(T fx, T* w, T* dw) {
+    w[0] = Real(1) - fx;
     w[1] = fx;
-    dw[0] = -1;
-    dw[1] = 1;
+    dw[0] = T{} - Real(1);  // -1
+    dw[1] = T{} + Real(1);
   }
 };
 
@@ -46,16 +52,20 @@ struct BSpline<2> {
   static constexpr int kNodes = 3;
   static constexpr Real kDinvScale = 4;  // D_p^{-1} = 4 / dx^2
   static constexpr int kDrop = 0;
-  static Real floor_arg(Real xs) { return xs - Real(0.5); }
+  template <class T>
+  static T floor_arg(T xs) {
+    return xs - Real(0.5);
+  }
   static int base(Real xs) { return ifloor(floor_arg(xs)) - kDrop; }
   // fx = x/dx - base in [0.5, 1.5); weights and d w / d(x/dx).
-  static void eval(Real fx, Real* w, Real* dw) {
-    const Real a = Real(1.5) - fx, b = fx - 1, c = fx - Real(0.5);
+  template <class T>
+  static void eval(T fx, T* w, T* dw) {
+    const T a = Real(1.5) - fx, b = fx - Real(1), c = fx - Real(0.5);
     w[0] = Real(0.5) * a * a;
     w[1] = Real(0.75) - b * b;
     w[2] = Real(0.5) * c * c;
     dw[0] = -a;
-    dw[1] = -2 * b;
+    dw[1] = Real(-2) * b;
     dw[2] = c;
   }
 };
@@ -65,21 +75,25 @@ struct BSpline<3> {
   static constexpr int kNodes = 4;
   static constexpr Real kDinvScale = 3;  // D_p^{-1} = 3 / dx^2
   static constexpr int kDrop = 1;
-  static Real floor_arg(Real xs) { return xs; }
+  template <class T>
+  static T floor_arg(T xs) {
+    return xs;
+  }
   static int base(Real xs) { return ifloor(floor_arg(xs)) - kDrop; }
   // fx = x/dx - base in [1, 2).
-  static void eval(Real fx, Real* w, Real* dw) {
-    const Real d0 = 2 - fx;  // distance-complement for node 0: |d| in [1,2)
-    const Real d1 = fx - 1;  // node 1: |d| in [0,1)
-    const Real d2 = 2 - fx;  // node 2: |d| in (0,1]
-    const Real d3 = fx - 1;  // node 3: 2 - |d| in [0,1)
-    w[0] = d0 * d0 * d0 / 6;
-    w[1] = Real(0.5) * d1 * d1 * d1 - d1 * d1 + Real(2) / 3;
-    w[2] = Real(0.5) * d2 * d2 * d2 - d2 * d2 + Real(2) / 3;
-    w[3] = d3 * d3 * d3 / 6;
+  template <class T>
+  static void eval(T fx, T* w, T* dw) {
+    const T d0 = Real(2) - fx;  // distance-complement for node 0: |d| in [1,2)
+    const T d1 = fx - Real(1);  // node 1: |d| in [0,1)
+    const T d2 = Real(2) - fx;  // node 2: |d| in (0,1]
+    const T d3 = fx - Real(1);  // node 3: 2 - |d| in [0,1)
+    w[0] = d0 * d0 * d0 / Real(6);
+    w[1] = Real(0.5) * d1 * d1 * d1 - d1 * d1 + Real(2) / Real(3);
+    w[2] = Real(0.5) * d2 * d2 * d2 - d2 * d2 + Real(2) / Real(3);
+    w[3] = d3 * d3 * d3 / Real(6);
     dw[0] = Real(-0.5) * d0 * d0;
-    dw[1] = Real(1.5) * d1 * d1 - 2 * d1;
-    dw[2] = -(Real(1.5) * d2 * d2 - 2 * d2);
+    dw[1] = Real(1.5) * d1 * d1 - Real(2) * d1;
+    dw[2] = -(Real(1.5) * d2 * d2 - Real(2) * d2);
     dw[3] = Real(0.5) * d3 * d3;
   }
 };
@@ -95,6 +109,35 @@ struct Stencil {
   Real dw[3][kN];
 
   __attribute__((always_inline)) static Stencil at(const Vec3& x, Real inv_dx) {
+#if !defined(AMALGAM_REAL_DOUBLE)
+    // The three axes in the lanes of one V4 (lane 3 repeats z, unused): per lane exactly
+    // at_scalar's operations (ifloor as truncation, then one down where it rounded up).
+    Stencil s;
+    using simd::V4;
+    typedef std::int32_t I4 __attribute__((vector_size(16)));
+    const V4 xs = V4{x[0], x[1], x[2], x[2]} * inv_dx;
+    const V4 y = BSpline<Order>::floor_arg(xs);
+    const I4 t = __builtin_convertvector(y, I4);
+    const I4 base = t + I4(__builtin_convertvector(t, V4) > y) - BSpline<Order>::kDrop;
+    const V4 fx = xs - __builtin_convertvector(base, V4);
+    V4 w[kN], dw[kN];
+    BSpline<Order>::eval(fx, w, dw);
+    for (int a = 0; a < 3; ++a) {
+      s.base[a] = base[a];
+      s.fx[a] = fx[a];
+      for (int k = 0; k < kN; ++k) {
+        s.w[a][k] = w[k][a];
+        s.dw[a][k] = dw[k][a] * inv_dx;
+      }
+    }
+    return s;
+#else
+    return at_scalar(x, inv_dx);
+#endif
+  }
+  // The same stencil axis by axis (the double build's form, and the lanes' reference in
+  // tests/test_math.cpp).
+  static Stencil at_scalar(const Vec3& x, Real inv_dx) {
     Stencil s;
     for (int a = 0; a < 3; ++a) {
       const Real xs = x[a] * inv_dx;
@@ -105,7 +148,9 @@ struct Stencil {
     }
     return s;
   }
-  Real weight(int i, int j, int k) const { return w[0][i] * w[1][j] * w[2][k]; }
+  Real weight(int i, int j, int k) const {
+    return w[0][i] * w[1][j] * w[2][k];
+  }
   Vec3 gradient(int i, int j, int k) const {
     return Vec3(dw[0][i] * w[1][j] * w[2][k], w[0][i] * dw[1][j] * w[2][k],
                 w[0][i] * w[1][j] * dw[2][k]);
