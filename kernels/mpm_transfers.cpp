@@ -549,6 +549,23 @@ void p2g_blocks_impl(const exec::Space& space, const MpmParticleView& p, const M
                                  [](std::size_t) {});
 }
 
+// A 3x3 matrix held as 4-lane columns (_, M(0, a), M(1, a), M(2, a)) -> its 9 column-major
+// entries (Eigen's order): two V4 and the last entry, by shuffles rather than a trip through
+// memory entry by entry.
+struct Flat9 {
+  simd::V4 a, b;
+  Real c;
+};
+inline Flat9 flat9(const simd::V4* col) {
+#if defined(AMALGAM_REAL_DOUBLE) && !defined(__AVX__)  // V4: two SSE2 halves (core/math/simd4.hpp)
+  return {simd::V4{col[0][1], col[0][2], col[0][3], col[1][1]},
+          simd::V4{col[1][2], col[1][3], col[2][1], col[2][2]}, col[2][3]};
+#else
+  return {__builtin_shufflevector(col[0], col[1], 1, 2, 3, 5),
+          __builtin_shufflevector(col[1], col[2], 2, 3, 5, 6), col[2][3]};
+#endif
+}
+
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
 // L (Lagrangian mode): the stencil sits at the reference position xs and F_s, F_0s are updated
 // (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F, or, where the particles keep
@@ -657,9 +674,10 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
     }
     v = v_pic;
   }
-  if (T != Transfer::PicFlip || C)
-    for (int a = 0; a < 3; ++a)
-      for (int c = 0; c < 3; ++c) (*C)(c, a) = Ccol[a][c + 1];
+  if (T != Transfer::PicFlip || C) {
+    const Flat9 c9 = flat9(Ccol);
+    simd::store4(C->data(), c9.a), simd::store4(C->data() + 4, c9.b), C->data()[8] = c9.c;
+  }
   if constexpr (L) {
     Mat3 grad_v;
     for (int a = 0; a < 3; ++a)
@@ -677,23 +695,24 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
     // columns. It is added to F itself (compensated when F has a low part): forming
     // I + dt grad v first would round 1 + dt g to float's uneven spacing around 1 (6e-8 below,
     // 1.2e-7 above), a bias towards compression in every small increment (issue 27).
-    Mat3 dF;
-    for (int j = 0; j < 3; ++j) {
-      const V4 f = dt * (Gcol[0] * F(0, j) + Gcol[1] * F(1, j) + Gcol[2] * F(2, j));
-      dF(0, j) = f[1], dF(1, j) = f[2], dF(2, j) = f[3];
-    }
+    V4 dcol[3];
+    for (int j = 0; j < 3; ++j)
+      dcol[j] = dt * (Gcol[0] * F(0, j) + Gcol[1] * F(1, j) + Gcol[2] * F(2, j));
+    const Flat9 d = flat9(dcol);  // dF's entries, column-major, as F's
+    const V4 d4[2] = {d.a, d.b};
+    Real* h = F.data();
     if (F_lo) {  // add_compensated on lanes: entries 0-3 and 4-7, then 8
-      Real *h = F.data(), *lo = F_lo->data();
-      const Real* d = dF.data();
-      for (int e = 0; e < 8; e += 4) {
-        const V4 hv = simd::load4(h + e), b = simd::load4(lo + e) + simd::load4(d + e);
+      Real* lo = F_lo->data();
+      for (int e = 0; e < 2; ++e) {
+        const V4 hv = simd::load4(h + 4 * e), b = simd::load4(lo + 4 * e) + d4[e];
         const V4 sv = hv + b, bb = sv - hv;
-        simd::store4(lo + e, (hv - (sv - bb)) + (b - bb));
-        simd::store4(h + e, sv);
+        simd::store4(lo + 4 * e, (hv - (sv - bb)) + (b - bb));
+        simd::store4(h + 4 * e, sv);
       }
-      add_compensated(h[8], lo[8], d[8]);
+      add_compensated(h[8], lo[8], d.c);
     } else {
-      F += dF;
+      for (int e = 0; e < 2; ++e) simd::store4(h + 4 * e, simd::load4(h + 4 * e) + d4[e]);
+      h[8] += d.c;
     }
   }
   if (x_lo)  // eq. 28: x += dt v
