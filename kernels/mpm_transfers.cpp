@@ -744,20 +744,32 @@ inline void gather_dilated(GridBlock<Order, CH, M>& blk, const MpmGridView& g, s
     off[i] = a - leaf_d[i] * kLeafDim;
   }
   const std::array<std::int32_t, 27>& n27 = g.bin_nbr27[b];
+  // A block row (i, j) meets the leaves -1, 0, +1 along z in three runs of nodes, each contiguous
+  // in its leaf (leaf_offset: z fastest) and in the block: one copy per run.
+  constexpr int k0[3] = {0, M, M + kLeafDim}, k1[3] = {M, M + kLeafDim, Blk::B};
   for (int i = 0; i < Blk::B; ++i)
     for (int j = 0; j < Blk::B; ++j) {
       const int t0 = (leaf_d[i] + 1) * 9 + (leaf_d[j] + 1) * 3;
-      for (int k = 0; k < Blk::B; ++k) {
-        Real* d = blk.data + Blk::at(i, j, k);
-        const std::int32_t leaf = n27[std::size_t(t0 + leaf_d[k] + 1)];
+      for (int r = 0; r < 3; ++r) {
+        const int n = k1[r] - k0[r];
+        if (n == 0) continue;
+        Real* d = blk.data + Blk::at(i, j, k0[r]);
+        const std::int32_t leaf = n27[std::size_t(t0 + r)];
         if (leaf < 0) {
-          for (int c = 0; c < CH; ++c) d[c] = Real(0);
+          std::memset(d, 0, sizeof(Real) * std::size_t(n * CH));
           continue;
         }
-        const std::size_t n =
-            (std::size_t(leaf) * kLeafNodes + std::size_t(leaf_offset(off[i], off[j], off[k]))) * 4;
-        simd::store4(d, simd::load4(g.a + n));
-        if constexpr (CH == 8) simd::store4(d + 4, simd::load4(g.b + n));
+        const std::size_t e =
+            (std::size_t(leaf) * kLeafNodes + std::size_t(leaf_offset(off[i], off[j], off[k0[r]]))) *
+            4;
+        if constexpr (CH == 4) {
+          std::memcpy(d, g.a + e, sizeof(Real) * std::size_t(4 * n));
+        } else {
+          for (int k = 0; k < n; ++k) {
+            simd::store4(d + 8 * k, simd::load4(g.a + e + 4 * std::size_t(k)));
+            simd::store4(d + 8 * k + 4, simd::load4(g.b + e + 4 * std::size_t(k)));
+          }
+        }
       }
     }
 }
