@@ -759,9 +759,9 @@ inline void gather_dilated(GridBlock<Order, CH, M>& blk, const MpmGridView& g, s
           std::memset(d, 0, sizeof(Real) * std::size_t(n * CH));
           continue;
         }
-        const std::size_t e =
-            (std::size_t(leaf) * kLeafNodes + std::size_t(leaf_offset(off[i], off[j], off[k0[r]]))) *
-            4;
+        const std::size_t e = (std::size_t(leaf) * kLeafNodes +
+                               std::size_t(leaf_offset(off[i], off[j], off[k0[r]]))) *
+                              4;
         if constexpr (CH == 4) {
           std::memcpy(d, g.a + e, sizeof(Real) * std::size_t(4 * n));
         } else {
