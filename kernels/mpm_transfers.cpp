@@ -587,8 +587,8 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
                  kFlip = (T == Transfer::PicFlip);
   using simd::V4;
   using Row = RowLanes<N * CH>;
-  Row P{}, Pi{}, Pj{}, Pd0{},
-      Pd1{};  // sums over (i, j) of a row's lanes: w_i w_j r, i w_i w_j r, ...
+  // Sums over (i, j) of a row's lanes: w_i w_j r, i w_i w_j r, w_i j w_j r, dw_i w_j r, w_i dw_j r.
+  Row P{}, Pi{}, Pj{}, Pd0{}, Pd1{};
   for (int i = 0; i < N; ++i) {
     Row Q{}, Qj{}, Qd{};  // over j of row (i, j): w_j r, j w_j r, dw_j r
     for (int j = 0; j < N; ++j) {
