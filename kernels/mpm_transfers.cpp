@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cstring>
 #include <memory>
+#include <type_traits>
 #include <vector>
 
 #if defined(__AVX512F__)
@@ -109,22 +110,13 @@ inline __m512 splat_quads16(const Real* s, int n) {
 template <int L>
 struct RowLanes {
   static_assert(L % 4 == 0, "whole 4-lane quads");
-#if defined(__AVX512F__) && !defined(AMALGAM_REAL_DOUBLE)
-  static constexpr int W = 16;
-#elif defined(__AVX__) && !defined(AMALGAM_REAL_DOUBLE)
-  static constexpr int W = 8;
+#if !defined(AMALGAM_REAL_DOUBLE)
+  static constexpr int W = lanes::kN<Real>;  // the path's particle lanes: 4, 8 or 16 floats
 #else
   static constexpr int W = 4;
 #endif
-  template <int N, int = 0>
-  struct Vec {
-    typedef Real type __attribute__((vector_size(N * sizeof(Real))));
-  };
-  template <int D>
-  struct Vec<4, D> {  // simd::V4: two SSE2 halves in the double build without AVX
-    using type = simd::V4;
-  };
-  using VW = typename Vec<W>::type;
+  // simd::V4 where 4 wide (the double build's: two SSE2 halves without AVX).
+  using VW = std::conditional_t<W == 4, simd::V4, lanes::V<Real>>;
   static constexpr int C = L / W, kTail = L % W;  // full vectors, then kTail (< W) lanes
   static constexpr int kTailV = kTail == 0 ? 0 : 1;
   // AVX-512: the tail is one masked 16-lane vector; AVX: a V4 (L % 8 is 0 or 4).
