@@ -737,32 +737,40 @@ inline void gather_dilated(GridBlock<Order, CH, M>& blk, const MpmGridView& g, s
   }
   const std::array<std::int32_t, 27>& n27 = g.bin_nbr27[b];
   // A block row (i, j) meets the leaves -1, 0, +1 along z in three runs of nodes, each contiguous
-  // in its leaf (leaf_offset: z fastest) and in the block: one copy per run.
-  constexpr int k0[3] = {0, M, M + kLeafDim}, k1[3] = {M, M + kLeafDim, Blk::B};
+  // in its leaf (leaf_offset: z fastest) and in the block: one copy per run, of a length known at
+  // compile time (M, kLeafDim, Order + M nodes), so the copies are inline moves rather than
+  // library calls (~430 calls a bin of 1 to 8 nodes each: measured 5 % of a substep).
+  auto run = [&](auto r_c, Real* row, int t0, int oi, int oj) {
+    constexpr int r = decltype(r_c)::value;
+    constexpr int k0 = r == 0 ? 0 : r == 1 ? M : M + kLeafDim;
+    constexpr int n = (r == 0 ? M : r == 1 ? M + kLeafDim : Blk::B) - k0;
+    if constexpr (n > 0) {
+      Real* d = row + k0 * CH;
+      const std::int32_t leaf = n27[std::size_t(t0 + r)];
+      if (leaf < 0) {
+        std::memset(d, 0, sizeof(Real) * std::size_t(n * CH));
+        return;
+      }
+      constexpr int ok = r == 0 ? kLeafDim - M : 0;  // the run's first offset along z in its leaf
+      const std::size_t e =
+          (std::size_t(leaf) * kLeafNodes + std::size_t(leaf_offset(oi, oj, ok))) * 4;
+      if constexpr (CH == 4) {
+        std::memcpy(d, g.a + e, sizeof(Real) * std::size_t(4 * n));
+      } else {
+        for (int k = 0; k < n; ++k) {
+          simd::store4(d + 8 * k, simd::load4(g.a + e + 4 * std::size_t(k)));
+          simd::store4(d + 8 * k + 4, simd::load4(g.b + e + 4 * std::size_t(k)));
+        }
+      }
+    }
+  };
   for (int i = 0; i < Blk::B; ++i)
     for (int j = 0; j < Blk::B; ++j) {
       const int t0 = (leaf_d[i] + 1) * 9 + (leaf_d[j] + 1) * 3;
-      for (int r = 0; r < 3; ++r) {
-        const int n = k1[r] - k0[r];
-        if (n == 0) continue;
-        Real* d = blk.data + Blk::at(i, j, k0[r]);
-        const std::int32_t leaf = n27[std::size_t(t0 + r)];
-        if (leaf < 0) {
-          std::memset(d, 0, sizeof(Real) * std::size_t(n * CH));
-          continue;
-        }
-        const std::size_t e = (std::size_t(leaf) * kLeafNodes +
-                               std::size_t(leaf_offset(off[i], off[j], off[k0[r]]))) *
-                              4;
-        if constexpr (CH == 4) {
-          std::memcpy(d, g.a + e, sizeof(Real) * std::size_t(4 * n));
-        } else {
-          for (int k = 0; k < n; ++k) {
-            simd::store4(d + 8 * k, simd::load4(g.a + e + 4 * std::size_t(k)));
-            simd::store4(d + 8 * k + 4, simd::load4(g.b + e + 4 * std::size_t(k)));
-          }
-        }
-      }
+      Real* row = blk.data + Blk::at(i, j, 0);
+      run(std::integral_constant<int, 0>{}, row, t0, off[i], off[j]);
+      run(std::integral_constant<int, 1>{}, row, t0, off[i], off[j]);
+      run(std::integral_constant<int, 2>{}, row, t0, off[i], off[j]);
     }
 }
 

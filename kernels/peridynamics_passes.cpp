@@ -240,7 +240,7 @@ inline bool past_end(const PdBonds& bonds, std::uint64_t kb, int n) {
 // Lane sums (PdBonds::lane): acc[lane] += t[m] over a block of n terms, in bond order within each
 // lane. Dense rows: lane = position mod kSumLanes (blocks start at multiples of kSumLanes), 8
 // independent chains the compiler vectorises. Compacted rows: the stored lanes (scalar).
-inline void lane_sum(const Real* t, int n, Real* acc) {
+__attribute__((always_inline)) inline void lane_sum(const Real* t, int n, Real* acc) {
   int m = 0;
   for (; m + kSumLanes <= n; m += kSumLanes)
     for (int l = 0; l < kSumLanes; ++l) acc[l] += t[m + l];
@@ -249,7 +249,8 @@ inline void lane_sum(const Real* t, int n, Real* acc) {
 inline void lane_sum(const Real* t, const std::uint8_t* lane, int n, Real* acc) {
   for (int m = 0; m < n; ++m) acc[lane[m]] += t[m];
 }
-inline void lane_sum(const Real* t, const std::uint8_t* lane, bool dense, int n, Real* acc) {
+__attribute__((always_inline)) inline void lane_sum(const Real* t, const std::uint8_t* lane,
+                                                    bool dense, int n, Real* acc) {
   if (dense)
     lane_sum(t, n, acc);
   else
