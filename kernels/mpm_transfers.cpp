@@ -150,6 +150,65 @@ struct RowLanes {
     for (int c = 0; c < C + (W == 16 ? kTailV : 0); ++c) v[c] += s * r.v[c];
     if constexpr (W == 8 && kTail > 0) t[0] += s * r.t[0];
   }
+  void store(Real* p) const {
+    for (int c = 0; c < C; ++c) {
+      if constexpr (W == 4)
+        simd::store4(p + c * W, v[c]);
+      else
+        std::memcpy(p + c * W, static_cast<const void*>(&v[c]), sizeof(VW));
+    }
+    if constexpr (kTail > 0) {
+#if defined(__AVX512F__) && !defined(AMALGAM_REAL_DOUBLE)
+      _mm512_mask_storeu_ps(p + C * W, __mmask16((1u << kTail) - 1u), (__m512)v[C]);
+#else
+      simd::store4(p + C * W, t[0]);
+#endif
+    }
+  }
+#if !defined(AMALGAM_REAL_DOUBLE)
+  // For P2G's rows (AVX and baseline paths): the row whose quad k is q[k] (k < L / 4), and the
+  // row with every quad q.
+  static RowLanes from_quads(const simd::V4* q) {
+    static_assert(W == 4 || W == 8, "AVX-512's P2G rows are NodeRows16");
+    RowLanes r;
+    if constexpr (W == 4) {
+      for (int c = 0; c < C; ++c) r.v[c] = q[c];
+    } else {
+      for (int c = 0; c < C; ++c)
+        r.v[c] = __builtin_shufflevector(q[2 * c], q[2 * c + 1], 0, 1, 2, 3, 4, 5, 6, 7);
+      if constexpr (kTail > 0) r.t[0] = q[2 * C];
+    }
+    return r;
+  }
+  static RowLanes splat_quad(simd::V4 q) {
+    static_assert(W == 4 || W == 8, "AVX-512's P2G rows are NodeRows16");
+    RowLanes r;
+    for (int c = 0; c < C; ++c) {
+      if constexpr (W == 4)
+        r.v[c] = q;
+      else
+        r.v[c] = __builtin_shufflevector(q, q, 0, 1, 2, 3, 0, 1, 2, 3);
+    }
+    if constexpr (W == 8 && kTail > 0) r.t[0] = q;
+    return r;
+  }
+  // P2G's row of (mass, momentum), lane by lane: *this += (wij wz) (a + z), less (wz g0 + dwz g1)
+  // first when Grad: per lane exactly the node-by-node loop's operations (p2g_particle).
+  template <bool Grad>
+  void add_momentum(Real wij, const RowLanes& wz, const RowLanes& z, const RowLanes& a,
+                    const RowLanes& dwz, const RowLanes& g0, const RowLanes& g1) {
+    auto lane = [wij](auto& acc, const auto& wz_, const auto& z_, const auto& a_, const auto& dwz_,
+                      const auto& g0_, const auto& g1_) {
+      auto mom = (wij * wz_) * (a_ + z_);
+      if constexpr (Grad) mom = mom - (wz_ * g0_ + dwz_ * g1_);
+      acc = acc + mom;
+    };
+    for (int c = 0; c < C + (W == 16 ? kTailV : 0); ++c)
+      lane(v[c], wz.v[c], z.v[c], a.v[c], dwz.v[c], g0.v[c], g1.v[c]);
+    if constexpr (W == 8 && kTail > 0)
+      lane(t[0], wz.t[0], z.t[0], a.t[0], dwz.t[0], g0.t[0], g1.t[0]);
+  }
+#endif
   // Lanes 4q .. 4q + 3.
   simd::V4 quad(int q) const {
     const int c = (4 * q) / W, e = (4 * q) % W;
@@ -265,6 +324,42 @@ __attribute__((flatten)) inline void p2g_particle(GridBlock<Order, CH, M>& blk, 
         }
         _mm512_mask_storeu_ps(row, nr.mask,
                               _mm512_add_ps(_mm512_maskz_loadu_ps(nr.mask, row), mom));
+      }
+    }
+    return;
+  }
+#endif
+#if !defined(AMALGAM_REAL_DOUBLE)
+  // The same rows on the AVX and baseline paths, in RowLanes (8 + 4 lanes on AVX, V4s on the
+  // baseline): lane 4k + c computes exactly what node k's lane c computes in the loop below, so
+  // every path gives the same bits; a row takes one load, add and store per vector. (AVX-512
+  // keeps NodeRows16 above: this code built for 16 lanes ran P2G 3.3x slower, measured.)
+  constexpr bool kRows =
+      lanes::kN<Real> != 16 && CH == 4 && !P && !S && (T == Transfer::Mls || T == Transfer::Apic);
+  if constexpr (kRows) {
+    using Row = RowLanes<N * CH>;
+    V4 wq[N], dwq[N];
+    for (int k = 0; k < N; ++k) {
+      wq[k] = V4{} + st.w[2][k];
+      dwq[k] = V4{} + st.dw[2][k];
+    }
+    const Row wz = Row::from_quads(wq), dwz = Row::from_quads(dwq), z = Row::from_quads(zk);
+    for (int i = 0; i < N; ++i) {
+      const Real oi = (Real(i) - st.fx[0]) * dx;
+      const V4 ai = mv + a0 * oi;
+      for (int j = 0; j < N; ++j) {
+        const Real oj = (Real(j) - st.fx[1]) * dx;
+        const V4 aij = ai + a1 * oj;
+        const Real wx = st.w[0][i], wy = st.w[1][j], wij = wx * wy;
+        Row g0{}, g1{};
+        if constexpr (kGrad) {
+          g0 = Row::splat_quad(g0c * (st.dw[0][i] * wy) + g1c * (wx * st.dw[1][j]));
+          g1 = Row::splat_quad(g2c * wij);
+        }
+        Real* row = blk.data + GridBlock<Order, CH, M>::at(l[0] + i, l[1] + j, l[2]);
+        Row r = Row::load(row);
+        r.template add_momentum<kGrad>(wij, wz, z, Row::splat_quad(aij), dwz, g0, g1);
+        r.store(row);
       }
     }
     return;
