@@ -169,7 +169,7 @@ struct RowLanes {
   // For P2G's rows (AVX and baseline paths): the row whose quad k is q[k] (k < L / 4), and the
   // row with every quad q.
   static RowLanes from_quads(const simd::V4* q) {
-    static_assert(W == 4 || W == 8, "AVX-512's P2G rows are NodeRows16");
+    static_assert(L > 0 && (W == 4 || W == 8), "AVX-512's P2G rows are NodeRows16");
     RowLanes r;
     if constexpr (W == 4) {
       for (int c = 0; c < C; ++c) r.v[c] = q[c];
@@ -181,7 +181,7 @@ struct RowLanes {
     return r;
   }
   static RowLanes splat_quad(simd::V4 q) {
-    static_assert(W == 4 || W == 8, "AVX-512's P2G rows are NodeRows16");
+    static_assert(L > 0 && (W == 4 || W == 8), "AVX-512's P2G rows are NodeRows16");
     RowLanes r;
     for (int c = 0; c < C; ++c) {
       if constexpr (W == 4)
