@@ -834,7 +834,7 @@ inline void gather_dilated(GridBlock<Order, CH, M>& blk, const MpmGridView& g, s
   // A block row (i, j) meets the leaves -1, 0, +1 along z in three runs of nodes, each contiguous
   // in its leaf (leaf_offset: z fastest) and in the block: one copy per run, of a length known at
   // compile time (M, kLeafDim, Order + M nodes), so the copies are inline moves rather than
-  // library calls (~430 calls a bin of 1 to 8 nodes each: measured 5 % of a substep).
+  // ~430 library calls a bin of 1 to 8 nodes each (within noise on the bench: docs/benchmarks.md).
   auto run = [&](auto r_c, Real* row, int t0, int oi, int oj) {
     constexpr int r = decltype(r_c)::value;
     constexpr int k0 = r == 0 ? 0 : r == 1 ? M : M + kLeafDim;

@@ -240,6 +240,8 @@ inline bool past_end(const PdBonds& bonds, std::uint64_t kb, int n) {
 // Lane sums (PdBonds::lane): acc[lane] += t[m] over a block of n terms, in bond order within each
 // lane. Dense rows: lane = position mod kSumLanes (blocks start at multiples of kSumLanes), 8
 // independent chains the compiler vectorises. Compacted rows: the stored lanes (scalar).
+// always_inline: GCC left them out of line, a call per block and force component (inlined: the
+// step 1.07x faster, docs/benchmarks.md "The peridynamic force pass").
 __attribute__((always_inline)) inline void lane_sum(const Real* t, int n, Real* acc) {
   int m = 0;
   for (; m + kSumLanes <= n; m += kSumLanes)
