@@ -150,24 +150,9 @@ struct RowLanes {
     for (int c = 0; c < C + (W == 16 ? kTailV : 0); ++c) v[c] += s * r.v[c];
     if constexpr (W == 8 && kTail > 0) t[0] += s * r.t[0];
   }
-  void store(Real* p) const {
-    for (int c = 0; c < C; ++c) {
-      if constexpr (W == 4)
-        simd::store4(p + c * W, v[c]);
-      else
-        std::memcpy(p + c * W, static_cast<const void*>(&v[c]), sizeof(VW));
-    }
-    if constexpr (kTail > 0) {
-#if defined(__AVX512F__) && !defined(AMALGAM_REAL_DOUBLE)
-      _mm512_mask_storeu_ps(p + C * W, __mmask16((1u << kTail) - 1u), (__m512)v[C]);
-#else
-      simd::store4(p + C * W, t[0]);
-#endif
-    }
-  }
 #if !defined(AMALGAM_REAL_DOUBLE)
-  // For P2G's rows (AVX and baseline paths): the row whose quad k is q[k] (k < L / 4), and the
-  // row with every quad q.
+  // For P2G's rows (AVX and baseline paths only): the row whose quad k is q[k] (k < L / 4), the
+  // row with every quad q, its store and its update.
   static RowLanes from_quads(const simd::V4* q) {
     static_assert(L > 0 && (W == 4 || W == 8), "AVX-512's P2G rows are NodeRows16");
     RowLanes r;
@@ -179,6 +164,16 @@ struct RowLanes {
       if constexpr (kTail > 0) r.t[0] = q[2 * C];
     }
     return r;
+  }
+  void store(Real* p) const {
+    static_assert(L > 0 && (W == 4 || W == 8), "AVX-512's P2G rows are NodeRows16");
+    for (int c = 0; c < C; ++c) {
+      if constexpr (W == 4)
+        simd::store4(p + c * W, v[c]);
+      else
+        std::memcpy(p + c * W, static_cast<const void*>(&v[c]), sizeof(VW));
+    }
+    if constexpr (kTail > 0) simd::store4(p + C * W, t[0]);
   }
   static RowLanes splat_quad(simd::V4 q) {
     static_assert(L > 0 && (W == 4 || W == 8), "AVX-512's P2G rows are NodeRows16");
@@ -203,8 +198,8 @@ struct RowLanes {
       if constexpr (Grad) mom = mom - (wz_ * g0_ + dwz_ * g1_);
       acc = acc + mom;
     };
-    for (int c = 0; c < C + (W == 16 ? kTailV : 0); ++c)
-      lane(v[c], wz.v[c], z.v[c], a.v[c], dwz.v[c], g0.v[c], g1.v[c]);
+    static_assert(L > 0 && (W == 4 || W == 8), "AVX-512's P2G rows are NodeRows16");
+    for (int c = 0; c < C; ++c) lane(v[c], wz.v[c], z.v[c], a.v[c], dwz.v[c], g0.v[c], g1.v[c]);
     if constexpr (W == 8 && kTail > 0)
       lane(t[0], wz.t[0], z.t[0], a.t[0], dwz.t[0], g0.t[0], g1.t[0]);
   }
