@@ -44,6 +44,11 @@ constexpr char kLowPartAttribute[] = "F_lo";
 // file written by a run that kept F (an older binary's) is read by one that keeps J with
 // J = det F, the J its next substep's stress would have read from F.
 constexpr char kVolumeAttribute[] = "J";
+// A run that keeps b - I of b = F F^T instead of F and F_lo (MpmSolver::keeps_b) reads a file
+// holding F (and F_lo) with b - I = (F + F_lo)(F + F_lo)^T - I, rounded once; a run keeping F
+// refuses a file holding b (the rotation of F is not in it), naming it. No new version: the
+// attribute list names what a file holds.
+constexpr char kLeftCauchyGreenAttribute[] = "b";
 
 template <class T>
 void put(std::string& b, const T& v) {
@@ -193,10 +198,12 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
   const bool skip_low_part = !pd && low_part < 0;
   const int volume = pd ? -1 : ps.find(kVolumeAttribute);
   const bool F_to_J = volume >= 0 && ps.find("F") < 0;
+  const int left_cg = pd ? -1 : ps.find(kLeftCauchyGreenAttribute);
+  std::vector<Mat3> F_in, F_lo_in;  // F_to_b: the file's F and F_lo
   const std::uint32_t expected = std::uint32_t(ps.attribute_count()) - nmissing + ndropped;
   const std::uint32_t fewest = expected - (rest ? 1 : 0) - (affine ? 1 : 0);
-  const std::uint32_t most =
-      expected + (rest ? 0 : 1) + (skip_affine ? 1 : 0) + (skip_low_part ? 1 : 0);
+  const std::uint32_t most = expected + (rest ? 0 : 1) + (skip_affine ? 1 : 0) +
+                             (skip_low_part && left_cg < 0 ? 1 : 0) + (left_cg >= 0 ? 1 : 0);
   if (nattr < fewest || nattr > most)
     throw InputError(path + ": checkpoint has " + std::to_string(nattr) +
                      " particle attributes, expected " + std::to_string(expected));
@@ -230,6 +237,21 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
       r.take(size_t(n) * 4 * words, "attribute data");
       continue;
     }
+    if (left_cg >= 0 && (name == "F" || name == kLowPartAttribute) && a < 0 &&
+        type == std::uint32_t(AttrType::Real) && width == 9 &&
+        words == std::uint32_t(9 * sizeof(Real) / 4)) {
+      std::vector<Mat3>& dst = name == "F" ? F_in : F_lo_in;
+      if (!dst.empty() || read[std::size_t(left_cg)])
+        throw InputError(path + ": checkpoint attribute '" + name + "' appears twice or beside 'b'");
+      dst.resize(std::size_t(n));
+      const char* src = r.take(size_t(n) * 4 * words, "attribute data");
+      if (n > 0) std::memcpy(static_cast<void*>(dst.data()), src, size_t(n) * sizeof(Mat3));
+      continue;
+    }
+    if (name == kLeftCauchyGreenAttribute && a < 0 && !pd)
+      throw InputError(path + ": checkpoint holds 'b' (b = F F^T, written by a run that kept no F), "
+                       "but this run keeps F itself (its output asks for 'F'): resume without "
+                       "'F' in output.attributes");
     if (((skip_affine && name == kAffineAttribute) ||
          (skip_low_part && name == kLowPartAttribute)) &&
         a < 0 && type == std::uint32_t(AttrType::Real) && width == 9 &&
@@ -264,6 +286,19 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
                             ? ": checkpoint attributes 'F' and 'J' both hold the volume ratio"
                             : ": checkpoint attribute '" + name + "' appears twice"));
     read[std::size_t(a)] = 1;
+  }
+  if (!F_lo_in.empty() && F_in.empty())
+    throw InputError(path + ": checkpoint has 'F_lo' without 'F'");
+  if (!F_in.empty()) {  // F (+ F_lo) -> b - I
+    if (read[std::size_t(left_cg)])
+      throw InputError(path + ": checkpoint attributes 'F' and 'b' both hold the deformation");
+    SymDev* b = ps.sym_dev(left_cg);
+    for (std::size_t i = 0; i < std::size_t(n); ++i) {
+      Eigen::Matrix3d F = F_in[i].cast<double>();
+      if (!F_lo_in.empty()) F += F_lo_in[i].cast<double>();
+      b[i] = b_from_F<Real>(F);
+    }
+    read[std::size_t(left_cg)] = 1;
   }
   for (int a = 0; a < ps.attribute_count(); ++a) {
     if (read[std::size_t(a)]) continue;

@@ -568,6 +568,9 @@ void read_attributes(JsonObject& out, Scene& s) {
         s.output.attributes.begin() + long(i))
       out.fail(key, "attribute \"" + a + "\" is listed twice");
   }
+  // MPM particles keep F itself only for this output; else b = F F^T (MpmSolver::keeps_b).
+  const auto& as = s.output.attributes;
+  s.mpm.keep_F = std::find(as.begin(), as.end(), "F") != as.end();
 }
 
 }  // namespace

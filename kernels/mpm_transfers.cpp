@@ -440,10 +440,15 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
       }
     }
     const MaterialParams& mat = prm.materials[p.material[q0]];
-    if (!L && p.J)  // the particles keep J alone (MpmParticleView::J): every material a fluid
+    if (!L && p.J) {  // the particles keep J alone (MpmParticleView::J): every material a fluid
       mat.fluid_kirchhoff_lanes(p.J + q0, p.C ? p.C + q0 : zero, tau, n);
-    else
+    } else if (!L && p.b) {  // b - I: its Cholesky factor stands in for F (isotropic materials)
+      Mat3 Fb[W];
+      b_factor_lanes(p.b + q0, n, Fb);
+      mat.kirchhoff_lanes(Fb, p.C ? p.C + q0 : zero, plastic, temperature, tau, n);
+    } else {
       mat.kirchhoff_lanes(p.F + q0, L ? Lv : p.C ? p.C + q0 : zero, plastic, temperature, tau, n);
+    }
     for (int l = 0; l < n; ++l) {
       const std::uint32_t q = q0 + std::uint32_t(l);
       if constexpr (M > 0) {  // the stencil's nodes base .. base + Order inside the block?
@@ -648,6 +653,26 @@ inline Flat9 flat9(const simd::V4* col) {
 #endif
 }
 
+// advance_b (core/math/left_cauchy_green.hpp: b <- (I + G) b (I + G)^T) with G = dt grad v given
+// as 4-lane columns (column k is dt Gcol[k], row r in lane r + 1): the same operations in the same
+// order, on columns, so the same bits as the scalar form.
+inline void advance_b_columns(SymDev& bd, const simd::V4* Gcol, Real dt) {
+  using simd::V4;
+  Real* d = bd.e;
+  const Real D[3][3] = {{d[0], d[3], d[4]}, {d[3], d[1], d[5]}, {d[4], d[5], d[2]}};
+  V4 g[3], Q[3], QG[3];
+  for (int k = 0; k < 3; ++k) g[k] = dt * Gcol[k];
+  for (int c = 0; c < 3; ++c)  // Q = G + G D, column c
+    Q[c] = g[c] + ((g[0] * D[0][c] + g[1] * D[1][c]) + g[2] * D[2][c]);
+  for (int c = 0; c < 3; ++c)  // Q G^T, column c: sum over k of Q's column k times G(c, k)
+    QG[c] = (Q[0] * g[0][c + 1] + Q[1] * g[1][c + 1]) + Q[2] * g[2][c + 1];
+  constexpr int rs[6] = {0, 1, 2, 0, 0, 1}, cs[6] = {0, 1, 2, 1, 2, 2};
+  for (int e = 0; e < 6; ++e) {
+    const int r = rs[e], c = cs[e];
+    d[e] += (Q[c][r + 1] + Q[r][c + 1]) + QG[c][r + 1];
+  }
+}
+
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).
 // L (Lagrangian mode): the stencil sits at the reference position xs and F_s, F_0s are updated
 // (eqs. 30, 32); otherwise xs is x itself and F <- (I + dt grad v) F, or, where the particles keep
@@ -658,7 +683,8 @@ template <int Order, Transfer T, int CH, bool L, int M = 0>
 __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>& blk,
                                                   const Vec3i& origin, const Vec3& xs, Vec3& x,
                                                   Vec3* x_lo, Vec3& v, Mat3* C, Mat3* Fp,
-                                                  Mat3* F_lo, Real* J, Mat3* Fs, const Mat3* F0s,
+                                                  Mat3* F_lo, Real* J, SymDev* bd, Mat3* Fs,
+                                                  const Mat3* F0s,
                                                   Real dx, Real inv_dx, Real dt, Real alpha) {
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
@@ -771,6 +797,8 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
     for (int c = 0; c < 3; ++c)
       for (int k = 0; k < 3; ++k) a[c][k] = dt * Gcol[k][c + 1];
     *J = WeaklyCompressibleT<Real>::advance_J(*J, a);
+  } else if (bd) {  // b <- (I + dt grad v) b (I + dt grad v)^T, F itself not kept
+    advance_b_columns(*bd, Gcol, dt);
   } else {
     Mat3& F = *Fp;
     // F <- F + dt (grad v) F: the increment's column j is dt sum_a g_a F(a, j), on 4-lane
@@ -904,12 +932,12 @@ void g2p_impl(const exec::Space& space, const MpmParticleView& p, const MpmGridV
     for (std::uint32_t q = q0; q < q1; ++q) {
       if constexpr (L)
         g2p_particle<Order, T, CH, true>(blk, origin, p.X_ref[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                         lo(p.C, q), p.F + q, nullptr, nullptr, p.F_s + q,
+                                         lo(p.C, q), p.F + q, nullptr, nullptr, nullptr, p.F_s + q,
                                          p.F_0s + q, dx, inv_dx, dt, alpha);
       else
         g2p_particle<Order, T, CH, false>(blk, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
                                           lo(p.C, q), lo(p.F, q), lo(p.F_lo, q), lo(p.J, q),
-                                          nullptr, nullptr, dx, inv_dx, dt, alpha);
+                                          lo(p.b, q), nullptr, nullptr, dx, inv_dx, dt, alpha);
     }
     finish_bin(p, prm, q0, q1, acc);
   });
@@ -943,7 +971,7 @@ void g2p2g_impl(const exec::Space& space, const MpmParticleView& p, const MpmGri
       for (std::uint32_t q = q0; q < q1; ++q)
         g2p_particle<Order, T, CH, false>(in, in_origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
                                           lo(p.C, q), lo(p.F, q), lo(p.F_lo, q), lo(p.J, q),
-                                          nullptr, nullptr, dx, inv_dx, dt, alpha);
+                                          lo(p.b, q), nullptr, nullptr, dx, inv_dx, dt, alpha);
     }
     if (prm.ncolliders > 0) collide_range(p, prm.colliders, prm.ncolliders, q0, q1, t_end);
     for (std::uint32_t q = q0; mu && q < q1; q += kN)
@@ -1075,8 +1103,8 @@ void g2p_dilated_impl(const exec::Space& space, const MpmParticleView& p, const 
     const std::uint32_t q0 = g.bin_start[b], q1 = g.end_of(b);
     for (std::uint32_t q = q0; q < q1; ++q) {
       g2p_particle<Order, T, CH, false>(in, origin, p.x[q], p.x[q], lo(p.x_lo, q), p.v[q],
-                                        lo(p.C, q), lo(p.F, q), lo(p.F_lo, q), lo(p.J, q), nullptr,
-                                        nullptr, dx, inv_dx, dt, alpha);
+                                        lo(p.C, q), lo(p.F, q), lo(p.F_lo, q), lo(p.J, q),
+                                        lo(p.b, q), nullptr, nullptr, dx, inv_dx, dt, alpha);
       out |= !stencil_in_block<Order>(p.x[q], inv_dx, origin, Blk::B, nullptr);
     }
     far[b] = out;  // before the collisions: P2G finds a particle they pushed out

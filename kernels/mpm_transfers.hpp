@@ -26,6 +26,7 @@
 
 #include "core/exec/exec.hpp"
 #include "core/materials/material.hpp"
+#include "core/math/left_cauchy_green.hpp"
 #include "core/math/types.hpp"
 #include "core/geometry/colliders.hpp"
 #include "kernels/stability_check.hpp"
@@ -53,6 +54,10 @@ struct MpmParticleView {
   // J = det F instead of F (MpmSolver::keeps_J_only: every material a fluid, explicit, Eulerian):
   // G2P takes J <- det(I + dt grad v) J, the stress reads J, and nothing resets F.
   Real* J = nullptr;
+  // b - I of the left Cauchy-Green tensor b = F F^T instead of F (MpmSolver::keeps_b: explicit,
+  // Eulerian, no output of F; core/math/left_cauchy_green.hpp): G2P advances it, the stress and
+  // the material update read its Cholesky factor as F (every material is isotropic).
+  SymDev* b = nullptr;
   Real* plastic = nullptr;      // per-particle plastic scalar, if any material has one
   Real* temperature = nullptr;  // per-particle temperature (K), if any material melts
   // Adaptively updated Lagrangian mode (A-ULMPM Sec. 5), on when X_ref is set: weights and
@@ -70,6 +75,8 @@ inline void check_particles(StabilityCheck& acc, Index i0, Index i1, const MpmPa
                             const StabilityLimits& lim) {
   if (p.J)
     check_range(acc, i0, i1, p.v, p.J, lim);
+  else if (p.b)
+    check_range(acc, i0, i1, p.v, p.b, lim);
   else
     check_range(acc, i0, i1, p.v, p.F, lim);
 }

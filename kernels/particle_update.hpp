@@ -25,6 +25,11 @@ inline void update_material_group(const MpmParticleView& p, const MaterialUpdate
   constexpr int kN = lanes::kN<Real>;
   Real temperature[kN], J[kN], root[kN];
   Mat3 F[kN];
+  // Particles keeping b - I (MpmParticleView::b): its Cholesky factor stands in for F (every
+  // material is isotropic); a projection writes back the new F's F F^T - I.
+  Mat3 Fb[kN];
+  if (p.b) b_factor_lanes(p.b + i0, int(i1 - i0), Fb);
+  auto F_of = [&](exec::Index i) -> Mat3& { return p.b ? Fb[i - i0] : p.F[i]; };
   int lane_of[kN], m = 0, r = 0;
   for (exec::Index i = i0; i < i1; ++i) {
     Real& ti = temperature[i - i0];
@@ -40,12 +45,12 @@ inline void update_material_group(const MpmParticleView& p, const MaterialUpdate
     const MaterialParams& mat = prm.materials[p.material[i]];
     if (mat.project_is_reset(ti)) {  // WeaklyCompressibleT::reset: its J here, its root below
       lane_of[i - i0] = kN + r;
-      J[r++] = WeaklyCompressibleT<Real>::reset_J(p.F[i]);
+      J[r++] = WeaklyCompressibleT<Real>::reset_J(F_of(i));
       continue;
     }
     const bool svd = mat.project_takes_svd(ti);
     lane_of[i - i0] = svd ? m : -1;
-    if (svd) F[m++] = p.F[i];
+    if (svd) F[m++] = F_of(i);
   }
   Svd3<Real> d[kN];
   if (m > 0) svd3_lanes(F, m, d);
@@ -54,15 +59,21 @@ inline void update_material_group(const MpmParticleView& p, const MaterialUpdate
     const MaterialParams& mat = prm.materials[p.material[i]];
     const int l = lane_of[i - i0];
     if (l >= kN) {  // the fluid's reset, F <- J^{1/3} I
+      if (p.b) {
+        const Real s = root[l - kN] * root[l - kN] - 1;  // b - I = (J^{2/3} - 1) I
+        p.b[i] = SymDev{{s, s, s, 0, 0, 0}};
+        continue;
+      }
       p.F[i] = root[l - kN] * Mat3::Identity();
       if (p.F_lo) p.F_lo[i].setZero();
       continue;
     }
     Real plastic = p.plastic ? p.plastic[i] : Real(0);
-    if (l >= 0 ? mat.project(p.F[i], plastic, d[l])
-               : mat.project(p.F[i], plastic, temperature[i - i0])) {
+    Mat3& Fi = F_of(i);
+    if (l >= 0 ? mat.project(Fi, plastic, d[l]) : mat.project(Fi, plastic, temperature[i - i0])) {
       if (p.plastic) p.plastic[i] = plastic;
       if (p.F_lo) p.F_lo[i].setZero();  // the projected F is new: no low part carries over
+      if (p.b) p.b[i] = b_from_F<Real>(Fi.cast<double>());
     }
   }
 }

@@ -11,6 +11,7 @@
 #include <cstdint>
 
 #include "core/materials/material.hpp"
+#include "core/math/left_cauchy_green.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam {
@@ -44,8 +45,17 @@ inline Real entry_sum(const Mat3& F) {
 inline Real entry_sum(Real J) {
   return J;
 }
+// b - I (MpmParticleView::b) likewise.
+inline bool all_finite(const SymDev& d) {
+  bool ok = true;
+  for (Real e : d.e) ok &= std::isfinite(e);
+  return ok;
+}
+inline Real entry_sum(const SymDev& d) {
+  return ((d.e[0] + d.e[1]) + (d.e[2] + d.e[3])) + (d.e[4] + d.e[5]);
+}
 
-template <class D>  // Mat3 or Real
+template <class D>  // Mat3, SymDev or Real
 inline void check_particle(StabilityCheck& acc, std::int64_t i, const Vec3& v, const D& F,
                            const StabilityLimits& lim) {
   const Real s = v.norm();
@@ -72,7 +82,7 @@ inline void check_particle(StabilityCheck& acc, std::int64_t i, const Vec3& v, c
 // The same result: IEEE sqrt is correctly rounded and monotonic, so the square root of the largest
 // |v|^2 is the largest |v| (v.norm() is sqrt(v.squaredNorm())), and a particle whose |v|^2 or F
 // is not finite, or whose |v|^2 exceeds a quarter of max_speed^2, takes check_particle itself.
-template <class Index, class D>  // D: Mat3 or Real (J)
+template <class Index, class D>  // D: Mat3, SymDev (b - I) or Real (J)
 inline void check_range(StabilityCheck& acc, Index i0, Index i1, const Vec3* v, const D* F,
                         const StabilityLimits& lim) {
   const Real slow = Real(0.25) * lim.max_speed * lim.max_speed;

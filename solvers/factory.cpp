@@ -74,6 +74,7 @@ void apply_fields(const ObjectSpec& obj, MpmSolver& solver, std::size_t first, d
   Mat3* C = a.C >= 0 ? ps.mat3(a.C) : nullptr;  // PIC/FLIP without viscosity: no C
   Mat3* F = a.F >= 0 ? ps.mat3(a.F) : nullptr;
   Real* J = a.J >= 0 ? ps.real(a.J) : nullptr;  // fluids keeping J alone: J = det F
+  SymDev* b = a.b >= 0 ? ps.sym_dev(a.b) : nullptr;  // b - I instead of F (MpmSolver::keeps_b)
   const double h = 1e-3 * dx;
   for (std::size_t p = first; p < ps.size(); ++p) {
     const Vec3d X = x[p].cast<double>() + lo[p].cast<double>();
@@ -88,6 +89,7 @@ void apply_fields(const ObjectSpec& obj, MpmSolver& solver, std::size_t first, d
       const Mat3 Fp = Mat3::Identity() + field_gradient(*obj.displacement_field, X, h);
       if (F) F[p] = Fp;
       if (J) J[p] = Fp.determinant();
+      if (b) b[p] = b_from_F<Real>(Fp.cast<double>());
     }
   }
 }

@@ -35,15 +35,17 @@ std::vector<float> mpm_von_mises(const ParticleSet& ps, const MpmAttributes& a,
   const Real* temp = a.temperature >= 0 ? ps.real(a.temperature) : nullptr;
   const MaterialParams* m = materials.data();
   float* o = out.data();
-  if (a.F < 0) {  // fluids keeping J alone: tau = -J p(J) I, no deviatoric part without viscosity
+  if (a.F < 0 && a.b < 0) {  // fluids keeping J alone: tau = -J p(J) I, no deviatoric part
     std::fill(out.begin(), out.end(), 0.0f);
     return out;
   }
-  const Mat3* F = ps.mat3(a.F);
+  const Mat3* F = a.F >= 0 ? ps.mat3(a.F) : nullptr;
+  const SymDev* b = a.b >= 0 ? ps.sym_dev(a.b) : nullptr;  // its Cholesky factor stands in for F
   exec::parallel_for(space, "output.vonmises", exec::Index(n), [=](exec::Index i) {
-    const Mat3 tau = m[mat[i]].kirchhoff(F[i], Mat3::Zero(), plastic ? plastic[i] : Real(0),
+    const Mat3 Fi = F ? F[i] : b_factor(b[i]);
+    const Mat3 tau = m[mat[i]].kirchhoff(Fi, Mat3::Zero(), plastic ? plastic[i] : Real(0),
                                          temp ? temp[i] : Real(0));
-    o[i] = float(von_mises(tau.cast<double>() / double(F[i].determinant())));
+    o[i] = float(von_mises(tau.cast<double>() / double(Fi.determinant())));
   });
   return out;
 }
@@ -63,7 +65,9 @@ PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, con
   PointAttribute out{name, T::Float, {}, {}};
   const Mat3* F = a.F >= 0 ? ps.mat3(a.F) : nullptr;
   const Real* J = a.J >= 0 ? ps.real(a.J) : nullptr;  // fluids keeping J alone: F = J^{1/3} I
+  const SymDev* b = a.b >= 0 ? ps.sym_dev(a.b) : nullptr;  // b - I: no F (MpmSettings::keep_F)
   if (name == "F") {
+    if (b) throw std::logic_error("MPM particles keeping b = F F^T have no F");
     out.type = T::Mat3;
     out.f.resize(9 * n);
     for (std::size_t i = 0; i < n; ++i) {
@@ -73,7 +77,8 @@ PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, con
     }
   } else if (name == "J") {
     out.f.resize(n);
-    for (std::size_t i = 0; i < n; ++i) out.f[i] = float(F ? F[i].determinant() : J[i]);
+    for (std::size_t i = 0; i < n; ++i)
+      out.f[i] = float(F ? F[i].determinant() : b ? b_factor(b[i]).determinant() : J[i]);
   } else if (name == "Jp") {
     out.f = real_values(ps, a.plastic, "plastic state");
   } else if (name == "temperature") {
@@ -477,6 +482,7 @@ void MpmSimulation::restored(double time, std::uint64_t steps) {
   check_index_attribute(ps, "asleep", 0, 1);
   check_low_part(ps, "x", "x_lo");
   check_low_part(ps, "F", "F_lo");
+  check_positive_definite(ps, "b");
   if (const MpmAul* a = s_.aul())
     check_index_attribute(ps, "object", 0, a->maps().object_count() - 1);
   if (const MpmEnriched* e = s_.enriched()) {

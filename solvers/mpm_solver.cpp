@@ -57,6 +57,11 @@ bool MpmSolver::keeps_J_only(const MpmSettings& s, const std::vector<MaterialPar
   return true;
 }
 
+bool MpmSolver::keeps_b(const MpmSettings& s, const std::vector<MaterialParams>& materials) {
+  return !s.implicit && !s.configuration_maps && !s.domains.enabled && !s.keep_F &&
+         !keeps_J_only(s, materials);
+}
+
 MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> materials,
                      std::vector<Collider> colliders, std::vector<HeatSource> heat_sources)
     : settings_(settings),
@@ -79,7 +84,8 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
   const bool J_only = keeps_J_only(settings_, materials_);
   if (J_only) material_update_ = false;  // the update was the fluid's F reset: nothing to do on J
   attr_ = MpmAttributes::add_to(particles_, plastic, melting, keeps_affine(settings_, materials_),
-                                keeps_F_low_part(materials_), J_only);
+                                keeps_F_low_part(materials_), J_only,
+                                keeps_b(settings_, materials_));
   if (settings_.domains.enabled) {
     if (settings_.configuration_maps)
       throw InputError("particle domains and configuration maps (A-ULMPM) cannot be combined");
@@ -253,6 +259,7 @@ MpmParticleView MpmSolver::particle_view() {
   v.x_lo = particles_.vec3(attr_.x_lo);
   if (attr_.F_lo >= 0) v.F_lo = particles_.mat3(attr_.F_lo);
   if (attr_.J >= 0) v.J = particles_.real(attr_.J);
+  if (attr_.b >= 0) v.b = particles_.sym_dev(attr_.b);
   if (attr_.plastic >= 0) v.plastic = particles_.real(attr_.plastic);
   if (attr_.temperature >= 0) v.temperature = particles_.real(attr_.temperature);
   if (aul_) aul_->fill_view(v, particles_);
@@ -500,6 +507,7 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
   const Vec3* v = particles_.vec3(attr_.v);
   const Mat3* F = attr_.F >= 0 ? particles_.mat3(attr_.F) : nullptr;
   const Real* J = attr_.J >= 0 ? particles_.real(attr_.J) : nullptr;
+  const SymDev* b = attr_.b >= 0 ? particles_.sym_dev(attr_.b) : nullptr;
   const Real limit = settings_.max_speed;
   StabilityCheck chk = folded_;
   if (folded_at_ != state_version_) {  // not folded into the last particle pass: a pass of its own
@@ -509,6 +517,8 @@ Real MpmSolver::stable_dt(const exec::Space& space) const {
         [=](exec::Index i, StabilityCheck& acc) {
           if (J)
             check_particle(acc, i, v[i], J[i], lim);
+          else if (b)
+            check_particle(acc, i, v[i], b[i], lim);
           else
             check_particle(acc, i, v[i], F[i], lim);
         },
@@ -606,6 +616,7 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
   const Vec3* v = particles_.vec3(attr_.v);
   const Mat3* F = attr_.F >= 0 ? particles_.mat3(attr_.F) : nullptr;
   const Real* J = attr_.J >= 0 ? particles_.real(attr_.J) : nullptr;  // fluids only: F absent
+  const SymDev* bd = attr_.b >= 0 ? particles_.sym_dev(attr_.b) : nullptr;  // b - I instead of F
   const Real* V0 = particles_.real(attr_.volume0);
   const std::int32_t* mat = particles_.int32(attr_.material);
   const MaterialParams* mats = materials_.data();
@@ -627,9 +638,12 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
         }
         if (J)  // the fluid's energy density of J (energy(F) is that of det F)
           for (std::size_t i = q0; i < q1; ++i) e[i - q0] = mats[mat[i]].fluid().energy_of_J(J[i]);
-        for (std::size_t r0 = q0, r1; r0 < q1 && F; r0 = r1) {
+        Mat3 Fb[W];  // b - I: its Cholesky factor stands in for F (isotropic energies)
+        if (bd) b_factor_lanes(bd + q0, int(q1 - q0), Fb);
+        const Mat3* Fg = bd ? Fb : F ? F + q0 : nullptr;  // particle i's at Fg + (i - q0)
+        for (std::size_t r0 = q0, r1; r0 < q1 && Fg; r0 = r1) {
           for (r1 = r0 + 1; r1 < q1 && mat[r1] == mat[r0];) ++r1;
-          mats[mat[r0]].energy_lanes(F + r0, pl + (r0 - q0), tp + (r0 - q0), e + (r0 - q0),
+          mats[mat[r0]].energy_lanes(Fg + (r0 - q0), pl + (r0 - q0), tp + (r0 - q0), e + (r0 - q0),
                                      int(r1 - r0));
         }
         for (std::size_t i = q0; i < q1; ++i) {

@@ -78,6 +78,9 @@ struct MpmSettings {
   // (sorts_when_needed; on one process or several, solvers/mpm_lazy_distributed.cpp): the
   // default; "every_substep": sort every substep.
   bool sort_when_needed = true;
+  // The particles keep F itself (the output asks for it: io/scene.cpp), not only b = F F^T
+  // (MpmSolver::keeps_b).
+  bool keep_F = false;
 };
 
 // Whether a run of these settings takes the fused substep (MpmSolver::step_fused): `fused` asked
@@ -156,6 +159,13 @@ class MpmSolver {
   // (kernels/mpm_transfers.cpp, g2p_particle) and no material update pass runs: 32 B less per
   // particle than F in float. The output's F of such a particle is J^{1/3} I.
   static bool keeps_J_only(const MpmSettings& s, const std::vector<MaterialParams>& materials);
+  // Whether particles of these settings and materials keep b - I of the left Cauchy-Green tensor
+  // b = F F^T instead of F and F_lo (MpmAttributes::b; core/math/left_cauchy_green.hpp): explicit,
+  // Eulerian, no particle domains, F not kept for the output (MpmSettings::keep_F) and not J alone.
+  // Every material is isotropic, so its stress, energy and return mapping read F only through b;
+  // b - I keeps a small strain's digits under any rotation, as F + F_lo did: 48 B less per
+  // particle in float.
+  static bool keeps_b(const MpmSettings& s, const std::vector<MaterialParams>& materials);
   // Gives every particle the attribute `rest` (MpmAttributes::rest), its current position, and
   // every particle added later (emitters) its position at emission. Idempotent.
   void keep_rest_positions();

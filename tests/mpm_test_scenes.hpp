@@ -64,7 +64,7 @@ inline std::vector<Real> state_bytes(const MpmSolver& s) {
   std::vector<Real> out;
   const auto& ps = s.particles();
   const auto& a = s.attributes();
-  for (auto id : {a.x, a.x_lo, a.v, a.C, a.F, a.F_lo, a.J, a.plastic, a.temperature})
+  for (auto id : {a.x, a.x_lo, a.v, a.C, a.F, a.F_lo, a.J, a.b, a.plastic, a.temperature})
     if (id >= 0) out.insert(out.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
   return out;
 }

@@ -254,12 +254,15 @@ TEST(Checkpoint, VersionSevenMassIsSkipped) {
   EXPECT_NE(error_reading(old, scene.fingerprint)
                 .find("checkpoint attribute 'mass' does not match this solver's layout"),
             std::string::npos);
-  // Two more than the layout: the count alone refuses it.
-  std::memcpy(d.data() + kCountAt + 8, &(++nattr), 4);
+  // Two more than the layout (three where the run keeps b - I, which a file's F and F_lo may
+  // stand for): the count alone refuses it.
+  const std::uint32_t layout = nattr - 1;
+  nattr = layout + (a.attributes().b >= 0 ? 3 : 2);
+  std::memcpy(d.data() + kCountAt + 8, &nattr, 4);
   spit(old, resealed(d));
   EXPECT_NE(error_reading(old, scene.fingerprint)
                 .find("checkpoint has " + std::to_string(nattr) +
-                      " particle attributes, expected " + std::to_string(nattr - 2)),
+                      " particle attributes, expected " + std::to_string(layout)),
             std::string::npos);
   std::remove(path.c_str());
   std::remove(old.c_str());
@@ -542,8 +545,10 @@ TEST(Checkpoint, FluidFileWithFReadAsJAndLowPartRefusedWhereAbsent) {
   }
 
   // A jelly run's checkpoint without F_lo: refused (the attribute count, or F_lo by name when
-  // the count allows an optional attribute's absence).
-  const Scene jelly = parse_scene(kScene, "s.json");
+  // the count allows an optional attribute's absence). The run keeps F, as for an output of F
+  // (else it keeps b - I: LeftCauchyGreen below).
+  Scene jelly = parse_scene(kScene, "s.json");
+  jelly.mpm.keep_F = true;
   MpmSimulation j(build_solver(jelly));
   const int lo = j.solver().attributes().F_lo;
   ASSERT_GE(lo, 0);
@@ -661,4 +666,73 @@ TEST(Checkpoint, AffineMatrixOnlyWhereTheTransferNeedsIt) {
   }
   std::remove(path.c_str());
   std::remove(old.c_str());
+}
+
+// A run keeping b - I of b = F F^T (MpmSolver::keeps_b) reads a checkpoint holding F and F_lo (an
+// older binary's, or a run that output F) with b - I = (F + F_lo)(F + F_lo)^T - I, and goes on
+// as that run does, to rounding; a run keeping F refuses a file holding b, naming it; a b that is
+// not positive definite (a hostile file) is refused naming the attribute and the particle.
+TEST(Checkpoint, LeftCauchyGreenFromAFileHoldingF) {
+  const exec::Space space(exec::Backend::TBB, 2);
+  Scene with_F = parse_scene(kScene, "s.json");
+  with_F.mpm.keep_F = true;
+  const Scene with_b = parse_scene(kScene, "s.json");
+  MpmSimulation f(build_solver(with_F)), b(build_solver(with_b)), b2(build_solver(with_b));
+  ASSERT_GE(f.solver().attributes().F_lo, 0);
+  ASSERT_GE(b.solver().attributes().b, 0);
+  for (int i = 0; i < 20; ++i) f.advance(space, f.stable_dt(space));
+  const std::string path = tmp_path("lcg.amck"), bpath = tmp_path("lcg_b.amck");
+  write_checkpoint(path, f, 2, with_F.fingerprint);
+  read_checkpoint(path, b, with_b.fingerprint);
+  const ParticleSet &pf = f.solver().particles(), &pb = b.solver().particles();
+  ASSERT_EQ(pf.size(), pb.size());
+  double most = 0;
+  for (std::size_t i = 0; i < pf.size(); ++i) {
+    const Eigen::Matrix3d F = pf.mat3(f.solver().attributes().F)[i].cast<double>() +
+                              pf.mat3(f.solver().attributes().F_lo)[i].cast<double>();
+    const SymDev want = b_from_F<Real>(F);
+    const SymDev& got = pb.sym_dev(b.solver().attributes().b)[i];
+    for (int e = 0; e < 6; ++e) ASSERT_EQ(got.e[e], want.e[e]) << i;
+    most = std::max(most, (F * F.transpose() - Eigen::Matrix3d::Identity()).norm());
+  }
+  EXPECT_GT(most, 1e-7);  // the jelly deformed: the conversion converted something
+  for (int i = 0; i < 20; ++i) {
+    const Real dt = f.stable_dt(space);
+    f.advance(space, dt);
+    b.advance(space, dt);
+  }
+  const std::vector<Vec3d> xf = f.solver().positions_by_id(), xb = b.solver().positions_by_id();
+  double dx_most = 0;
+  for (std::size_t i = 0; i < xf.size(); ++i) dx_most = std::max(dx_most, (xf[i] - xb[i]).norm());
+  EXPECT_LT(dx_most, 1e-4 * double(with_b.mpm.dx));
+
+  write_checkpoint(bpath, b, 3, with_b.fingerprint);
+  std::string bytes = slurp(bpath);
+  ASSERT_NE(attribute_data_at(bytes, "b"), std::string::npos);
+  EXPECT_EQ(attribute_data_at(bytes, "F"), std::string::npos);
+  read_checkpoint(bpath, b2, with_b.fingerprint);  // b - I as written
+  MpmSimulation f2(build_solver(with_F));
+  try {
+    read_checkpoint(bpath, f2, with_F.fingerprint);
+    ADD_FAILURE() << "a run keeping F read a checkpoint holding b";
+  } catch (const InputError& err) {
+    EXPECT_NE(std::string(err.what()).find(bpath + ": checkpoint holds 'b'"), std::string::npos)
+        << err.what();
+  }
+  // b(0, 0) = 1 + D(0, 0) = -1 for one particle: not a b = F F^T.
+  const std::size_t at = attribute_data_at(bytes, "b") + 5 * sizeof(SymDev);
+  const Real minus2 = -2;
+  std::memcpy(&bytes[at], &minus2, sizeof(Real));
+  spit(bpath, resealed(bytes));
+  MpmSimulation b3(build_solver(with_b));
+  try {
+    read_checkpoint(bpath, b3, with_b.fingerprint);
+    ADD_FAILURE() << "a checkpoint with a b that is not positive definite was read";
+  } catch (const InputError& err) {
+    EXPECT_NE(std::string(err.what()).find("attribute 'b' of particle 5 is not b - I of a positive"),
+              std::string::npos)
+        << err.what();
+  }
+  std::remove(path.c_str());
+  std::remove(bpath.c_str());
 }

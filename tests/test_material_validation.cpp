@@ -107,7 +107,9 @@ TEST(MaterialValidation, WaterColumnHydrostaticPressure) {
     top += sorted[size_t(0.99 * double(sorted.size()))] + dx / 4;
     ++samples;
     for (size_t p = 0; p < ps.size(); ++p) {
-      const double J = double(a.J >= 0 ? ps.real(a.J)[p] : ps.mat3(a.F)[p].determinant());
+      const double J = double(a.J >= 0   ? ps.real(a.J)[p]
+                              : a.b >= 0 ? b_factor(ps.sym_dev(a.b)[p]).determinant()
+                                         : ps.mat3(a.F)[p].determinant());
       Layer& l = layers[int(std::floor(ys[p] / dx))];
       l.p += water.fluid().pressure(Real(J));
       l.y += ys[p];
@@ -201,7 +203,8 @@ TEST(MaterialValidation, SnowConfinedCompressionHardensAsModelPredicts) {
     const auto& a = solver.attributes();
     double tau = 0, sy = 0;
     for (size_t p = 0; p < ps.size(); ++p) {
-      const Mat3 F = ps.mat3(a.F)[p];
+      // b - I kept (MpmSolver::keeps_b): its Cholesky factor is F here, F_E being diagonal.
+      const Mat3 F = a.F >= 0 ? ps.mat3(a.F)[p] : b_factor(ps.sym_dev(a.b)[p]);
       const Real JP = ps.real(a.plastic)[p];
       tau += double(snow.kirchhoff(F, Mat3::Zero(), JP, 0)(1, 1));
       sy += double(F(1, 1)) * double(JP);  // total stretch F_yy = F_E,yy J_P (F_E, F_P diagonal)

@@ -3,6 +3,9 @@
 // exact and correctly rounded whatever the order and grouping of its terms.
 #include <gtest/gtest.h>
 
+#include <Eigen/Cholesky>
+#include <Eigen/Geometry>
+
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -12,6 +15,7 @@
 
 #include "core/math/bspline.hpp"
 #include "core/math/exact_sum.hpp"
+#include "core/math/left_cauchy_green.hpp"
 #include "core/math/svd3.hpp"
 
 using namespace amalgam;
@@ -422,4 +426,121 @@ TEST(ExactSum, OrderAndGroupingChangeNoBit) {
     EXPECT_EQ(bits(merged.value()), bits(want));
     EXPECT_EQ(bits(ExactSum::from_words(words).value()), bits(want));
   }
+}
+
+// b - I of the left Cauchy-Green tensor (core/math/left_cauchy_green.hpp).
+namespace {
+Eigen::Matrix3d random_rotation(std::mt19937& rng) {
+  std::normal_distribution<double> n(0.0, 1.0);
+  Eigen::Quaterniond q(n(rng), n(rng), n(rng), n(rng));
+  q.normalize();
+  return q.toRotationMatrix();
+}
+double sym_dev_error(const SymDevT<float>& d, const Eigen::Matrix3d& b) {
+  return (b_matrix(d) - b).norm();
+}
+}  // namespace
+
+// advance_b is b <- (I + G) b (I + G)^T: against F <- (I + G) F in double, for deformations from
+// rest to large strain under arbitrary rotations. Float keeps relative precision on the strain
+// and the increment (the terms it sums are small), not only on b's entries of order 1.
+TEST(LeftCauchyGreen, AdvanceIsFFTransposeOfTheAdvancedF) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  for (int t = 0; t < 4000; ++t) {
+    const double strain = t % 3 == 0 ? 1e-4 : (t % 3 == 1 ? 1e-2 : 0.4);
+    const double rate = t % 2 == 0 ? 1e-4 : 3e-2;
+    Eigen::Matrix3d S, G;
+    for (int e = 0; e < 9; ++e) S(e) = strain * u(rng), G(e) = rate * u(rng);
+    const Eigen::Matrix3d F = (Eigen::Matrix3d::Identity() + S) * random_rotation(rng);
+    SymDevT<float> df = b_from_F<float>(F);
+    SymDevT<double> dd = b_from_F<double>(F);
+    float gf[3][3];
+    double gd[3][3];
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) gf[r][c] = float(G(r, c)), gd[r][c] = double(gf[r][c]);
+    const Eigen::Matrix3d Gr = Eigen::Matrix3d::NullaryExpr(
+        [&](Eigen::Index r, Eigen::Index c) { return gd[r][c]; });
+    const Eigen::Matrix3d F1 = (Eigen::Matrix3d::Identity() + Gr) * F;
+    const Eigen::Matrix3d b_in = b_matrix(df);  // the float state advanced, in exact-ish double
+    const Eigen::Matrix3d want =
+        (Eigen::Matrix3d::Identity() + Gr) * b_in * (Eigen::Matrix3d::Identity() + Gr).transpose();
+    advance_b(df.e, gf);
+    advance_b(dd.e, gd);
+    const double scale = (b_in - Eigen::Matrix3d::Identity()).norm() + G.norm();
+    // Float: a few roundings of the small terms, relative to them (never float's 6e-8 absolute
+    // spacing around 1, which F kept in one float would have).
+    ASSERT_LT(sym_dev_error(df, want), 4e-7 * scale) << "strain " << strain << " rate " << rate;
+    ASSERT_LT((b_matrix(dd) - F1 * F1.transpose()).norm(), 1e-14 * (scale + 1));
+  }
+}
+
+// A body turned by any rotation keeps its strain's digits: b - I of R (I + E) is that of
+// (I + E) turned, whose entries are of the strain's size, while F = R (I + E) in float has the
+// strain in entries of order one (float's spacing 6e-8 there: 6e-4 of a 1e-4 strain).
+TEST(LeftCauchyGreen, RotatedStrainKeepsItsDigits) {
+  std::mt19937 rng(8);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  double worst_b = 0, worst_F = 0;
+  for (int t = 0; t < 1000; ++t) {
+    Eigen::Matrix3d E;
+    for (int e = 0; e < 9; ++e) E(e) = 1e-4 * u(rng);
+    E = (E + E.transpose()).eval();
+    const Eigen::Matrix3d R = random_rotation(rng);
+    const Eigen::Matrix3d F = R * (Eigen::Matrix3d::Identity() + E);  // b = R (I + E)^2 R^T
+    const Eigen::Matrix3d want = F * F.transpose() - Eigen::Matrix3d::Identity();
+    const SymDevT<float> d = b_from_F<float>(F);
+    worst_b = std::max(worst_b, (b_matrix(d) - Eigen::Matrix3d::Identity() - want).norm() /
+                                    want.norm());
+    const Eigen::Matrix3d Ff = F.cast<float>().cast<double>();
+    worst_F = std::max(worst_F, (Ff * Ff.transpose() - Eigen::Matrix3d::Identity() - want).norm() /
+                                    want.norm());
+  }
+  EXPECT_LT(worst_b, 2e-7);
+  EXPECT_GT(worst_F, 100 * worst_b);  // what storing F in one float would lose
+  // A rigid rotation of the rest shape is b = I, to double's rounding.
+  for (int t = 0; t < 100; ++t)
+    EXPECT_LT((b_matrix(b_from_F<float>(random_rotation(rng))) - Eigen::Matrix3d::Identity()).norm(),
+              1e-14);
+}
+
+// b_factor is a Cholesky factor of I + D (lower triangular, L L^T = I + D), NaN where I + D is
+// not positive definite; b_factor_lanes gives it bitwise lane by lane, in full and partial groups.
+TEST(LeftCauchyGreen, FactorReconstructsAndLanesAreBitwise) {
+  std::mt19937 rng(9);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  std::vector<SymDevT<float>> d;
+  for (int t = 0; t < 3000; ++t) {
+    Eigen::Matrix3d A;
+    const double s = t % 3 == 0 ? 1e-5 : (t % 3 == 1 ? 0.1 : 1.0);
+    for (int e = 0; e < 9; ++e) A(e) = s * u(rng);
+    d.push_back(b_from_F<float>(Eigen::Matrix3d::Identity() + A));
+    if (t % 41 == 0) d.back().e[0] = -2;  // b(0,0) < 0: not positive definite
+    if (t % 43 == 0) d.back().e[5] = std::numeric_limits<float>::quiet_NaN();
+  }
+  constexpr int W = lanes::kN<float>;
+  int checked = 0;
+  for (std::size_t s0 = 0; s0 < d.size(); s0 += W) {
+    const int n = std::min<int>(W - int((s0 / W) % 2), int(d.size() - s0));
+    Eigen::Matrix3f L[W];
+    b_factor_lanes<float>(&d[s0], n, L);
+    for (int l = 0; l < n; ++l) {
+      const Eigen::Matrix3f one = b_factor(d[s0 + std::size_t(l)]);
+      for (int e = 0; e < 9; ++e)
+        ASSERT_TRUE(std::memcmp(&one(e), &L[l](e), 4) == 0 ||
+                    (std::isnan(one(e)) && std::isnan(L[l](e))));
+      const Eigen::Matrix3d b = b_matrix(d[s0 + std::size_t(l)]);
+      const Eigen::Matrix3d Ld = one.cast<double>();
+      if (b.allFinite() && b.llt().info() == Eigen::Success) {
+        EXPECT_EQ(one(0, 1), 0.0f);
+        EXPECT_EQ(one(0, 2), 0.0f);
+        EXPECT_EQ(one(1, 2), 0.0f);
+        ASSERT_LT((Ld * Ld.transpose() - b).norm(), 1e-6 * b.norm());
+        ++checked;
+      } else {
+        EXPECT_FALSE(one.allFinite());
+      }
+    }
+  }
+  EXPECT_GT(checked, 2300);  // (the rest: NaN, negative, the odd groups' last lane, near-singular)
 }

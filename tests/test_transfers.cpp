@@ -34,10 +34,15 @@ MpmSolver make_blob(Transfer t, int order, Real dt_stress_scale = 1) {
   auto& ps = solver.particles();
   const auto& a = solver.attributes();
   for (size_t p = 0; p < ps.size(); ++p) {
+    Eigen::Matrix3d Fr = Eigen::Matrix3d::Identity();
     for (int k = 0; k < 9; ++k) {
       if (a.C >= 0) ps.mat3(a.C)[p](k) += Real(0.5 * u(rng));  // PIC/FLIP: no C
-      ps.mat3(a.F)[p](k) += Real(0.1 * u(rng) * dt_stress_scale);
+      Fr(k) += 0.1 * u(rng) * double(dt_stress_scale);
     }
+    if (a.F >= 0)
+      ps.mat3(a.F)[p] = Fr.cast<Real>();
+    else
+      ps.sym_dev(a.b)[p] = b_from_F<Real>(Fr);
     ps.vec3(a.v)[p] += Vec3(Real(u(rng)), Real(u(rng)), Real(u(rng)));
   }
   return solver;
@@ -226,7 +231,8 @@ TEST_P(KernelDeterminism, P2GGridUpdateG2PBitwiseAcrossBackends) {
     s.grid_to_particle(space, Real(1e-3));
     const auto& ps = s.particles();
     std::vector<Real> parts;
-    for (auto id : {s.attributes().x, s.attributes().v, s.attributes().C, s.attributes().F})
+    for (auto id : {s.attributes().x, s.attributes().v, s.attributes().C, s.attributes().F,
+                    s.attributes().b})
       if (id >= 0)  // PIC/FLIP keeps no C
         parts.insert(parts.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
     if (ref_grid_p2g.empty()) {
@@ -329,7 +335,7 @@ TEST(FluidJ, KeptInsteadOfFWhereEveryMaterialIsAFluid) {
   auto only_J = [](const MpmSettings& s, const std::vector<MaterialParams>& m) {
     const MpmSolver solver(s, m, {});
     const bool J = solver.attributes().J >= 0;
-    EXPECT_EQ(J, solver.attributes().F < 0);
+    EXPECT_EQ(J, solver.attributes().F < 0 && solver.attributes().b < 0);
     EXPECT_EQ(J, MpmSolver::keeps_J_only(s, m));
     if (J) EXPECT_FALSE(solver.has_material_update());
     return J;
@@ -344,9 +350,14 @@ TEST(FluidJ, KeptInsteadOfFWhereEveryMaterialIsAFluid) {
   EXPECT_FALSE(only_J(plain, {molten}));
   EXPECT_FALSE(only_J(implicit, {water}));
   EXPECT_FALSE(only_J(aul, {water}));
-  EXPECT_EQ(MpmSolver(plain, {water, elastic}, {}).particles().bytes_per_particle() -
+  MpmSettings with_F;  // a solid beside the fluid keeps F + F_lo (or b - I: MpmSolver::keeps_b)
+  with_F.keep_F = true;
+  EXPECT_EQ(MpmSolver(with_F, {water, elastic}, {}).particles().bytes_per_particle() -
                 MpmSolver(plain, {water}, {}).particles().bytes_per_particle(),
             17 * sizeof(Real));
+  EXPECT_EQ(MpmSolver(plain, {water, elastic}, {}).particles().bytes_per_particle() -
+                MpmSolver(plain, {water}, {}).particles().bytes_per_particle(),
+            5 * sizeof(Real));
 
   const exec::Space space(exec::Backend::TBB, 2);
   for (const Transfer t : {Transfer::Apic, Transfer::Mls, Transfer::PicFlip})
@@ -355,6 +366,7 @@ TEST(FluidJ, KeptInsteadOfFWhereEveryMaterialIsAFluid) {
       MpmSettings s;
       s.dx = Real(0.05), s.transfer = t, s.fused = fused;
       s.gravity = Vec3(0, Real(-9.8), 0);
+      s.keep_F = true;  // kept: F itself, not b (MpmSolver::keeps_b)
       MpmSolver lean(s, {water, oil}, {}), kept(s, {water, oil, elastic}, {});
       ASSERT_GE(lean.attributes().J, 0);
       ASSERT_GE(kept.attributes().F, 0);
@@ -418,6 +430,7 @@ TEST(FluidJ, OutputsEnergyInviscidFlipAndSleepAsTheRunKeepingF) {
     s.dx = Real(0.05), s.transfer = t, s.gravity = Vec3::Zero();
     s.sleep.enabled = sleep;
     s.sleep.time = Real(0.005);
+    s.keep_F = true;  // kept: F itself, not b (MpmSolver::keeps_b)
     MpmSolver lean(s, {water}, {}), kept(s, {water, elastic}, {});
     ASSERT_GE(lean.attributes().J, 0);
     ASSERT_GE(kept.attributes().F, 0);
@@ -535,4 +548,128 @@ TEST(AffineMatrix, KeptOnlyWhereTheTransferOrAViscousStressReadsIt) {
   EXPECT_GE(apic.particles().find("C"), 0);
   EXPECT_EQ(apic.particles().bytes_per_particle() - flip.particles().bytes_per_particle(),
             9 * sizeof(Real));
+}
+
+// Particles keep b - I of b = F F^T (MpmSolver::keeps_b) unless the run is implicit, A-ULMPM, has
+// particle domains, keeps J alone or outputs F (MpmSettings::keep_F): 24 B instead of F + F_lo's
+// 72 in float.
+TEST(LeftCauchyGreen, KeptWhereNothingReadsFItself) {
+  const Lame l = Lame::from_young_poisson(1e4, 0.3);
+  const MaterialParams elastic{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
+  MaterialParams water{MaterialModel::Fluid, 0, 0, 1000};
+  water.bulk = Real(2e5);
+  auto keeps = [](MpmSettings s, std::vector<MaterialParams> m) {
+    const MpmSolver solver(s, m, {});
+    const MpmAttributes& a = solver.attributes();
+    EXPECT_EQ(MpmSolver::keeps_b(s, m), a.b >= 0);
+    EXPECT_EQ(a.b >= 0, a.F < 0 && a.F_lo < 0 && a.J < 0);
+    return a.b >= 0;
+  };
+  MpmSettings s;
+  EXPECT_TRUE(keeps(s, {elastic}));
+  EXPECT_TRUE(keeps(s, {elastic, water}));
+  EXPECT_FALSE(keeps(s, {water}));  // J alone
+  MpmSettings f = s;
+  f.keep_F = true;
+  EXPECT_FALSE(keeps(f, {elastic}));
+  MpmSettings imp = s;
+  imp.implicit = true;
+  EXPECT_FALSE(keeps(imp, {elastic}));
+  MpmSettings aul = s;
+  aul.configuration_maps = true;
+  EXPECT_FALSE(keeps(aul, {elastic}));
+  MpmSettings dom = s;
+  dom.domains.enabled = true;
+  EXPECT_FALSE(keeps(dom, {elastic}));
+  EXPECT_EQ(MpmSolver(f, {elastic}, {}).particles().bytes_per_particle() -
+                MpmSolver(s, {elastic}, {}).particles().bytes_per_particle(),
+            12 * sizeof(Real));  // F + F_lo: 18 Reals; b - I: 6
+}
+
+// A run keeping b - I against the same run keeping F + F_lo (MpmSettings::keep_F), for every
+// material model (snow's and sand's return mappings, von Mises, a fluid beside a solid, whose F
+// reset writes b, a melting solid), every transfer, two passes and fused: the same motion and
+// energies to rounding (the materials read F only through b: Materials.EveryModelReadsFOnlyThroughB),
+// and the output's J and von Mises stress alike.
+TEST(LeftCauchyGreen, RunsAsTheRunKeepingF) {
+  const Lame l = Lame::from_young_poisson(2e4, 0.3);
+  const exec::Space space(exec::Backend::TBB, 2);
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
+    for (const Transfer t : {Transfer::Mls, Transfer::Apic, Transfer::PicFlip}) {
+      const MaterialModel model = MaterialModel(k);
+      const bool fused = k % 2 == 1;
+      SCOPED_TRACE(std::string(material_model_name(model)) + ", " + transfer_name(t) +
+                   (fused ? ", fused" : ""));
+      MaterialParams m{model, l.mu, l.lambda, 1000};
+      m.bulk = Real(2e4);
+      m.friction_alpha = Real(0.3);
+      m.yield_stress = Real(300);
+      m.viscosity = t == Transfer::PicFlip ? Real(0) : Real(0.05);
+      const MaterialParams solid{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
+      // A fluid needs a solid beside it, else the run keeps J alone; a solid melts at 300 K.
+      std::vector<MaterialParams> mats{m, solid};
+      if (model == MaterialModel::NeoHookean)
+        mats[0].melting = true, mats[0].melting_point = 300, mats[0].liquid_bulk = Real(2e4);
+      MpmSettings s;
+      s.dx = Real(0.05), s.transfer = t, s.fused = fused;
+      s.gravity = Vec3(0, Real(-9.8), 0);
+      MpmSettings sf = s;
+      sf.keep_F = true;
+      MpmSolver bb(s, mats, {}), ff(sf, mats, {});
+      ASSERT_GE(bb.attributes().b, 0);
+      ASSERT_GE(ff.attributes().F, 0);
+      std::mt19937 rng(5);
+      std::uniform_real_distribution<double> u(-1.0, 1.0);
+      std::vector<Vec3> x, y;
+      for (int i = 0; i < 3000; ++i) {
+        x.push_back(Vec3(Real(0.5 + 0.2 * u(rng)), Real(0.5 + 0.15 * u(rng)), Real(0.2 * u(rng))));
+        y.push_back(x.back() + Vec3(Real(0.45), 0, 0));
+      }
+      for (MpmSolver* r : {&bb, &ff}) {
+        // Colliding, spinning bodies: shear, compression, rotation (and, for the plastic models,
+        // return mappings that move).
+        r->add_particles(x, Vec3(Real(1.5), Real(-0.2), 0), Vec3(3, 2, 5), Vec3::Constant(Real(0.5)), 0,
+                         Real(1e-5), Real(t == Transfer::Apic ? 320 : 280));
+        r->add_particles(y, Vec3(Real(-1.5), 0, 0), Vec3(-2, 1, 0), Vec3(Real(0.95), Real(0.5), 0), 1,
+                         Real(1e-5));
+      }
+      for (int n = 0; n < 150; ++n) {
+        const Real dt = std::min(bb.stable_dt(space), Real(2e-4));
+        bb.step(space, dt);
+        ff.step(space, dt);
+      }
+      const ParticleSet &pa = bb.particles(), &pb = ff.particles();
+      const std::size_t n = pa.size();
+      ASSERT_EQ(pb.size(), n);
+      const std::int32_t *ida = pa.int32(bb.attributes().id), *idb = pb.int32(ff.attributes().id);
+      std::vector<std::size_t> at(n);
+      for (std::size_t i = 0; i < n; ++i) at[std::size_t(idb[i])] = i;
+      const Vec3 *xa = pa.vec3(bb.attributes().x), *xb = pb.vec3(ff.attributes().x);
+      const PointFields fa = mpm_point_fields(pa, bb.attributes(), bb.materials(),
+                                              {"J", "vonmises"}, space),
+                        fb = mpm_point_fields(pb, ff.attributes(), ff.materials(),
+                                              {"J", "vonmises"}, space);
+      double dx_most = 0, dJ_most = 0, J_lo = 1, J_hi = 1, dvm_most = 0, vm_most = 0;
+      for (std::size_t i = 0; i < n; ++i) {
+        const std::size_t j = at[std::size_t(ida[i])];
+        dx_most = std::max(dx_most, double((xa[i] - xb[j]).norm()));
+        const double Ja = fa.attributes[0].f[i];
+        dJ_most = std::max(dJ_most, std::abs(Ja - double(fb.attributes[0].f[j])));
+        J_lo = std::min(J_lo, Ja), J_hi = std::max(J_hi, Ja);
+        dvm_most = std::max(dvm_most, std::abs(double(fa.attributes[1].f[i]) -
+                                               double(fb.attributes[1].f[j])));
+        vm_most = std::max(vm_most, double(fb.attributes[1].f[j]));
+      }
+      const MpmDiagnostics da = bb.diagnostics(space), db = ff.diagnostics(space);
+      std::printf("%s %s%s: max |x_b - x_F| = %.3g dx, |J| %.3g, J in [%.4f, %.4f], von Mises "
+                  "%.3g of %.3g Pa, elastic energy %.6g vs %.6g J\n",
+                  material_model_name(model), transfer_name(t), fused ? " fused" : "",
+                  dx_most / 0.05, dJ_most, J_lo, J_hi, dvm_most, vm_most, da.elastic, db.elastic);
+      EXPECT_GT(J_hi - J_lo, 1e-3);  // the bodies deformed
+      EXPECT_LT(dx_most, 2e-4 * 0.05);
+      EXPECT_LT(dJ_most, 2e-4);
+      EXPECT_LT(dvm_most, 2e-3 * vm_most + 1e-3);
+      EXPECT_NEAR(da.elastic, db.elastic, 2e-3 * db.elastic + 1e-9);
+      EXPECT_NEAR(da.kinetic, db.kinetic, 1e-4 * db.kinetic);
+    }
 }

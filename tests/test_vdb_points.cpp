@@ -76,7 +76,8 @@ TEST(VdbPoints, ReadBackFieldByField) {
         EXPECT_NEAR(world[a], double(x[a]), 1e-6);
         EXPECT_EQ(v.get(*it)[a], float(ps.vec3(at.v)[size_t(r)][a]));
       }
-      EXPECT_EQ(J.get(*it), float(ps.mat3(at.F)[size_t(r)].determinant()));
+      EXPECT_EQ(J.get(*it), float(at.F >= 0 ? ps.mat3(at.F)[size_t(r)].determinant()
+                                            : b_factor(ps.sym_dev(at.b)[size_t(r)]).determinant()));
       EXPECT_EQ(mat.get(*it), ps.int32(at.material)[size_t(r)]);
       EXPECT_EQ(plastic.get(*it), float(ps.real(at.plastic)[size_t(r)]));
       EXPECT_EQ(temperature.get(*it), float(ps.real(at.temperature)[size_t(r)]));
@@ -220,8 +221,11 @@ openvdb::NamePair attribute_type(const openvdb::points::PointDataGrid& grid,
   return desc.type(pos);
 }
 
-std::unique_ptr<Simulation> jelly_drop(const exec::Space& space, Scene& scene) {
+// keep_F: as when the output asks for F (MpmSettings::keep_F).
+std::unique_ptr<Simulation> jelly_drop(const exec::Space& space, Scene& scene,
+                                       bool keep_F = false) {
   scene = load_scene(std::string(AMALGAM_SOURCE_DIR) + "/scenes/jelly_drop.json");
+  scene.mpm.keep_F = keep_F;
   return make_simulation(scene, space);
 }
 
@@ -302,7 +306,7 @@ TEST(VdbPoints, CompactReadsBackWithinTheStatedError) {
 TEST(VdbPoints, CompactFilesAreIdenticalForOneAndTwoThreads) {
   const exec::Space space(exec::Backend::TBB, 2);
   Scene scene;
-  auto sim = jelly_drop(space, scene);
+  auto sim = jelly_drop(space, scene, true);
   for (int i = 0; i < 10; ++i) sim->advance(space, sim->stable_dt(space));
   PointFields p = sim->point_fields({"F", "J", "vonmises", "material"}, space);
   p.material_names = scene.material_names;
@@ -421,10 +425,15 @@ TEST(VdbPoints, VonMisesOfAStretchAndADilation) {
   MpmSolver solver = build_solver(scene);
   const double e = 0.01, mu = double(scene.materials[0].mu);
   for (const bool stretch : {true, false}) {
-    Mat3* F = solver.particles().mat3(solver.attributes().F);
-    for (std::size_t i = 0; i < solver.particles().size(); ++i)
-      F[i] = stretch ? Mat3(Vec3(Real(1 + e), 1, 1).asDiagonal())
-                     : Mat3(Real(1.01) * Mat3::Identity());
+    const MpmAttributes& a = solver.attributes();
+    for (std::size_t i = 0; i < solver.particles().size(); ++i) {
+      const Mat3 F = stretch ? Mat3(Vec3(Real(1 + e), 1, 1).asDiagonal())
+                             : Mat3(Real(1.01) * Mat3::Identity());
+      if (a.F >= 0)
+        solver.particles().mat3(a.F)[i] = F;
+      else  // b - I (MpmSolver::keeps_b)
+        solver.particles().sym_dev(a.b)[i] = b_from_F<Real>(F.cast<double>());
+    }
     const PointFields p = mpm_point_fields(solver.particles(), solver.attributes(),
                                            solver.materials(), {"vonmises"}, exec::Space());
     const std::vector<float>& vm = *p.find("vonmises");

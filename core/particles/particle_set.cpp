@@ -166,6 +166,10 @@ void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, st
       gather_in_place<3, 3>(space, n, perm, d, sp);
     else if (w == 6 && S >= 6)
       gather_in_place<6, 6>(space, n, perm, d, sp);
+    else if (w == 6 && S == 3)  // b - I (core/math/left_cauchy_green.hpp) in float
+      gather_in_place<6, 3>(space, n, perm, d, sp);
+    else if (w == 12 && S == 6)  // b - I in double
+      gather_in_place<12, 6>(space, n, perm, d, sp);
     else if (w == 9 && S == 3)
       gather_in_place<9, 3>(space, n, perm, d, sp);
     else if (w == 18 && (S == 6 || S == 9))
@@ -176,7 +180,7 @@ void ParticleSet::gather(const exec::Space& space, const std::uint32_t* perm, st
 }
 
 MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperature, bool affine,
-                                    bool F_low, bool volume_only) {
+                                    bool F_low, bool volume_only, bool left_cauchy_green) {
   MpmAttributes m;
   m.x = ps.add("x", AttrType::Real, 3);
   m.x_lo = ps.add("x_lo", AttrType::Real, 3);
@@ -185,6 +189,9 @@ MpmAttributes MpmAttributes::add_to(ParticleSet& ps, bool plastic, bool temperat
   if (volume_only) {
     m.F = -1;
     m.J = ps.add("J", AttrType::Real, 1);
+  } else if (left_cauchy_green) {
+    m.F = -1;
+    m.b = ps.add("b", AttrType::Real, 6);
   } else {
     m.F = ps.add("F", AttrType::Real, 9);
     if (F_low) m.F_lo = ps.add("F_lo", AttrType::Real, 9);
@@ -205,6 +212,7 @@ MpmAttributes MpmAttributes::find_in(const ParticleSet& ps) {
   m.C = ps.find("C");
   m.F = ps.find("F");
   m.J = ps.find("J");
+  m.b = ps.find("b");
   m.F_lo = ps.find("F_lo");
   m.volume0 = ps.id("volume0");
   m.material = ps.id("material");
@@ -252,6 +260,18 @@ void check_low_part(const ParticleSet& ps, const std::string& hi, const std::str
       throw InputError("attribute '" + lo + "' of particle " + std::to_string(i / std::size_t(w)) +
                        " is " + std::to_string(b[i]) + ", more than one ulp of '" + hi + "' (" +
                        std::to_string(a[i]) + ")");
+}
+
+void check_positive_definite(const ParticleSet& ps, const std::string& name) {
+  const ParticleSet::Id a = ps.find(name);
+  if (a < 0) return;
+  const SymDev* d = ps.sym_dev(a);
+  for (std::size_t i = 0; i < ps.size(); ++i) {
+    const Mat3 L = b_factor(d[i]);  // finite and with positive pivots iff I + D is SPD
+    if (!(L(0, 0) > 0 && L(1, 1) > 0 && L(2, 2) > 0 && L.allFinite()))
+      throw InputError("attribute '" + name + "' of particle " + std::to_string(i) +
+                       " is not b - I of a positive definite b = F F^T");
+  }
 }
 
 void check_permutation_attribute(const ParticleSet& ps, const std::string& name) {

@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "core/exec/exec.hpp"
+#include "core/math/left_cauchy_green.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam {
@@ -56,6 +57,8 @@ class ParticleSet {
   const Vec3* vec3(Id a) const { return reinterpret_cast<const Vec3*>(real(a)); }
   Mat3* mat3(Id a) { return reinterpret_cast<Mat3*>(real(a)); }
   const Mat3* mat3(Id a) const { return reinterpret_cast<const Mat3*>(real(a)); }
+  SymDev* sym_dev(Id a) { return reinterpret_cast<SymDev*>(real(a)); }
+  const SymDev* sym_dev(Id a) const { return reinterpret_cast<const SymDev*>(real(a)); }
 
   // Raw storage of an attribute: words_per_particle(a) 32-bit words per particle (for I/O).
   int words_per_particle(Id a) const { return attrs_[a].words(); }
@@ -113,12 +116,17 @@ struct MpmAttributes {
   ParticleSet::Id x, x_lo, v, F, F_lo = -1, volume0, material, id;
   ParticleSet::Id C = -1, plastic = -1, temperature = -1;
   ParticleSet::Id J = -1;  // J = det F where the run keeps J instead of F (F = -1)
+  // b - I of the left Cauchy-Green tensor b = F F^T (6 entries, core/math/left_cauchy_green.hpp)
+  // where the run keeps it instead of F and F_lo (F = F_lo = -1; MpmSolver::keeps_b): 24 B
+  // instead of 72 in float.
+  ParticleSet::Id b = -1;
   // rest: the position a particle had when it was made (set-up or emission; Houdini's `rest`),
   // only when the output asks for it (MpmSolver::keep_rest_positions). An attribute like any
   // other: sorted, migrated between ranks and checkpointed with its particle.
   ParticleSet::Id rest = -1;
   static MpmAttributes add_to(ParticleSet& ps, bool plastic = false, bool temperature = false,
-                              bool affine = true, bool F_low = true, bool volume_only = false);
+                              bool affine = true, bool F_low = true, bool volume_only = false,
+                              bool left_cauchy_green = false);
   static MpmAttributes find_in(const ParticleSet& ps);
 };
 
@@ -132,6 +140,9 @@ void check_index_attribute(const ParticleSet& ps, const std::string& name, std::
 // (a compensated pair, core/math/types.hpp: add_compensated): a larger low part would move the
 // state at its next increment.
 void check_low_part(const ParticleSet& ps, const std::string& hi, const std::string& lo);
+// The 6-entry attribute `name` (when present; b - I, core/math/left_cauchy_green.hpp) makes
+// every particle's I + D positive definite, as b = F F^T of an invertible F is.
+void check_positive_definite(const ParticleSet& ps, const std::string& name);
 // `name` (when present) holds each of 0 .. size()-1 exactly once (particle ids).
 void check_permutation_attribute(const ParticleSet& ps, const std::string& name);
 // `name` (when present) holds distinct values in [0, limit) (particle ids once particles are
