@@ -242,14 +242,16 @@ CheckpointState read_state(const std::string& path, const std::string& d, Partic
         words == std::uint32_t(9 * sizeof(Real) / 4)) {
       std::vector<Mat3>& dst = name == "F" ? F_in : F_lo_in;
       if (!dst.empty() || read[std::size_t(left_cg)])
-        throw InputError(path + ": checkpoint attribute '" + name + "' appears twice or beside 'b'");
+        throw InputError(path + ": checkpoint attribute '" + name +
+                         "' appears twice or beside 'b'");
       dst.resize(std::size_t(n));
       const char* src = r.take(size_t(n) * 4 * words, "attribute data");
       if (n > 0) std::memcpy(static_cast<void*>(dst.data()), src, size_t(n) * sizeof(Mat3));
       continue;
     }
     if (name == kLeftCauchyGreenAttribute && a < 0 && !pd)
-      throw InputError(path + ": checkpoint holds 'b' (b = F F^T, written by a run that kept no F), "
+      throw InputError(path +
+                       ": checkpoint holds 'b' (b = F F^T, written by a run that kept no F), "
                        "but this run keeps F itself (its output asks for 'F'): resume without "
                        "'F' in output.attributes");
     if (((skip_affine && name == kAffineAttribute) ||

@@ -684,8 +684,8 @@ __attribute__((flatten)) inline void g2p_particle(const GridBlock<Order, CH, M>&
                                                   const Vec3i& origin, const Vec3& xs, Vec3& x,
                                                   Vec3* x_lo, Vec3& v, Mat3* C, Mat3* Fp,
                                                   Mat3* F_lo, Real* J, SymDev* bd, Mat3* Fs,
-                                                  const Mat3* F0s,
-                                                  Real dx, Real inv_dx, Real dt, Real alpha) {
+                                                  const Mat3* F0s, Real dx, Real inv_dx, Real dt,
+                                                  Real alpha) {
   const Stencil<Order> st = Stencil<Order>::at(xs, inv_dx);
   const Vec3i l = st.base - origin;
   constexpr int N = Stencil<Order>::kN;

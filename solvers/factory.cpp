@@ -73,7 +73,7 @@ void apply_fields(const ObjectSpec& obj, MpmSolver& solver, std::size_t first, d
   Vec3* v = ps.vec3(a.v);
   Mat3* C = a.C >= 0 ? ps.mat3(a.C) : nullptr;  // PIC/FLIP without viscosity: no C
   Mat3* F = a.F >= 0 ? ps.mat3(a.F) : nullptr;
-  Real* J = a.J >= 0 ? ps.real(a.J) : nullptr;  // fluids keeping J alone: J = det F
+  Real* J = a.J >= 0 ? ps.real(a.J) : nullptr;       // fluids keeping J alone: J = det F
   SymDev* b = a.b >= 0 ? ps.sym_dev(a.b) : nullptr;  // b - I instead of F (MpmSolver::keeps_b)
   const double h = 1e-3 * dx;
   for (std::size_t p = first; p < ps.size(); ++p) {

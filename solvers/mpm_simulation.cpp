@@ -64,7 +64,7 @@ PointAttribute mpm_attribute(const std::string& name, const ParticleSet& ps, con
   const std::size_t n = ps.size();
   PointAttribute out{name, T::Float, {}, {}};
   const Mat3* F = a.F >= 0 ? ps.mat3(a.F) : nullptr;
-  const Real* J = a.J >= 0 ? ps.real(a.J) : nullptr;  // fluids keeping J alone: F = J^{1/3} I
+  const Real* J = a.J >= 0 ? ps.real(a.J) : nullptr;       // fluids keeping J alone: F = J^{1/3} I
   const SymDev* b = a.b >= 0 ? ps.sym_dev(a.b) : nullptr;  // b - I: no F (MpmSettings::keep_F)
   if (name == "F") {
     if (b) throw std::logic_error("MPM particles keeping b = F F^T have no F");

@@ -83,9 +83,9 @@ MpmSolver::MpmSolver(const MpmSettings& settings, std::vector<MaterialParams> ma
   material_update_ |= melting && !heat_sources_.empty();
   const bool J_only = keeps_J_only(settings_, materials_);
   if (J_only) material_update_ = false;  // the update was the fluid's F reset: nothing to do on J
-  attr_ = MpmAttributes::add_to(particles_, plastic, melting, keeps_affine(settings_, materials_),
-                                keeps_F_low_part(materials_), J_only,
-                                keeps_b(settings_, materials_));
+  attr_ =
+      MpmAttributes::add_to(particles_, plastic, melting, keeps_affine(settings_, materials_),
+                            keeps_F_low_part(materials_), J_only, keeps_b(settings_, materials_));
   if (settings_.domains.enabled) {
     if (settings_.configuration_maps)
       throw InputError("particle domains and configuration maps (A-ULMPM) cannot be combined");
@@ -615,7 +615,7 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
   };
   const Vec3* v = particles_.vec3(attr_.v);
   const Mat3* F = attr_.F >= 0 ? particles_.mat3(attr_.F) : nullptr;
-  const Real* J = attr_.J >= 0 ? particles_.real(attr_.J) : nullptr;  // fluids only: F absent
+  const Real* J = attr_.J >= 0 ? particles_.real(attr_.J) : nullptr;        // fluids only: F absent
   const SymDev* bd = attr_.b >= 0 ? particles_.sym_dev(attr_.b) : nullptr;  // b - I instead of F
   const Real* V0 = particles_.real(attr_.volume0);
   const std::int32_t* mat = particles_.int32(attr_.material);

@@ -729,8 +729,9 @@ TEST(Checkpoint, LeftCauchyGreenFromAFileHoldingF) {
     read_checkpoint(bpath, b3, with_b.fingerprint);
     ADD_FAILURE() << "a checkpoint with a b that is not positive definite was read";
   } catch (const InputError& err) {
-    EXPECT_NE(std::string(err.what()).find("attribute 'b' of particle 5 is not b - I of a positive"),
-              std::string::npos)
+    EXPECT_NE(
+        std::string(err.what()).find("attribute 'b' of particle 5 is not b - I of a positive"),
+        std::string::npos)
         << err.what();
   }
   std::remove(path.c_str());

@@ -520,13 +520,17 @@ Scene physics_scene(const std::string& integrator, double E, const std::string& 
                      "physics.json");
 }
 
-// A uniform initial elastic strain, so the bodies vibrate as well as move.
+// A uniform initial elastic strain, so the bodies vibrate as well as move (an explicit run keeps
+// b - I of b = F F^T: MpmSolver::keeps_b).
 void prestrain(MpmSolver& s) {
   auto& ps = s.particles();
-  Mat3* F = ps.mat3(s.attributes().F);
   Mat3 F0;
   F0 << 1.06, 0.03, 0, 0, 0.95, 0, 0, 0, 1.02;
-  for (size_t p = 0; p < ps.size(); ++p) F[p] = F0;
+  for (size_t p = 0; p < ps.size(); ++p)
+    if (s.attributes().F >= 0)
+      ps.mat3(s.attributes().F)[p] = F0;
+    else
+      ps.sym_dev(s.attributes().b)[p] = b_from_F<Real>(F0.cast<double>());
 }
 
 std::vector<Vec3> positions_by_id(const MpmSolver& s) {

@@ -694,10 +694,12 @@ TEST(Materials, EveryModelReadsFOnlyThroughB) {
         const Mat3 Fb = b_factor(b_from_F<Real>(F.cast<double>()));
         const Real temp = t % 2 ? Real(310) : Real(290);
         const Real plastic0 = m.initial_plastic() * (1 + Real(0.1) * Real(u(rng)));
-        const Mat3 tau = m.kirchhoff(F, L, plastic0, temp), taub = m.kirchhoff(Fb, L, plastic0, temp);
+        const Mat3 tau = m.kirchhoff(F, L, plastic0, temp),
+                   taub = m.kirchhoff(Fb, L, plastic0, temp);
         const double tol = std::is_same<Real, float>::value ? 2e-4 : 1e-9;
         ASSERT_LT(double((tau - taub).norm()), tol * (1 + double(tau.norm())))
-            << material_model_name(m.model) << " variant " << variant << "\n" << F;
+            << material_model_name(m.model) << " variant " << variant << "\n"
+            << F;
         const double e = double(m.energy(F, plastic0, temp));
         EXPECT_NEAR(double(m.energy(Fb, plastic0, temp)), e, tol * (1 + std::abs(e)));
         Mat3 Fp = F, Fbp = Fb;

@@ -459,8 +459,8 @@ TEST(LeftCauchyGreen, AdvanceIsFFTransposeOfTheAdvancedF) {
     double gd[3][3];
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < 3; ++c) gf[r][c] = float(G(r, c)), gd[r][c] = double(gf[r][c]);
-    const Eigen::Matrix3d Gr = Eigen::Matrix3d::NullaryExpr(
-        [&](Eigen::Index r, Eigen::Index c) { return gd[r][c]; });
+    const Eigen::Matrix3d Gr =
+        Eigen::Matrix3d::NullaryExpr([&](Eigen::Index r, Eigen::Index c) { return gd[r][c]; });
     const Eigen::Matrix3d F1 = (Eigen::Matrix3d::Identity() + Gr) * F;
     const Eigen::Matrix3d b_in = b_matrix(df);  // the float state advanced, in exact-ish double
     const Eigen::Matrix3d want =
@@ -490,18 +490,19 @@ TEST(LeftCauchyGreen, RotatedStrainKeepsItsDigits) {
     const Eigen::Matrix3d F = R * (Eigen::Matrix3d::Identity() + E);  // b = R (I + E)^2 R^T
     const Eigen::Matrix3d want = F * F.transpose() - Eigen::Matrix3d::Identity();
     const SymDevT<float> d = b_from_F<float>(F);
-    worst_b = std::max(worst_b, (b_matrix(d) - Eigen::Matrix3d::Identity() - want).norm() /
-                                    want.norm());
+    worst_b =
+        std::max(worst_b, (b_matrix(d) - Eigen::Matrix3d::Identity() - want).norm() / want.norm());
     const Eigen::Matrix3d Ff = F.cast<float>().cast<double>();
-    worst_F = std::max(worst_F, (Ff * Ff.transpose() - Eigen::Matrix3d::Identity() - want).norm() /
-                                    want.norm());
+    worst_F = std::max(
+        worst_F, (Ff * Ff.transpose() - Eigen::Matrix3d::Identity() - want).norm() / want.norm());
   }
   EXPECT_LT(worst_b, 2e-7);
   EXPECT_GT(worst_F, 100 * worst_b);  // what storing F in one float would lose
   // A rigid rotation of the rest shape is b = I, to double's rounding.
   for (int t = 0; t < 100; ++t)
-    EXPECT_LT((b_matrix(b_from_F<float>(random_rotation(rng))) - Eigen::Matrix3d::Identity()).norm(),
-              1e-14);
+    EXPECT_LT(
+        (b_matrix(b_from_F<float>(random_rotation(rng))) - Eigen::Matrix3d::Identity()).norm(),
+        1e-14);
 }
 
 // b_factor is a Cholesky factor of I + D (lower triangular, L L^T = I + D), NaN where I + D is

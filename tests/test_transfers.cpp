@@ -231,8 +231,8 @@ TEST_P(KernelDeterminism, P2GGridUpdateG2PBitwiseAcrossBackends) {
     s.grid_to_particle(space, Real(1e-3));
     const auto& ps = s.particles();
     std::vector<Real> parts;
-    for (auto id : {s.attributes().x, s.attributes().v, s.attributes().C, s.attributes().F,
-                    s.attributes().b})
+    for (auto id :
+         {s.attributes().x, s.attributes().v, s.attributes().C, s.attributes().F, s.attributes().b})
       if (id >= 0)  // PIC/FLIP keeps no C
         parts.insert(parts.end(), ps.real(id), ps.real(id) + ps.size() * size_t(ps.width(id)));
     if (ref_grid_p2g.empty()) {
@@ -628,10 +628,11 @@ TEST(LeftCauchyGreen, RunsAsTheRunKeepingF) {
       for (MpmSolver* r : {&bb, &ff}) {
         // Colliding, spinning bodies: shear, compression, rotation (and, for the plastic models,
         // return mappings that move).
-        r->add_particles(x, Vec3(Real(1.5), Real(-0.2), 0), Vec3(3, 2, 5), Vec3::Constant(Real(0.5)), 0,
-                         Real(1e-5), Real(t == Transfer::Apic ? 320 : 280));
-        r->add_particles(y, Vec3(Real(-1.5), 0, 0), Vec3(-2, 1, 0), Vec3(Real(0.95), Real(0.5), 0), 1,
-                         Real(1e-5));
+        r->add_particles(x, Vec3(Real(1.5), Real(-0.2), 0), Vec3(3, 2, 5),
+                         Vec3::Constant(Real(0.5)), 0, Real(1e-5),
+                         Real(t == Transfer::Apic ? 320 : 280));
+        r->add_particles(y, Vec3(Real(-1.5), 0, 0), Vec3(-2, 1, 0), Vec3(Real(0.95), Real(0.5), 0),
+                         1, Real(1e-5));
       }
       for (int n = 0; n < 150; ++n) {
         const Real dt = std::min(bb.stable_dt(space), Real(2e-4));
@@ -656,15 +657,16 @@ TEST(LeftCauchyGreen, RunsAsTheRunKeepingF) {
         const double Ja = fa.attributes[0].f[i];
         dJ_most = std::max(dJ_most, std::abs(Ja - double(fb.attributes[0].f[j])));
         J_lo = std::min(J_lo, Ja), J_hi = std::max(J_hi, Ja);
-        dvm_most = std::max(dvm_most, std::abs(double(fa.attributes[1].f[i]) -
-                                               double(fb.attributes[1].f[j])));
+        dvm_most = std::max(
+            dvm_most, std::abs(double(fa.attributes[1].f[i]) - double(fb.attributes[1].f[j])));
         vm_most = std::max(vm_most, double(fb.attributes[1].f[j]));
       }
       const MpmDiagnostics da = bb.diagnostics(space), db = ff.diagnostics(space);
-      std::printf("%s %s%s: max |x_b - x_F| = %.3g dx, |J| %.3g, J in [%.4f, %.4f], von Mises "
-                  "%.3g of %.3g Pa, elastic energy %.6g vs %.6g J\n",
-                  material_model_name(model), transfer_name(t), fused ? " fused" : "",
-                  dx_most / 0.05, dJ_most, J_lo, J_hi, dvm_most, vm_most, da.elastic, db.elastic);
+      std::printf(
+          "%s %s%s: max |x_b - x_F| = %.3g dx, |J| %.3g, J in [%.4f, %.4f], von Mises "
+          "%.3g of %.3g Pa, elastic energy %.6g vs %.6g J\n",
+          material_model_name(model), transfer_name(t), fused ? " fused" : "", dx_most / 0.05,
+          dJ_most, J_lo, J_hi, dvm_most, vm_most, da.elastic, db.elastic);
       EXPECT_GT(J_hi - J_lo, 1e-3);  // the bodies deformed
       EXPECT_LT(dx_most, 2e-4 * 0.05);
       EXPECT_LT(dJ_most, 2e-4);
