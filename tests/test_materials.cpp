@@ -540,6 +540,21 @@ TEST(Materials, MeltingSwitchesToViscousLiquid) {
   EXPECT_NEAR(double(m.kinematic_viscosity()), 5e-3, 1e-9);
 }
 
+namespace {
+// Model k with its parameters set (fluid bulk, sand friction, von Mises yield): variant 0 plain,
+// 1 viscous, 2 melting at 300 K into a viscous liquid.
+MaterialParams model_variant(MaterialModel k, int variant, const Lame& l) {
+  MaterialParams m{k, l.mu, l.lambda, 1000};
+  m.bulk = Real(1e5);
+  m.friction_alpha = Real(0.4);
+  m.yield_stress = Real(1e3);
+  m.viscosity = variant == 1 ? Real(0.1) : Real(0);
+  if (variant == 2)
+    m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
+  return m;
+}
+}  // namespace
+
 // P2G takes the stresses of several particles at once (kirchhoff_lanes: the fixed corotated
 // rotations one per vector lane). Every model, with viscosity, snow's per-particle hardening and a
 // melting point crossed inside a batch, must give bitwise the one-particle kirchhoff().
@@ -551,13 +566,7 @@ TEST(Materials, KirchhoffOfABatchIsBitwiseThatOfOneParticle) {
   int compared = 0;
   for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
     for (int variant = 0; variant < 3; ++variant) {
-      MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
-      m.bulk = Real(1e5);
-      m.friction_alpha = Real(0.4);
-      m.yield_stress = Real(1e3);
-      m.viscosity = variant == 1 ? Real(0.1) : Real(0);
-      if (variant == 2)
-        m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
+      const MaterialParams m = model_variant(MaterialModel(k), variant, l);
       for (int t = 0; t < 200; ++t) {
         const int n = 1 + t % W;
         Mat3 F[W], L[W], tau[W];
@@ -680,13 +689,7 @@ TEST(Materials, EveryModelReadsFOnlyThroughB) {
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
     for (int variant = 0; variant < 3; ++variant) {
-      MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
-      m.bulk = Real(1e5);
-      m.friction_alpha = Real(0.4);
-      m.yield_stress = Real(1e3);
-      m.viscosity = variant == 1 ? Real(0.1) : Real(0);
-      if (variant == 2)
-        m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
+      const MaterialParams m = model_variant(MaterialModel(k), variant, l);
       for (int t = 0; t < 100; ++t) {
         Mat3 F = random_F(rng) * random_rotation(rng), L;
         for (int e = 0; e < 9; ++e) L(e) = Real(u(rng));
