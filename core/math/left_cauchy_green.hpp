@@ -3,7 +3,7 @@
 // Every material of the engine is isotropic: its Kirchhoff stress, energy and return mapping
 // depend on F only through b (tau(F Q) = tau(F) for a rotation Q), so any L with L L^T = b stands
 // in for F there; b_factor gives its Cholesky factor. b - I keeps the digits of a small strain
-// whatever the body's rotation (a rest shape turned by R has b = I exactly), which the compensated
+// whatever the body's rotation (a rest shape turned by R has b = I, to rounding), which the compensated
 // pair F + F_lo (core/math/types.hpp: add_compensated; 72 B in float) kept for F: 24 B instead.
 #pragma once
 
