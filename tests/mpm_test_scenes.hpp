@@ -6,7 +6,10 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <system_error>
 #include <vector>
+
+#include <unistd.h>
 
 #include "core/exec/simd.hpp"
 #include "io/scene.hpp"
@@ -72,15 +75,28 @@ inline std::vector<Real> state_bytes(const MpmSolver& s) {
 // Every material model with state (return mappings, F reset, melting under a heat source), the
 // particle collision pass and a keyframed mesh collider (a cube sweeping through the snow).
 inline Scene material_scene(const std::string& simulation = "") {
-  const std::string cube =
-      (std::filesystem::temp_directory_path() / "amalgam_backend_cube.obj").string();
-  {
-    std::ofstream f(cube);
-    for (int i = 0; i < 8; ++i)
-      f << "v " << ((i & 1) ? 0.06 : -0.06) << " " << ((i & 2) ? 0.06 : -0.06) << " "
-        << ((i & 4) ? 0.06 : -0.06) << "\n";
-    f << "f 1 3 4 2\nf 5 6 8 7\nf 1 2 6 5\nf 3 7 8 4\nf 1 5 7 3\nf 2 4 8 6\n";
-  }
+  // One file per process, written once and removed at exit: ctest runs each test as its own
+  // process, two at a time, and several tests build this scene. A shared name let one test
+  // truncate the file while another read it (BackendDeterminism.MaterialsWithStateBitwiseIdentical
+  // failed after 0.1 s, once).
+  struct CubeFile {
+    std::string path = (std::filesystem::temp_directory_path() /
+                        ("amalgam_backend_cube_" + std::to_string(::getpid()) + ".obj"))
+                           .string();
+    CubeFile() {
+      std::ofstream f(path);
+      for (int i = 0; i < 8; ++i)
+        f << "v " << ((i & 1) ? 0.06 : -0.06) << " " << ((i & 2) ? 0.06 : -0.06) << " "
+          << ((i & 4) ? 0.06 : -0.06) << "\n";
+      f << "f 1 3 4 2\nf 5 6 8 7\nf 1 2 6 5\nf 3 7 8 4\nf 1 5 7 3\nf 2 4 8 6\n";
+    }
+    ~CubeFile() {
+      std::error_code ec;
+      std::filesystem::remove(path, ec);
+    }
+  };
+  static const CubeFile file;
+  const std::string& cube = file.path;
   const std::string text = R"({
     "simulation": {"dx": 0.04, "frames": 1)" +
                            simulation + R"(},
