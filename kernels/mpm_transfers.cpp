@@ -443,9 +443,7 @@ inline bool scatter_range(GridBlock<Order, CH, M>& blk, const Vec3i& origin, std
     if (!L && p.J) {  // the particles keep J alone (MpmParticleView::J): every material a fluid
       mat.fluid_kirchhoff_lanes(p.J + q0, p.C ? p.C + q0 : zero, tau, n);
     } else if (!L && p.b) {  // b - I: its Cholesky factor stands in for F (isotropic materials)
-      Mat3 Fb[W];
-      b_factor_lanes(p.b + q0, n, Fb);
-      mat.kirchhoff_lanes(Fb, p.C ? p.C + q0 : zero, plastic, temperature, tau, n);
+      mat.kirchhoff_lanes_b(p.b + q0, p.C ? p.C + q0 : zero, plastic, temperature, tau, n);
     } else {
       mat.kirchhoff_lanes(p.F + q0, L ? Lv : p.C ? p.C + q0 : zero, plastic, temperature, tau, n);
     }
@@ -653,6 +651,16 @@ inline Flat9 flat9(const simd::V4* col) {
 #endif
 }
 
+#if !(defined(AMALGAM_REAL_DOUBLE) && !defined(__AVX__))
+// Row r of a matrix held as 4-lane columns, as such a column: (_, M(r, 0), M(r, 1), M(r, 2)),
+// i.e. column r of its transpose.
+template <int r>
+inline simd::V4 row4_of(const simd::V4* col) {
+  const simd::V4 t = __builtin_shufflevector(col[0], col[1], 0, r + 1, r + 5, 0);
+  return __builtin_shufflevector(t, col[2], 0, 1, 2, r + 5);
+}
+#endif
+
 // advance_b (core/math/left_cauchy_green.hpp: b <- (I + G) b (I + G)^T) with G = dt grad v given
 // as 4-lane columns (column k is dt Gcol[k], row r in lane r + 1): the same operations in the same
 // order, on columns, so the same bits as the scalar form.
@@ -666,11 +674,22 @@ inline void advance_b_columns(SymDev& bd, const simd::V4* Gcol, Real dt) {
     Q[c] = g[c] + ((g[0] * D[0][c] + g[1] * D[1][c]) + g[2] * D[2][c]);
   for (int c = 0; c < 3; ++c)  // Q G^T, column c: sum over k of Q's column k times G(c, k)
     QG[c] = (Q[0] * g[0][c + 1] + Q[1] * g[1][c + 1]) + Q[2] * g[2][c + 1];
+#if defined(AMALGAM_REAL_DOUBLE) && !defined(__AVX__)  // V4: two SSE2 halves (core/math/simd4.hpp)
   constexpr int rs[6] = {0, 1, 2, 0, 0, 1}, cs[6] = {0, 1, 2, 1, 2, 2};
   for (int e = 0; e < 6; ++e) {
     const int r = rs[e], c = cs[e];
     d[e] += (Q[c][r + 1] + Q[r][c + 1]) + QG[c][r + 1];
   }
+#else
+  // M = (Q + Q^T) + Q G^T in columns (Q^T by shuffles), then D's entries 0-3 as one 4-lane add:
+  // each entry the same sums as the scalar form, without 27 lane extracts.
+  const V4 M[3] = {(Q[0] + row4_of<0>(Q)) + QG[0], (Q[1] + row4_of<1>(Q)) + QG[1],
+                   (Q[2] + row4_of<2>(Q)) + QG[2]};
+  const V4 m03 = __builtin_shufflevector(__builtin_shufflevector(M[0], M[1], 1, 6, 5, 5), M[2], 0,
+                                         1, 7, 2);  // M(0,0), M(1,1), M(2,2), M(0,1)
+  simd::store4(d, simd::load4(d) + m03);
+  d[4] += M[2][1], d[5] += M[2][2];
+#endif
 }
 
 // Per-particle G2P (pure: reads a block of node velocities, updates the particle).

@@ -3,6 +3,7 @@
 // inverted F; return mappings land on their yield surface, are idempotent and objective.
 #include <gtest/gtest.h>
 
+#include <cstdio>
 #include <cstring>
 #include <limits>
 #include <random>
@@ -591,6 +592,57 @@ TEST(Materials, KirchhoffOfABatchIsBitwiseThatOfOneParticle) {
       }
     }
   EXPECT_GT(compared, 1000);
+}
+
+// P2G's stresses of particles keeping b - I (kirchhoff_lanes_b: for the fixed corotated models the
+// Cholesky factors go from b to the stress in registers, never stored) are bitwise the
+// one-particle kirchhoff() of each particle's factor b_factor(d), for every model and variant, in
+// full and partial groups, with nearly flat b among them (the polar iteration's SVD fallback,
+// taken from the lanes) and b that is not positive definite (NaN, carried as the stored path
+// carries it).
+TEST(Materials, KirchhoffOfBIsBitwiseThatOfItsFactor) {
+  constexpr int W = lanes::kN<Real>;
+  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  std::mt19937 rng(37);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  int compared = 0, flat = 0;
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
+    for (int variant = 0; variant < 3; ++variant) {
+      const MaterialParams m = model_variant(MaterialModel(k), variant, l);
+      for (int t = 0; t < 200; ++t) {
+        const int n = 1 + t % W;
+        SymDev d[W];
+        Mat3 L[W], tau[W];
+        Real plastic[W], temperature[W];
+        for (int i = 0; i < n; ++i) {
+          Mat3 F = random_F(rng) * random_rotation(rng);
+          if (t % 7 == 0 && i == 0) F.col(1) *= Real(5e-4);  // nearly flat: SVD fallback
+          d[i] = b_from_F<Real>(F.cast<double>());
+          const Mat3 Lb = b_factor(d[i]);  // the polar iteration's test (core/math/svd3.hpp)
+          const double n2 = double(Lb.squaredNorm());
+          flat += Lb.allFinite() && double(Lb.determinant()) <= 2e-4 * n2 * std::sqrt(n2);
+          if (t % 11 == 0 && i == n - 1) d[i].e[1] = Real(-2);  // not positive definite
+          L[i] = random_F(rng) - Mat3::Identity();
+          plastic[i] =
+              m.model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
+          temperature[i] = Real(300 + 5 * u(rng));  // some lanes melted, some not
+        }
+        m.kirchhoff_lanes_b(d, L, plastic, temperature, tau, n);
+        for (int i = 0; i < n; ++i) {
+          const Mat3 one = m.kirchhoff(b_factor(d[i]), L[i], plastic[i], temperature[i]);
+          const bool same = std::memcmp(one.data(), tau[i].data(), sizeof(Mat3)) == 0 ||
+                            (one.hasNaN() && tau[i].hasNaN());
+          ASSERT_TRUE(same) << material_model_name(m.model) << " variant " << variant << " lane "
+                            << i << "\n"
+                            << one << "\n"
+                            << tau[i];
+          ++compared;
+        }
+      }
+    }
+  std::printf("%d lanes compared, %d of them nearly flat\n", compared, flat);
+  EXPECT_GT(compared, 1000);
+  EXPECT_GT(flat, 30);
 }
 
 // The diagnostics take the elastic energies of several particles at once (energy_lanes: the SVDs

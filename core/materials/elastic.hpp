@@ -81,11 +81,17 @@ struct FixedCorotatedT {
   // kirchhoff(F[l]) with Lame parameters mu[l], lambda[l] for n <= lanes::kN<T> particles at
   // once, one per vector lane (P2G's hot spot), bitwise the one-particle values.
   static void kirchhoff_lanes(const M3* F, const T* mu, const T* lambda, M3* tau, int n) {
-    using V = lanes::V<T>;
-    V f[9], r[9], t[9], vmu = lanes::splat(T(0)), vlambda = vmu;
-    for (int l = 0; l < n; ++l) vmu[l] = mu[l], vlambda[l] = lambda[l];
+    lanes::V<T> f[9];
     lanes::load_mat3(F, n, f);
-    polar_rotation_fast_lanes(f, F, n, r);
+    kirchhoff_lanes(f, mu, lambda, tau, n);
+  }
+  // The same given F's entries in lanes (lanes::load_mat3's layout), e.g. b's Cholesky factors
+  // straight from b_factor_lanes, never stored.
+  static void kirchhoff_lanes(const lanes::V<T>* f, const T* mu, const T* lambda, M3* tau, int n) {
+    using V = lanes::V<T>;
+    V r[9], t[9], vmu = lanes::splat(T(0)), vlambda = vmu;
+    for (int l = 0; l < n; ++l) vmu[l] = mu[l], vlambda[l] = lambda[l];
+    polar_rotation_fast_lanes<T>(f, n, r);
     tau_entries<V>(f, r, vmu, vlambda, t);
     lanes::store_mat3(t, n, tau);
   }

@@ -16,6 +16,7 @@
 #include "core/materials/fluid.hpp"
 #include "core/materials/plasticity.hpp"
 #include "core/math/lanes.hpp"
+#include "core/math/left_cauchy_green.hpp"
 #include "core/math/types.hpp"
 
 namespace amalgam {
@@ -104,16 +105,41 @@ struct MaterialParams {
       for (int l = 0; l < n; ++l) tau[l] = StvkHencky{mu, lambda}.kirchhoff(d[l]);
     } else {
       Real lmu[lanes::kN<Real>], llambda[lanes::kN<Real>];
-      for (int l = 0; l < n; ++l) {
-        const FixedCorotated m =
-            model == MaterialModel::Snow ? snow().elastic(plastic[l]) : FixedCorotated{mu, lambda};
-        lmu[l] = m.mu, llambda[l] = m.lambda;
-      }
+      corotated_lames(plastic, n, lmu, llambda);
       FixedCorotated::kirchhoff_lanes(F, lmu, llambda, tau, n);
     }
     if (viscosity > 0)
       for (int l = 0; l < n; ++l)
         tau[l] += (F[l].determinant() * viscosity) * (L[l] + L[l].transpose());
+  }
+  // kirchhoff_lanes of n <= lanes::kN<Real> particles keeping b - I (core/math/left_cauchy_green.hpp)
+  // instead of F: the stresses of b's Cholesky factors, bitwise kirchhoff_lanes of the factors
+  // b_factor_lanes stores. The fixed corotated models (also snow's elasticity) without viscosity
+  // or melting, P2G's common case, take the factors from b's entries to the polar iteration and
+  // the stress in vector registers; storing the 16 factors and loading them back cost P2G ~10 %
+  // (docs/benchmarks.md, "b = F F^T instead of F + F_lo").
+  void kirchhoff_lanes_b(const SymDev* d, const Mat3* L, const Real* plastic,
+                         const Real* temperature, Mat3* tau, int n) const {
+    if ((model != MaterialModel::FixedCorotated && model != MaterialModel::Snow) || melting ||
+        viscosity > 0) {
+      Mat3 F[lanes::kN<Real>];
+      b_factor_lanes(d, n, F);
+      kirchhoff_lanes(F, L, plastic, temperature, tau, n);
+      return;
+    }
+    Real lmu[lanes::kN<Real>], llambda[lanes::kN<Real>];
+    corotated_lames(plastic, n, lmu, llambda);
+    lanes::V<Real> f[9];
+    b_factor_lanes(d, n, f);
+    FixedCorotated::kirchhoff_lanes(f, lmu, llambda, tau, n);
+  }
+  // The Lame parameters of n particles of a fixed corotated model (snow's from its hardening).
+  void corotated_lames(const Real* plastic, int n, Real* lmu, Real* llambda) const {
+    for (int l = 0; l < n; ++l) {
+      const FixedCorotated m =
+          model == MaterialModel::Snow ? snow().elastic(plastic[l]) : FixedCorotated{mu, lambda};
+      lmu[l] = m.mu, llambda[l] = m.lambda;
+    }
   }
   // kirchhoff_lanes of n <= lanes::kN<Real> particles of this fluid (model Fluid) from their
   // J = det F alone (the fluid's stress reads nothing else of F).

@@ -74,11 +74,12 @@ inline Eigen::Matrix<T, 3, 3> b_factor(const SymDevT<T>& d) {
   b_factor_entries<T, T>(d.e, L.data());
   return L;
 }
-// b_factor of n <= lanes::kN<T> particles at once, one per lane: L[l] is bitwise b_factor(d[l]).
+// b_factor of n <= lanes::kN<T> particles at once, one per lane: l[e] holds entry e of each
+// factor (lanes::load_mat3's layout; spare lanes the identity), lane k bitwise b_factor(d[k]).
 template <class T>
-inline void b_factor_lanes(const SymDevT<T>* d, int n, Eigen::Matrix<T, 3, 3>* L) {
+inline void b_factor_lanes(const SymDevT<T>* d, int n, lanes::V<T>* l) {
   using V = lanes::V<T>;
-  V dv[6], l[9];
+  V dv[6];
   if (n == lanes::kN<T>) {
     for (int e = 0; e < 6; ++e) dv[e] = lanes::gather(d[0].e + e, 6);
   } else {
@@ -87,6 +88,12 @@ inline void b_factor_lanes(const SymDevT<T>* d, int n, Eigen::Matrix<T, 3, 3>* L
       for (int e = 0; e < 6; ++e) dv[e][k] = d[k].e[e];
   }
   b_factor_entries<T, V>(dv, l);
+}
+// The same stored as matrices: L[k] is bitwise b_factor(d[k]).
+template <class T>
+inline void b_factor_lanes(const SymDevT<T>* d, int n, Eigen::Matrix<T, 3, 3>* L) {
+  lanes::V<T> l[9];
+  b_factor_lanes(d, n, l);
   lanes::store_mat3(l, n, L);
 }
 

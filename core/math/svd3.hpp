@@ -271,16 +271,17 @@ inline Eigen::Matrix<T, 3, 3> polar_rotation_fast(const Eigen::Matrix<T, 3, 3>& 
 }
 
 // polar_rotation_fast of n <= lanes::kN<T> matrices at once, one per vector lane: f holds their
-// entries (lanes::load_mat3 of F), R receives the rotations the same way; lane l is bitwise
-// polar_rotation_fast(F[l]).
+// entries (lanes::load_mat3's layout), R receives the rotations the same way; lane l is bitwise
+// polar_rotation_fast of the matrix in lane l.
 template <class T>
-inline void polar_rotation_fast_lanes(const lanes::V<T>* f, const Eigen::Matrix<T, 3, 3>* F, int n,
-                                      lanes::V<T>* R) {
+inline void polar_rotation_fast_lanes(const lanes::V<T>* f, int n, lanes::V<T>* R) {
   assert(n >= 1 && n <= lanes::kN<T>);
   const lanes::Mask<T> converged = detail::polar_newton<T, lanes::V<T>, lanes::Mask<T>>(f, R);
   for (int l = 0; l < n; ++l) {
     if (converged[l]) continue;
-    const Svd3<T> s = svd3(F[l]);
+    Eigen::Matrix<T, 3, 3> Fl;
+    for (int e = 0; e < 9; ++e) Fl.data()[e] = f[e][l];
+    const Svd3<T> s = svd3(Fl);
     const Eigen::Matrix<T, 3, 3> Rl = s.U * s.V.transpose();
     for (int e = 0; e < 9; ++e) R[e][l] = Rl.data()[e];
   }
@@ -290,7 +291,7 @@ inline void polar_rotation_fast_lanes(const Eigen::Matrix<T, 3, 3>* F, Eigen::Ma
                                       int n) {
   lanes::V<T> f[9], r[9];
   lanes::load_mat3(F, n, f);
-  polar_rotation_fast_lanes(f, F, n, r);
+  polar_rotation_fast_lanes<T>(f, n, r);
   lanes::store_mat3(r, n, R);
 }
 
