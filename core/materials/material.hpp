@@ -116,8 +116,8 @@ struct MaterialParams {
   // instead of F: the stresses of b's Cholesky factors, bitwise kirchhoff_lanes of the factors
   // b_factor_lanes stores. The fixed corotated models (also snow's elasticity) without viscosity
   // or melting, P2G's common case, take the factors from b's entries to the polar iteration and
-  // the stress in vector registers; storing the 16 factors and loading them back cost P2G ~10 %
-  // (docs/benchmarks.md, "b = F F^T instead of F + F_lo").
+  // the stress in vector registers: storing the 16 factors and gathering them back made P2G ~8 %
+  // slower (docs/benchmarks.md, "P2G's part of the cost recovered").
   void kirchhoff_lanes_b(const SymDev* d, const Mat3* L, const Real* plastic,
                          const Real* temperature, Mat3* tau, int n) const {
     if ((model != MaterialModel::FixedCorotated && model != MaterialModel::Snow) || melting ||
