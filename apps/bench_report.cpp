@@ -106,15 +106,20 @@ struct RooflineCost {
   const char* region;  // the profiler region (exec::parallel_for label) that times it
   double flops, bytes;
 };
-constexpr char kRooflineCounted[] = "39f9e91 (G2P recounted for its whole-row gather, 2026-11-29)";
+constexpr char kRooflineCounted[] =
+    "39f9e91 (G2P recounted for its whole-row gather), and for b - I instead of F + F_lo at "
+    "8dc400e (2026-11-29)";
 // MPM: the particle attributes read and written (no write-allocate, as the triad counts) plus the
 // dilated grid blocks amortised over a bin's ~1,450 particles; stress at one polar iteration (the
-// timed window's). PD (the case's plastic + fracture configuration, AVX2): the bond arrays
-// streamed plus the rows' per-particle traffic; the neighbours' records come from cache.
+// timed window's). The report's spheres keep b - I (MpmSolver::keeps_b): P2G reads b (24 B) instead
+// of F and adds its Cholesky factor (17 flops); G2P reads and writes b instead of F + F_lo (48 B
+// instead of 144) and updates it in 174 flops instead of F's 135. PD (the case's plastic +
+// fracture configuration, AVX2): the bond arrays streamed plus the rows' per-particle traffic; the
+// neighbours' records come from cache.
 const RooflineCost kRoofline[] = {
-    {"mpm_mls", "mpm.p2g", 814, 104 + 42},     {"mpm_mls", "mpm.g2p", 789, 240 + 19},
-    {"mpm_apic", "mpm.p2g", 1408, 104 + 42},   {"mpm_apic", "mpm.g2p", 1161, 240 + 19},
-    {"mpm_flip", "mpm.p2g", 1398, 68 + 84},    {"mpm_flip", "mpm.g2p", 1423, 216 + 38},
+    {"mpm_mls", "mpm.p2g", 831, 92 + 42},      {"mpm_mls", "mpm.g2p", 828, 144 + 19},
+    {"mpm_apic", "mpm.p2g", 1425, 92 + 42},    {"mpm_apic", "mpm.g2p", 1200, 144 + 19},
+    {"mpm_flip", "mpm.p2g", 1415, 56 + 84},    {"mpm_flip", "mpm.g2p", 1462, 120 + 38},
     {"peridynamics", "pd.dilatation", 59, 26}, {"peridynamics", "pd.forces", 63, 39},
 };
 
