@@ -3,6 +3,7 @@
 // inverted F; return mappings land on their yield surface, are idempotent and objective.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <limits>
@@ -609,6 +610,9 @@ TEST(Materials, KirchhoffOfBIsBitwiseThatOfItsFactor) {
   for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
     for (int variant = 0; variant < 3; ++variant) {
       const MaterialParams m = model_variant(MaterialModel(k), variant, l);
+      const bool registers =
+          (m.model == MaterialModel::FixedCorotated || m.model == MaterialModel::Snow) &&
+          variant == 0;
       for (int t = 0; t < 200; ++t) {
         const int n = 1 + t % W;
         SymDev d[W];
@@ -616,12 +620,15 @@ TEST(Materials, KirchhoffOfBIsBitwiseThatOfItsFactor) {
         Real plastic[W], temperature[W];
         for (int i = 0; i < n; ++i) {
           Mat3 F = random_F(rng) * random_rotation(rng);
-          if (t % 7 == 0 && i == 0) F.col(1) *= Real(5e-4);  // nearly flat: SVD fallback
+          if (t % 3 == 0 && i == 0) F.col(1) *= Real(5e-4);  // nearly flat: SVD fallback
           d[i] = b_from_F<Real>(F.cast<double>());
-          const Mat3 Lb = b_factor(d[i]);  // the polar iteration's test (core/math/svd3.hpp)
-          const double n2 = double(Lb.squaredNorm());
-          flat += Lb.allFinite() && double(Lb.determinant()) <= 2e-4 * n2 * std::sqrt(n2);
           if (t % 11 == 0 && i == n - 1) d[i].e[1] = Real(-2);  // not positive definite
+          // Lanes of the register path (fixed corotated, snow) that take the polar iteration's
+          // SVD fallback (its test, core/math/svd3.hpp).
+          const Mat3 Lb = b_factor(d[i]);
+          const double n2 = double(Lb.squaredNorm());
+          flat +=
+              registers && Lb.allFinite() && double(Lb.determinant()) <= 2e-4 * n2 * std::sqrt(n2);
           L[i] = random_F(rng) - Mat3::Identity();
           plastic[i] =
               m.model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
@@ -630,8 +637,10 @@ TEST(Materials, KirchhoffOfBIsBitwiseThatOfItsFactor) {
         m.kirchhoff_lanes_b(d, L, plastic, temperature, tau, n);
         for (int i = 0; i < n; ++i) {
           const Mat3 one = m.kirchhoff(b_factor(d[i]), L[i], plastic[i], temperature[i]);
-          const bool same = std::memcmp(one.data(), tau[i].data(), sizeof(Mat3)) == 0 ||
-                            (one.hasNaN() && tau[i].hasNaN());
+          bool same = true;  // entry by entry: bitwise, or NaN in both
+          for (int e = 0; e < 9; ++e)
+            same = same && (std::memcmp(&one.data()[e], &tau[i].data()[e], sizeof(Real)) == 0 ||
+                            (std::isnan(one.data()[e]) && std::isnan(tau[i].data()[e])));
           ASSERT_TRUE(same) << material_model_name(m.model) << " variant " << variant << " lane "
                             << i << "\n"
                             << one << "\n"
@@ -640,9 +649,9 @@ TEST(Materials, KirchhoffOfBIsBitwiseThatOfItsFactor) {
         }
       }
     }
-  std::printf("%d lanes compared, %d of them nearly flat\n", compared, flat);
+  std::printf("%d lanes compared, %d nearly flat on the register path\n", compared, flat);
   EXPECT_GT(compared, 1000);
-  EXPECT_GT(flat, 30);
+  EXPECT_GT(flat, 60);
 }
 
 // The diagnostics take the elastic energies of several particles at once (energy_lanes: the SVDs
