@@ -686,7 +686,10 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     Real dt = 0;
     set_phase("simulating frame " + std::to_string(f) + " of " + scene.file);
     sim.begin_frame();
-    sim.save_frame_start();  // for retries, and for a checkpoint on SIGINT/SIGTERM
+    {  // for retries, and for a checkpoint on SIGINT/SIGTERM
+      exec::ScopedRegion region(space.profiler(), "frame.snapshot");
+      sim.save_frame_start();
+    }
     // A run resumed inside a retried frame continues that frame at its retry's CFL number.
     const int first_attempt = f == rs.first_frame ? rs.resume_retries : 0;
     if (first_attempt > 0) sim.set_cfl(cfl0 * Real(std::pow(0.5, first_attempt)));
@@ -791,6 +794,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
       write_file_atomic(csv_path, csv);
     }
     if ((rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames) {
+      exec::ScopedRegion region(space.profiler(), "frame.checkpoint");
       frames.wait();  // frames up to f are on disk before the checkpoint claims them
       checkpoint(f + 1, 0);
     }
