@@ -10,6 +10,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 #include <iterator>
 #include <memory>
@@ -65,9 +66,12 @@ bool writes_files() {
 // point fields, the preview's attribute, the grid's nodes, the surface mesh) into a snapshot on
 // the simulation's thread; the files are written from it by the output worker: in the background
 // while the next frame simulates (asynchronous output, the default), or at once (--sync-output).
-// At most one frame is in flight: write(f + 1) waits for frame f's files, and wait() is called
-// before every checkpoint, so a checkpoint never claims a frame that is not on disk. A write error
-// in the background is rethrown by the next write or wait, naming the file.
+// At most one frame is in flight: write(f + 1) waits for frame f's files. A checkpoint never
+// claims a frame that is not on disk: one written at frame f's end is staged in a temporary file
+// before write(f) and renamed into place by the writer once frame f's files are (write's `then`),
+// and wait() is called before the checkpoints written outside that order (an interrupt's, --parts
+// ranks). A write error in the background is rethrown by the next write or wait, naming the file;
+// the checkpoint it would have committed is then removed.
 class FrameWriter {
  public:
   FrameWriter(Simulation& sim, const Scene& scene, const RunSettings& rs, const exec::Space& space)
@@ -90,7 +94,8 @@ class FrameWriter {
     if (const char* d = std::getenv("AMALGAM_TEST_WRITE_DELAY_MS")) delay_ms_ = std::atoi(d);
   }
 
-  void write(int f) {
+  // `then` runs after frame f's files are written (on the writer's thread when asynchronous).
+  void write(int f, std::function<void()> then = {}) {
     commit();  // --parts ranks: frame f - 1's manifest, once every rank's part is on disk
     // The whole frame's points (gathered to rank 0 on a distributed MPM run): for the point files
     // of a single-file run, and for what is computed from every point (previews, surfacing).
@@ -124,9 +129,10 @@ class FrameWriter {
     if (parts_) pending_ = {f, sim_.time()};
     waited_ += seconds_since(t0);  // the copy is the simulation's share of asynchronous output
     const auto t1 = std::chrono::steady_clock::now();
-    worker_.submit([this, f, s, part] {
+    worker_.submit([this, f, s, part, then = std::move(then)] {
       if (s) write_snapshot(f, *s);
       if (part) write_part(f, *part);
+      if (then) then();
     });
     waited_ += seconds_since(t1);
   }
@@ -763,7 +769,24 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     steps_log.flush();
     samples.flush();
     const FrameReport report = sim.end_frame(space, substeps);
-    frames.write(f);
+    const bool checkpoint_now =
+        (rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames;
+    // The single-file checkpoint of frame f's end is streamed to a temporary file now and
+    // renamed into place by the output writer after frame f's files (FrameWriter): the
+    // simulation does not wait for the frame in flight.
+    std::shared_ptr<TempFile> staged;
+    if (checkpoint_now && !rs.rank_parts) {
+      exec::ScopedRegion region(space.profiler(), "frame.checkpoint");
+      sim.prepare_checkpoint();  // collective: the particles gathered to rank 0
+      if (writes_files()) staged = stage_checkpoint(checkpoint_path, sim, f + 1, scene.fingerprint);
+    }
+    std::function<void()> commit_checkpoint;
+    if (staged)
+      commit_checkpoint = [staged, &rs] {
+        staged->commit();
+        remove_stale_checkpoint_parts(rs.out_dir, 0);  // parts of an earlier --parts ranks run
+      };
+    frames.write(f, std::move(commit_checkpoint));
     const double wall = seconds_since(t_start);
     for (const std::string& w : report.warnings)
       if (comm.root())
@@ -793,7 +816,7 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
       for (const auto& r : csv_rows) csv += r;
       write_file_atomic(csv_path, csv);
     }
-    if ((rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames) {
+    if (checkpoint_now && rs.rank_parts) {
       exec::ScopedRegion region(space.profiler(), "frame.checkpoint");
       frames.wait();  // frames up to f are on disk before the checkpoint claims them
       checkpoint(f + 1, 0);

@@ -50,11 +50,6 @@ constexpr char kVolumeAttribute[] = "J";
 // attribute list names what a file holds.
 constexpr char kLeftCauchyGreenAttribute[] = "b";
 
-template <class T>
-void put(std::string& b, const T& v) {
-  b.append(reinterpret_cast<const char*>(&v), sizeof(T));
-}
-
 class Reader {
  public:
   Reader(const std::string& data, const std::string& path) : d_(data), path_(path) {}
@@ -86,15 +81,80 @@ class Reader {
 };
 using Section = StateSection;
 
-std::string state_bytes(const ParticleSet& ps, double time, std::uint64_t steps, int next_frame,
-                        int retries, std::uint64_t scene_fingerprint,
-                        const std::vector<Section>& sections) {
-  std::string b;
-  std::size_t total = 128;
-  for (int a = 0; a < ps.attribute_count(); ++a)
-    total += 64 + ps.size() * 4 * size_t(ps.words_per_particle(a));
-  for (const Section& sec : sections) total += 64 + sec.bytes;
-  b.reserve(total);
+// Where a checkpoint's bytes go: appended to a string (the parts joined in memory) or streamed to
+// a file. Either way the FNV-1a checksum is kept as the bytes pass, so a checkpoint is never built
+// as one string to be written (a copy of the whole state, and on this project's VMs ~3 ms of page
+// faults per MB of fresh memory: docs/benchmarks.md "Checkpoints streamed").
+class StringSink {
+ public:
+  explicit StringSink(std::string& b) : b_(b) {}
+  void append(const char* p, std::size_t n) {
+    h_ = fnv1a64(p, n, h_);
+    b_.append(p, n);
+  }
+  // The checksum of every byte so far, appended; returns it.
+  std::uint64_t finish() {
+    const std::uint64_t h = h_;
+    b_.append(reinterpret_cast<const char*>(&h), 8);
+    return h;
+  }
+
+ private:
+  std::string& b_;
+  std::uint64_t h_ = fnv1a64(nullptr, 0);
+};
+
+class FileSink {
+ public:
+  explicit FileSink(TempFile& f) : f_(f) { buf_.reserve(kBuffer); }
+  void append(const char* p, std::size_t n) {
+    h_ = fnv1a64(p, n, h_);
+    bytes_ += n;
+    if (n >= kBuffer / 4) {  // an attribute's array: written from where it lies
+      flush();
+      f_.write(p, n);
+      return;
+    }
+    buf_.append(p, n);
+    if (buf_.size() >= kBuffer) flush();
+  }
+  std::uint64_t finish() {
+    const std::uint64_t h = h_;
+    append(reinterpret_cast<const char*>(&h), 8);
+    flush();
+    return h;
+  }
+  std::uint64_t bytes() const { return bytes_; }
+  // After finish(): FNV-1a of the whole file, its checksum included (a part's record in the
+  // manifest): the running hash carried over the checksum's 8 bytes.
+  std::uint64_t whole_checksum() const { return h_; }
+
+ private:
+  void flush() {
+    f_.write(buf_.data(), buf_.size());
+    buf_.clear();
+  }
+  static constexpr std::size_t kBuffer = 1 << 16;
+  TempFile& f_;
+  std::string buf_;
+  std::uint64_t h_ = fnv1a64(nullptr, 0);
+  std::uint64_t bytes_ = 0;
+};
+
+template <class Sink, class T>
+void put(Sink& b, const T& v) {
+  b.append(reinterpret_cast<const char*>(&v), sizeof(T));
+}
+template <class Sink>
+void put_text(Sink& b, const std::string& s) {
+  b.append(s.data(), s.size());
+}
+
+// The checkpoint's bytes (format in io/checkpoint.hpp), checksum last; returns the checksum.
+template <class Sink>
+std::uint64_t emit_state(Sink& b, const ParticleSet& ps, double time, std::uint64_t steps,
+                         int next_frame, int retries, std::uint64_t scene_fingerprint,
+                         const std::vector<Section>& sections) {
   b.append(kMagic, kMagicLen);
   put(b, kVersion);
   put(b, std::uint32_t(sizeof(Real)));
@@ -108,7 +168,7 @@ std::string state_bytes(const ParticleSet& ps, double time, std::uint64_t steps,
   for (int a = 0; a < ps.attribute_count(); ++a) {
     const std::string& name = ps.name(a);
     put(b, std::uint32_t(name.size()));
-    b.append(name);
+    put_text(b, name);
     put(b, std::uint32_t(ps.type(a)));
     put(b, std::uint32_t(ps.width(a)));
     put(b, std::uint32_t(ps.words_per_particle(a)));
@@ -118,12 +178,11 @@ std::string state_bytes(const ParticleSet& ps, double time, std::uint64_t steps,
   put(b, std::uint32_t(sections.size()));
   for (const Section& sec : sections) {
     put(b, std::uint32_t(sec.name.size()));
-    b.append(sec.name);
+    put_text(b, sec.name);
     put(b, std::uint64_t(sec.bytes));
     b.append(sec.data, sec.bytes);
   }
-  put(b, fnv1a64(b.data(), b.size()));
-  return b;
+  return b.finish();
 }
 
 // Reads into ps (same attribute layout) and the sections (same names and sizes, in order).
@@ -602,14 +661,16 @@ CheckpointPartRecord write_checkpoint_part(const std::string& dir, std::uint64_t
        part.order.size() * sizeof(std::uint64_t)}};
   if (rank == 0)
     for (const Section& s : sim.checkpoint_sections()) sections.push_back(s);
-  const std::string b = state_bytes(*ps, sim.time(), sim.step_count(), next_frame, retries,
-                                    scene_fingerprint, sections);
   CheckpointPartRecord rec;
   rec.file = checkpoint_part_name(generation, rank);
   rec.particles = ps->size();
-  rec.bytes = b.size();
-  rec.checksum = fnv1a64(b.data(), b.size());
-  write_file_atomic(dir + "/" + rec.file, b);
+  TempFile tmp(dir + "/" + rec.file);
+  FileSink sink(tmp);
+  emit_state(sink, *ps, sim.time(), sim.step_count(), next_frame, retries, scene_fingerprint,
+             sections);
+  rec.bytes = sink.bytes();
+  rec.checksum = sink.whole_checksum();
+  tmp.commit();
   return rec;
 }
 
@@ -654,10 +715,18 @@ std::uint64_t last_checkpoint_generation(const std::string& dir) {
   return last;
 }
 
+std::unique_ptr<TempFile> stage_checkpoint(const std::string& path, Simulation& sim, int next_frame,
+                                           std::uint64_t scene_fingerprint, int retries) {
+  auto tmp = std::make_unique<TempFile>(path);
+  FileSink sink(*tmp);
+  emit_state(sink, sim.particles(), sim.time(), sim.step_count(), next_frame, retries,
+             scene_fingerprint, sim.checkpoint_sections());
+  return tmp;
+}
+
 void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
                       std::uint64_t scene_fingerprint, int retries) {
-  write_file_atomic(path, state_bytes(sim.particles(), sim.time(), sim.step_count(), next_frame,
-                                      retries, scene_fingerprint, sim.checkpoint_sections()));
+  stage_checkpoint(path, sim, next_frame, scene_fingerprint, retries)->commit();
 }
 
 CheckpointState read_checkpoint(const std::string& path, Simulation& sim,

@@ -20,10 +20,12 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "core/hash.hpp"
+#include "io/files.hpp"
 #include "solvers/simulation.hpp"
 
 namespace amalgam {
@@ -38,9 +40,15 @@ struct CheckpointState {
   std::vector<std::string> absent;
 };
 
-// Writes the simulation's particles and state sections (Simulation::checkpoint_sections).
+// Writes the simulation's particles and state sections (Simulation::checkpoint_sections),
+// streamed to a temporary file beside `path` and renamed into place.
 void write_checkpoint(const std::string& path, Simulation& sim, int next_frame,
                       std::uint64_t scene_fingerprint, int retries = 0);
+// The same bytes in a temporary file beside `path`, not yet in place: its commit() renames it (the
+// checkpoint's commit point; the frame loop commits once the frames it claims are on disk), and
+// destroyed uncommitted it is removed. The state may change as soon as this returns.
+std::unique_ptr<TempFile> stage_checkpoint(const std::string& path, Simulation& sim, int next_frame,
+                                           std::uint64_t scene_fingerprint, int retries = 0);
 // Loads particles, sections and clock into `sim`, built from the same scene (peridynamics:
 // initialised); returns the state. A section or bond list that does not fit the scene is an
 // InputError naming the file.

@@ -79,6 +79,52 @@ TEST(Checkpoint, RoundTripIsBitwise) {
   std::remove(path.c_str());
 }
 
+// The frame loop stages a frame's checkpoint and commits it once the frame's files are on disk
+// (apps/frame_loop.cpp): staged, the state is in a temporary file and nothing is at the path;
+// the state may change before the commit; dropped uncommitted, the temporary file is removed.
+TEST(Checkpoint, StagedIsInPlaceOnlyOnceCommitted) {
+  const Scene scene = parse_scene(kScene, "s.json");
+  MpmSimulation sim(build_solver(scene));
+  const exec::Space space(exec::Backend::Serial, 1);
+  for (int i = 0; i < 3; ++i) sim.solver().step(space, sim.solver().stable_dt(space));
+  const std::string ref = tmp_path("staged_ref.amck"), path = tmp_path("staged.amck");
+  std::remove(path.c_str());
+  write_checkpoint(ref, sim, 2, scene.fingerprint);
+  const std::string name = std::filesystem::path(path).filename().string();
+  const auto temporaries = [&] {
+    int n = 0;
+    for (const auto& e :
+         std::filesystem::directory_iterator(std::filesystem::path(path).parent_path())) {
+      const std::string f = e.path().filename().string();
+      n += f.rfind(name + ".", 0) == 0 && f.size() > 4 && f.compare(f.size() - 4, 4, ".tmp") == 0;
+    }
+    return n;
+  };
+  {
+    std::unique_ptr<TempFile> staged = stage_checkpoint(path, sim, 2, scene.fingerprint);
+    EXPECT_FALSE(std::filesystem::exists(path));
+    EXPECT_EQ(temporaries(), 1);
+    sim.solver().step(space, sim.solver().stable_dt(space));  // the state moves on
+    staged->commit();
+  }
+  const std::string d = slurp(path);
+  EXPECT_EQ(d, slurp(ref));  // the state at staging, bit for bit
+  // The checksum streamed with the bytes is FNV-1a of every byte before it.
+  ASSERT_GT(d.size(), 8u);
+  std::uint64_t stored = 0;
+  std::memcpy(&stored, d.data() + d.size() - 8, 8);
+  EXPECT_EQ(stored, fnv1a64(d.data(), d.size() - 8));
+  EXPECT_EQ(temporaries(), 0);
+  {
+    std::unique_ptr<TempFile> dropped = stage_checkpoint(path, sim, 3, scene.fingerprint);
+    EXPECT_EQ(temporaries(), 1);
+  }
+  EXPECT_EQ(temporaries(), 0);
+  EXPECT_EQ(slurp(path), d);  // the committed checkpoint untouched
+  std::remove(path.c_str());
+  std::remove(ref.c_str());
+}
+
 TEST(Checkpoint, DamagedFilesAreClearErrors) {
   const Scene scene = parse_scene(kScene, "s.json");
   MpmSimulation a(build_solver(scene));
