@@ -141,11 +141,11 @@ void derive_uuid(const TempFile& f, const std::string& path) {
     if (off == 0) {  // the first chunk holds the header
       if (n < kUuidAt + kUuidLen || !looks_like_uuid(p + kUuidAt))
         throw InputError(path + ": unexpected VDB header (no UUID where OpenVDB 10 writes it)");
-      h1 = fnv1a64(p, kUuidAt, h1), h2 = fnv1a64(p, kUuidAt, h2);
+      fnv1a64_pair(p, kUuidAt, h1, h2);
       p += kUuidAt + kUuidLen;
       n -= kUuidAt + kUuidLen;
     }
-    h1 = fnv1a64(p, n, h1), h2 = fnv1a64(p, n, h2);
+    fnv1a64_pair(p, n, h1, h2);
     off += r;
   }
   // Name-based UUID layout: version nibble 5, variant bits 10.

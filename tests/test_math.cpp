@@ -13,6 +13,7 @@
 #include <random>
 #include <vector>
 
+#include "core/hash.hpp"
 #include "core/math/bspline.hpp"
 #include "core/math/exact_sum.hpp"
 #include "core/math/left_cauchy_green.hpp"
@@ -342,6 +343,26 @@ std::uint64_t bits(double x) {
 
 // Terms a·2^b (|a| < 2^53, b in [-40, 0]) have an exact sum that is an integer times 2^-40 and
 // fits in 128 bits: its correctly rounded value is the one rounding of that integer.
+// The VDB files' content UUID (io/vdb_points.cpp) hashes each file from two starting values in
+// one pass: each must be the plain FNV-1a of the bytes, in pieces as in one (the file is read in
+// chunks), for any length (no word-at-a-time tail to get wrong).
+TEST(Hash, FnvPairIsTwoPlainHashes) {
+  std::mt19937_64 rng(5);
+  std::vector<unsigned char> d(1000);
+  for (auto& c : d) c = static_cast<unsigned char>(rng());
+  // Known values: FNV-1a 64 of "" and "a" (the published test vectors).
+  EXPECT_EQ(fnv1a64("", 0), 0xcbf29ce484222325ULL);
+  EXPECT_EQ(fnv1a64("a", 1), 0xaf63dc4c8601ec8cULL);
+  for (std::size_t n : {0, 1, 7, 8, 9, 333, 1000}) {
+    std::uint64_t h1 = 0xcbf29ce484222325ULL, h2 = 0x84222325cbf29ce4ULL;
+    const std::size_t cut = n / 3;
+    fnv1a64_pair(d.data(), cut, h1, h2);
+    fnv1a64_pair(d.data() + cut, n - cut, h1, h2);
+    EXPECT_EQ(h1, fnv1a64(d.data(), n)) << n;
+    EXPECT_EQ(h2, fnv1a64(d.data(), n, 0x84222325cbf29ce4ULL)) << n;
+  }
+}
+
 TEST(ExactSum, IsTheCorrectlyRoundedExactSum) {
   std::mt19937_64 rng(11);
   for (int trial = 0; trial < 200; ++trial) {
