@@ -5,6 +5,7 @@
 
 #include "core/exec/simd.hpp"
 #include "core/math/lanes.hpp"
+#include "core/math/left_cauchy_green.hpp"
 #include "core/math/svd3.hpp"
 #include "kernels/particle_update.hpp"
 
@@ -48,8 +49,42 @@ void collide_particles(const exec::Space& space, const MpmParticleView& p,
   });
 }
 
+void energy_densities(const MpmParticleView& p, const MaterialParams* mats, std::size_t q0,
+                      std::size_t q1, Real* e) {
+  // Groups of kN: each one-material run of a group takes its energies at once
+  // (MaterialParams::energy_lanes, bitwise energy() per particle whatever the runs).
+  constexpr int kN = lanes::kN<Real>;
+  for (std::size_t g0 = q0; g0 < q1; g0 += kN) {
+    const std::size_t g1 = std::min(q1, g0 + kN);
+    Real* out = e + (g0 - q0);
+    if (p.J) {  // the fluid's energy density of J (energy(F) is that of det F)
+      for (std::size_t i = g0; i < g1; ++i)
+        out[i - g0] = mats[p.material[i]].fluid().energy_of_J(p.J[i]);
+      continue;
+    }
+    if (!p.b && !p.F) {  // no deformation kept (not a state the solver builds): no energy
+      std::fill(out, out + (g1 - g0), Real(0));
+      continue;
+    }
+    Real pl[kN] = {}, tp[kN] = {};
+    for (std::size_t i = g0; i < g1; ++i) {
+      if (p.plastic) pl[i - g0] = p.plastic[i];
+      if (p.temperature) tp[i - g0] = p.temperature[i];
+    }
+    Mat3 Fb[kN];  // b - I: its Cholesky factor stands in for F (isotropic energies)
+    if (p.b) b_factor_lanes(p.b + g0, int(g1 - g0), Fb);
+    const Mat3* F = p.b ? Fb : p.F + g0;  // particle i's at F + (i - g0)
+    for (std::size_t r0 = g0, r1; r0 < g1; r0 = r1) {
+      for (r1 = r0 + 1; r1 < g1 && p.material[r1] == p.material[r0];) ++r1;
+      mats[p.material[r0]].energy_lanes(F + (r0 - g0), pl + (r0 - g0), tp + (r0 - g0),
+                                        out + (r0 - g0), int(r1 - r0));
+    }
+  }
+}
+
 extern const MaterialKernelTable material_kernels;
-const MaterialKernelTable material_kernels = {&update_material_state, &collide_particles};
+const MaterialKernelTable material_kernels = {&update_material_state, &collide_particles,
+                                              &energy_densities};
 
 }  // namespace AMALGAM_ISA
 }  // namespace amalgam

@@ -47,12 +47,23 @@ void update_material_state(const exec::Space& space, const MpmParticleView& p,
 void collide_particles(const exec::Space& space, const MpmParticleView& p,
                        const Collider* colliders, int n, Real time);
 
+// The elastic energy density psi(F) of particles [q0, q1) of p (q1 - q0 <= kEnergyBatch), into
+// e[0 .. q1 - q0): of J where the particles keep J alone, else of F or of b's Cholesky factor
+// (every material isotropic), with the plastic and temperature fields where present. Bitwise
+// MaterialParams::energy per particle on every vector width (the diagnostics' energies:
+// solvers/mpm_solver.cpp, mpm_diagnostics).
+constexpr int kEnergyBatch = 64;
+void energy_densities(const MpmParticleView& p, const MaterialParams* mats, std::size_t q0,
+                      std::size_t q1, Real* e);
+
 // The kernels above for one instruction set (core/exec/simd.hpp; kernels/simd_dispatch.cpp
 // calls the table of exec::simd_path()).
 struct MaterialKernelTable {
   void (*update_material_state)(const exec::Space&, const MpmParticleView&,
                                 const MaterialUpdateParams&);
   void (*collide_particles)(const exec::Space&, const MpmParticleView&, const Collider*, int, Real);
+  void (*energy_densities)(const MpmParticleView&, const MaterialParams*, std::size_t, std::size_t,
+                           Real*);
 };
 
 }  // namespace amalgam

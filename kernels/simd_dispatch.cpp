@@ -94,6 +94,11 @@ void collide_particles(const exec::Space& space, const MpmParticleView& p,
                        const Collider* colliders, int n, Real time) {
   isa_baseline::material_kernels.collide_particles(space, p, colliders, n, time);
 }
+// The diagnostics' energies take their SVDs at the path's width (bitwise the same on every path).
+void energy_densities(const MpmParticleView& p, const MaterialParams* mats, std::size_t q0,
+                      std::size_t q1, Real* e) {
+  AMALGAM_SIMD_PICK(material_kernels).energy_densities(p, mats, q0, q1, e);
+}
 double peak_flops_run(const exec::Space& space, int chunks, int iters, Real* sink) {
   return AMALGAM_SIMD_PICK(peak_flops_kernels).run(space, chunks, iters, sink);
 }

@@ -614,38 +614,29 @@ MpmDiagnostics mpm_diagnostics(const exec::Space& space, const ParticleSet& part
     double vmax = 0;
   };
   const Vec3* v = particles_.vec3(attr_.v);
-  const Mat3* F = attr_.F >= 0 ? particles_.mat3(attr_.F) : nullptr;
-  const Real* J = attr_.J >= 0 ? particles_.real(attr_.J) : nullptr;        // fluids only: F absent
-  const SymDev* bd = attr_.b >= 0 ? particles_.sym_dev(attr_.b) : nullptr;  // b - I instead of F
   const Real* V0 = particles_.real(attr_.volume0);
   const std::int32_t* mat = particles_.int32(attr_.material);
   const MaterialParams* mats = materials_.data();
-  const Real* plastic = attr_.plastic >= 0 ? particles_.real(attr_.plastic) : nullptr;
-  const Real* temp = attr_.temperature >= 0 ? particles_.real(attr_.temperature) : nullptr;
-  // Groups of W particles: each one-material run of a group takes its energies at once
-  // (MaterialParams::energy_lanes, bitwise energy() per particle; the scalar SVDs were ~3/4 of
-  // this pass).
-  constexpr int W = lanes::kN<Real>;
+  // What the energies read: F, J (fluids alone) or b - I, and the plastic and temperature fields.
+  MpmParticleView p{};
+  p.F = attr_.F >= 0 ? const_cast<Mat3*>(particles_.mat3(attr_.F)) : nullptr;
+  p.J = attr_.J >= 0 ? const_cast<Real*>(particles_.real(attr_.J)) : nullptr;
+  p.b = attr_.b >= 0 ? const_cast<SymDev*>(particles_.sym_dev(attr_.b)) : nullptr;
+  p.plastic = attr_.plastic >= 0 ? const_cast<Real*>(particles_.real(attr_.plastic)) : nullptr;
+  p.temperature =
+      attr_.temperature >= 0 ? const_cast<Real*>(particles_.real(attr_.temperature)) : nullptr;
+  p.material = mat;
+  // Batches of kEnergyBatch particles: their energy densities at the vector path's width
+  // (energy_densities, kernels/material_update.hpp: bitwise energy() per particle; the scalar
+  // SVDs were ~3/4 of this pass, and then the baseline's 4-wide ones ~2/3).
+  constexpr std::size_t W = kEnergyBatch;
   const std::size_t n = particles_.size();
   Acc a = exec::parallel_reduce(
       space, "mpm.diagnostics", exec::Index((n + W - 1) / W), Acc{},
       [=](exec::Index g, Acc& acc) {
         const std::size_t q0 = std::size_t(g) * W, q1 = std::min(n, q0 + W);
-        Real pl[W] = {}, tp[W] = {}, e[W];
-        for (std::size_t i = q0; i < q1; ++i) {
-          if (plastic) pl[i - q0] = plastic[i];
-          if (temp) tp[i - q0] = temp[i];
-        }
-        if (J)  // the fluid's energy density of J (energy(F) is that of det F)
-          for (std::size_t i = q0; i < q1; ++i) e[i - q0] = mats[mat[i]].fluid().energy_of_J(J[i]);
-        Mat3 Fb[W];  // b - I: its Cholesky factor stands in for F (isotropic energies)
-        if (bd) b_factor_lanes(bd + q0, int(q1 - q0), Fb);
-        const Mat3* Fg = bd ? Fb : F ? F + q0 : nullptr;  // particle i's at Fg + (i - q0)
-        for (std::size_t r0 = q0, r1; r0 < q1 && Fg; r0 = r1) {
-          for (r1 = r0 + 1; r1 < q1 && mat[r1] == mat[r0];) ++r1;
-          mats[mat[r0]].energy_lanes(Fg + (r0 - q0), pl + (r0 - q0), tp + (r0 - q0), e + (r0 - q0),
-                                     int(r1 - r0));
-        }
+        Real e[W];
+        energy_densities(p, mats, q0, q1, e);
         for (std::size_t i = q0; i < q1; ++i) {
           const Vec3d vi = v[i].cast<double>();
           const double mi = double(mats[mat[i]].mass(V0[i]));

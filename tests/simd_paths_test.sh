@@ -48,6 +48,16 @@ check() {
       cmp "$out/$name/baseline/$f" "$out/$name/$p/$f" || fail "$name: $f differs on $p"
       n=$((n + 1))
     done
+    # diagnostics.csv: its simulation columns (energies, momentum, ...) are the same bits too;
+    # from wall_s on it holds timings.
+    local csv=diagnostics.csv w
+    if [ -f "$out/$name/baseline/$csv" ]; then
+      w=$(head -1 "$out/$name/baseline/$csv" | tr ',' '\n' | grep -n '^wall_s$' | cut -d: -f1)
+      [ -n "$w" ] && [ "$w" -gt 2 ] || fail "$name: no wall_s column in $csv"
+      cmp <(cut -d, -f1-$((w - 1)) "$out/$name/baseline/$csv") <(cut -d, -f1-$((w - 1)) "$out/$name/$p/$csv") \
+        || fail "$name: the simulation columns of $csv differ on $p"
+      n=$((n + 1))
+    fi
     echo "$name: $p identical to baseline ($n files)"
   done
 }
