@@ -1,5 +1,6 @@
 #include "apps/frame_loop.hpp"
 
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -111,7 +112,10 @@ class FrameWriter {
     const SparseGrid* grid = scene_.output.grid_volumes && f > 0 ? sim_.grid() : nullptr;
     std::shared_ptr<PartSnapshot> part;
     if (parts_) part = part_snapshot();
-    if (!writes_files() && !parts_) return;
+    if (!writes_files() && !parts_) {
+      if (then) then();
+      return;
+    }
     const auto t0 = std::chrono::steady_clock::now();
     std::shared_ptr<Snapshot> s;
     if (writes_files()) {
@@ -769,31 +773,15 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
     steps_log.flush();
     samples.flush();
     const FrameReport report = sim.end_frame(space, substeps);
-    const bool checkpoint_now =
-        (rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames;
-    // The single-file checkpoint of frame f's end is streamed to a temporary file now and
-    // renamed into place by the output writer after frame f's files (FrameWriter): the
-    // simulation does not wait for the frame in flight.
-    std::shared_ptr<TempFile> staged;
-    if (checkpoint_now && !rs.rank_parts) {
-      exec::ScopedRegion region(space.profiler(), "frame.checkpoint");
-      sim.prepare_checkpoint();  // collective: the particles gathered to rank 0
-      if (writes_files()) staged = stage_checkpoint(checkpoint_path, sim, f + 1, scene.fingerprint);
-    }
-    std::function<void()> commit_checkpoint;
-    if (staged)
-      commit_checkpoint = [staged, &rs] {
-        staged->commit();
-        remove_stale_checkpoint_parts(rs.out_dir, 0);  // parts of an earlier --parts ranks run
-      };
-    frames.write(f, std::move(commit_checkpoint));
     const double wall = seconds_since(t_start);
     for (const std::string& w : report.warnings)
       if (comm.root())
         std::cerr << (tty && !rs.quiet ? "\n" : "") << "amalgam: warning: frame " << f << ": " << w
                   << "\n";
 
-    // diagnostics.csv: frame, clock, the simulation's columns, wall time split by kernel group.
+    // diagnostics.csv: frame, clock, the simulation's columns, wall time split by kernel group;
+    // written before the frame's checkpoint can be committed (a resumed run keeps the rows before
+    // its checkpoint's frame). The frame's hand-over to the writer counts in the next row.
     std::vector<Column> cols = {{"frame", double(f), true},
                                 {"time_s", sim.time()},
                                 {"last_dt_s", double(dt)},
@@ -816,6 +804,31 @@ int run_frames(Simulation& sim, const Scene& scene, const RunSettings& rs, const
       for (const auto& r : csv_rows) csv += r;
       write_file_atomic(csv_path, csv);
     }
+    const bool checkpoint_now =
+        (rs.checkpoint_every > 0 && f % rs.checkpoint_every == 0) || f == scene.frames;
+    // The single-file checkpoint of frame f's end is streamed to a temporary file now and
+    // renamed into place by the output writer after frame f's files (FrameWriter): the
+    // simulation does not wait for the frame in flight.
+    std::shared_ptr<TempFile> staged;
+    if (checkpoint_now && !rs.rank_parts) {
+      exec::ScopedRegion region(space.profiler(), "frame.checkpoint");
+      sim.prepare_checkpoint();  // collective: the particles gathered to rank 0
+      try {
+        if (writes_files())
+          staged = stage_checkpoint(checkpoint_path, sim, f + 1, scene.fingerprint);
+      } catch (const InputError&) {
+        frames.wait();  // a frame's write error first: it is the cause (a full disk, say)
+        throw;
+      }
+    }
+    std::function<void()> commit_checkpoint;
+    if (staged)
+      commit_checkpoint = [staged, &rs] {
+        ::futimens(staged->fd(), nullptr);  // its time: after the frames it claims
+        staged->commit();
+        remove_stale_checkpoint_parts(rs.out_dir, 0);  // parts of an earlier --parts ranks run
+      };
+    frames.write(f, std::move(commit_checkpoint));
     if (checkpoint_now && rs.rank_parts) {
       exec::ScopedRegion region(space.profiler(), "frame.checkpoint");
       frames.wait();  // frames up to f are on disk before the checkpoint claims them

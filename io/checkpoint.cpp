@@ -81,29 +81,10 @@ class Reader {
 };
 using Section = StateSection;
 
-// Where a checkpoint's bytes go: appended to a string (the parts joined in memory) or streamed to
-// a file. Either way the FNV-1a checksum is kept as the bytes pass, so a checkpoint is never built
-// as one string to be written (a copy of the whole state, and on this project's VMs ~3 ms of page
-// faults per MB of fresh memory: docs/benchmarks.md "Checkpoints streamed").
-class StringSink {
- public:
-  explicit StringSink(std::string& b) : b_(b) {}
-  void append(const char* p, std::size_t n) {
-    h_ = fnv1a64(p, n, h_);
-    b_.append(p, n);
-  }
-  // The checksum of every byte so far, appended; returns it.
-  std::uint64_t finish() {
-    const std::uint64_t h = h_;
-    b_.append(reinterpret_cast<const char*>(&h), 8);
-    return h;
-  }
-
- private:
-  std::string& b_;
-  std::uint64_t h_ = fnv1a64(nullptr, 0);
-};
-
+// A checkpoint streamed to its file with its FNV-1a checksum kept as the bytes pass: it is
+// never built in memory as one string (a copy of the whole state, whose fresh pages cost more
+// than the write on this project's VMs: docs/benchmarks.md, "Checkpoints streamed, the
+// diagnostics' energies at the vector width, b's update in one register").
 class FileSink {
  public:
   explicit FileSink(TempFile& f) : f_(f) { buf_.reserve(kBuffer); }

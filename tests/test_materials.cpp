@@ -3,14 +3,18 @@
 // inverted F; return mappings land on their yield surface, are idempotent and objective.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <limits>
 #include <random>
+#include <vector>
 
+#include "core/exec/simd.hpp"
 #include "core/materials/material.hpp"
 #include "core/math/left_cauchy_green.hpp"
+#include "kernels/material_update.hpp"
 
 using namespace amalgam;
 
@@ -776,4 +780,74 @@ TEST(Materials, EveryModelReadsFOnlyThroughB) {
         EXPECT_LT((bp - bbp).norm(), tol * (1 + bp.norm())) << material_model_name(m.model);
       }
     }
+}
+
+// The diagnostics' elastic energies (kernels/material_update.hpp, energy_densities: the SVDs at
+// the SIMD path's width) on every path this CPU runs: bitwise MaterialParams::energy per particle,
+// with F, with b - I (its Cholesky factor standing in for F) and with J alone (fluids), for every
+// model, melting lanes, snow's hardening, and materials changing in runs that cross the vector
+// groups and the batches.
+TEST(Materials, EnergyDensitiesAreBitwiseEnergyOnEverySimdPath) {
+  const Lame l = Lame::from_young_poisson(1e5, 0.3);
+  std::vector<MaterialParams> mats, fluids;
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
+    for (int melting = 0; melting < 2; ++melting) {
+      MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
+      m.bulk = Real(1e5);
+      if (melting)
+        m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
+      (m.model == MaterialModel::Fluid ? fluids : mats).push_back(m);
+    }
+  std::mt19937 rng(31);
+  std::uniform_real_distribution<double> u(-1.0, 1.0);
+  const std::size_t n = 3 * kEnergyBatch + 11;
+  std::vector<Mat3> F(n);
+  std::vector<SymDev> b(n);
+  std::vector<Real> plastic(n), temperature(n), J(n);
+  std::vector<std::int32_t> mat(n), fluid_mat(n);
+  for (std::size_t i = 0; i < n;) {  // runs of 1 to 20 particles of one material
+    const auto m = std::int32_t(rng() % mats.size()), fm = std::int32_t(rng() % fluids.size());
+    for (std::size_t end = std::min(n, i + 1 + rng() % 20); i < end; ++i)
+      mat[i] = m, fluid_mat[i] = fm;
+  }
+  for (std::size_t i = 0; i < n; ++i) {
+    F[i] = random_F(rng);
+    if (i % 17 == 0) F[i].col(2) *= Real(-1);  // inverted: the SVD's sign convention
+    const Mat3 B = F[i] * F[i].transpose();
+    b[i] = {{B(0, 0) - 1, B(1, 1) - 1, B(2, 2) - 1, B(0, 1), B(0, 2), B(1, 2)}};
+    plastic[i] = mats[mat[i]].model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng))
+                                                           : mats[mat[i]].initial_plastic();
+    temperature[i] = Real(300 + 5 * u(rng));  // some melted, some not
+    J[i] = Real(1 + 0.4 * u(rng));
+  }
+  const exec::SimdPath before = exec::simd_path();
+  int paths = 0;
+  for (const exec::SimdPath path : exec::supported_simd_paths()) {
+    exec::set_simd_path(path);
+    ++paths;
+    for (int storage = 0; storage < 3; ++storage) {  // F, b - I, J
+      MpmParticleView p{};
+      if (storage == 0) p.F = F.data();
+      if (storage == 1) p.b = b.data();
+      if (storage == 2) p.J = J.data();
+      p.plastic = plastic.data();
+      p.temperature = temperature.data();
+      p.material = storage == 2 ? fluid_mat.data() : mat.data();
+      const std::vector<MaterialParams>& ms = storage == 2 ? fluids : mats;
+      std::vector<Real> e(n);
+      for (std::size_t q0 = 0; q0 < n; q0 += kEnergyBatch)
+        energy_densities(p, ms.data(), q0, std::min(n, q0 + kEnergyBatch), e.data() + q0);
+      for (std::size_t i = 0; i < n; ++i) {
+        const MaterialParams& m = ms[p.material[i]];
+        const Real one = storage == 2   ? m.fluid().energy_of_J(J[i])
+                         : storage == 1 ? m.energy(b_factor(b[i]), plastic[i], temperature[i])
+                                        : m.energy(F[i], plastic[i], temperature[i]);
+        ASSERT_EQ(0, std::memcmp(&one, &e[i], sizeof(Real)))
+            << exec::simd_path_name(path) << " storage " << storage << " particle " << i << " "
+            << material_model_name(m.model) << ": " << one << " vs " << e[i];
+      }
+    }
+  }
+  exec::set_simd_path(before);
+  EXPECT_GE(paths, 1);
 }

@@ -341,8 +341,6 @@ std::uint64_t bits(double x) {
 }
 }  // namespace
 
-// Terms a·2^b (|a| < 2^53, b in [-40, 0]) have an exact sum that is an integer times 2^-40 and
-// fits in 128 bits: its correctly rounded value is the one rounding of that integer.
 // The VDB files' content UUID (io/vdb_points.cpp) hashes each file from two starting values in
 // one pass: each must be the plain FNV-1a of the bytes, in pieces as in one (the file is read in
 // chunks), for any length (no word-at-a-time tail to get wrong).
@@ -363,6 +361,8 @@ TEST(Hash, FnvPairIsTwoPlainHashes) {
   }
 }
 
+// Terms a·2^b (|a| < 2^53, b in [-40, 0]) have an exact sum that is an integer times 2^-40 and
+// fits in 128 bits: its correctly rounded value is the one rounding of that integer.
 TEST(ExactSum, IsTheCorrectlyRoundedExactSum) {
   std::mt19937_64 rng(11);
   for (int trial = 0; trial < 200; ++trial) {
