@@ -31,6 +31,19 @@ Mat3 random_F(std::mt19937& rng) {
   for (int i = 0; i < 9; ++i) F(i) += Real(u(rng));
   return F;
 }
+// Every model, each plain and melting (at 300 K), with a bulk modulus.
+std::vector<MaterialParams> every_model_plain_and_melting(const Lame& l) {
+  std::vector<MaterialParams> out;
+  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
+    for (int melting = 0; melting < 2; ++melting) {
+      MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
+      m.bulk = Real(1e5);
+      if (melting)
+        m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
+      out.push_back(m);
+    }
+  return out;
+}
 template <class M>
 void check_model(const M& m) {
   std::mt19937 rng(5);
@@ -667,33 +680,27 @@ TEST(Materials, EnergyOfABatchIsBitwiseThatOfOneParticle) {
   std::mt19937 rng(23);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   int compared = 0;
-  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
-    for (int melting = 0; melting < 2; ++melting) {
-      MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
-      m.bulk = Real(1e5);
-      if (melting)
-        m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
-      for (int t = 0; t < 200; ++t) {
-        const int n = 1 + t % W;
-        Mat3 F[W];
-        Real plastic[W], temperature[W], e[W];
-        for (int i = 0; i < n; ++i) {
-          F[i] = random_F(rng);
-          if (t % 5 == 0 && i == 0) F[i].col(2) *= Real(-1);  // inverted: the SVD fallback
-          plastic[i] =
-              m.model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
-          temperature[i] = Real(300 + 5 * u(rng));  // some lanes melted, some not
-        }
-        m.energy_lanes(F, plastic, temperature, e, n);
-        for (int i = 0; i < n; ++i) {
-          const Real one = m.energy(F[i], plastic[i], temperature[i]);
-          ASSERT_EQ(0, std::memcmp(&one, &e[i], sizeof(Real)))
-              << material_model_name(m.model) << " melting " << melting << " lane " << i << ": "
-              << one << " vs " << e[i];
-          ++compared;
-        }
+  for (MaterialParams m : every_model_plain_and_melting(l)) {
+    for (int t = 0; t < 200; ++t) {
+      const int n = 1 + t % W;
+      Mat3 F[W];
+      Real plastic[W], temperature[W], e[W];
+      for (int i = 0; i < n; ++i) {
+        F[i] = random_F(rng);
+        if (t % 5 == 0 && i == 0) F[i].col(2) *= Real(-1);  // inverted: the SVD fallback
+        plastic[i] = m.model == MaterialModel::Snow ? Real(1 + 0.05 * u(rng)) : m.initial_plastic();
+        temperature[i] = Real(300 + 5 * u(rng));  // some lanes melted, some not
+      }
+      m.energy_lanes(F, plastic, temperature, e, n);
+      for (int i = 0; i < n; ++i) {
+        const Real one = m.energy(F[i], plastic[i], temperature[i]);
+        ASSERT_EQ(0, std::memcmp(&one, &e[i], sizeof(Real)))
+            << material_model_name(m.model) << " melting " << m.melting << " lane " << i << ": "
+            << one << " vs " << e[i];
+        ++compared;
       }
     }
+  }
   EXPECT_GT(compared, 1000);
 }
 
@@ -790,14 +797,8 @@ TEST(Materials, EveryModelReadsFOnlyThroughB) {
 TEST(Materials, EnergyDensitiesAreBitwiseEnergyOnEverySimdPath) {
   const Lame l = Lame::from_young_poisson(1e5, 0.3);
   std::vector<MaterialParams> mats, fluids;
-  for (int k = 0; k <= int(MaterialModel::Fluid); ++k)
-    for (int melting = 0; melting < 2; ++melting) {
-      MaterialParams m{MaterialModel(k), l.mu, l.lambda, 1000};
-      m.bulk = Real(1e5);
-      if (melting)
-        m.melting = true, m.melting_point = 300, m.liquid_bulk = Real(1e4), m.liquid_viscosity = 5;
-      (m.model == MaterialModel::Fluid ? fluids : mats).push_back(m);
-    }
+  for (const MaterialParams& m : every_model_plain_and_melting(l))
+    (m.model == MaterialModel::Fluid ? fluids : mats).push_back(m);
   std::mt19937 rng(31);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   const std::size_t n = 3 * kEnergyBatch + 11;
