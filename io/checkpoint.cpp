@@ -105,6 +105,7 @@ class FileSink {
     flush();
     return h;
   }
+  void append(const std::string& s) { append(s.data(), s.size()); }
   std::uint64_t bytes() const { return bytes_; }
   // After finish(): FNV-1a of the whole file, its checksum included (a part's record in the
   // manifest): the running hash carried over the checksum's 8 bytes.
@@ -126,14 +127,8 @@ template <class Sink, class T>
 void put(Sink& b, const T& v) {
   b.append(reinterpret_cast<const char*>(&v), sizeof(T));
 }
-template <class Sink>
-void put_text(Sink& b, const std::string& s) {
-  b.append(s.data(), s.size());
-}
-
 // The checkpoint's bytes (format in io/checkpoint.hpp), checksum last; returns the checksum.
-template <class Sink>
-std::uint64_t emit_state(Sink& b, const ParticleSet& ps, double time, std::uint64_t steps,
+std::uint64_t emit_state(FileSink& b, const ParticleSet& ps, double time, std::uint64_t steps,
                          int next_frame, int retries, std::uint64_t scene_fingerprint,
                          const std::vector<Section>& sections) {
   b.append(kMagic, kMagicLen);
@@ -149,7 +144,7 @@ std::uint64_t emit_state(Sink& b, const ParticleSet& ps, double time, std::uint6
   for (int a = 0; a < ps.attribute_count(); ++a) {
     const std::string& name = ps.name(a);
     put(b, std::uint32_t(name.size()));
-    put_text(b, name);
+    b.append(name);
     put(b, std::uint32_t(ps.type(a)));
     put(b, std::uint32_t(ps.width(a)));
     put(b, std::uint32_t(ps.words_per_particle(a)));
@@ -159,7 +154,7 @@ std::uint64_t emit_state(Sink& b, const ParticleSet& ps, double time, std::uint6
   put(b, std::uint32_t(sections.size()));
   for (const Section& sec : sections) {
     put(b, std::uint32_t(sec.name.size()));
-    put_text(b, sec.name);
+    b.append(sec.name);
     put(b, std::uint64_t(sec.bytes));
     b.append(sec.data, sec.bytes);
   }
