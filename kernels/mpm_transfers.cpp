@@ -6,7 +6,7 @@
 #include <type_traits>
 #include <vector>
 
-#if defined(__AVX512F__)
+#if defined(__SSE2__)
 #include <immintrin.h>
 #endif
 
@@ -1390,6 +1390,137 @@ static std::uint64_t leaf_colliders(const MpmStepParams& prm, const Vec3i& node0
   return m;
 }
 
+// The colliders of `near` (bit c; every c >= 64) applied to the velocity (m, v) of each node of
+// a leaf with m > 0 (la: the leaf's nodes), at the node's lattice position, or at its current
+// position q_i when the Lagrangian lq is given and its m > 0 (A-ULMPM eq. 12); lb, when given,
+// gains each node's change of v.
+static void project_leaf(const MpmStepParams& prm, Real* la, Real* lb, const Real* lq,
+                         const Vec3i& node0, std::uint64_t near, Real t_end) {
+  for (int i = 0; i < kLeafDim; ++i)
+    for (int j = 0; j < kLeafDim; ++j)
+      for (int k = 0; k < kLeafDim; ++k) {
+        const int o = leaf_offset(i, j, k) * 4;
+        Real* n = la + o;
+        if (n[0] <= 0) continue;
+        const Vec3 v0(n[1], n[2], n[3]);
+        Vec3 v = v0;
+        Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * prm.dx;
+        if (lq && lq[o] > 0) xi = Vec3(lq[o + 1], lq[o + 2], lq[o + 3]) / lq[o];
+        const Real tol = node_tolerance(xi, prm.dx);
+        for (int c = 0; c < prm.ncolliders; ++c)
+          if (c >= 64 || (near >> c & 1)) prm.colliders[c].project(xi, t_end, v, tol);
+        for (int c = 0; c < 3; ++c) {
+          n[1 + c] = v[c];
+          if (lb) lb[o + 1 + c] += v[c] - v0[c];
+        }
+      }
+}
+
+// grid_update's nodes in a leaf no collider can reach (and no node positions): each node (m, p)
+// -> (m, v) with v = p / m + dt g (+ (dt / m) f with the force in b; PIC/FLIP's b -> (-, v - p / m)),
+// and v = 0 (PIC/FLIP's dv = 0) where m <= 0. The same element-wise operations as the scalar loop
+// in grid_update, in the same order, on whole vectors of nodes (4 floats a node: one node per SSE
+// register, 2 per AVX, 4 per AVX-512; m broadcast within each node's 128-bit lane): the same bits
+// on every path. Leaves some collider may reach take the scalar loop.
+#if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
+constexpr bool kVectorFreeLeaf = true;
+namespace free_leaf {
+#if defined(__AVX512F__)
+using V = __m512;
+constexpr int kFloats = 16;
+inline V load(const float* p) {
+  return _mm512_loadu_ps(p);
+}
+inline void store(float* p, V v) {
+  _mm512_storeu_ps(p, v);
+}
+inline V lanes(const float* q) {
+  return _mm512_broadcast_f32x4(_mm_loadu_ps(q));
+}
+inline V splat(float x) {
+  return _mm512_set1_ps(x);
+}
+inline V mass(V a) {
+  return _mm512_shuffle_ps(a, a, 0x00);
+}
+// out = element 0 of each node from `keep`, elements 1-3 from v where m > 0 (else +0).
+inline V finish(V keep, V m, V v) {
+  const __mmask16 pos = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_NLE_UQ);  // !(m <= 0)
+  return _mm512_mask_blend_ps(__mmask16(0x1111), _mm512_maskz_mov_ps(pos, v), keep);
+}
+#elif defined(__AVX__)
+using V = __m256;
+constexpr int kFloats = 8;
+inline V load(const float* p) {
+  return _mm256_loadu_ps(p);
+}
+inline void store(float* p, V v) {
+  _mm256_storeu_ps(p, v);
+}
+inline V lanes(const float* q) {
+  return _mm256_broadcast_ps(reinterpret_cast<const __m128*>(q));
+}
+inline V splat(float x) {
+  return _mm256_set1_ps(x);
+}
+inline V mass(V a) {
+  return _mm256_permute_ps(a, 0x00);
+}
+inline V finish(V keep, V m, V v) {
+  const V le = _mm256_cmp_ps(m, _mm256_setzero_ps(), _CMP_LE_OQ);
+  return _mm256_blend_ps(_mm256_andnot_ps(le, v), keep, 0x11);
+}
+#else
+using V = __m128;
+constexpr int kFloats = 4;
+inline V load(const float* p) {
+  return _mm_loadu_ps(p);
+}
+inline void store(float* p, V v) {
+  _mm_storeu_ps(p, v);
+}
+inline V lanes(const float* q) {
+  return _mm_loadu_ps(q);
+}
+inline V splat(float x) {
+  return _mm_set1_ps(x);
+}
+inline V mass(V a) {
+  return _mm_shuffle_ps(a, a, 0x00);
+}
+inline V finish(V keep, V m, V v) {
+  const V le = _mm_cmple_ps(m, _mm_setzero_ps());
+  const V first = _mm_castsi128_ps(_mm_setr_epi32(-1, 0, 0, 0));
+  return _mm_or_ps(_mm_and_ps(first, keep), _mm_andnot_ps(first, _mm_andnot_ps(le, v)));
+}
+#endif
+}  // namespace free_leaf
+
+template <bool Force, bool Flip>
+void update_free_leaf(Real* la, Real* lb, Real dt, const Vec3& dv_gravity) {
+  using namespace free_leaf;
+  const float g4[4] = {0, dv_gravity[0], dv_gravity[1], dv_gravity[2]};
+  const V gv = lanes(g4), dtv = splat(dt), one = splat(1);
+  for (int o = 0; o < kLeafNodes * 4; o += kFloats) {  // (GCC's element-wise vector operators)
+    const V a = load(la + o);
+    const V m = mass(a);
+    const V inv = one / m;
+    const V v_old = a * inv;
+    V v = v_old + gv;
+    if (Force) {
+      const V b = load(lb + o);
+      v = v + (dtv * inv) * b;
+      if (Flip) store(lb + o, finish(b, m, v - v_old));
+    }
+    store(la + o, finish(a, m, v));
+  }
+}
+#else
+constexpr bool kVectorFreeLeaf = false;
+template <bool Force, bool Flip>
+void update_free_leaf(Real*, Real*, Real, const Vec3&) {}
+#endif
+
 void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
   const bool flip = prm.transfer == Transfer::PicFlip;
   const bool force = flip || prm.split;  // b holds the force (PIC/FLIP, or the split scatter)
@@ -1403,6 +1534,19 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
     Real* lb = force ? g.b + leaf * kLeafNodes * 4 : nullptr;
     const std::uint64_t near =
         prm.ncolliders > 0 ? leaf_colliders(prm, node0, g.q != nullptr, t_end) : 0;
+    // Vectors of nodes, then (MLS/APIC on lattice nodes) the colliders at the nodes they may
+    // reach, as the scalar loop below applies them: to the updated v of each node with m > 0.
+    // PIC/FLIP keeps dv = v - v_old of the projected v, so its leaves near a collider stay scalar.
+    if (kVectorFreeLeaf && (!near || (!flip && !g.q))) {
+      if (flip)
+        update_free_leaf<true, true>(la, lb, dt, dv_gravity);
+      else if (force)
+        update_free_leaf<true, false>(la, lb, dt, dv_gravity);
+      else
+        update_free_leaf<false, false>(la, lb, dt, dv_gravity);
+      if (near) project_leaf(prm, la, nullptr, nullptr, node0, near, t_end);
+      return;
+    }
     for (int i = 0; i < kLeafDim; ++i)
       for (int j = 0; j < kLeafDim; ++j)
         for (int k = 0; k < kLeafDim; ++k) {
@@ -1424,9 +1568,9 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
               const Real* qn = g.q + leaf * kLeafNodes * 4 + o;
               if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
             }
+            const Real tol = node_tolerance(xi, dx);
             for (int c = 0; c < prm.ncolliders; ++c)
-              if (c >= 64 || (near >> c & 1))
-                prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
+              if (c >= 64 || (near >> c & 1)) prm.colliders[c].project(xi, t_end, v, tol);
           }
           n[1] = v[0];
           n[2] = v[1];
@@ -1443,33 +1587,13 @@ void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepPa
 void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
                           const MpmStepParams& prm) {
   if (prm.ncolliders == 0) return;
-  const Real t_end = prm.time + prm.dt, dx = prm.dx;
+  const Real t_end = prm.time + prm.dt;
   exec::parallel_for(space, "mpm.grid_colliders", exec::Index(g.nactive), [&](exec::Index li) {
     const std::size_t leaf = std::size_t(g.active_leaves[li]);
     const Vec3i node0 = g.leaf_coord[leaf] * kLeafDim;
-    Real* la = g.a + leaf * kLeafNodes * 4;
-    Real* lb = g.b ? g.b + leaf * kLeafNodes * 4 : nullptr;
-    const std::uint64_t near = leaf_colliders(prm, node0, g.q != nullptr, t_end);
-    for (int i = 0; i < kLeafDim; ++i)
-      for (int j = 0; j < kLeafDim; ++j)
-        for (int k = 0; k < kLeafDim; ++k) {
-          Real* n = la + leaf_offset(i, j, k) * 4;
-          if (n[0] <= 0) continue;
-          const Vec3 v0(n[1], n[2], n[3]);
-          Vec3 v = v0;
-          Vec3 xi = (node0 + Vec3i(i, j, k)).cast<Real>() * dx;
-          if (g.q) {  // Lagrangian: the node's current position q_i, as in grid_update
-            const Real* qn = g.q + (leaf * kLeafNodes + std::size_t(leaf_offset(i, j, k))) * 4;
-            if (qn[0] > 0) xi = Vec3(qn[1], qn[2], qn[3]) / qn[0];
-          }
-          for (int c = 0; c < prm.ncolliders; ++c)
-            if (c >= 64 || (near >> c & 1))
-              prm.colliders[c].project(xi, t_end, v, node_tolerance(xi, dx));
-          for (int c = 0; c < 3; ++c) {
-            n[1 + c] = v[c];
-            if (lb) lb[leaf_offset(i, j, k) * 4 + 1 + c] += v[c] - v0[c];
-          }
-        }
+    project_leaf(prm, g.a + leaf * kLeafNodes * 4, g.b ? g.b + leaf * kLeafNodes * 4 : nullptr,
+                 g.q ? g.q + leaf * kLeafNodes * 4 : nullptr, node0,
+                 leaf_colliders(prm, node0, g.q != nullptr, t_end), t_end);
   });
 }
 

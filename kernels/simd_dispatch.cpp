@@ -18,9 +18,11 @@ namespace {
 const MpmKernelTable& mpm() {
   return AMALGAM_SIMD_PICK(mpm_kernels);
 }
-// The node loops (clear, update, colliders) run the baseline's code on every path: measured
-// alternated by CPU time, the grid update's AVX2 and AVX-512 builds were 11 % and 4 % slower
-// than the baseline's (docs/benchmarks.md, "Run-time vector width"); their results are the same.
+// The node loops that clear and apply colliders run the baseline's code on every path: measured
+// alternated by CPU time, the compiler's AVX2 and AVX-512 builds of the node loops were 11 % and
+// 4 % slower than the baseline's (docs/benchmarks.md, "Run-time vector width"). The grid update
+// takes the path's code: its collider-free leaves are explicit vectors of whole nodes
+// (update_free_leaf, kernels/mpm_transfers.cpp), the same bits on every path.
 const MpmKernelTable& mpm_nodes() {
   return isa_baseline::mpm_kernels;
 }
@@ -41,7 +43,7 @@ void p2g_positions(const exec::Space& space, const MpmParticleView& p, const Mpm
   mpm().p2g_positions(space, p, g, prm, out);
 }
 void grid_update(const exec::Space& space, const MpmGridView& g, const MpmStepParams& prm) {
-  mpm_nodes().grid_update(space, g, prm);
+  mpm().grid_update(space, g, prm);
 }
 void grid_apply_colliders(const exec::Space& space, const MpmGridView& g,
                           const MpmStepParams& prm) {

@@ -5,6 +5,7 @@
 
 #include <random>
 
+#include "core/exec/simd.hpp"
 #include "solvers/mpm_simulation.hpp"
 #include "solvers/mpm_solver.hpp"
 #include "sparse_grid/sparse_grid.hpp"
@@ -14,15 +15,16 @@ using namespace amalgam;
 
 namespace {
 
-MpmSolver make_blob(Transfer t, int order, Real dt_stress_scale = 1) {
+MpmSolver make_blob(Transfer t, int order, Real dt_stress_scale = 1,
+                    std::vector<Collider> colliders = {}, const Vec3& gravity = Vec3::Zero()) {
   MpmSettings s;
   s.dx = Real(0.05);
   s.order = order;
   s.transfer = t;
-  s.gravity = Vec3::Zero();
+  s.gravity = gravity;
   const Lame l = Lame::from_young_poisson(1e4, 0.3);
   MaterialParams m{MaterialModel::FixedCorotated, l.mu, l.lambda, 1000};
-  MpmSolver solver(s, {m}, {});
+  MpmSolver solver(s, {m}, std::move(colliders));
   std::mt19937 rng(17);
   std::uniform_real_distribution<double> u(-1.0, 1.0);
   std::vector<Vec3> x;
@@ -212,6 +214,109 @@ TEST_P(P2GBlocks, KeptBlocksSumLikeTheColourPhases) {
 }
 
 INSTANTIATE_TEST_SUITE_P(AllTransfers, P2GBlocks, transfers_and_orders(), transfer_order_name);
+
+// The grid update (kernels/mpm_transfers.cpp: whole nodes in vectors, then the colliders of the
+// leaves they may reach) is at every node the scalar update, bit for bit, on every SIMD path and
+// backend: v = p / m + dt g (+ (dt / m) f), then each collider projected at the node's position
+// where m > 0, and v = 0 where m <= 0; PIC/FLIP's second channel dv = v - p / m (0 where m <= 0).
+// Three modes: MLS (no force), PIC/FLIP (force and dv), and MLS's split grid of the fused pass
+// (force, no dv). The blob straddles a floor and a wall, so leaves with and without colliders
+// are both exercised.
+TEST(GridUpdate, EveryNodeIsTheScalarUpdateOnEveryPath) {
+  auto half_space = [](const Vec3& o, const Vec3& n, BoundaryType b, Real mu) {
+    Collider c;
+    c.shape = ColliderShape::HalfSpace;
+    c.origin = o;
+    c.normal = n;
+    c.boundary = b;
+    c.friction = mu;
+    return c;
+  };
+  const std::vector<Collider> colliders = {
+      half_space(Vec3(0, Real(0.42), 0), Vec3::UnitY(), BoundaryType::Separate, Real(0.3)),
+      half_space(Vec3(Real(0.33), 0, 0), Vec3::UnitX(), BoundaryType::Slip, 0)};
+  const Real dt = Real(1e-3);
+  const exec::SimdPath saved = exec::simd_path();
+  for (const Transfer t : {Transfer::Mls, Transfer::PicFlip})
+    for (const bool split : {false, true}) {
+      if (t == Transfer::PicFlip && split) continue;  // PIC/FLIP's b is its force already
+      MpmSolver s = make_blob(t, 2, 1, colliders, Vec3(Real(0.3), Real(-9.81), Real(0.2)));
+      const exec::Space serial;
+      s.sort_particles(serial);
+      s.update_grid(serial);
+      s.particle_to_grid(serial, dt);
+      MpmGridView g = s.grid_view();
+      MpmStepParams prm = s.step_params(dt);
+      const std::size_t nflt = s.grid().leaf_count() * kLeafNodes * 4;
+      std::vector<Real> split_force;
+      std::mt19937 rng(5);
+      std::uniform_real_distribution<double> u(-1.0, 1.0);
+      if (split) {  // the fused pass's stress force, without dt
+        prm.split = true;
+        split_force.resize(nflt);
+        for (Real& f : split_force) f = Real(50 * u(rng));
+        g.b = split_force.data();
+      }
+      const bool flip = t == Transfer::PicFlip, force = flip || split;
+      ASSERT_EQ(force, g.b != nullptr);
+      // Nodes with m <= 0 besides the empty ones: -0 and a negative mass.
+      const auto& leaves = s.grid().active_leaves();
+      ASSERT_GT(leaves.size(), 2u);
+      g.a[std::size_t(leaves[1]) * kLeafNodes * 4 + 4 * 7] = Real(-0.0);
+      g.a[std::size_t(leaves[2]) * kLeafNodes * 4 + 4 * 9] = Real(-1);
+      const std::vector<Real> a0(g.a, g.a + nflt);
+      const std::vector<Real> b0 = force ? std::vector<Real>(g.b, g.b + nflt) : std::vector<Real>();
+      std::vector<Real> ra = a0, rb = b0;
+      int near = 0, reached = 0;
+      for (const auto li : leaves)
+        for (int o = 0; o < kLeafNodes; ++o) {
+          const std::size_t at = (std::size_t(li) * kLeafNodes + std::size_t(o)) * 4;
+          Real* n = ra.data() + at;
+          if (n[0] <= 0) {
+            n[1] = n[2] = n[3] = 0;
+            if (flip) rb[at + 1] = rb[at + 2] = rb[at + 3] = 0;
+            continue;
+          }
+          const Real inv = Real(1) / n[0];
+          Vec3 v_old, v;
+          for (int c = 0; c < 3; ++c) {
+            v_old[c] = n[1 + c] * inv;
+            v[c] = v_old[c] + dt * prm.gravity[c];
+            if (force) v[c] = v[c] + (dt * inv) * rb[at + 1 + std::size_t(c)];
+          }
+          const Vec3i node = s.grid().leaf_coords()[std::size_t(li)] * kLeafDim +
+                             Vec3i(o >> 6, (o >> 3) & 7, o & 7);
+          const Vec3 xi = node.cast<Real>() * prm.dx;
+          const Vec3 before = v;
+          for (const Collider& c : colliders) {
+            near += c.phi(xi, prm.time + dt) <= node_tolerance(xi, prm.dx);
+            c.project(xi, prm.time + dt, v, node_tolerance(xi, prm.dx));
+          }
+          reached += v != before;
+          for (int c = 0; c < 3; ++c) {
+            n[1 + c] = v[c];
+            if (flip) rb[at + 1 + std::size_t(c)] = v[c] - v_old[c];
+          }
+        }
+      EXPECT_GT(reached, 0) << "the colliders change some nodes' velocities";
+      EXPECT_GT(near, 0);
+      for (const exec::SimdPath path :
+           {exec::SimdPath::Baseline, exec::SimdPath::Avx2, exec::SimdPath::Avx512}) {
+        if (!exec::simd_path_supported(path)) continue;
+        exec::set_simd_path(path);
+        for (const auto& c : test::all_configs()) {
+          std::copy(a0.begin(), a0.end(), g.a);
+          if (force) std::copy(b0.begin(), b0.end(), g.b);
+          grid_update(exec::Space(c.backend, c.threads), g, prm);
+          const std::string what = std::string(transfer_name(t)) + (split ? " split " : " ") +
+                                   exec::simd_path_name(path) + " " + c.name();
+          EXPECT_TRUE(test::bitwise_equal(g.a, ra.data(), nflt)) << what;
+          if (force) EXPECT_TRUE(test::bitwise_equal(g.b, rb.data(), nflt)) << what;
+        }
+      }
+      exec::set_simd_path(saved);
+    }
+}
 
 // Each kernel separately, on every backend/thread count, bitwise against Serial.
 class KernelDeterminism : public ::testing::TestWithParam<Transfer> {};
