@@ -26,6 +26,7 @@
 #include <vector>
 
 #include "core/exec/exec.hpp"
+#include "core/memory/huge_pages.hpp"
 #include "core/math/types.hpp"
 #include "sparse_grid/binning.hpp"
 
@@ -99,7 +100,7 @@ class SparseGrid {
   std::vector<std::uint32_t> colour_bins_;
   std::array<std::uint32_t, 9> colour_start_{};
   std::vector<std::array<std::int32_t, 8>> leaf_bins_;
-  std::vector<std::vector<Real>> node4_;
+  std::vector<HugePageVector<Real>> node4_;  // (transparent huge pages: core/memory)
   std::uint64_t rebuilds_ = 0;
   bool nbr27_stale_ = true;
 

@@ -2,6 +2,11 @@
 // every backend and thread count; the profiler records labelled regions.
 #include <gtest/gtest.h>
 
+#include <cstdio>
+#include <fstream>
+
+#include "core/memory/huge_pages.hpp"
+
 #include <cmath>
 #include <numeric>
 
@@ -116,4 +121,45 @@ TEST(Exec, ThreadLimitBoundsLibraryThreads) {
           << exec::backend_name(b) << " x" << threads;
     }
   }
+}
+
+// The particle set's and the grid's large arrays ask for transparent huge pages
+// (core/memory/huge_pages.hpp): the 2 MiB pages inside an allocation of at least 4 MiB carry the
+// kernel's "hg" advice flag (/proc/self/smaps VmFlags), and a plain std::vector's do not; the
+// values are those written, and a small allocation is left alone.
+namespace {
+// The VmFlags of the mapping that holds address a, or "" when smaps cannot be read.
+std::string vm_flags_at(std::uintptr_t a) {
+  std::ifstream in("/proc/self/smaps");
+  std::string line;
+  bool inside = false;
+  while (std::getline(in, line)) {
+    unsigned long lo = 0, hi = 0;
+    if (std::sscanf(line.c_str(), "%lx-%lx ", &lo, &hi) == 2 && line.find('-') < 17) {
+      inside = a >= lo && a < hi;
+      continue;
+    }
+    if (inside && line.rfind("VmFlags:", 0) == 0) return line;
+  }
+  return "";
+}
+std::uintptr_t first_huge_page(const void* p) {
+  constexpr std::uintptr_t kHuge = std::uintptr_t(1) << 21;
+  return (reinterpret_cast<std::uintptr_t>(p) + kHuge - 1) & ~(kHuge - 1);
+}
+}  // namespace
+
+TEST(HugePages, LargeArraysAskForThemAndKeepTheirValues) {
+  amalgam::HugePageVector<std::uint32_t> big(std::size_t(3) << 20);  // 12 MiB
+  std::vector<std::uint32_t> plain(std::size_t(3) << 20);
+  std::iota(big.begin(), big.end(), 7u);
+  for (std::size_t i = 0; i < big.size(); i += 4099) ASSERT_EQ(big[i], std::uint32_t(7 + i));
+  amalgam::HugePageVector<std::uint32_t> small(1000, 5u);  // below the threshold: no advice
+  EXPECT_EQ(small[999], 5u);
+#if defined(__linux__)
+  const std::string flags = vm_flags_at(first_huge_page(big.data()));
+  if (flags.empty()) GTEST_SKIP() << "/proc/self/smaps not readable";
+  EXPECT_NE(flags.find(" hg"), std::string::npos) << flags;
+  EXPECT_EQ(vm_flags_at(first_huge_page(plain.data())).find(" hg"), std::string::npos);
+#endif
 }

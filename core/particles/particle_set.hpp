@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "core/exec/exec.hpp"
+#include "core/memory/huge_pages.hpp"
 #include "core/math/left_cauchy_green.hpp"
 #include "core/math/types.hpp"
 
@@ -79,7 +80,7 @@ class ParticleSet {
   // restoration into a set with the same attributes (used to retry a failed frame).
   struct Snapshot {
     std::size_t n = 0;
-    std::vector<std::vector<std::uint32_t>> words;
+    std::vector<HugePageVector<std::uint32_t>> words;
   };
   void save(Snapshot& s) const;
   void restore(const Snapshot& s);
@@ -89,13 +90,13 @@ class ParticleSet {
     std::string name;
     AttrType type;
     int width;
-    std::vector<std::uint32_t> front;  // 4-byte words: Real=float uses 1 word, double 2
+    HugePageVector<std::uint32_t> front;  // 4-byte words: Real=float uses 1 word, double 2
     int words() const;
   };
   // front[i] = old_front[perm[i]] for i < m, every attribute.
   void gather(const exec::Space& space, const std::uint32_t* perm, std::size_t m);
   std::vector<Attr> attrs_;
-  std::vector<std::uint32_t> spare_;  // spare_words_per_particle() words per particle
+  HugePageVector<std::uint32_t> spare_;  // spare_words_per_particle() words per particle
   std::size_t n_ = 0;
 };
 
