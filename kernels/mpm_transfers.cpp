@@ -1421,7 +1421,7 @@ static void project_leaf(const MpmStepParams& prm, Real* la, Real* lb, const Rea
 // and v = 0 (PIC/FLIP's dv = 0) where m <= 0. The same element-wise operations as the scalar loop
 // in grid_update, in the same order, on whole vectors of nodes (4 floats a node: one node per SSE
 // register, 2 per AVX, 4 per AVX-512; m broadcast within each node's 128-bit lane): the same bits
-// on every path. Leaves some collider may reach take the scalar loop.
+// on every path. (One set of these few wrappers per instruction set.)
 #if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
 constexpr bool kVectorFreeLeaf = true;
 namespace free_leaf {

@@ -12,6 +12,7 @@
 #include <map>
 
 #include "solvers/mpm_solver.hpp"
+#include "half_space.hpp"
 
 using namespace amalgam;
 
@@ -35,13 +36,7 @@ std::vector<Vec3> lattice(const Vec3d& lo, const Vec3d& hi, double dx, Inside in
 }
 
 Collider wall(const Vec3& point, const Vec3& normal, BoundaryType b, Real friction = 0) {
-  Collider c;
-  c.shape = ColliderShape::HalfSpace;
-  c.origin = point;
-  c.normal = normal;
-  c.boundary = b;
-  c.friction = friction;
-  return c;
+  return test::half_space(point, normal, b, friction);
 }
 
 void run_until(MpmSolver& solver, const exec::Space& space, double t_end) {

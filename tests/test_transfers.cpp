@@ -9,6 +9,7 @@
 #include "solvers/mpm_simulation.hpp"
 #include "solvers/mpm_solver.hpp"
 #include "sparse_grid/sparse_grid.hpp"
+#include "half_space.hpp"
 #include "test_util.hpp"
 
 using namespace amalgam;
@@ -223,18 +224,9 @@ INSTANTIATE_TEST_SUITE_P(AllTransfers, P2GBlocks, transfers_and_orders(), transf
 // (force, no dv). The blob straddles a floor and a wall, so leaves with and without colliders
 // are both exercised.
 TEST(GridUpdate, EveryNodeIsTheScalarUpdateOnEveryPath) {
-  auto half_space = [](const Vec3& o, const Vec3& n, BoundaryType b, Real mu) {
-    Collider c;
-    c.shape = ColliderShape::HalfSpace;
-    c.origin = o;
-    c.normal = n;
-    c.boundary = b;
-    c.friction = mu;
-    return c;
-  };
   const std::vector<Collider> colliders = {
-      half_space(Vec3(0, Real(0.42), 0), Vec3::UnitY(), BoundaryType::Separate, Real(0.3)),
-      half_space(Vec3(Real(0.33), 0, 0), Vec3::UnitX(), BoundaryType::Slip, 0)};
+      test::half_space(Vec3(0, Real(0.42), 0), Vec3::UnitY(), BoundaryType::Separate, Real(0.3)),
+      test::half_space(Vec3(Real(0.33), 0, 0), Vec3::UnitX(), BoundaryType::Slip, 0)};
   const Real dt = Real(1e-3);
   const exec::SimdPath saved = exec::simd_path();
   for (const Transfer t : {Transfer::Mls, Transfer::PicFlip})
