@@ -6,7 +6,7 @@
 #include <type_traits>
 #include <vector>
 
-#if defined(__SSE2__)
+#if defined(__AVX512F__)
 #include <immintrin.h>
 #endif
 
@@ -1420,99 +1420,53 @@ static void project_leaf(const MpmStepParams& prm, Real* la, Real* lb, const Rea
 // -> (m, v) with v = p / m + dt g (+ (dt / m) f with the force in b; PIC/FLIP's b -> (-, v - p / m)),
 // and v = 0 (PIC/FLIP's dv = 0) where m <= 0. The same element-wise operations as the scalar loop
 // in grid_update, in the same order, on whole vectors of nodes (4 floats a node: one node per SSE
-// register, 2 per AVX, 4 per AVX-512; m broadcast within each node's 128-bit lane): the same bits
-// on every path. (One set of these few wrappers per instruction set.)
-#if defined(__SSE2__) && !defined(AMALGAM_REAL_DOUBLE)
+// register, 2 per AVX, 4 per AVX-512: lanes::V; m broadcast within each node's 4 elements): the
+// same bits on every path.
+#if !defined(AMALGAM_REAL_DOUBLE)
 constexpr bool kVectorFreeLeaf = true;
 namespace free_leaf {
-#if defined(__AVX512F__)
-using V = __m512;
-constexpr int kFloats = 16;
-inline V load(const float* p) {
-  return _mm512_loadu_ps(p);
+using V = lanes::V<float>;  // the path's vector: 1, 2 or 4 nodes of 4 floats
+using I = lanes::Mask<float>;
+constexpr int kFloats = lanes::kN<float>;
+// Element 0 of each node broadcast over the node's 4 elements.
+template <int... L>
+inline V mass(V a, std::integer_sequence<int, L...>) {
+  return __builtin_shufflevector(a, a, (L & ~3)...);
 }
-inline void store(float* p, V v) {
-  _mm512_storeu_ps(p, v);
-}
-inline V lanes(const float* q) {
-  return _mm512_broadcast_f32x4(_mm_loadu_ps(q));
-}
-inline V splat(float x) {
-  return _mm512_set1_ps(x);
-}
-inline V mass(V a) {
-  return _mm512_shuffle_ps(a, a, 0x00);
-}
-// out = element 0 of each node from `keep`, elements 1-3 from v where m > 0 (else +0).
-inline V finish(V keep, V m, V v) {
-  const __mmask16 pos = _mm512_cmp_ps_mask(m, _mm512_setzero_ps(), _CMP_NLE_UQ);  // !(m <= 0)
-  return _mm512_mask_blend_ps(__mmask16(0x1111), _mm512_maskz_mov_ps(pos, v), keep);
-}
-#elif defined(__AVX__)
-using V = __m256;
-constexpr int kFloats = 8;
-inline V load(const float* p) {
-  return _mm256_loadu_ps(p);
-}
-inline void store(float* p, V v) {
-  _mm256_storeu_ps(p, v);
-}
-inline V lanes(const float* q) {
-  return _mm256_broadcast_ps(reinterpret_cast<const __m128*>(q));
-}
-inline V splat(float x) {
-  return _mm256_set1_ps(x);
-}
-inline V mass(V a) {
-  return _mm256_permute_ps(a, 0x00);
-}
-inline V finish(V keep, V m, V v) {
-  const V le = _mm256_cmp_ps(m, _mm256_setzero_ps(), _CMP_LE_OQ);
-  return _mm256_blend_ps(_mm256_andnot_ps(le, v), keep, 0x11);
-}
-#else
-using V = __m128;
-constexpr int kFloats = 4;
-inline V load(const float* p) {
-  return _mm_loadu_ps(p);
-}
-inline void store(float* p, V v) {
-  _mm_storeu_ps(p, v);
-}
-inline V lanes(const float* q) {
-  return _mm_loadu_ps(q);
-}
-inline V splat(float x) {
-  return _mm_set1_ps(x);
-}
-inline V mass(V a) {
-  return _mm_shuffle_ps(a, a, 0x00);
-}
-inline V finish(V keep, V m, V v) {
-  const V le = _mm_cmple_ps(m, _mm_setzero_ps());
-  const V first = _mm_castsi128_ps(_mm_setr_epi32(-1, 0, 0, 0));
-  return _mm_or_ps(_mm_and_ps(first, keep), _mm_andnot_ps(first, _mm_andnot_ps(le, v)));
-}
-#endif
 }  // namespace free_leaf
 
 template <bool Force, bool Flip>
 void update_free_leaf(Real* la, Real* lb, Real dt, const Vec3& dv_gravity) {
   using namespace free_leaf;
-  const float g4[4] = {0, dv_gravity[0], dv_gravity[1], dv_gravity[2]};
-  const V gv = lanes(g4), dtv = splat(dt), one = splat(1);
+  V gv, one = lanes::splat(1.0f), dtv = lanes::splat(float(dt));
+  I first;  // all bits set in element 0 of each node: m, kept as it is
+  for (int k = 0; k < kFloats; ++k) {
+    gv[k] = k % 4 == 0 ? 0.0f : float(dv_gravity[k % 4 - 1]);
+    first[k] = k % 4 == 0 ? -1 : 0;
+  }
+  // element 0 from keep, elements 1-3 from v where m > 0, else +0
+  auto finish = [&](V keep, V m, V v) {
+    const I le = m <= V{};
+    return V((I(keep) & first) | (I(v) & ~first & ~le));
+  };
   for (int o = 0; o < kLeafNodes * 4; o += kFloats) {  // (GCC's element-wise vector operators)
-    const V a = load(la + o);
-    const V m = mass(a);
+    V a;
+    std::memcpy(&a, la + o, sizeof a);
+    const V m = mass(a, std::make_integer_sequence<int, kFloats>{});
     const V inv = one / m;
     const V v_old = a * inv;
     V v = v_old + gv;
     if (Force) {
-      const V b = load(lb + o);
+      V b;
+      std::memcpy(&b, lb + o, sizeof b);
       v = v + (dtv * inv) * b;
-      if (Flip) store(lb + o, finish(b, m, v - v_old));
+      if (Flip) {
+        const V dv = finish(b, m, v - v_old);
+        std::memcpy(lb + o, &dv, sizeof dv);
+      }
     }
-    store(la + o, finish(a, m, v));
+    const V out = finish(a, m, v);
+    std::memcpy(la + o, &out, sizeof out);
   }
 }
 #else
